@@ -1,0 +1,440 @@
+"""Calibration data: one immutable container, CSV loaders, validation and splits.
+
+Units throughout: magnetic field in microtesla (uT), temperature in degrees Celsius,
+time in seconds. Every loader validates at the boundary and raises
+:class:`DataError` naming the row, column and the fix.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+__all__ = [
+    "CalibrationData",
+    "DataError",
+    "CANONICAL_COLUMNS",
+    "load_csv",
+    "load_belsten",
+    "write_csv",
+    "validate",
+    "split_random",
+    "split_by_run",
+    "split_time_blocks",
+    "make_split",
+    "Split",
+]
+
+AXES = ("x", "y", "z")
+CANONICAL_COLUMNS = (
+    "time",
+    "run",
+    "bx_meas",
+    "by_meas",
+    "bz_meas",
+    "temperature",
+    "bx_ref",
+    "by_ref",
+    "bz_ref",
+)
+_REQUIRED = ("bx_meas", "by_meas", "bz_meas", "temperature")
+_REF = ("bx_ref", "by_ref", "bz_ref")
+#: A temperature column whose median is above this is almost surely kelvin.
+_KELVIN_THRESHOLD_C = 150.0
+
+
+class DataError(ValueError):
+    """Bad input data: the message names the row/column and the fix."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationData:
+    """One calibration recording (or a subset of one).
+
+    Attributes:
+      b_meas: (n, 3) measured field of the device under test, uT.
+      temperature: (n,) sensor temperature, degrees C.
+      b_ref: (n, 3) reference field, uT, or ``None`` when the recording has no
+        reference (the normal case when applying a calibration in the field).
+      time: (n,) seconds.
+      run: (n,) integer run (campaign) id.
+      source: a short description of where the rows came from.
+
+    Example:
+      >>> d = CalibrationData(np.zeros((2, 3)), np.array([20.0, 21.0]), np.zeros((2, 3)))
+      >>> d.n
+      2
+    """
+
+    b_meas: np.ndarray
+    temperature: np.ndarray
+    b_ref: np.ndarray | None
+    time: np.ndarray | None = None
+    run: np.ndarray | None = None
+    source: str = ""
+
+    def __post_init__(self):
+        b = np.asarray(self.b_meas, dtype=np.float64)
+        n = b.shape[0] if b.ndim == 2 else -1
+        if b.ndim != 2 or b.shape[1] != 3:
+            raise DataError(f"b_meas must have shape (n, 3); got {b.shape}.")
+        t = np.asarray(self.temperature, dtype=np.float64).reshape(-1)
+        if t.shape[0] != n:
+            raise DataError(f"temperature has {t.shape[0]} rows but b_meas has {n}.")
+        ref = None
+        if self.b_ref is not None:
+            ref = np.asarray(self.b_ref, dtype=np.float64)
+            if ref.shape != (n, 3):
+                raise DataError(f"b_ref must have shape ({n}, 3); got {ref.shape}.")
+        time = (
+            np.arange(n, dtype=np.float64)
+            if self.time is None
+            else np.asarray(self.time, dtype=np.float64).reshape(-1)
+        )
+        run = (
+            np.zeros(n, dtype=np.int64)
+            if self.run is None
+            else np.asarray(self.run).astype(np.int64).reshape(-1)
+        )
+        if time.shape[0] != n or run.shape[0] != n:
+            raise DataError(f"time and run must have {n} rows.")
+        for name, arr in (("b_meas", b), ("temperature", t), ("b_ref", ref), ("time", time), ("run", run)):
+            if arr is not None:
+                arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @property
+    def n(self) -> int:
+        return int(self.b_meas.shape[0])
+
+    @property
+    def has_reference(self) -> bool:
+        return self.b_ref is not None
+
+    @property
+    def runs(self) -> np.ndarray:
+        return np.unique(self.run)
+
+    def subset(self, idx: np.ndarray) -> "CalibrationData":
+        """Rows ``idx`` (a boolean mask or integer indices), in that order."""
+        idx = np.asarray(idx)
+        return CalibrationData(
+            self.b_meas[idx],
+            self.temperature[idx],
+            None if self.b_ref is None else self.b_ref[idx],
+            self.time[idx],
+            self.run[idx],
+            self.source,
+        )
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _bad_rows(mask: np.ndarray, limit: int = 5) -> str:
+    rows = np.flatnonzero(mask)
+    shown = ", ".join(str(int(r) + 1) for r in rows[:limit])
+    more = f" and {rows.size - limit} more" if rows.size > limit else ""
+    return f"data row(s) {shown}{more}"
+
+
+def validate(
+    data: CalibrationData,
+    *,
+    n_params: int = 8,
+    need_reference: bool = True,
+    need_temperature_variation: bool = True,
+    allow_duplicate_times: bool = False,
+    origin: str = "",
+) -> None:
+    """Check a recording before fitting; raise :class:`DataError` naming what is wrong.
+
+    Checks: non-finite values (row and column), missing reference, enough rows for
+    ``n_params`` parameters, temperature in kelvin, constant temperature (temperature
+    terms not identifiable), duplicated timestamps within a run.
+    Row numbers in messages count data rows from 1 (the header is not counted).
+    """
+    where = f" in {origin}" if origin else ""
+    cols = {"bx_meas": data.b_meas[:, 0], "by_meas": data.b_meas[:, 1], "bz_meas": data.b_meas[:, 2],
+            "temperature": data.temperature, "time": data.time}
+    if data.b_ref is not None:
+        cols.update({c: data.b_ref[:, i] for i, c in enumerate(_REF)})
+    for name, col in cols.items():
+        bad = ~np.isfinite(col)
+        if bad.any():
+            raise DataError(
+                f"Column '{name}'{where} has {int(bad.sum())} non-finite value(s) (NaN or inf) at "
+                f"{_bad_rows(bad)}. Remove or repair those rows before calibrating."
+            )
+    if need_reference and data.b_ref is None:
+        raise DataError(f"The recording{where} has no reference columns {_REF}; a calibration needs them.")
+    if data.n < n_params + 1:
+        raise DataError(
+            f"The recording{where} has {data.n} rows but the physics model has {n_params} parameters per axis; "
+            f"at least {n_params + 1} rows are needed (many more for a useful calibration)."
+        )
+    med = float(np.median(data.temperature))
+    if med > _KELVIN_THRESHOLD_C:
+        raise DataError(
+            f"Column 'temperature'{where} has median {med:.2f}, which looks like kelvin, but Celsius is expected. "
+            f"Set [data] temperature_unit = \"K\" (or subtract 273.15)."
+        )
+    if need_temperature_variation and float(np.ptp(data.temperature)) < 1e-6:
+        raise DataError(
+            f"Column 'temperature'{where} does not vary (all rows {data.temperature[0]:.3f} C): the temperature "
+            f"terms Ks and Ko are not identifiable. Set [physics] temperature_terms = false to fit S and O only."
+        )
+    if not allow_duplicate_times:
+        for r in np.unique(data.run):
+            sel = np.flatnonzero(data.run == r)
+            t = data.time[sel]
+            dup = np.zeros(data.n, dtype=bool)
+            same = np.diff(t) == 0
+            if same.any():
+                dup[sel[1:][same]] = True
+                raise DataError(
+                    f"Column 'time'{where} has duplicated timestamps within run {int(r)} at {_bad_rows(dup)}. "
+                    f"Give each row a distinct time (or distinct 'run' ids for separate recordings)."
+                )
+
+
+# --------------------------------------------------------------------------- loaders
+
+
+def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
+    """Read a comma-separated file with a header row into (header, float array)."""
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise DataError(f"{path} is empty; expected a header row and data rows.") from None
+        rows = []
+        for i, row in enumerate(reader, start=1):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise DataError(
+                    f"{path}: data row {i} has {len(row)} fields but the header has {len(header)}."
+                )
+            vals = []
+            for j, c in enumerate(row):
+                c = c.strip()
+                try:
+                    vals.append(float(c) if c else np.nan)
+                except ValueError:
+                    raise DataError(
+                        f"{path}: data row {i}, column '{header[j]}' holds {c!r}, which is not a number."
+                    ) from None
+            rows.append(vals)
+    if not rows:
+        raise DataError(f"{path} has a header but no data rows.")
+    return header, np.asarray(rows, dtype=np.float64)
+
+
+def load_csv(
+    path: str | Path,
+    *,
+    columns: Mapping[str, str] | None = None,
+    temperature_unit: str = "C",
+    require_reference: bool = True,
+) -> CalibrationData:
+    """Load a canonical CSV (``time,run,bx_meas,by_meas,bz_meas,temperature,bx_ref,by_ref,bz_ref``).
+
+    Args:
+      path: the file.
+      columns: optional mapping canonical name -> the file's column name, for other layouts.
+      temperature_unit: ``"C"`` or ``"K"`` (kelvin is converted to Celsius).
+      require_reference: if False, the ``*_ref`` columns may be absent.
+
+    ``run`` is optional (all rows one run); ``time`` is optional (row index).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"Data file {path} does not exist.")
+    if temperature_unit not in ("C", "K"):
+        raise DataError(f"temperature_unit is {temperature_unit!r}; it must be one of ['C', 'K'].")
+    header, arr = _read_table(path)
+    mapping = {c: c for c in CANONICAL_COLUMNS}
+    if columns:
+        unknown = set(columns) - set(CANONICAL_COLUMNS)
+        if unknown:
+            raise DataError(f"[data.columns] names unknown canonical column(s) {sorted(unknown)}; valid: {list(CANONICAL_COLUMNS)}.")
+        mapping.update(columns)
+    idx = {h: i for i, h in enumerate(header)}
+
+    def col(name: str, required: bool) -> np.ndarray | None:
+        src = mapping[name]
+        if src not in idx:
+            if required:
+                hint = f" (mapped from '{name}')" if src != name else ""
+                raise DataError(
+                    f"{path} has no column '{src}'{hint}. Columns found: {header}. Expected the canonical header "
+                    f"{','.join(CANONICAL_COLUMNS)} or a [data.columns] mapping."
+                )
+            return None
+        return arr[:, idx[src]]
+
+    b = np.stack([col(c, True) for c in _REQUIRED[:3]], axis=1)
+    t = col("temperature", True)
+    if temperature_unit == "K":
+        t = t - 273.15
+    refs = [col(c, require_reference) for c in _REF]
+    if any(r is None for r in refs) and not all(r is None for r in refs):
+        missing = [c for c, r in zip(_REF, refs) if r is None]
+        raise DataError(f"{path} has some reference columns but not {missing}; give all three or none.")
+    ref = None if refs[0] is None else np.stack(refs, axis=1)
+    time = col("time", False)
+    run = col("run", False)
+    if run is not None and np.isfinite(run).all() and np.any(run != np.round(run)):
+        raise DataError(f"{path}: column 'run' must hold integers.")
+    if run is not None and not np.isfinite(run).all():
+        raise DataError(f"{path}: column 'run' has non-finite values at {_bad_rows(~np.isfinite(run))}.")
+    return CalibrationData(b, t, ref, time, run, source=str(path))
+
+
+def _runs_from_gaps(time: np.ndarray, gap_s: float) -> np.ndarray:
+    return np.concatenate([[0], np.cumsum(np.diff(time) > gap_s)]).astype(np.int64) + 1
+
+
+def _spread_quantised_times(time: np.ndarray) -> np.ndarray:
+    """Spread rows that share an integer-second timestamp evenly inside that second."""
+    out = time.astype(np.float64).copy()
+    start = 0
+    n = time.size
+    while start < n:
+        stop = start + 1
+        while stop < n and time[stop] == time[start]:
+            stop += 1
+        k = stop - start
+        out[start:stop] = time[start] + np.arange(k) / k
+        start = stop
+    return out
+
+
+def load_belsten(path: str | Path, *, gap_s: float = 5.0) -> CalibrationData:
+    """Load Belsten et al. (2023) ``full_data.csv`` (no header).
+
+    Columns ``Time, refX, refY, refZ, testX, testY, testZ, Temp`` (Temp in kelvin,
+    converted to C). Runs start at time gaps > ``gap_s`` seconds. Timestamps are whole
+    seconds in the file (about four rows share each), so rows sharing a second are
+    spread evenly inside it; ``time`` is then seconds since the first row.
+    """
+    path = Path(path)
+    try:
+        arr = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
+    except ValueError as e:
+        raise DataError(f"{path} is not the Belsten 8-column numeric CSV: {e}") from None
+    if arr.shape[1] != 8:
+        raise DataError(f"{path} has {arr.shape[1]} columns; the Belsten file has 8 (Time, refX..Z, testX..Z, Temp).")
+    t_raw = arr[:, 0]
+    run = _runs_from_gaps(t_raw, gap_s)
+    time = _spread_quantised_times(t_raw) - t_raw[0]
+    return CalibrationData(
+        b_meas=arr[:, 4:7],
+        temperature=arr[:, 7] - 273.15,
+        b_ref=arr[:, 1:4],
+        time=time,
+        run=run,
+        source=f"belsten2023 ({path})",
+    )
+
+
+def write_csv(data: CalibrationData, path: str | Path) -> None:
+    """Write ``data`` in the canonical CSV layout (reference columns only if present)."""
+    cols = ["time", "run", "bx_meas", "by_meas", "bz_meas", "temperature"]
+    parts = [data.time[:, None], data.run[:, None].astype(np.float64), data.b_meas, data.temperature[:, None]]
+    if data.b_ref is not None:
+        cols += list(_REF)
+        parts.append(data.b_ref)
+    mat = np.concatenate(parts, axis=1)
+    fmt = ["%.6f", "%d"] + ["%.10g"] * (mat.shape[1] - 2)
+    np.savetxt(path, mat, delimiter=",", header=",".join(cols), comments="", fmt=fmt)
+
+
+# --------------------------------------------------------------------------- splits
+
+
+@dataclasses.dataclass(frozen=True)
+class Split:
+    """Row indices of a train/test split and how it was made."""
+
+    train: np.ndarray
+    test: np.ndarray
+    kind: str
+    description: str
+
+    def as_dict(self) -> dict:
+        return {"kind": self.kind, "n_train": int(self.train.size), "n_test": int(self.test.size),
+                "description": self.description}
+
+
+def split_random(n: int, *, test_fraction: float, seed: int) -> Split:
+    """Seeded random row split (the paper's protocol; flatters models on autocorrelated data)."""
+    if not 0.0 < test_fraction < 1.0:
+        raise ValueError(f"test_fraction is {test_fraction}; it must be in (0, 1).")
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(n)
+    n_test = max(1, int(round(test_fraction * n)))
+    test, train = np.sort(perm[:n_test]), np.sort(perm[n_test:])
+    return Split(train, test, "random", f"random {1 - test_fraction:.0%}/{test_fraction:.0%} row split, seed {seed}")
+
+
+def split_by_run(run: np.ndarray, *, test_runs: Sequence[int]) -> Split:
+    """Leave whole runs out: rows of ``test_runs`` are the test set."""
+    runs = np.unique(run)
+    if runs.size < 2:
+        raise ValueError("split 'by_run' needs at least two runs; the data has one. Use 'random' or 'time_blocks'.")
+    missing = [r for r in test_runs if r not in runs]
+    if missing:
+        raise ValueError(f"test_runs {missing} are not in the data; runs present: {runs.tolist()}.")
+    test_mask = np.isin(run, list(test_runs))
+    if test_mask.all():
+        raise ValueError("split 'by_run' would leave no training rows; name fewer test_runs.")
+    return Split(np.flatnonzero(~test_mask), np.flatnonzero(test_mask), "by_run",
+                 f"leave-runs-out, test runs {list(test_runs)}")
+
+
+def split_time_blocks(run: np.ndarray, *, test_fraction: float, n_blocks: int = 1, seed: int = 0) -> Split:
+    """Hold out contiguous time blocks inside every run (interpolation without neighbour leak).
+
+    In each run, ``n_blocks`` blocks covering ``test_fraction`` of its rows are held out,
+    at seeded positions.
+    """
+    if not 0.0 < test_fraction < 1.0:
+        raise ValueError(f"test_fraction is {test_fraction}; it must be in (0, 1).")
+    rng = np.random.default_rng(seed)
+    test = np.zeros(run.size, dtype=bool)
+    for r in np.unique(run):
+        rows = np.flatnonzero(run == r)
+        m = rows.size
+        block = max(1, int(round(test_fraction * m / n_blocks)))
+        # Non-overlapping: choose block start slots on a grid of len m // n_blocks.
+        slot = m // n_blocks
+        for b in range(n_blocks):
+            lo = b * slot
+            hi = max(lo, lo + slot - block)
+            s = int(rng.integers(lo, hi + 1))
+            test[rows[s:s + block]] = True
+    return Split(np.flatnonzero(~test), np.flatnonzero(test), "time_blocks",
+                 f"{n_blocks} contiguous block(s) per run, {test_fraction:.0%} of rows held out, seed {seed}")
+
+
+def make_split(data: CalibrationData, *, kind: str, test_fraction: float = 0.1, seed: int = 0,
+               test_runs: Sequence[int] = (), n_blocks: int = 1) -> Split:
+    """Dispatch on split ``kind`` in {'random', 'by_run', 'time_blocks', 'none'}."""
+    if kind == "random":
+        return split_random(data.n, test_fraction=test_fraction, seed=seed)
+    if kind == "by_run":
+        runs = list(test_runs) if test_runs else [int(data.runs[-1])]
+        return split_by_run(data.run, test_runs=runs)
+    if kind == "time_blocks":
+        return split_time_blocks(data.run, test_fraction=test_fraction, n_blocks=n_blocks, seed=seed)
+    if kind == "none":
+        idx = np.arange(data.n)
+        return Split(idx, idx, "none", "no split: fit and evaluate on all rows (in-sample)")
+    raise ValueError(f"split kind {kind!r} is not known; it must be one of ['random', 'by_run', 'time_blocks', 'none'].")
