@@ -275,3 +275,28 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
+
+
+#: Named model extensions usable as ``[physics] extra_terms = ["name", {name = "...", ...}]``.
+EXTRA_TERMS: dict[str, type] = {
+    "temperature_quadratic": TemperatureQuadratic,
+    "thermal_lag": ThermalLag,
+}
+
+
+def make_extra(spec, *, t0: float = 0.0):
+    """Build an extra term/transform from a name or a ``{name = ..., field = value}`` table."""
+    if isinstance(spec, str):
+        spec = {"name": spec}
+    spec = dict(spec)
+    name = spec.pop("name", None)
+    if name not in EXTRA_TERMS:
+        raise ValueError(f"physics extra term {name!r} is not known; it must be one of {sorted(EXTRA_TERMS)}.")
+    cls = EXTRA_TERMS[name]
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(spec) - fields
+    if unknown:
+        raise ValueError(f"physics extra term {name!r} has no parameter(s) {sorted(unknown)}; valid: {sorted(fields)}.")
+    if "t0" in fields and "t0" not in spec:
+        spec["t0"] = t0
+    return cls(**spec)

@@ -1,0 +1,105 @@
+"""The ``bayesmag`` command line: thin wrappers around the Python API.
+
+Commands::
+
+    bayesmag run CONFIG [--out DIR] [--set key=value]...
+    bayesmag data fetch NAME [--force]
+    bayesmag data list
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _cmd_run(args) -> int:
+    from .config import load_config
+    from .job import run_job
+
+    cfg = load_config(_resolve_config(args.config), args.set or [])
+    out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+    result = run_job(cfg, out, progress=not args.no_progress)
+    m = result["metrics"]
+    print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
+          f"{m['split']['n_test']} test rows)")
+    print("  test RMSE (uT)      " + "  ".join(f"{ax}: {m['raw']['rmse'][ax]:.4g} raw -> {m['physics']['rmse'][ax]:.4g} physics"
+                                            for ax in "xyz"))
+    cov = m["physics"]["coverage"]
+    print(f"  physics {m['uq']['level']:.0%} coverage  " + "  ".join(f"{ax}: {cov[ax]:.1%}" for ax in "xyz"))
+    for name, block in m.get("hybrid", {}).items():
+        print(f"  hybrid[{name}] RMSE    " + "  ".join(f"{ax}: {block['rmse'][ax]:.4g}" for ax in "xyz")
+              + "   coverage " + "  ".join(f"{ax}: {block['coverage'][ax]:.1%}" for ax in "xyz"))
+    for note in result["fit"].design_notes:
+        print(f"  note: {note}")
+    return 0
+
+
+def _resolve_config(name: str) -> Path:
+    p = Path(name)
+    if p.exists():
+        return p
+    packaged = Path(__file__).resolve().parent.parent / "configs" / f"{name.removesuffix('.toml')}.toml"
+    if packaged.exists():
+        return packaged
+    return p
+
+
+def _cmd_data(args) -> int:
+    from .datasets import DATASETS, fetch_dataset, find_dataset
+
+    if args.action == "list":
+        for name, ds in DATASETS.items():
+            try:
+                where = str(find_dataset(name))
+            except Exception:
+                where = "not downloaded (bayesmag data fetch " + name + ")"
+            print(f"{name}: {ds.description}\n  {where}")
+        return 0
+    if not args.name:
+        print("bayesmag data fetch: name a dataset, e.g. `bayesmag data fetch belsten2023`", file=sys.stderr)
+        return 2
+    path = fetch_dataset(args.name, force=args.force)
+    print(f"bayesmag: {args.name} is at {path} (sha256 verified)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bayesmag", description="Magnetometer calibration with trustworthy uncertainty.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run a calibration job from a TOML config")
+    r.add_argument("config", help="config file (or the name of a packaged config, e.g. quickstart)")
+    r.add_argument("--out", help="output folder (default runs/<config name>)")
+    r.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config key, e.g. --set uq.n_params=100 or --set data.path=my.csv")
+    r.add_argument("--no-progress", action="store_true", help="no progress bars")
+    r.set_defaults(func=_cmd_run)
+
+    d = sub.add_parser("data", help="named datasets: list, fetch")
+    d.add_argument("action", choices=["fetch", "list"])
+    d.add_argument("name", nargs="?")
+    d.add_argument("--force", action="store_true", help="download again even if present")
+    d.set_defaults(func=_cmd_data)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from .config import ConfigError
+    from .data import DataError
+    from .job import JobError
+
+    try:
+        return args.func(args)
+    except (ConfigError, DataError, JobError, FileNotFoundError) as e:
+        print(f"bayesmag: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

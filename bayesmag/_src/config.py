@@ -1,0 +1,276 @@
+"""Job configuration: TOML validated into typed, frozen objects.
+
+Unknown keys and wrong types are :class:`ConfigError` naming the key, the value and the
+valid choices. ``--set key=value`` overrides are applied before validation; the value is
+parsed as a TOML literal (``uq.n_params=100``, ``split.kind="by_run"``) and falls back to
+a plain string (``data.path=my.csv``). Setting ``data.path`` replaces whatever data source
+the file names.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import tomllib
+import types
+import typing
+from pathlib import Path
+from typing import Any, Union
+
+__all__ = ["Config", "ConfigError", "load_config", "config_from_dict", "apply_overrides", "to_toml",
+           "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig"]
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the key and the fix."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Where the recording comes from: a named dataset, a CSV path, or the built-in simulator."""
+
+    source: str | None = None           # "belsten2023" | "simulated"
+    path: str | None = None             # canonical CSV (or mapped with `columns`)
+    temperature_unit: str = "C"
+    columns: dict = dataclasses.field(default_factory=dict)
+    simulate: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class SplitConfig:
+    kind: str = "random"                # random | by_run | time_blocks | none
+    test_fraction: float = 0.1
+    seed: int = 0
+    test_runs: list = dataclasses.field(default_factory=list)
+    n_blocks: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsConfig:
+    t0: Union[float, str] = 0.0         # reference temperature, or "mean" (training mean)
+    temperature_terms: bool = True
+    extra_terms: list = dataclasses.field(default_factory=list)
+    covariance: str = "white"           # white | ar1 | newey_west
+
+
+@dataclasses.dataclass(frozen=True)
+class UQConfig:
+    method: str = "psqmc"               # psqmc | mc | analytic
+    n_params: int = 500
+    n_qmc: int = 1000
+    sigma_in: Union[str, list] = "auto"  # "auto", [sd_bx, sd_by, sd_bz, sd_T], or a 4x4 covariance
+    level: float = 0.95
+    seed: int = 0
+    chunk_size: int = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkConfig:
+    """Residual network (hybrid stage); ``enabled = false`` runs the physics stage only."""
+
+    enabled: bool = False
+    likelihoods: list = dataclasses.field(default_factory=lambda: ["gaussian"])
+    hidden_layers: int = 4
+    width: int = 64
+    activation: str = "relu"
+    dropconnect: float = 0.01
+    learning_rate: float = 5e-4
+    batch_size: int = 16
+    max_epochs: int = 1000
+    patience: int = 50
+    min_delta: float = 1e-6
+    validation_fraction: float = 0.1
+    log_scale_clip: list = dataclasses.field(default_factory=lambda: [-10.0, 3.0])
+    log_scale_l2: float = 1e-4
+    epsilon: float = 1e-6
+    student_t_df: Union[float, str] = 4.0   # a number, or "learn"
+    mc_passes: int = 100
+    fusion: str = "moment_match"
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputConfig:
+    figures: bool = True
+    progress: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A whole job: data, split, physics, uncertainty, network and output settings."""
+
+    name: str = "bayesmag"
+    data: DataConfig = dataclasses.field(default_factory=DataConfig)
+    split: SplitConfig = dataclasses.field(default_factory=SplitConfig)
+    physics: PhysicsConfig = dataclasses.field(default_factory=PhysicsConfig)
+    uq: UQConfig = dataclasses.field(default_factory=UQConfig)
+    network: NetworkConfig = dataclasses.field(default_factory=NetworkConfig)
+    output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+_CHOICES = {
+    "split.kind": ("random", "by_run", "time_blocks", "none"),
+    "physics.covariance": ("white", "ar1", "newey_west"),
+    "uq.method": ("psqmc", "mc", "analytic"),
+    "data.temperature_unit": ("C", "K"),
+    "network.activation": ("relu", "tanh", "gelu", "silu", "elu"),
+    "network.fusion": ("moment_match",),
+}
+
+
+def _type_ok(value: Any, tp: Any) -> bool:
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        return any(_type_ok(value, a) for a in typing.get_args(tp))
+    if tp is type(None):
+        return value is None
+    if tp is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp in (str, bool, list, dict):
+        return isinstance(value, tp)
+    return True
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    return "none" if tp is type(None) else getattr(tp, "__name__", str(tp))
+
+
+def _build(cls, raw: dict, prefix: str):
+    if not isinstance(raw, dict):
+        raise ConfigError(f"[{prefix}] must be a table; got {raw!r}.")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in raw.items():
+        path = f"{prefix}.{key}" if prefix else key
+        if key not in fields:
+            raise ConfigError(f"Unknown config key '{path}'. Valid keys{' in [' + prefix + ']' if prefix else ''}: "
+                              f"{sorted(fields)}.")
+        tp = hints[key]
+        if dataclasses.is_dataclass(tp):
+            kwargs[key] = _build(tp, value, path)
+            continue
+        if not _type_ok(value, tp):
+            raise ConfigError(f"Config key '{path}' = {value!r} has the wrong type: expected {_type_name(tp)}.")
+        if path in _CHOICES and value not in _CHOICES[path]:
+            raise ConfigError(f"Config key '{path}' = {value!r} is not valid; it must be one of {list(_CHOICES[path])}.")
+        kwargs[key] = float(value) if tp is float else value
+    return cls(**kwargs)
+
+
+def _check_semantics(cfg: Config) -> None:
+    d = cfg.data
+    if d.source is not None and d.path is not None:
+        raise ConfigError("[data] names both 'source' and 'path'; give one.")
+    if d.source is None and d.path is None:
+        raise ConfigError("[data] needs 'source' (\"belsten2023\" or \"simulated\") or 'path' (a CSV file).")
+    if not 0 < cfg.split.test_fraction < 1:
+        raise ConfigError(f"Config key 'split.test_fraction' = {cfg.split.test_fraction} must be in (0, 1).")
+    if cfg.uq.n_params < 2 or cfg.uq.n_qmc < 2:
+        raise ConfigError("Config keys 'uq.n_params' and 'uq.n_qmc' must be at least 2.")
+    if not 0 < cfg.uq.level < 1:
+        raise ConfigError(f"Config key 'uq.level' = {cfg.uq.level} must be in (0, 1).")
+    if isinstance(cfg.physics.t0, str) and cfg.physics.t0 != "mean":
+        raise ConfigError(f"Config key 'physics.t0' = {cfg.physics.t0!r} must be a number or \"mean\".")
+    s = cfg.uq.sigma_in
+    if isinstance(s, str) and s != "auto":
+        raise ConfigError(f"Config key 'uq.sigma_in' = {s!r} must be \"auto\", 4 standard deviations or a 4x4 matrix.")
+    if isinstance(s, list) and not (len(s) == 4 and (all(isinstance(v, (int, float)) for v in s)
+                                                     or all(isinstance(r, list) and len(r) == 4 for r in s))):
+        raise ConfigError("Config key 'uq.sigma_in' must be 4 standard deviations [Bx, By, Bz, T] or a 4x4 matrix.")
+    lo_hi = cfg.network.log_scale_clip
+    if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
+        raise ConfigError(f"Config key 'network.log_scale_clip' = {lo_hi} must be [low, high] with low < high.")
+
+
+def config_from_dict(raw: dict) -> Config:
+    """Validate a plain dict (parsed TOML) into a :class:`Config`."""
+    cfg = _build(Config, raw, "")
+    _check_semantics(cfg)
+    return cfg
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(raw: dict, overrides: list[str]) -> dict:
+    """Apply ``key.sub=value`` overrides to a raw config dict (returns a new dict)."""
+    raw = copy.deepcopy(raw)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r} must look like key=value, e.g. --set uq.n_params=100.")
+        key, text = item.split("=", 1)
+        parts = key.strip().split(".")
+        node = raw
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {key}: '{p}' is not a table.")
+        node[parts[-1]] = _parse_value(text.strip())
+        if parts == ["data", "path"]:
+            raw["data"].pop("source", None)          # a path replaces any named source
+            raw["data"].pop("simulate", None)
+        if parts == ["data", "source"]:
+            raw["data"].pop("path", None)
+    return raw
+
+
+def load_config(path: str | Path, overrides: list[str] = ()) -> Config:
+    """Read a TOML config, apply ``--set`` overrides and validate it."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"Config file {path} does not exist.")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path} is not valid TOML: {e}") from None
+    raw = apply_overrides(raw, list(overrides))
+    data = raw.get("data", {})
+    if isinstance(data, dict) and data.get("path"):
+        p = Path(data["path"]).expanduser()
+        if not p.is_absolute() and not p.exists() and (path.parent / p).exists():
+            data["path"] = str(path.parent / p)   # relative to the config file
+    return config_from_dict(raw)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {v!r} to TOML")
+
+
+def to_toml(d: dict, _prefix: str = "") -> str:
+    """A small TOML writer for resolved configs (tables, scalars, lists, inline dicts); None is omitted."""
+    lines, tables = [], []
+    for k, v in d.items():
+        if v is None:
+            continue
+        if isinstance(v, dict) and v and all(not isinstance(x, dict) or True for x in v.values()) and _prefix == "":
+            tables.append((k, v))
+        else:
+            lines.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(lines)
+    for k, v in tables:
+        body = "\n".join(f"{kk} = {_toml_value(vv)}" for kk, vv in v.items() if vv is not None)
+        out += f"\n\n[{k}]\n{body}"
+    return out.strip() + "\n"

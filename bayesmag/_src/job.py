@@ -1,0 +1,211 @@
+"""The config-driven calibration job: data -> split -> physics fit -> physics UQ -> (network) -> outputs.
+
+:func:`run_job` writes everything into a temporary sibling folder and renames it to the
+output folder only when the whole job has succeeded, so a failed run never leaves a
+half-written folder that looks complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .config import Config, ConfigError, to_toml
+from .data import AXES, CalibrationData, DataError, load_csv, make_split, validate
+from .datasets import load_dataset
+from .fit import PhysicsFit, fit_physics
+from .physics import PhysicsModel, inputs_from_data, make_extra
+from .physics_uq import PhysicsUQ, estimate_input_noise, physics_uncertainty
+
+__all__ = ["run_job", "load_data", "build_model", "resolve_sigma_in", "JobError", "JobResult"]
+
+
+class JobError(RuntimeError):
+    """The job could not finish; the message says why and what to change."""
+
+
+def load_data(cfg: Config) -> CalibrationData:
+    """The recording a config names (CSV path, named dataset, or the built-in simulator)."""
+    d = cfg.data
+    if d.path is not None:
+        return load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit)
+    if d.source == "simulated":
+        from .simulate import simulate_from_config
+        return simulate_from_config(dict(d.simulate))
+    return load_dataset(d.source)
+
+
+def build_model(cfg: Config, train: CalibrationData) -> PhysicsModel:
+    t0 = float(np.mean(train.temperature)) if cfg.physics.t0 == "mean" else float(cfg.physics.t0)
+    try:
+        extra = tuple(make_extra(s, t0=t0) for s in cfg.physics.extra_terms)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"[physics] extra_terms: {e}") from None
+    return PhysicsModel.paper(t0=t0, temperature=cfg.physics.temperature_terms, extra=extra)
+
+
+def resolve_sigma_in(cfg: Config, train: CalibrationData) -> tuple[np.ndarray, str]:
+    s = cfg.uq.sigma_in
+    if s == "auto":
+        return estimate_input_noise(train), "auto: within-run first differences, 1.4826*MAD/sqrt(2)"
+    arr = np.asarray(s, dtype=np.float64)
+    if arr.ndim == 1:
+        return np.diag(arr**2), "config: standard deviations"
+    if not np.allclose(arr, arr.T) or np.linalg.eigvalsh(arr).min() < -1e-12:
+        raise ConfigError("Config key 'uq.sigma_in' as a 4x4 matrix must be symmetric positive semi-definite.")
+    return arr, "config: covariance matrix"
+
+
+class JobResult(dict):
+    """What a job computed (metrics, fit, uq, ...) beside the files it wrote."""
+
+
+@contextlib.contextmanager
+def _staging_dir(out: Path):
+    """Yield a temporary folder; on success it replaces ``out`` atomically, on failure it is removed."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if out.exists():
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        out.rename(old)
+    tmp.rename(out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _per_axis(v) -> dict:
+    v = np.asarray(v, dtype=np.float64).reshape(3)
+    return {ax: float(x) for ax, x in zip(AXES, v)}
+
+
+def _gaussian_scores(y, mean, sd, level):
+    from .likelihoods import Gaussian
+    from . import metrics as M
+    dist = Gaussian(mean, sd)
+    lo, hi = (np.asarray(a) for a in dist.interval(level))
+    return {
+        "rmse": _per_axis(M.rmse(y, mean)),
+        "mae": _per_axis(M.mae(y, mean)),
+        "coverage": _per_axis(np.mean((y >= lo) & (y <= hi), axis=0)),
+        "nll": _per_axis(M.nll(dist, y)),
+        "crps": _per_axis(M.crps(dist, y)),
+        "mean_width": _per_axis(np.mean(hi - lo, axis=0)),
+    }, lo, hi
+
+
+def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, columns: dict[str, np.ndarray]) -> None:
+    """CSV of per-row predictions: identifiers, then ``{axis}_{column}`` for every column (n, 3)."""
+    header = ["row", "time", "run", "temperature"] + [f"{ax}_{c}" for ax in AXES for c in columns]
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        cols = list(columns.values())
+        for k in range(data.n):
+            rec = [int(rows[k]), f"{data.time[k]:.6f}", int(data.run[k]), f"{data.temperature[k]:.6g}"]
+            for a in range(3):
+                for c in cols:
+                    v = c[k, a]
+                    rec.append(bool(v) if isinstance(v, (np.bool_, bool)) else f"{float(v):.8g}")
+            w.writerow(rec)
+
+
+def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
+    """Run the calibration job described by ``cfg`` and write its outputs into ``out``."""
+    progress = cfg.output.progress if progress is None else progress
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    t = time.perf_counter()
+    data = load_data(cfg)
+    try:
+        split = make_split(data, kind=cfg.split.kind, test_fraction=cfg.split.test_fraction, seed=cfg.split.seed,
+                           test_runs=cfg.split.test_runs, n_blocks=cfg.split.n_blocks)
+    except ValueError as e:
+        raise ConfigError(f"[split]: {e}") from None
+    train, test = data.subset(split.train), data.subset(split.test)
+    model = build_model(cfg, train)
+    validate(data, n_params=model.n_params, origin=data.source,
+             need_temperature_variation=cfg.physics.temperature_terms,
+             allow_duplicate_times=False)
+    if cfg.physics.temperature_terms and np.ptp(train.temperature) < 1e-6:
+        raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
+                        "Set [physics] temperature_terms = false or use a split that keeps temperature variation.")
+    timings["load"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    fit = fit_physics(train, model, covariance_method=cfg.physics.covariance)
+    timings["physics_fit"] = time.perf_counter() - t
+    if not fit.converged:
+        raise JobError(f"The Levenberg-Marquardt fit did not converge: {dict(zip(AXES, fit.result))}. "
+                       "Check the data for outliers or give a better starting point.")
+
+    t = time.perf_counter()
+    sigma_in, sigma_src = resolve_sigma_in(cfg, train)
+    uq = physics_uncertainty(fit, inputs_from_data(test), sigma_in=sigma_in, method=cfg.uq.method,
+                             n_params=cfg.uq.n_params, n_qmc=cfg.uq.n_qmc, seed=cfg.uq.seed,
+                             chunk_size=cfg.uq.chunk_size, progress=progress)
+    timings["physics_uq"] = time.perf_counter() - t
+
+    y = test.b_ref
+    from . import metrics as M
+    phys_scores, lo, hi = _gaussian_scores(y, uq.mean, uq.total, cfg.uq.level)
+    resid_train = train.b_ref - fit.predict(inputs_from_data(train))
+    metrics = {
+        "raw": {"rmse": _per_axis(M.rmse(y, test.b_meas)), "mae": _per_axis(M.mae(y, test.b_meas))},
+        "physics": phys_scores,
+        "physics_in_sample": {
+            "rmse": _per_axis(fit.rmse_in_sample),
+            "residual_std_error": _per_axis(np.sqrt(fit.s2)),
+            "mae": _per_axis(np.mean(np.abs(resid_train), axis=0)),
+        },
+        "uq": {"method": cfg.uq.method, "n_params": cfg.uq.n_params, "n_qmc": cfg.uq.n_qmc, "level": cfg.uq.level,
+               "sigma_in_sd": dict(zip(["bx", "by", "bz", "T"], map(float, np.sqrt(np.diag(sigma_in))))),
+               "sigma_in_source": sigma_src,
+               "mean_aleatoric": _per_axis(uq.aleatoric.mean(0)), "mean_epistemic": _per_axis(uq.epistemic.mean(0))},
+        "split": split.as_dict(),
+        "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs]},
+    }
+    result = JobResult(config=cfg, data=data, split=split, fit=fit, uq=uq, metrics=metrics, sigma_in=sigma_in)
+    columns = {
+        "measured": test.b_meas, "reference": y, "predicted": uq.mean,
+        "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic, "total": uq.total,
+        "lower": lo, "upper": hi, "covered": (y >= lo) & (y <= hi),
+    }
+
+    if cfg.network.enabled:
+        from .hybrid import run_hybrid_stage
+        t = time.perf_counter()
+        columns = run_hybrid_stage(cfg, result, train, test, columns, timings, progress=progress)
+
+    with _staging_dir(Path(out)) as tmp:
+        t = time.perf_counter()
+        (tmp / "params.json").write_text(json.dumps(fit.to_json(), indent=2))
+        write_predictions(tmp / "predictions.csv", test, split.test, columns)
+        (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
+        if cfg.output.figures:
+            from . import plots
+            plots.job_figures(tmp, result, columns)
+        timings["write"] = time.perf_counter() - t
+        timings["total"] = time.perf_counter() - t_all
+        metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
+        for extra_name, payload in result.get("extra_files", {}).items():
+            (tmp / extra_name).write_text(payload)
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return result

@@ -1,0 +1,41 @@
+"""Shared fixtures: CPU only, float64 (bayesmag enables it), the real data when available."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import bayesmag  # noqa: E402,F401  (enables float64)
+
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def _belsten_path():
+    d = os.environ.get("BAYESMAG_DATA_DIR")
+    if d and (Path(d) / "belsten2023" / "full_data.csv").exists():
+        return Path(d) / "belsten2023" / "full_data.csv"
+    local = Path(__file__).resolve().parents[2] / "shared" / "data" / "belsten2023" / "full_data.csv"
+    if local.exists():
+        os.environ.setdefault("BAYESMAG_DATA_DIR", str(local.parent.parent))
+        return local
+    return None
+
+
+@pytest.fixture(scope="session")
+def belsten():
+    """The Belsten (2023) recordings; in CI their absence is a failure, never a skip."""
+    p = _belsten_path()
+    if p is None:
+        if IN_CI:
+            pytest.fail("BAYESMAG_DATA_DIR must point at ../shared/data in CI: the real-data tests may not be skipped.")
+        pytest.skip("Belsten data not found (set BAYESMAG_DATA_DIR)")
+    from bayesmag import load_belsten
+    return load_belsten(p)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)

@@ -1,0 +1,163 @@
+"""Levenberg-Marquardt fit and covariance against scipy, closed-form least squares and the paper."""
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from bayesmag import (CalibrationData, PhysicsModel, ThermalLag, covariance, fit_physics, inputs_from_data,
+                      levenberg_marquardt)
+
+TABLES = json.loads((Path(__file__).resolve().parents[2] / "shared/reference/paper_tables.json").read_text()) \
+    if (Path(__file__).resolve().parents[2] / "shared/reference/paper_tables.json").exists() else None
+
+#: LM and the closed form solve the same linear problem; they agree to well below the estimate's own uncertainty.
+AGREE_IN_SD = 1e-5
+
+
+def _sim(n=400, seed=0, noise=0.02, t0=0.0):
+    r = np.random.default_rng(seed)
+    b = r.uniform(-50, 50, (n, 3))
+    t = r.uniform(0, 40, n)
+    theta = np.array([[1.02, -0.16, -0.21, 0.003, 0.004, 0.008, -1.2, 0.036],
+                      [-0.16, 2.37, 0.04, 0.0027, -0.05, -0.0028, -0.07, -0.0009],
+                      [-0.086, 0.096, 1.21, 0.0046, -0.0011, -0.004, 4.32, -0.16]])
+    X = np.asarray(PhysicsModel.paper().features(inputs_from_data(CalibrationData(b, t, None))))
+    y = X @ theta.T + noise * r.standard_normal((n, 3))
+    return CalibrationData(b, t, y, time=np.arange(n) * 0.25), theta, X
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_lm_rosenbrock(jit):
+    res = lambda th: jnp.array([10 * (th[1] - th[0] ** 2), 1 - th[0]])
+    solve = (jax.jit(lambda x: levenberg_marquardt(res, x)) if jit else lambda x: levenberg_marquardt(res, x))
+    sol = solve(jnp.array([-1.2, 1.0]))
+    assert int(sol.result) == 0
+    np.testing.assert_allclose(sol.theta, [1.0, 1.0], atol=1e-8)
+
+
+def test_lm_failure_is_data_not_exception():
+    sol = levenberg_marquardt(lambda th: jnp.array([jnp.nan * th[0]]), jnp.ones(1))
+    assert int(sol.result) == 2
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fit_matches_closed_form_and_scipy(seed):
+    data, theta, X = _sim(seed=seed)
+    fit = fit_physics(data)
+    assert fit.converged
+    for a in range(3):
+        ols = np.linalg.lstsq(X, data.b_ref[:, a], rcond=None)[0]
+        sp = least_squares(lambda th: X @ th - data.b_ref[:, a], np.zeros(8), method="lm",
+                           xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+        np.testing.assert_array_less(np.abs(fit.theta[a] - ols) / fit.std[a], AGREE_IN_SD)
+        np.testing.assert_array_less(np.abs(fit.theta[a] - sp) / fit.std[a], AGREE_IN_SD)
+        # covariance: s^2 (X^T X)^-1 in closed form
+        r = data.b_ref[:, a] - X @ ols
+        s2 = r @ r / (data.n - 8)
+        np.testing.assert_allclose(fit.cov[a], s2 * np.linalg.inv(X.T @ X), rtol=1e-6)
+
+
+def test_nonlinear_thermal_lag_recovered():
+    """A model nonlinear in tau: LM recovers tau; its covariance matches scipy's J^T J inverse."""
+    n = 1200
+    time = np.arange(n) * 1.0
+    t_log = 20 + 20 * (time > 200) - 15 * (time > 700)
+    r = np.random.default_rng(1)
+    b = r.uniform(-30, 30, (n, 3))
+    model = PhysicsModel.paper(extra=(ThermalLag(tau0=20.0),))
+    th_true = np.zeros((3, model.n_params))
+    th_true[:, :8] = [[1, 0, 0, 0.01, 0, 0, 0.5, 0.05], [0, 1, 0, 0, 0.01, 0, -0.5, 0.08], [0, 0, 1, 0, 0, 0.01, 1, -0.06]]
+    th_true[:, 8] = np.log(45.0)
+    data = CalibrationData(b, t_log, None, time=time)
+    y = np.asarray(model.predict_all(jnp.asarray(th_true), inputs_from_data(data))) + 0.01 * r.standard_normal((n, 3))
+    data = CalibrationData(b, t_log, y, time=time)
+    fit = fit_physics(data, model)
+    assert fit.converged
+    tau = np.exp(fit.theta[:, 8])
+    tau_sd = tau * fit.std[:, 8]
+    assert np.all(np.abs(tau - 45.0) < 4 * tau_sd + 0.5)
+    inp = inputs_from_data(data)
+    sp = least_squares(lambda th: np.asarray(model.predict(jnp.asarray(th), inp)) - y[:, 0],
+                       model.init_params(0), method="lm")
+    np.testing.assert_allclose(fit.theta[0], sp.x, rtol=1e-5, atol=1e-7)
+
+
+def test_covariance_methods_on_ar1_noise():
+    """With AR(1) residuals (rho=0.8) the white covariance is overconfident; AR(1) and Newey-West are not.
+
+    Checked against the empirical spread of the estimate over 200 replications (declared band 0.7-1.4)."""
+    n, rho, reps = 600, 0.8, 200
+    r = np.random.default_rng(0)
+    x = np.column_stack([np.ones(n), np.repeat(r.standard_normal(n // 20), 20)])   # slowly varying regressor
+    est, sds = [], {m: [] for m in ("white", "ar1", "newey_west")}
+    for _ in range(reps):
+        e = np.zeros(n)
+        z = r.standard_normal(n)
+        for i in range(1, n):
+            e[i] = rho * e[i - 1] + z[i]
+        y = x @ np.array([1.0, 2.0]) + e
+        beta = np.linalg.lstsq(x, y, rcond=None)[0]
+        est.append(beta[1])
+        for m in sds:
+            c, _ = covariance(x, y - x @ beta, method=m)
+            sds[m].append(np.sqrt(c[1, 1]))
+    true_sd = np.std(est)
+    assert np.mean(sds["white"]) / true_sd < 0.6
+    for m in ("ar1", "newey_west"):
+        assert 0.7 < np.mean(sds[m]) / true_sd < 1.4, m
+    with pytest.raises(ValueError, match="must be one of"):
+        covariance(x, y, method="hc3")
+
+
+def test_reference_temperature_decorrelates():
+    data, _, _ = _sim(n=600)
+    a = fit_physics(data, PhysicsModel.paper(t0=0.0))
+    b = fit_physics(data, PhysicsModel.paper(t0=float(data.temperature.mean())))
+    np.testing.assert_allclose(a.predict(inputs_from_data(data)), b.predict(inputs_from_data(data)), atol=1e-8)
+    ca, cb = a.diagnostics[0]["corr"], b.diagnostics[0]["corr"]
+    assert abs(ca[6, 7]) > 0.8 and abs(cb[6, 7]) < 0.2       # O-Ko
+    assert b.diagnostics[0]["condition_number"] < a.diagnostics[0]["condition_number"]
+
+
+def test_paper_tables_2_3_5_6(belsten):
+    """All 3378 rows: Table 2 values and Table 3 standard deviations to 4 significant figures,
+    in-sample physics RMSE / residual standard error / MAE of Tables 5-6."""
+    if TABLES is None:
+        pytest.skip("paper tables not found")
+    fit = fit_physics(belsten)
+    for a, ax in enumerate("xyz"):
+        p2 = np.array(TABLES["table2_physics_params_full_data"][ax])
+        p3 = np.array(TABLES["table3_physics_param_std"][ax])
+        # Table 2 is printed to 4 decimals: agree to half a unit in the last printed digit.
+        np.testing.assert_allclose(fit.theta[a], p2, atol=0.5e-4 + 1e-12)
+        np.testing.assert_allclose(fit.std[a], p3, rtol=6e-3)      # 4 significant figures (print rounding)
+    np.testing.assert_allclose(np.sqrt(fit.s2), TABLES["table5_rmse"]["physics"], atol=0.5e-4)
+    np.testing.assert_allclose(fit.rmse_in_sample, [0.02353, 0.05918, 0.03311], atol=0.5e-5)
+    # Table 6's physics MAE is not the all-rows in-sample MAE (that is 0.01784 / 0.04446 / 0.02485); it matches a
+    # 338-row random test split, whose seed the paper does not give. Check it lies in the central 95% of the
+    # test-split MAE over 50 split seeds.
+    from bayesmag import make_split
+    maes = []
+    for seed in range(50):
+        sp = make_split(belsten, kind="random", test_fraction=0.1, seed=seed)
+        g = fit_physics(belsten.subset(sp.train))
+        te = belsten.subset(sp.test)
+        maes.append(np.mean(np.abs(te.b_ref - g.predict(inputs_from_data(te))), axis=0))
+    lo, hi = np.percentile(maes, [2.5, 97.5], axis=0)
+    paper = np.array(TABLES["table6_mae"]["physics"])
+    assert np.all((lo <= paper) & (paper <= hi)), (lo, paper, hi)
+
+
+def test_identifiability_reported_on_real_data(belsten):
+    fit = fit_physics(belsten)
+    d = fit.diagnostics[1]
+    names = {(p["a"], p["b"]) for p in d["high_corr_pairs"]}
+    assert ("S_y", "Ks_y") in names and ("O", "Ko") in names      # the paper's Table 4 near-perfect pairs
+    assert d["condition_number"] > 1e4
+    assert any("only in run(s) [6]" in n for n in fit.design_notes)
+    assert 0.7 < fit.cov_info[0]["rho1"] < 0.9                      # the README's lag-1 autocorrelation ~0.8
