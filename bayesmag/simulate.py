@@ -1,0 +1,29 @@
+"""Simulated magnetometer with known parameters: seeded designs and named distortion effects.
+
+See :mod:`bayesmag._src.simulate` for the model (the inverse of the paper's thermo-affine
+calibration, section 4.1) and the effect catalogue (:data:`EFFECTS`).
+"""
+
+from bayesmag._src.simulate import (
+    EFFECTS,
+    Conditions,
+    Effect,
+    TrueParams,
+    draw_campaign,
+    draw_iid,
+    get_effect,
+    simulate,
+    simulate_from_config,
+)
+
+__all__ = [
+    "TrueParams",
+    "Conditions",
+    "simulate",
+    "simulate_from_config",
+    "draw_iid",
+    "draw_campaign",
+    "Effect",
+    "get_effect",
+    "EFFECTS",
+]
