@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Union
 
 __all__ = ["Config", "ConfigError", "load_config", "config_from_dict", "apply_overrides", "to_toml",
-           "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig"]
+           "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig", "NutsConfig"]
 
 
 class ConfigError(ValueError):
@@ -62,6 +62,7 @@ class UQConfig:
     level: float = 0.95
     seed: int = 0
     chunk_size: int = 256
+    residual_term: bool = True          # add the fit's unexplained residual variance (false = the paper's total)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +91,21 @@ class NetworkConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class NutsConfig:
+    """Full-Bayesian cross-check of the physics posterior with NumPyro NUTS."""
+
+    enabled: bool = False
+    chains: int = 4
+    warmup: int = 1000
+    draws: int = 1000
+    target_accept: float = 0.8
+    chain_method: str = "vectorized"    # vectorized | parallel | sequential
+    likelihood: str = "gaussian"        # observation model: gaussian | laplace | student_t
+    priors: dict = dataclasses.field(default_factory=dict)
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
 class OutputConfig:
     figures: bool = True
     progress: bool = True
@@ -105,6 +121,7 @@ class Config:
     physics: PhysicsConfig = dataclasses.field(default_factory=PhysicsConfig)
     uq: UQConfig = dataclasses.field(default_factory=UQConfig)
     network: NetworkConfig = dataclasses.field(default_factory=NetworkConfig)
+    nuts: NutsConfig = dataclasses.field(default_factory=NutsConfig)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict:
@@ -117,7 +134,8 @@ _CHOICES = {
     "uq.method": ("psqmc", "mc", "analytic"),
     "data.temperature_unit": ("C", "K"),
     "network.activation": ("relu", "tanh", "gelu", "silu", "elu"),
-    "network.fusion": ("moment_match",),
+    "network.fusion": ("moment_match", "paper"),
+    "nuts.chain_method": ("vectorized", "parallel", "sequential"),
 }
 
 

@@ -54,7 +54,7 @@ def build_model(cfg: Config, train: CalibrationData) -> PhysicsModel:
 def resolve_sigma_in(cfg: Config, train: CalibrationData) -> tuple[np.ndarray, str]:
     s = cfg.uq.sigma_in
     if s == "auto":
-        return estimate_input_noise(train), "auto: within-run first differences, 1.4826*MAD/sqrt(2)"
+        return estimate_input_noise(train), "auto: within-run second differences, 1.4826*MAD/sqrt(6)"
     arr = np.asarray(s, dtype=np.float64)
     if arr.ndim == 1:
         return np.diag(arr**2), "config: standard deviations"
@@ -165,11 +165,19 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
 
     y = test.b_ref
     from . import metrics as M
-    phys_scores, lo, hi = _gaussian_scores(y, uq.mean, uq.total, cfg.uq.level)
+    # The paper's physics total sqrt(alea^2 + epi^2) leaves out the scatter the fit could not explain
+    # (reference noise, model discrepancy): its 95% intervals cover ~60% on the real data. The residual
+    # term is the fit's residual variance beyond what the propagated input noise already accounts for.
+    resid_var = np.maximum(fit.s2 - np.mean(uq.aleatoric**2, axis=0), 0.0) if cfg.uq.residual_term else np.zeros(3)
+    residual = np.broadcast_to(np.sqrt(resid_var), uq.mean.shape)
+    total = np.sqrt(uq.aleatoric**2 + residual**2 + uq.epistemic**2)
+    phys_scores, lo, hi = _gaussian_scores(y, uq.mean, total, cfg.uq.level)
+    paper_scores, _, _ = _gaussian_scores(y, uq.mean, uq.total, cfg.uq.level)
     resid_train = train.b_ref - fit.predict(inputs_from_data(train))
     metrics = {
         "raw": {"rmse": _per_axis(M.rmse(y, test.b_meas)), "mae": _per_axis(M.mae(y, test.b_meas))},
         "physics": phys_scores,
+        "physics_paper_total": {k: paper_scores[k] for k in ("coverage", "nll", "crps", "mean_width")},
         "physics_in_sample": {
             "rmse": _per_axis(fit.rmse_in_sample),
             "residual_std_error": _per_axis(np.sqrt(fit.s2)),
@@ -177,7 +185,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
         },
         "uq": {"method": cfg.uq.method, "n_params": cfg.uq.n_params, "n_qmc": cfg.uq.n_qmc, "level": cfg.uq.level,
                "sigma_in_sd": dict(zip(["bx", "by", "bz", "T"], map(float, np.sqrt(np.diag(sigma_in))))),
-               "sigma_in_source": sigma_src,
+               "sigma_in_source": sigma_src, "residual_term": _per_axis(np.sqrt(resid_var)),
                "mean_aleatoric": _per_axis(uq.aleatoric.mean(0)), "mean_epistemic": _per_axis(uq.epistemic.mean(0))},
         "split": split.as_dict(),
         "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs]},
@@ -185,14 +193,18 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     result = JobResult(config=cfg, data=data, split=split, fit=fit, uq=uq, metrics=metrics, sigma_in=sigma_in)
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,
-        "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic, "total": uq.total,
+        "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic, "residual_physics": residual,
+        "total": total,
         "lower": lo, "upper": hi, "covered": (y >= lo) & (y <= hi),
     }
 
+    result["writers"] = []          # stages append callables writer(staging_dir) for their own files
     if cfg.network.enabled:
         from .hybrid import run_hybrid_stage
-        t = time.perf_counter()
         columns = run_hybrid_stage(cfg, result, train, test, columns, timings, progress=progress)
+    if cfg.nuts.enabled:
+        from .nuts import run_nuts_stage
+        run_nuts_stage(cfg, result, train, timings, progress=progress)
 
     with _staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
@@ -205,7 +217,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
         timings["write"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
-        for extra_name, payload in result.get("extra_files", {}).items():
-            (tmp / extra_name).write_text(payload)
+        for writer in result.get("writers", []):
+            writer(tmp)
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return result

@@ -96,17 +96,17 @@ def estimate_input_noise(data) -> np.ndarray:
     """``Sigma_in`` (4x4, diagonal) from the sensor's own noise in a recording.
 
     For each input channel (B_meas x, y, z and T), the white-noise standard deviation is
-    estimated from within-run first differences as ``1.4826 * MAD(diff) / sqrt(2)``:
-    differencing removes slow signal, and the median absolute deviation ignores the
-    large differences at field steps, so held segments dominate. This is the right
-    estimate when the noise is white and the signal is piecewise slow; it is biased low
-    for strongly coloured noise (then give ``sigma_in`` explicitly).
+    estimated from within-run second differences as ``1.4826 * MAD(d2) / sqrt(6)``
+    (``Var(x[t+1] - 2x[t] + x[t-1]) = 6 s^2`` for white noise): second differences remove
+    held levels, ramps and slow rotations, and the median absolute deviation ignores the
+    few large values at field steps. Right when the noise is white and the signal is
+    piecewise smooth; biased for strongly coloured noise (then give ``sigma_in``).
     """
     cols = np.column_stack([data.b_meas, data.temperature])
-    same = data.run[1:] == data.run[:-1]
-    diffs = np.diff(cols, axis=0)[same]
-    med = np.median(diffs, axis=0)
-    sd = 1.4826 * np.median(np.abs(diffs - med), axis=0) / np.sqrt(2.0)
+    same = (data.run[2:] == data.run[1:-1]) & (data.run[1:-1] == data.run[:-2])
+    d2 = (cols[2:] - 2 * cols[1:-1] + cols[:-2])[same]
+    med = np.median(d2, axis=0)
+    sd = 1.4826 * np.median(np.abs(d2 - med), axis=0) / np.sqrt(6.0)
     return np.diag(sd**2)
 
 

@@ -59,6 +59,3 @@ def job_figures(out: Path, result, columns: dict) -> None:
     if "hybrid_predicted" in columns:
         res["hybrid"] = columns["reference"] - columns["hybrid_predicted"]
     residual_histograms(out / "residual_histograms.png", res)
-    extra = result.get("figure_hooks", [])
-    for hook in extra:
-        hook(out)
