@@ -48,9 +48,12 @@ from ._src.physics_uq import (
     sobol_normal as sobol_normal,
 )
 
+from . import likelihoods as likelihoods, metrics as metrics, simulate as simulate
+
 __version__ = "0.1.0"
 
 __all__ = [
+    "likelihoods", "metrics", "simulate",
     "CalibrationData", "Config", "ConfigError", "DataError", "EXTRA_TERMS", "Inputs", "InputTransform", "JobError",
     "LMSolution", "PhysicsFit", "PhysicsModel", "PhysicsUQ", "Split", "Term", "TemperatureQuadratic", "ThermalLag",
     "ThermoAffine", "covariance", "estimate_input_noise", "fetch_dataset", "find_dataset", "fit_physics",

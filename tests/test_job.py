@@ -1,0 +1,151 @@
+"""The config-driven job and the CLI: outputs, all-or-nothing folders, error messages, dataset fetch."""
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import bayesmag
+from bayesmag import CalibrationData, ConfigError, DataError, write_csv
+from bayesmag._src.cli import main
+from bayesmag._src.config import config_from_dict
+
+FAST_UQ = {"n_params": 50, "n_qmc": 64}
+SIM = {"design": "campaign", "n": 1200, "seed": 1, "noise_sd": 0.05}
+
+
+def _cfg(**over):
+    raw = {"data": {"source": "simulated", "simulate": SIM}, "split": {"kind": "time_blocks", "test_fraction": 0.2},
+           "uq": FAST_UQ, "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}}
+    for k, v in over.items():
+        raw[k] = {**raw.get(k, {}), **v}
+    return config_from_dict(raw)
+
+
+def test_job_writes_outputs(tmp_path):
+    out = tmp_path / "run"
+    res = bayesmag.run_job(_cfg(output={"figures": True, "progress": False}), out)
+    for f in ("metrics.json", "params.json", "predictions.csv", "config.resolved.toml", "calibration.png",
+              "residual_histograms.png"):
+        assert (out / f).exists(), f
+    m = json.loads((out / "metrics.json").read_text())
+    for stage in ("raw", "physics"):
+        for k in ("rmse", "mae"):
+            assert set(m[stage][k]) == {"x", "y", "z"}
+    assert m["split"]["kind"] == "time_blocks" and "total" in m["timings"]
+    # physics beats raw on simulated data; intervals are not absurd
+    assert all(m["physics"]["rmse"][a] < 0.2 * m["raw"]["rmse"][a] for a in "xyz")
+    assert all(0.8 < m["physics"]["coverage"][a] <= 1.0 for a in "xyz")
+    rows = list(csv.DictReader(open(out / "predictions.csv")))
+    assert len(rows) == m["split"]["n_test"]
+    for col in ("x_measured", "y_reference", "z_predicted", "x_aleatoric_physics", "x_epistemic_physics",
+                "x_total", "x_lower", "x_upper", "x_covered"):
+        assert col in rows[0]
+    p = json.loads((out / "params.json").read_text())
+    assert set(p["axes"]["y"]["values"]) == set(res["fit"].param_names)
+    assert len(p["axes"]["y"]["correlation"]) == 8
+
+
+def test_same_config_same_numbers(tmp_path):
+    bayesmag.run_job(_cfg(), tmp_path / "a")
+    bayesmag.run_job(_cfg(), tmp_path / "b")
+    assert (tmp_path / "a/predictions.csv").read_bytes() == (tmp_path / "b/predictions.csv").read_bytes()
+
+
+def test_failed_run_leaves_no_folder(tmp_path):
+    bad = tmp_path / "bad.csv"
+    d = bayesmag.simulate.simulate(200, design="iid", seed=0, noise_sd=0.05)
+    b = d.b_meas.copy()
+    b[17, 2] = np.nan
+    write_csv(CalibrationData(b, d.temperature, d.b_ref, d.time, d.run), bad)
+    out = tmp_path / "run"
+    with pytest.raises(DataError, match=r"'bz_meas'.*row\(s\) 18"):
+        bayesmag.run_job(_cfg(data={"source": None, "path": str(bad)}), out)
+    assert not out.exists()
+    assert not any(p.name.startswith(".run.partial") for p in tmp_path.iterdir())
+    # an existing complete folder survives a failed re-run untouched
+    bayesmag.run_job(_cfg(), out)
+    before = (out / "metrics.json").read_text()
+    with pytest.raises(DataError):
+        bayesmag.run_job(_cfg(data={"source": None, "path": str(bad)}), out)
+    assert (out / "metrics.json").read_text() == before
+
+
+def test_constant_temperature_job_says_how_to_fix(tmp_path):
+    d = bayesmag.simulate.simulate(300, design="iid", seed=0, noise_sd=0.05)
+    p = tmp_path / "const.csv"
+    write_csv(CalibrationData(d.b_meas, np.full(d.n, 22.0), d.b_ref, d.time, d.run), p)
+    with pytest.raises(DataError, match="temperature_terms = false"):
+        bayesmag.run_job(_cfg(data={"source": None, "path": str(p)}, split={"kind": "random"}), tmp_path / "o")
+    res = bayesmag.run_job(_cfg(data={"source": None, "path": str(p)}, split={"kind": "random"},
+                                physics={"temperature_terms": False, "t0": 0.0}), tmp_path / "o")
+    assert res["fit"].param_names == ("S_x", "S_y", "S_z", "O")
+
+
+def test_unknown_dataset_named(tmp_path, monkeypatch):
+    with pytest.raises(DataError, match=r"Dataset 'nosuch' is not known; known datasets: \['belsten2023'\]"):
+        bayesmag.run_job(_cfg(data={"source": "nosuch", "simulate": {}}), tmp_path / "o")
+    monkeypatch.setenv("BAYESMAG_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    with pytest.raises(DataError, match="bayesmag data fetch belsten2023"):
+        bayesmag.load_dataset("belsten2023")
+
+
+def test_fetch_verifies_sha256(tmp_path, monkeypatch):
+    import dataclasses
+    from bayesmag._src import datasets
+    src = tmp_path / "src.csv"
+    src.write_text("1,2,3\n")
+    good = dataclasses.replace(datasets.DATASETS["belsten2023"], url=src.as_uri(),
+                               sha256=datasets.sha256_of(src))
+    monkeypatch.setitem(datasets.DATASETS, "belsten2023", good)
+    p = datasets.fetch_dataset("belsten2023", dest=tmp_path / "cache")
+    assert p.read_text() == "1,2,3\n"
+    bad = dataclasses.replace(good, sha256="0" * 64)
+    monkeypatch.setitem(datasets.DATASETS, "belsten2023", bad)
+    with pytest.raises(DataError, match="sha256"):
+        datasets.fetch_dataset("belsten2023", dest=tmp_path / "cache2")
+    assert not (tmp_path / "cache2/belsten2023/full_data.csv").exists()
+
+
+def test_cli_run_with_set_data_path(tmp_path, capsys):
+    d = bayesmag.simulate.simulate(600, design="iid", seed=3, noise_sd=0.05)
+    p = tmp_path / "rec.csv"
+    write_csv(d, p)
+    rc = main(["run", str(Path(__file__).resolve().parents[1] / "configs/quickstart.toml"), "--out",
+               str(tmp_path / "o"), "--set", f"data.path={p}", "--set", "uq.n_params=20", "--set", "uq.n_qmc=32",
+               '--set', 'split.kind="random"', "--set", "output.figures=false", "--no-progress"])
+    assert rc == 0
+    m = json.loads((tmp_path / "o/metrics.json").read_text())
+    assert m["data"]["source"] == str(p) and m["data"]["n_rows"] == 600
+
+
+def test_cli_bad_key_is_a_clear_error(tmp_path, capsys):
+    rc = main(["run", str(Path(__file__).resolve().parents[1] / "configs/quickstart.toml"), "--out",
+               str(tmp_path / "o"), "--set", "uq.n_parms=3"])
+    assert rc == 2
+    assert "Unknown config key 'uq.n_parms'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_console_script_help():
+    r = subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "run" in r.stdout
+
+
+def test_paper_physics_job_on_real_data(belsten, tmp_path):
+    """configs/paper_physics.toml at reduced Np/Nq: the paper's split, honest coverage, outputs complete."""
+    cfg = bayesmag.load_config(Path(__file__).resolve().parents[1] / "configs/paper_physics.toml",
+                               ["uq.n_params=100", "uq.n_qmc=256", "output.figures=false", "output.progress=false"])
+    res = bayesmag.run_job(cfg, tmp_path / "pp")
+    m = res["metrics"]
+    assert m["split"]["n_test"] == 338
+    np.testing.assert_allclose([m["raw"]["rmse"][a] for a in "xyz"], [3.07, 2.21, 1.68], atol=0.05)
+    assert all(m["physics"]["rmse"][a] < [0.03, 0.07, 0.04]["xyz".index(a)] for a in "xyz")
+    # the residual term makes the physics intervals honest on the random split (declared band 0.90-0.98)
+    assert all(0.90 <= m["physics"]["coverage"][a] <= 0.98 for a in "xyz"), m["physics"]["coverage"]
+    assert all(m["physics_paper_total"]["coverage"][a] < 0.7 for a in "xyz")
