@@ -149,3 +149,16 @@ def test_paper_physics_job_on_real_data(belsten, tmp_path):
     # the residual term makes the physics intervals honest on the random split (declared band 0.90-0.98)
     assert all(0.90 <= m["physics"]["coverage"][a] <= 0.98 for a in "xyz"), m["physics"]["coverage"]
     assert all(m["physics_paper_total"]["coverage"][a] < 0.7 for a in "xyz")
+    assert m["domain"]["n_outside"] < 10 and not m["warnings"]
+
+
+def test_leaving_out_the_heating_run_is_flagged(belsten, tmp_path):
+    """Without run 6 nothing varies temperature: every test row is outside the training domain, and the job says so."""
+    cfg = bayesmag.load_config(Path(__file__).resolve().parents[1] / "configs/paper_physics.toml",
+                               ['split.kind="by_run"', "split.test_runs=[6]", "uq.n_params=50", "uq.n_qmc=64",
+                                "output.figures=false", "output.progress=false"])
+    m = bayesmag.run_job(cfg, tmp_path / "r6")["metrics"]
+    assert m["domain"]["n_outside"] == 673 and m["domain"]["by_input"]["temperature"] == 673
+    assert "outside the training domain in temperature" in m["warnings"][0]
+    rows = list(csv.DictReader(open(tmp_path / "r6/predictions.csv")))
+    assert all(r["x_in_domain"] == "False" for r in rows)

@@ -36,6 +36,8 @@ def _cmd_run(args) -> int:
               + "   coverage " + "  ".join(f"{ax}: {block['coverage'][ax]:.1%}" for ax in "xyz"))
     for note in result["fit"].design_notes:
         print(f"  note: {note}")
+    for w in m.get("warnings", []):
+        print(f"  WARNING: {w}", file=sys.stderr)
     return 0
 
 

@@ -190,12 +190,19 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
         "split": split.as_dict(),
         "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs]},
     }
-    result = JobResult(config=cfg, data=data, split=split, fit=fit, uq=uq, metrics=metrics, sigma_in=sigma_in)
+    from .domain import Domain
+    domain = Domain.from_data(train)
+    metrics["domain"] = domain.summary(test)
+    warnings_ = [w for w in [domain.warning(test)] if w]
+    metrics["warnings"] = warnings_
+    result = JobResult(config=cfg, data=data, split=split, fit=fit, uq=uq, metrics=metrics, sigma_in=sigma_in,
+                       domain=domain)
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,
         "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic, "residual_physics": residual,
         "total": total,
         "lower": lo, "upper": hi, "covered": (y >= lo) & (y <= hi),
+        "in_domain": np.broadcast_to(~domain.outside(test).any(axis=1)[:, None], y.shape),
     }
 
     result["writers"] = []          # stages append callables writer(staging_dir) for their own files
