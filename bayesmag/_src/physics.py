@@ -286,6 +286,8 @@ EXTRA_TERMS: dict[str, type] = {
 
 def make_extra(spec, *, t0: float = 0.0):
     """Build an extra term/transform from a name or a ``{name = ..., field = value}`` table."""
+    from . import catalogue  # noqa: F401  (registers the discovery catalogue's terms in EXTRA_TERMS)
+
     if isinstance(spec, str):
         spec = {"name": spec}
     spec = dict(spec)
