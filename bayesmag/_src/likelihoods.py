@@ -12,6 +12,7 @@ registered as a JAX pytree and in :data:`LIKELIHOODS` by ``__init_subclass__`` u
         def cdf(self, y): ...
         def icdf(self, q): ...
         def crps(self, y): ...
+        def sample(self, key, sample_shape=()): return sample_by_inversion(self, key, sample_shape)
         @property
         def mean(self): ...
         @property
@@ -60,7 +61,7 @@ import numpy as np
 from jax.scipy.special import betainc, betaln, gammaln, ndtr, ndtri
 
 __all__ = ["Likelihood", "Gaussian", "Laplace", "StudentT", "LIKELIHOODS", "get_likelihood",
-           "moment_match"]
+           "moment_match", "sample_by_inversion"]
 
 ArrayLike = jax.typing.ArrayLike
 
@@ -97,10 +98,10 @@ class Likelihood(abc.ABC):
     r"""Abstract location-scale predictive distribution.
 
     Subclasses are ``@dataclasses.dataclass(frozen=True)``, set the class attribute ``name``
-    and implement ``log_prob``, ``cdf``, ``icdf``, ``crps``, ``mean``, ``variance`` and
-    ``from_moments``. Extra shape fields that a network head may learn are listed in
+    and implement ``log_prob``, ``cdf``, ``icdf``, ``crps``, ``sample``, ``mean``,
+    ``variance`` and ``from_moments``. Extra shape fields that a network head may learn are listed in
     ``head_transforms`` as ``(field, raw -> value)`` pairs. The concrete methods here
-    (``nll``, ``pit``, ``interval``, ``std``, ``sample``, ``from_head``, ...) are final.
+    (``nll``, ``pit``, ``interval``, ``std``, ``broadcast``, ``from_head``, ...) are final.
 
     Args:
         loc: location :math:`\mu`, any shape broadcastable with ``scale`` and shape fields.
@@ -150,6 +151,10 @@ class Likelihood(abc.ABC):
     def crps(self, y: ArrayLike) -> jax.Array:
         r"""Closed-form CRPS :math:`\int (F(z) - 1\{y \le z\})^2 dz`, per element."""
 
+    @abc.abstractmethod
+    def sample(self, key: jax.Array, sample_shape: tuple[int, ...] = ()) -> jax.Array:
+        """Draws of shape ``sample_shape + batch_shape`` (see :func:`sample_by_inversion`)."""
+
     @property
     @abc.abstractmethod
     def mean(self) -> jax.Array:
@@ -185,19 +190,19 @@ class Likelihood(abc.ABC):
 
     def interval(self, level: ArrayLike) -> tuple[jax.Array, jax.Array]:
         """Central interval ``(F^{-1}((1-level)/2), F^{-1}((1+level)/2))`` of probability ``level``."""
+        level = jnp.asarray(level, self._dtype(level))
         return self.icdf(0.5 - 0.5 * level), self.icdf(0.5 + 0.5 * level)
 
-    def sample(self, key: jax.Array, sample_shape: tuple[int, ...] = ()) -> jax.Array:
-        """Draws of shape ``sample_shape + batch_shape``, by inversion ``F^{-1}(U)``.
+    def _dtype(self, *xs: ArrayLike):
+        """Floating dtype of the parameters together with ``xs``."""
+        return _float_dtype(*jax.tree.leaves(self), *xs)
 
-        ``U`` takes the midpoints ``(k + 1/2) eps`` of the generator's grid, so it lies
-        strictly inside (0, 1) and is symmetric about 1/2.
-        """
+    def broadcast(self, sample_shape: tuple[int, ...] = ()) -> "Likelihood":
+        """The same distribution with every parameter broadcast to ``sample_shape + batch_shape``
+        (and one floating dtype), so later arithmetic needs no implicit rank promotion."""
         shape = tuple(sample_shape) + tuple(self.batch_shape)
-        dtype = _float_dtype(*jax.tree.leaves(self))
-        full = jax.tree.map(lambda p: jnp.broadcast_to(jnp.asarray(p, dtype), shape), self)
-        u = jax.random.uniform(key, shape, dtype) + 0.5 * jnp.finfo(dtype).eps
-        return full.icdf(u)
+        dtype = self._dtype()
+        return jax.tree.map(lambda p: jnp.broadcast_to(jnp.asarray(p, dtype), shape), self)
 
     # -- network head ------------------------------------------------------------------------
 
@@ -286,6 +291,20 @@ def _make_unflatten(cls):
     return unflatten
 
 
+def sample_by_inversion(dist: Likelihood, key: jax.Array,
+                        sample_shape: tuple[int, ...] = ()) -> jax.Array:
+    """Draws ``F^{-1}(U)`` of shape ``sample_shape + batch_shape``: a one-line ``sample`` for
+    families without a dedicated sampler.
+
+    ``U`` takes the midpoints ``(k + 1/2) eps`` of the generator's grid, so it lies strictly
+    inside (0, 1) and is symmetric about 1/2.
+    """
+    d = dist.broadcast(sample_shape)
+    dtype = d._dtype()
+    u = jax.random.uniform(key, d.batch_shape, dtype) + 0.5 * jnp.finfo(dtype).eps
+    return d.icdf(u)
+
+
 def moment_match(family: "Likelihood | type[Likelihood] | str", mean: ArrayLike,
                  variance: ArrayLike, **shape: Any) -> Likelihood:
     """The member of ``family`` with the given mean and variance (hybrid fusion).
@@ -332,7 +351,11 @@ class Gaussian(Likelihood):
         return ndtr(self._z(y))
 
     def icdf(self, q):
-        return self.loc + self.scale * ndtri(q)
+        return self.loc + self.scale * ndtri(jnp.asarray(q, self._dtype(q)))
+
+    def sample(self, key, sample_shape=()):
+        d = self.broadcast(sample_shape)
+        return d.loc + d.scale * jax.random.normal(key, d.batch_shape, d._dtype())
 
     def crps(self, y):
         z = self._z(y)
@@ -377,10 +400,14 @@ class Laplace(Likelihood):
         return jnp.where(z < 0, half_tail, 1.0 - half_tail)
 
     def icdf(self, q):
-        q = jnp.asarray(q)
+        q = jnp.asarray(q, self._dtype(q))
         tail = jnp.where(q < 0.5, q, 1.0 - q)  # exact for q >= 1/2 (Sterbenz)
         mag = -jnp.log(2.0 * tail)
         return self.loc + self.scale * jnp.where(q < 0.5, -mag, mag)
+
+    def sample(self, key, sample_shape=()):
+        d = self.broadcast(sample_shape)
+        return d.loc + d.scale * jax.random.laplace(key, d.batch_shape, d._dtype())
 
     def crps(self, y):
         a = jnp.abs(self._z(y))
@@ -497,12 +524,14 @@ def _t_icdf(q, nu):
         t = jnp.exp(u)
         log_s = jnp.log(_t_sf_abs(t, nu_sg))
         step = (log_s - log_p) * jnp.exp(log_s - u - _t_logpdf(t, nu_sg))
+        step = jnp.where(jnp.isfinite(step), step, 0.0)  # S underflow: keep the tail asymptote
         return jnp.minimum(u + jnp.clip(step, -50.0, 50.0), u_max)
 
     u = jax.lax.fori_loop(0, _T_ICDF_NEWTON_STEPS, newton, u)
     t_sg = jax.lax.stop_gradient(jnp.exp(u))
     # Straight-through Newton step: value t_sg, derivatives of the implicit solution.
     corr = (_t_cdf(-t_sg, nu) - p_in) / jnp.exp(_t_logpdf(t_sg, nu))
+    corr = jnp.where(jnp.isfinite(corr), corr, 0.0)
     t = t_sg + (corr - jax.lax.stop_gradient(corr))
     t = jnp.where(p == 0.5, 0.0, jnp.where(p == 0, jnp.inf, t))
     t = jnp.where(q < 0.5, -t, t)
@@ -548,8 +577,12 @@ class StudentT(Likelihood):
         return _t_cdf(*jnp.broadcast_arrays(z.astype(dtype), jnp.asarray(self.df, dtype)))
 
     def icdf(self, q):
-        q = jnp.asarray(q)
-        return self.loc + self.scale * _t_icdf(q, self.df)
+        dtype = self._dtype(q)
+        return self.loc + self.scale * _t_icdf(jnp.asarray(q, dtype), jnp.asarray(self.df, dtype))
+
+    def sample(self, key, sample_shape=()):
+        d = self.broadcast(sample_shape)
+        return d.loc + d.scale * jax.random.t(key, d.df, d.batch_shape, d._dtype())
 
     def crps(self, y):
         z = self._z(y)
