@@ -186,16 +186,10 @@ class Hysteresis(Term):
         return ("h",)
 
     def state(self, inputs: Inputs) -> jax.Array:
-        f = inputs.b[:, _AXES.index(self.axis)]
-        if self.mode == "excursion":
-            sign = jnp.where(f > self.threshold, 1.0, jnp.where(f < -self.threshold, -1.0, 0.0))
-        else:
-            lag = int(self.lag)
-            prev = jnp.concatenate([jnp.full((lag,), jnp.nan), f[:-lag]])
-            prev_run = jnp.concatenate([jnp.full((lag,), -1), inputs.run[:-lag]])
-            d = jnp.where(prev_run == inputs.run, f - jnp.nan_to_num(prev), 0.0)
-            sign = jnp.where(jnp.abs(d) > self.min_step, jnp.sign(d), 0.0)
-        return _hold_last(sign, sign != 0, inputs.run)
+        """(n,) magnetisation sign in {-1, 0, +1}."""
+        level = self.threshold if self.mode == "excursion" else self.min_step
+        return hysteresis_state(inputs.b[:, _AXES.index(self.axis)], inputs.run, level,
+                                mode=self.mode, lag=int(self.lag))
 
     def features(self, inputs):
         return self.state(inputs)[:, None]
@@ -233,6 +227,19 @@ class OffsetDrift(Term):
         if self.steps:
             cols.append((inputs.run - self.run_ref).astype(inputs.time.dtype))
         return jnp.stack(cols, axis=-1)
+
+
+def hysteresis_state(f: jax.Array, run: jax.Array, level, *, mode: str, lag: int = 4) -> jax.Array:
+    """Sign of the last excursion of ``f`` beyond +-``level`` (``mode="excursion"``) or of the
+    last change ``f(t) - f(t - lag)`` larger than ``level`` (``mode="direction"``), held within runs."""
+    if mode == "excursion":
+        sign = jnp.where(f > level, 1.0, jnp.where(f < -level, -1.0, 0.0))
+    else:
+        prev = jnp.concatenate([jnp.zeros((lag,), f.dtype), f[:-lag]])
+        prev_run = jnp.concatenate([jnp.full((lag,), -1, run.dtype), run[:-lag]])
+        d = jnp.where(prev_run == run, f - prev, 0.0)
+        sign = jnp.where(jnp.abs(d) > level, jnp.sign(d), 0.0)
+    return _hold_last(sign, sign != 0, run)
 
 
 # --------------------------------------------------------------------------- transforms
