@@ -177,21 +177,22 @@ def _block_ids(data: CalibrationData, block_rows: int) -> np.ndarray:
     return ids
 
 
-def _block_z(d: np.ndarray, blocks: np.ndarray) -> float:
-    """One-sided z that the block sums of ``d`` are centred above 0: Wilcoxon signed-rank
-    statistic of the block sums (robust to the heavy right tail of loss gains), with its
-    variance inflated by :math:`(1+\rho)/(1-\rho)` for lag-1 correlation between blocks."""
+def _block_z(d: np.ndarray, blocks: np.ndarray, e: np.ndarray | None = None) -> float:
+    """One-sided z that the block sums of ``d`` are centred above 0.
+
+    Wilcoxon signed-rank statistic of the block sums (robust to the heavy right tail of loss
+    gains). Blocks are chosen longer than the residual's correlation length (:func:`_folds`),
+    so block sums are close to independent under the null; ``e`` is unused (kept for API)."""
     sums = np.bincount(blocks, weights=d)
-    sums = sums[np.bincount(blocks) > 0]
+    counts = np.bincount(blocks)
+    keep = counts > 0
+    sums = sums[keep]
     nz = sums[sums != 0]
     if nz.size < 3:
         return 0.0
     r = stats.rankdata(np.abs(nz)) * np.sign(nz)
     z = float(r.sum() / np.sqrt((r * r).sum()))
-    c = r - r.mean()
-    den = float((c * c).sum())
-    rho = float(np.clip((c[1:] * c[:-1]).sum() / den, 0.0, 0.9)) if den > 0 else 0.0
-    return z / math.sqrt((1 + rho) / (1 - rho))
+    return z
 
 
 # --------------------------------------------------------------------------- locate
@@ -571,7 +572,7 @@ def _score_candidate(name, options, designs, current, y, folds, blocks, e_base, 
     k_eff = k + (1 if chosen.nl is not None else 0) + (1 if len(options) > 1 else 0)
     d = e_base**2 - e**2
     gain = float(d.sum() / (e_base @ e_base))
-    z = _block_z(d, blocks)
+    z = _block_z(d, blocks, e)
     scale = n_eff / y.size
     dbic = _bic(sse, n_eff, k_eff) - _bic(float(r_base @ r_base), n_eff, k_base)
     del scale
@@ -710,13 +711,16 @@ def _jsonable(x):
 # --------------------------------------------------------------------------- discover
 
 
-def _folds(data: CalibrationData, options: DiscoverOptions, notes: list) -> tuple[np.ndarray, np.ndarray, str]:
+def _folds(data: CalibrationData, options: DiscoverOptions, notes: list,
+           corr_rows: int = 0) -> tuple[np.ndarray, np.ndarray, str]:
+    """Fold and block id per row. Blocks: ``block_s`` seconds, or max(n/150 rows, ``corr_rows``)
+    (the residual correlation length), at most n/30 rows."""
     same = ~_run_starts(data.run)[1:]
     dt = float(np.median(np.diff(data.time)[same])) if same.any() else 1.0
     if options.block_s is not None:
         block_rows = max(10, int(round(options.block_s / max(dt, 1e-9))))
     else:
-        block_rows = max(10, data.n // 150)
+        block_rows = int(np.clip(max(data.n // 150, corr_rows), 10, max(10, data.n // 30)))
     blocks = _block_ids(data, block_rows)
     runs = np.unique(data.run)
     if options.cv == "by_run":
@@ -822,7 +826,13 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
     base = ThermoAffine(t0=t0, temperature=temp_terms)
     if not temp_terms:
         notes.append(f"Temperature varies by only {t_std:.3g} C (sd): the base model has no temperature terms.")
-    folds, blocks, cv_desc = _folds(data, options, notes)
+    inputs = inputs_from_data(data)
+    designs = _Designs(base, inputs)
+    y_all = np.asarray(data.b_ref)
+    X0 = designs.matrix(())
+    base_resid = np.stack([y_all[:, a] - X0 @ _lstsq(X0, y_all[:, a]) for a in range(3)], 1)
+    corr_rows = max(_block_length(base_resid[:, a]) for a in range(3))
+    folds, blocks, cv_desc = _folds(data, options, notes, corr_rows)
     same = ~_run_starts(data.run)[1:]
     dt = float(np.median(np.diff(data.time)[same])) if same.any() else 1.0
 
@@ -853,17 +863,11 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
     for s in skipped:
         notes.append(f"Candidate {s['candidate']} skipped: {s['reason']}.")
 
-    inputs = inputs_from_data(data)
-    designs = _Designs(base, inputs)
     k0 = len(base.param_names())
-    y_all = np.asarray(data.b_ref)
 
     # ---- baseline fit and locate
-    base_resid = np.empty_like(y_all)
     base_oos = np.empty_like(y_all)
     for a in range(3):
-        X = designs.matrix(())
-        base_resid[:, a] = y_all[:, a] - X @ _lstsq(X, y_all[:, a])
         base_oos[:, a] = _cv_residuals(designs, (), [None], y_all[:, a], folds)
     variables = _variables(data, time_ok)
     located = locate(data, base_resid, time_available=time_ok, seed=options.seed, variables=variables)
@@ -899,7 +903,7 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
             for s in ok:
                 if s is best:
                     continue
-                zpair = _block_z(s.e_oos**2 - best.e_oos**2, blocks)
+                zpair = _block_z(s.e_oos**2 - best.e_oos**2, blocks, best.e_oos)
                 if zpair < Z_DISTINCT:
                     alts.append({"effect": s.name, "setting": s.variant.label, "oos_gain": s.gain,
                                  "z_vs_selected": zpair})
@@ -973,8 +977,9 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
             }
             findings.append(finding)
             # fitted effect and its band for the figure
-            Xv = _effect_design(designs, current, v, theta, model)
-            arrays["effects"][(ax, s.name)] = _effect_band(Xv, theta, cov, offs[v], v)
+            eff, eff_sd = _effect_band(model, theta, cov, offs[v], v, designs.inputs)
+            arrays["effects"][(ax, s.name)] = {"effect": eff, "sd": eff_sd, "revealed_by": revealed_var,
+                                               "r_before": st["r_before"], "r_after": s.resid}
             selected_all.append(finding["config"])
     # ---- unexplained structure after the final model
     final_loc = locate(data, arrays["final_resid"], time_available=time_ok, seed=options.seed + 1,
@@ -1033,12 +1038,24 @@ def _dedupe_unexplained(items: list) -> list:
     return out
 
 
-def _effect_design(designs, current, v, theta, model):
-    return None
+def _effect_band(model: PhysicsModel, theta, cov, idx, v: _Variant, inputs: Inputs):
+    """The fitted effect of one extension (prediction with it minus without it) and its sd (delta method)."""
+    idx = np.asarray(idx)
 
+    def effect(th):
+        if v.nl is None:
+            off = th.at[idx].set(0.0)
+        elif v.name == "thermal_lag":
+            off = th.at[idx].set(math.log(1e-6))
+        else:
+            off = th.at[idx].set(0.0)
+        return model.predict(th, inputs) - model.predict(off, inputs)
 
-def _effect_band(_X, theta, cov, idx, v):
-    return {"idx": idx, "theta": theta, "cov": cov, "variant": v}
+    th = jnp.asarray(theta)
+    e = np.asarray(effect(th))
+    G = np.asarray(jax.jacfwd(effect)(th))
+    sd = np.sqrt(np.clip(np.einsum("np,pq,nq->n", G, cov, G), 0, None))
+    return e, sd
 
 
 # --------------------------------------------------------------------------- report
