@@ -761,13 +761,17 @@ class NutsResult:
     seconds: dict
     settings: dict
     fit: PhysicsFit | None = None
+    _loo: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     @property
     def axes(self) -> tuple[str, ...]:
         return tuple(str(a) for a in self.idata.posterior.axis.values)
 
     def loo(self, axis: str | None = None):
-        return loo(self.idata, axis=axis)
+        """PSIS-LOO of all sampled axes together, or of one ``axis`` (cached)."""
+        if axis not in self._loo:
+            self._loo[axis] = loo(self.idata, axis=axis)
+        return self._loo[axis]
 
     def metrics(self) -> dict:
         """The ``"nuts"`` block of metrics.json."""
@@ -785,7 +789,7 @@ class NutsResult:
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    lo = loo(self.idata, axis=ax)
+                    lo = self.loo(ax)
                 block["elpd_loo"] = float(lo.elpd_loo)
                 block["elpd_loo_se"] = float(lo.se)
                 block["p_loo"] = float(lo.p_loo)
@@ -1170,7 +1174,7 @@ def _write_netcdf(idata, path: Path) -> None:
         ds = idata[g]
         enc = {}
         for v in ds.data_vars:
-            e = {"zlib": True, "complevel": 4}
+            e = {"zlib": True, "complevel": 1, "shuffle": True}
             if g in ("log_likelihood", "posterior_predictive") and ds[v].dtype == np.float64:
                 e["dtype"] = "float32"
             enc[v] = e
@@ -1238,10 +1242,9 @@ def run_nuts_stage(cfg, result: dict, train, timings: dict, *, progress: bool = 
     fit = result["fit"]
     t = time.perf_counter()
     priors = parse_priors(n.priors, fit.param_names, likelihood=n.likelihood)
-    try:
-        for w in check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
-                                chain_method=n.chain_method):
-            pass
+    try:       # impossible settings are config errors; too-small ones become warnings in run_nuts
+        check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
+                       chain_method=n.chain_method)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     res = run_nuts(train, fit, chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,

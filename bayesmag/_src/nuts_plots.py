@@ -41,8 +41,9 @@ def trace_rank_plot(path: Path, res, *, n_params: int = 6) -> None:
     for k, (ax, name, is_theta) in enumerate(rows):
         x = _standardised(res, ax, name) if is_theta else post.sigma.sel(axis=ax).values
         C, D = x.shape
+        step = max(1, D // 500)                       # draw at most ~500 points per chain
         for c in range(C):
-            axs[k, 0].plot(x[c], lw=0.5, alpha=0.8)
+            axs[k, 0].plot(np.arange(0, D, step), x[c, ::step], lw=0.5, alpha=0.8)
         s = df[(df.axis == ax) & (df.parameter == name)].iloc[0]
         label = f"{ax}: {name}" + (" (LM sd)" if is_theta else " (uT)")
         axs[k, 0].set_ylabel(label, fontsize=8)
@@ -55,7 +56,7 @@ def trace_rank_plot(path: Path, res, *, n_params: int = 6) -> None:
             axs[k, 1].step(bins[:-1], h, where="post", lw=0.8)
         axs[k, 1].axhline(D / 20, color="k", lw=0.6, ls="--")
         axs[k, 1].set_yticks([])
-    axs[0, 0].set_title("traces (one colour per chain)")
+    axs[0, 0].set_title("traces (one colour per chain" + (f", every {max(1, D // 500)}th draw)" if D > 500 else ")"))
     axs[0, 1].set_title("rank histograms (flat = mixed)")
     axs[-1, 0].set_xlabel("draw")
     axs[-1, 1].set_xlabel("rank")
