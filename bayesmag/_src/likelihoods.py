@@ -457,11 +457,12 @@ def _t_sf_abs(z, nu):
     """
     t2 = z * z
     tail = t2 > 1.0
-    t2_tail = jnp.where(tail, t2, 1.0)
-    t2_cent = jnp.where(tail, 1.0, t2)
-    s_tail = 0.5 * betainc(0.5 * nu, 0.5, nu / (nu + t2_tail))
-    s_cent = 0.5 - 0.5 * betainc(0.5, 0.5 * nu, t2_cent / (nu + t2_cent))
-    return jnp.where(tail, s_tail, s_cent)
+    half_nu = 0.5 * nu
+    a = jnp.where(tail, half_nu, 0.5)
+    b = jnp.where(tail, 0.5, half_nu)
+    x = jnp.where(tail, nu, t2) / (nu + t2)
+    ib = betainc(a, b, x)  # one call for both branches
+    return jnp.where(tail, 0.5 * ib, 0.5 - 0.5 * ib)
 
 
 @jax.custom_jvp
@@ -489,53 +490,75 @@ _t_cdf = jax.jit(_t_cdf_raw)  # jitted also when called eagerly (betainc is slow
 _T_ICDF_NEWTON_STEPS = 4  # 3 reach float64 round-off for 1e-50 <= q and 0.7 <= df <= 1e4
 
 
-@jax.jit  # also when called eagerly: op-by-op dispatch of the Newton loop is slow
-def _t_icdf(q, nu):
-    r"""Standard Student-t quantile.
+@jax.custom_jvp
+def _t_icdf_raw(q, nu):
+    r"""Standard Student-t quantile (``q`` and ``nu`` of one shape and dtype).
 
     Solves :math:`\log S(e^u) = \log p`, ``p = min(q, 1-q)``, by Newton's method in
     ``u = log t`` (nearly linear in the power-law tail), started from the smaller of the
     tail asymptote :math:`t \approx \sqrt\nu\,(p\,\nu\,B(\nu/2, 1/2))^{-1/\nu}` and the
-    Cornish-Fisher expansion (Abramowitz & Stegun 26.7.5). The iterate is treated as a
-    constant and one straight-through Newton step supplies exact derivatives
-    :math:`dt/dq = 1/f(t)`. Accurate to ~1e-12 (float64) for ``|t|`` below
-    ``sqrt(finfo.max)``; checked against ``scipy.stats.t.ppf`` in the tests.
+    Cornish-Fisher expansion (Abramowitz & Stegun 26.7.5). Accurate to ~1e-12 (float64) for
+    ``|t|`` below ``sqrt(finfo.max)``; checked against ``scipy.stats.t.ppf`` in the tests.
+    Derivatives are those of the implicit solution (see the JVP rule).
     """
-    dtype = _float_dtype(q, nu)
-    q, nu = jnp.broadcast_arrays(jnp.asarray(q, dtype), jnp.asarray(nu, dtype))
+    dtype = q.dtype
     p = jnp.where(q < 0.5, q, 1.0 - q)  # exact for q >= 1/2 (Sterbenz)
-    inside = (p > 0) & (p < 0.5)
-    p_in = jnp.where(inside, p, 0.25)
-    p_sg, nu_sg = jax.lax.stop_gradient(p_in), jax.lax.stop_gradient(nu)
+    p_in = jnp.where((p > 0) & (p < 0.5), p, 0.25)
 
-    log_p = jnp.log(p_sg)
-    log_nu = jnp.log(nu_sg)
-    u_tail = 0.5 * log_nu - (log_nu + _lbeta_half(0.5 * nu_sg) + log_p) / nu_sg
-    z = -ndtri(p_sg)
+    log_p = jnp.log(p_in)
+    log_nu = jnp.log(nu)
+    u_tail = 0.5 * log_nu - (log_nu + _lbeta_half(0.5 * nu) + log_p) / nu
+    z = -ndtri(p_in)
     z2 = z * z
-    cf = z * (1.0 + (z2 + 1.0) / (4.0 * nu_sg)
-              + ((5.0 * z2 + 16.0) * z2 + 3.0) / (96.0 * nu_sg ** 2)
-              + (((3.0 * z2 + 19.0) * z2 + 17.0) * z2 - 15.0) / (384.0 * nu_sg ** 3))
+    cf = z * (1.0 + (z2 + 1.0) / (4.0 * nu)
+              + ((5.0 * z2 + 16.0) * z2 + 3.0) / (96.0 * nu ** 2)
+              + (((3.0 * z2 + 19.0) * z2 + 17.0) * z2 - 15.0) / (384.0 * nu ** 3))
     u_max = 0.5 * math.log(float(jnp.finfo(dtype).max)) - 1.0
     u_cf = jnp.where(cf > 0, jnp.log(jnp.where(cf > 0, cf, 1.0)), u_tail)  # cf < 0 only for tiny nu
     u = jnp.minimum(jnp.minimum(u_tail, u_cf), u_max)
 
     def newton(_, u):
         t = jnp.exp(u)
-        log_s = jnp.log(_t_sf_abs(t, nu_sg))
-        step = (log_s - log_p) * jnp.exp(log_s - u - _t_logpdf(t, nu_sg))
+        log_s = jnp.log(_t_sf_abs(t, nu))
+        step = (log_s - log_p) * jnp.exp(log_s - u - _t_logpdf(t, nu))
         step = jnp.where(jnp.isfinite(step), step, 0.0)  # S underflow: keep the tail asymptote
         return jnp.minimum(u + jnp.clip(step, -50.0, 50.0), u_max)
 
-    u = jax.lax.fori_loop(0, _T_ICDF_NEWTON_STEPS, newton, u)
-    t_sg = jax.lax.stop_gradient(jnp.exp(u))
-    # Straight-through Newton step: value t_sg, derivatives of the implicit solution.
-    corr = (_t_cdf(-t_sg, nu) - p_in) / jnp.exp(_t_logpdf(t_sg, nu))
-    corr = jnp.where(jnp.isfinite(corr), corr, 0.0)
-    t = t_sg + (corr - jax.lax.stop_gradient(corr))
+    t = jnp.exp(jax.lax.fori_loop(0, _T_ICDF_NEWTON_STEPS, newton, u))
     t = jnp.where(p == 0.5, 0.0, jnp.where(p == 0, jnp.inf, t))
     t = jnp.where(q < 0.5, -t, t)
     return jnp.where((q >= 0) & (q <= 1), t, jnp.nan)
+
+
+@_t_icdf_raw.defjvp
+def _t_icdf_jvp(primals, tangents):
+    """Implicit differentiation of ``F(x; nu) = q``: ``dx = (dq - dF/dnu dnu) / f(x)``."""
+    q, nu = primals
+    q_dot, nu_dot = tangents
+    x = _t_icdf_raw(q, nu)
+    h = jnp.finfo(nu.dtype).eps ** (1.0 / 3.0) * nu
+    d_nu = (_t_cdf_raw(x, nu + h) - _t_cdf_raw(x, nu - h)) / (2.0 * h)
+    return x, (q_dot - d_nu * nu_dot) / jnp.exp(_t_logpdf(x, nu))
+
+
+@jax.jit  # also when called eagerly: op-by-op dispatch of the Newton loop is slow
+def _t_icdf(q, nu):
+    """Standard Student-t quantile, broadcasting ``q`` and ``nu`` (see :func:`_t_icdf_raw`)."""
+    dtype = _float_dtype(q, nu)
+    return _t_icdf_raw(*jnp.broadcast_arrays(jnp.asarray(q, dtype), jnp.asarray(nu, dtype)))
+
+
+@jax.jit
+def _t_crps(z, nu):
+    """CRPS of the standard t (scoringRules ``crps_t`` with unit scale); ``inf`` for nu <= 1."""
+    ok = nu > 1.0
+    nu_s = jnp.where(ok, nu, 2.0)
+    cdf = _t_cdf_raw(z, nu_s)
+    pdf = jnp.exp(_t_logpdf(z, nu_s))
+    c3 = jnp.exp(math.log(2.0) + 0.5 * jnp.log(nu_s) - jnp.log(nu_s - 1.0)
+                 + _lbeta_half(nu_s - 0.5) - 2.0 * _lbeta_half(0.5 * nu_s))
+    value = z * (2.0 * cdf - 1.0) + 2.0 * pdf * (nu_s + z * z) / (nu_s - 1.0) - c3
+    return jnp.where(ok, value, jnp.inf)
 
 
 def _df_from_raw(raw: jax.Array) -> jax.Array:
@@ -587,15 +610,7 @@ class StudentT(Likelihood):
     def crps(self, y):
         z = self._z(y)
         dtype = _float_dtype(z, self.df)
-        z, nu = jnp.broadcast_arrays(z.astype(dtype), jnp.asarray(self.df, dtype))
-        ok = nu > 1.0
-        nu_s = jnp.where(ok, nu, 2.0)
-        cdf = _t_cdf(z, nu_s)
-        pdf = jnp.exp(_t_logpdf(z, nu_s))
-        c3 = jnp.exp(math.log(2.0) + 0.5 * jnp.log(nu_s) - jnp.log(nu_s - 1.0)
-                     + _lbeta_half(nu_s - 0.5) - 2.0 * _lbeta_half(0.5 * nu_s))
-        value = self.scale * (z * (2.0 * cdf - 1.0) + 2.0 * pdf * (nu_s + z * z) / (nu_s - 1.0) - c3)
-        return jnp.where(ok, value, jnp.inf)
+        return self.scale * _t_crps(*jnp.broadcast_arrays(z.astype(dtype), jnp.asarray(self.df, dtype)))
 
     @property
     def mean(self):

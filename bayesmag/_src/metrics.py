@@ -87,17 +87,20 @@ def interval_width(lower: Any, upper: Any, axis: Axis = 0) -> float | np.ndarray
 
 def nll(dist: Likelihood, y: Any, axis: Axis = 0) -> float | np.ndarray:
     """Mean negative log-likelihood ``dist.nll(y)`` over ``axis``."""
-    return _out(np.mean(_f64(dist.nll(_prep(dist, y))), axis=axis))
+    y = _prep(dist, y)
+    return _out(np.mean(_f64(dist.nll(y)), axis=axis))
 
 
 def crps(dist: Likelihood, y: Any, axis: Axis = 0) -> float | np.ndarray:
     """Mean closed-form CRPS ``dist.crps(y)`` over ``axis`` (same units as ``y``)."""
-    return _out(np.mean(_f64(dist.crps(_prep(dist, y))), axis=axis))
+    y = _prep(dist, y)
+    return _out(np.mean(_f64(dist.crps(y)), axis=axis))
 
 
 def pit(dist: Likelihood, y: Any) -> np.ndarray:
     """Probability integral transform ``F(y)`` per element; uniform on (0, 1) when calibrated."""
-    return _f64(dist.pit(_prep(dist, y)))
+    y = _prep(dist, y)
+    return _f64(dist.pit(y))
 
 
 def calibration_curve(dist: Likelihood, y: Any, levels: Sequence[float] | None = None,
