@@ -1,0 +1,81 @@
+"""The discovery catalogue: registration, exact linear features, transforms, validation."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import bayesmag
+from bayesmag._src import catalogue as C
+from bayesmag._src.physics import EXTRA_TERMS, PhysicsModel, make_extra
+from bayesmag.simulate import get_effect, simulate
+
+#: Timing delay recovered within this many seconds on a 2000-row campaign (a tenth of a 4 Hz sample).
+DELTA_TOL_S = 0.05
+#: Thermal time constant recovered within this relative error.
+TAU_RTOL = 0.1
+
+
+@pytest.fixture(scope="module")
+def campaign():
+    return simulate(2000, design="campaign", seed=1)
+
+
+def test_every_entry_registered_with_explanation():
+    required = {"cross_axis_quadratic", "cubic_nonlinearity", "temperature_quadratic", "thermal_lag",
+                "timing_offset", "hysteresis", "offset_drift"}
+    assert required <= set(C.CATALOGUE)
+    for name, cls in C.CATALOGUE.items():
+        assert EXTRA_TERMS[name] is cls
+        assert isinstance(cls.explanation, str) and len(cls.explanation) > 20
+        assert make_extra(name, t0=20.0).name == name
+
+
+@pytest.mark.parametrize("name", [n for n, c in C.CATALOGUE.items() if issubclass(c, bayesmag.Term)])
+def test_linear_terms_call_equals_features(name, campaign):
+    term = make_extra(name, t0=24.0)
+    inputs = bayesmag.inputs_from_data(campaign)
+    p = np.arange(1, len(term.param_names()) + 1, dtype=np.float64)
+    X = np.asarray(term.features(inputs))
+    assert X.shape == (campaign.n, p.size)
+    np.testing.assert_allclose(np.asarray(term(jnp.asarray(p), inputs)), X @ p, rtol=1e-12)
+
+
+def test_timing_offset_zero_is_identity_and_shift_interpolates(campaign):
+    inputs = bayesmag.inputs_from_data(campaign)
+    tr = C.TimingOffset()
+    same = tr(jnp.array([0.0]), inputs)
+    np.testing.assert_allclose(np.asarray(same.b), campaign.b_meas, atol=1e-12)
+    one = tr(jnp.array([0.25]), inputs)                       # exactly one 4 Hz sample ahead
+    inner = np.flatnonzero(np.r_[campaign.run[1:] == campaign.run[:-1], False])
+    np.testing.assert_allclose(np.asarray(one.b)[inner], campaign.b_meas[inner + 1], atol=1e-9)
+
+
+def test_hysteresis_state_and_validation(campaign):
+    s = np.asarray(C.Hysteresis(axis="x", threshold=10.0).state(bayesmag.inputs_from_data(campaign)))
+    assert set(np.unique(s)) <= {-1.0, 0.0, 1.0} and (s != 0).mean() > 0.5
+    with pytest.raises(ValueError, match="must be one of"):
+        C.Hysteresis(mode="sideways")
+    with pytest.raises(ValueError, match="must be one of"):
+        C.Hysteresis(axis="w")
+    with pytest.raises(ValueError, match="rate=true, steps=true"):
+        C.OffsetDrift(rate=False, steps=False)
+
+
+def test_config_spec_with_parameters():
+    t = make_extra({"name": "hysteresis", "axis": "y", "mode": "direction", "min_step": 1.5}, t0=0.0)
+    assert (t.axis, t.mode, t.min_step) == ("y", "direction", 1.5)
+    with pytest.raises(ValueError, match="has no parameter"):
+        make_extra({"name": "cubic_nonlinearity", "power": 3})
+
+
+def test_timing_and_lag_recovered_by_lm():
+    d = simulate(2000, design="campaign", seed=2, effects=[get_effect("thermal_lag", tau=30.0),
+                                                           get_effect("timing_offset", delta=0.5)])
+    m = PhysicsModel.paper(t0=24.0, extra=(C.ThermalLag(tau0=20.0), C.TimingOffset(delta0=0.25)))
+    fit = bayesmag.fit_physics(d, m)
+    names = list(m.param_names)
+    delta = fit.theta[:, names.index("delta")]
+    tau = np.exp(fit.theta[:, names.index("log_tau")])
+    assert np.all(np.abs(delta - 0.5) < DELTA_TOL_S), delta
+    # the y and z axes carry most of the thermal signal
+    assert abs(tau[1] / 30.0 - 1) < TAU_RTOL and abs(tau[2] / 30.0 - 1) < TAU_RTOL, tau
