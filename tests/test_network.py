@@ -1,0 +1,209 @@
+"""Residual network: DropConnect on weights, training, early stopping, NaN handling, vmap, MC inference."""
+
+import numpy as np
+import jax
+import jax.numpy as jnp
+import pytest
+
+from bayesmag import ConfigError
+from bayesmag._src import network as N
+
+# Statistical tolerances, stated once.
+MASK_SIGMAS = 5.0            # fraction of dropped weights within 5 binomial sds of the rate
+SD_TRACK_RTOL = 0.15         # learned sd within 15 % of the true sd (median over a grid)
+SD_TRACK_CORR = 0.9          # and correlated with it across the grid
+MEAN_RMS_Z = 0.5             # mean error well inside the noise: RMS of (error / true sd) below 0.5
+ORACLE_NLL_GAP = 0.1         # validation NLL within 0.1 nats of the true model's
+
+SMALL = dict(hidden_layers=2, width=16, batch_size=32)
+
+
+def small_spec(**kw):
+    return N.NetworkSpec(**{**SMALL, **kw})
+
+
+# --------------------------------------------------------------------------- DropConnect
+
+
+def test_drop_connect_masks_weights_not_activations():
+    params = N.init(jax.random.key(0), 4, 2, hidden_layers=2, width=32)
+    rate = 0.3
+    masked = jax.jit(N.drop_connect, static_argnums=2)(params, jax.random.key(1), rate)
+    for layer, m in zip(params, masked):
+        w, wm = np.asarray(layer.w), np.asarray(m.w)
+        kept = wm != 0
+        # kept weights are scaled by 1/(1-p), dropped ones are exactly zero; biases untouched
+        np.testing.assert_allclose(wm[kept], w[kept] / (1 - rate), rtol=1e-6)
+        np.testing.assert_array_equal(np.asarray(m.b), np.asarray(layer.b))
+    w = np.asarray(masked[1].w)
+    assert w.shape == (32, 32)
+    frac = np.mean(w == 0)
+    sd = np.sqrt(rate * (1 - rate) / w.size)
+    assert abs(frac - rate) < MASK_SIGMAS * sd
+    # whole rows/columns are not dropped together (that would be unit dropout): both
+    # kept and dropped entries appear in most rows of the masked matrix
+    assert np.mean([(row == 0).any() and (row != 0).any() for row in w]) > 0.9
+
+    # apply() with a key is the network with those masked weights, and one mask serves all rows:
+    # identical input rows give identical outputs (activation dropout would differ per row).
+    x = jnp.tile(jax.random.normal(jax.random.key(2), (1, 4), jnp.float32), (8, 1))
+    apply = jax.jit(N.apply, static_argnames="dropconnect")
+    out = apply(params, x, jax.random.key(1), dropconnect=rate)
+    np.testing.assert_allclose(out, apply(masked, x), rtol=1e-6)
+    np.testing.assert_allclose(out, jnp.broadcast_to(out[:1], out.shape), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("rate", [0.01, 0.2])
+def test_keep_masks_rate_and_independence(rate):
+    shapes = ((64, 64), (64, 2))
+    masks = [np.concatenate([np.ravel(m) for m in N.keep_masks(jax.random.key(k), shapes, rate)])
+             for k in range(20)]
+    drops = ~np.stack(masks)                      # (20, 4224)
+    n = drops.size
+    assert abs(drops.mean() - rate) < MASK_SIGMAS * np.sqrt(rate * (1 - rate) / n)
+    # masks from different keys are independent: the overlap of dropped sets is ~ rate^2
+    overlap = np.mean(drops[::2] & drops[1::2])
+    assert abs(overlap - rate**2) < MASK_SIGMAS * np.sqrt(rate**2 * (1 - rate**2) / (n / 2))
+
+
+# --------------------------------------------------------------------------- training
+
+
+def _hetero_problem(n, seed):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-1, 1, size=(n, 4))
+    true_sd = 0.05 + 0.25 * (x[:, 0] + 1) / 2
+    r = np.sin(2 * x[:, 0]) + true_sd * rng.normal(size=n)
+    return x, r[:, None], true_sd
+
+
+def test_training_reduces_nll_and_learns_the_sd():
+    x, r, true_sd = _hetero_problem(3000, 0)
+    spec = small_spec(width=32, max_epochs=150, patience=30, learning_rate=3e-3, batch_size=64, dropconnect=0.0)
+    net = N.fit_residual_network(x, r, spec, seed=0)
+    hist = np.asarray(net.info.val_loss[0])
+    hist = hist[np.isfinite(hist)]
+    # NLL of the true model on the validation rows, in the network's standardised units
+    _, val_rows = N.validation_rows(3000, 0.1, seed=0)
+    st = net.standardizer
+    z = (r[val_rows, 0] - np.sin(2 * x[val_rows, 0])) / true_sd[val_rows]
+    oracle = np.mean(0.5 * np.log(2 * np.pi) + np.log(true_sd[val_rows] / st.r_scale[0]) + 0.5 * z**2)
+    assert net.info.best_val_loss[0] < hist[0] - 0.3                   # training reduced the NLL ...
+    assert net.info.best_val_loss[0] < oracle + ORACLE_NLL_GAP          # ... to near the true model's
+
+    grid = np.zeros((41, 4))
+    grid[:, 0] = np.linspace(-0.9, 0.9, 41)
+    pred = N.mc_predict(net, grid, passes=2)
+    true_sd = 0.05 + 0.25 * (grid[:, 0] + 1) / 2
+    learned = pred.aleatoric[:, 0]
+    assert np.median(np.abs(learned / true_sd - 1)) < SD_TRACK_RTOL
+    assert np.corrcoef(learned, true_sd)[0, 1] > SD_TRACK_CORR
+    assert np.sqrt(np.mean(((pred.mean[:, 0] - np.sin(2 * grid[:, 0])) / true_sd) ** 2)) < MEAN_RMS_Z
+
+
+def test_early_stopping_restores_the_best_weights():
+    x, r, _ = _hetero_problem(600, 1)
+    spec = small_spec(max_epochs=400, patience=8, learning_rate=1e-2, lr_plateau_factor=1.0)
+    net = N.fit_residual_network(x, r, spec, seed=3)
+    info = net.info_dict(["a"])["a"]
+    hist = np.asarray(net.info.val_loss[0])
+    assert info["epochs_run"] < spec.max_epochs                      # stopped early
+    assert info["epochs_run"] == info["best_epoch"] + 1 + spec.patience
+    assert info["best_val_loss"] == pytest.approx(np.nanmin(hist), rel=0, abs=0)
+    # the returned weights are those of the best epoch: recompute their validation loss
+    fit_rows, val_rows = N.validation_rows(600, 0.1, seed=3)
+    st = net.standardizer
+    p0 = jax.tree.map(lambda a: a[0], net.params)
+    raw = N.apply(p0, st.x(x[val_rows]), activation=spec.activation)
+    val = N.regularized_nll(spec, raw, st.r(r[val_rows])[:, 0])
+    assert float(val) == pytest.approx(info["best_val_loss"], rel=1e-5)
+    assert float(val) < hist[info["epochs_run"] - 1]                 # better than the last epoch's
+
+
+def test_nan_loss_stops_training_and_reports_the_epoch():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(600, 4))
+    r = np.sin(x[:, :1]) + 0.1 * rng.normal(size=(600, 1))
+    # a learning rate this large blows the weights up within two epochs
+    spec = small_spec(max_epochs=100, patience=100, learning_rate=0.3, log_scale_clip=(-300.0, 300.0),
+                      epsilon=0.0, log_scale_l2=0.0, lr_plateau_factor=1.0, dropconnect=0.0)
+    net = N.fit_residual_network(x, r, spec, seed=0)
+    info = net.info_dict(["a"])["a"]
+    assert info["nan_epoch"] >= 0
+    assert info["epochs_run"] == info["nan_epoch"] + 1               # stopped right there
+    assert info["best_epoch"] < info["nan_epoch"]
+    assert all(np.isfinite(np.asarray(leaf)).all() for leaf in jax.tree.leaves(net.params))
+    assert not np.isfinite(np.asarray(net.info.val_loss[0])[info["nan_epoch"]]) or \
+        not np.isfinite(np.asarray(net.info.train_loss[0])[info["nan_epoch"]])
+
+
+def test_vmap_over_axes_equals_one_axis_alone():
+    x, r1, _ = _hetero_problem(800, 2)
+    r = np.column_stack([r1[:, 0], -2 * r1[:, 0] + 1, np.cos(3 * x[:, 2])])
+    spec = small_spec(max_epochs=5, patience=5)
+    fit_rows, val_rows = N.validation_rows(800, 0.1, seed=0)
+    st = N.Standardizer.fit(x[fit_rows], r[fit_rows])
+    keys = jax.vmap(lambda a: jax.random.fold_in(jax.random.key(7), a))(jnp.arange(3))
+    args = (st.x(x[fit_rows]), st.r(r[fit_rows]), st.x(x[val_rows]), st.r(r[val_rows]))
+    p3, info3 = N._train_axes(spec, keys, *args)
+    for a in (0, 2):
+        xf, rf, xv, rv = args
+        p1, info1 = N._train_axes(spec, keys[a:a + 1], xf, rf[:, a:a + 1], xv, rv[:, a:a + 1])
+        for l3, l1 in zip(jax.tree.leaves(p3), jax.tree.leaves(p1)):
+            np.testing.assert_allclose(l3[a], l1[0], rtol=2e-4, atol=2e-6)
+        np.testing.assert_allclose(info3.val_loss[a], info1.val_loss[0], rtol=1e-4)
+
+
+# --------------------------------------------------------------------------- MC inference
+
+
+@pytest.mark.parametrize("likelihood,df", [("gaussian", 4.0), ("student_t", None)])
+def test_mc_inference_matches_a_loop_over_passes(likelihood, df):
+    x, r, _ = _hetero_problem(600, 3)
+    spec = small_spec(likelihood=likelihood, df=df, dropconnect=0.2)
+    # inference does not care whether the weights were trained: two random networks
+    params = jax.vmap(lambda k: N.init(k, 4, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width))(
+        jax.random.split(jax.random.key(0), 2))
+    net = N.ResidualNetwork(spec, params, N.Standardizer.fit(x, np.column_stack([r, 3 * r])), None, 600, 0)
+    xt = x[:50]
+    passes = 16
+    pred = N.mc_predict(net, xt, passes=passes, seed=5)
+    # the same passes by hand: key (t, a) from split(key(5), (passes, A))
+    keys = jax.random.split(jax.random.key(5), (passes, 2))
+    st = net.standardizer
+
+    @jax.jit
+    def one_pass(p, k):
+        d = N.head_distribution(spec, N.apply(p, st.x(xt), k, dropconnect=spec.dropconnect))
+        return d.mean, d.variance
+
+    means, variances = np.zeros((passes, 50, 2)), np.zeros((passes, 50, 2))
+    for t in range(passes):
+        for a in range(2):
+            m, v = one_pass(jax.tree.map(lambda l: l[a], net.params), keys[t, a])
+            means[t, :, a] = np.asarray(m) * st.r_scale[a] + st.r_mean[a]
+            variances[t, :, a] = np.asarray(v) * st.r_scale[a] ** 2
+    np.testing.assert_allclose(pred.mean, means.mean(0), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(pred.aleatoric**2, variances.mean(0), rtol=1e-4)
+    np.testing.assert_allclose(pred.epistemic**2, means.var(0, ddof=1), rtol=1e-3, atol=1e-12)
+    np.testing.assert_allclose(pred.total**2, pred.aleatoric**2 + pred.epistemic**2, rtol=1e-12)
+    assert np.all(pred.epistemic > 0)                  # DropConnect is active at inference
+    if likelihood == "student_t":
+        assert pred.shape["df"].shape == (50, 2) and np.all(pred.shape["df"] > 2)
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_bad_network_settings_are_config_errors():
+    x, r, _ = _hetero_problem(300, 4)
+    with pytest.raises(ConfigError, match=r"network\.width.*network\.hidden_layers|network\.hidden_layers"):
+        N.fit_residual_network(x, r, N.NetworkSpec(hidden_layers=4, width=64), seed=0)
+    with pytest.raises(ConfigError, match=r"network\.validation_fraction"):
+        N.fit_residual_network(x, r, small_spec(), validation_fraction=0.05, seed=0)
+    with pytest.raises(ConfigError, match=r"gaussian.*laplace.*student_t"):
+        N.NetworkSpec(likelihood="cauchy")
+    with pytest.raises(ConfigError, match=r"network\.dropconnect"):
+        N.NetworkSpec(dropconnect=1.0)
+    with pytest.raises(ConfigError, match=r"network\.student_t_df"):
+        N.NetworkSpec(likelihood="student_t", df=2.0)
