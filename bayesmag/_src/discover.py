@@ -278,7 +278,7 @@ def _block_perms(n: int, L: int, n_perm: int, rng: np.random.Generator) -> np.nd
 
 def _shape(means: np.ndarray, counts: np.ndarray, v: _Variable) -> str:
     if v.categorical or means.size < 4:
-        return "differs between groups"
+        return f"differs between values of {v.label}"
     x = np.arange(means.size, dtype=np.float64)
     w = counts / counts.sum()
     X1 = np.stack([np.ones_like(x), x], 1)
@@ -290,8 +290,8 @@ def _shape(means: np.ndarray, counts: np.ndarray, v: _Variable) -> str:
     if r1 > 0.8:
         return f"rises with {v.label}" if np.polyfit(x, means, 1, w=np.sqrt(w))[0] > 0 else f"falls with {v.label}"
     if r2 > 0.8:
-        return f"U-shaped in {v.label}" if b2[2] > 0 else f"inverted-U in {v.label}"
-    return f"irregular (not a straight line or a parabola) in {v.label}"
+        return f"is U-shaped in {v.label}" if b2[2] > 0 else f"is inverted-U in {v.label}"
+    return f"varies irregularly (not a straight line or a parabola) with {v.label}"
 
 
 def locate(data: CalibrationData, resid: np.ndarray, *, time_available: bool = True, n_perm: int = N_PERM,
@@ -1025,7 +1025,7 @@ def _describe(loc: dict) -> str:
     if loc["variable"] == "periodic":
         return (f"a periodic residual, {loc['shape']}, holding {loc['fraction']:.0%} of the residual variance "
                 f"(p = {loc['p_value']:.2g}); no catalogue term is periodic.")
-    return (f"the residual is {loc['shape']}; largest where {loc['where']} (mean {loc['mean_there']:+.3g} uT); it "
+    return (f"the residual {loc['shape']}; largest where {loc['where']} (mean {loc['mean_there']:+.3g} uT); it "
             f"holds {loc['fraction']:.0%} of the residual variance (block-permutation p = {loc['p_value']:.2g}).")
 
 
