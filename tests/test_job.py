@@ -159,6 +159,6 @@ def test_leaving_out_the_heating_run_is_flagged(belsten, tmp_path):
                                 "output.figures=false", "output.progress=false"])
     m = bayesmag.run_job(cfg, tmp_path / "r6")["metrics"]
     assert m["domain"]["n_outside"] == 673 and m["domain"]["by_input"]["temperature"] == 673
-    assert "outside the training domain in temperature" in m["warnings"][0]
+    assert "outside the training domain in" in m["warnings"][0] and "temperature (673 rows)" in m["warnings"][0]
     rows = list(csv.DictReader(open(tmp_path / "r6/predictions.csv")))
     assert all(r["x_in_domain"] == "False" for r in rows)

@@ -3,6 +3,8 @@
 Commands::
 
     bayesmag run CONFIG [--out DIR] [--set key=value]...
+    bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
+    bayesmag report RUN_DIR
     bayesmag data fetch NAME [--force]
     bayesmag data list
 """
@@ -70,6 +72,32 @@ def _cmd_data(args) -> int:
     return 0
 
 
+def _cmd_apply(args) -> int:
+    import numpy as np
+
+    from .apply import apply_calibration
+
+    summary = apply_calibration(args.model, args.data, args.out, level=args.level, method=args.uq,
+                                n_params=args.n_params, n_qmc=args.n_qmc, temperature_unit=args.temperature_unit,
+                                progress=not args.no_progress)
+    print(f"bayesmag: calibrated {summary['n_valid']} of {summary['n_rows']} rows -> {args.out} "
+          f"({summary['seconds']:.2f} s)")
+    for w in summary["warnings"]:
+        print(f"  WARNING: {w}", file=sys.stderr)
+    if summary.get("metrics"):
+        m = summary["metrics"]
+        print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
+              + f"   {summary['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from .report import write_report
+
+    print(f"bayesmag: wrote {write_report(args.run_dir)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bayesmag", description="Magnetometer calibration with trustworthy uncertainty.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -81,6 +109,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a config key, e.g. --set uq.n_params=100 or --set data.path=my.csv")
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.set_defaults(func=_cmd_run)
+
+    a = sub.add_parser("apply", help="apply a saved calibration to a recording (reference columns optional)")
+    a.add_argument("--model", required=True, help="run folder written by `bayesmag run`")
+    a.add_argument("--data", required=True, help="canonical CSV (time,run,bx_meas,by_meas,bz_meas,temperature[,*_ref])")
+    a.add_argument("--out", required=True, help="output CSV")
+    a.add_argument("--level", type=float, default=None, help="central interval level (default: the run's)")
+    a.add_argument("--uq", choices=["analytic", "psqmc"], default="analytic",
+                   help="physics uncertainty method (analytic: exact moments, fastest)")
+    a.add_argument("--n-params", type=int, default=100, help="Np for --uq psqmc")
+    a.add_argument("--n-qmc", type=int, default=256, help="Nq for --uq psqmc")
+    a.add_argument("--temperature-unit", choices=["C", "K"], default="C")
+    a.add_argument("--no-progress", action="store_true")
+    a.set_defaults(func=_cmd_apply)
+
+    rp = sub.add_parser("report", help="(re)write report.md in a run folder")
+    rp.add_argument("run_dir")
+    rp.set_defaults(func=_cmd_report)
 
     d = sub.add_parser("data", help="named datasets: list, fetch")
     d.add_argument("action", choices=["fetch", "list"])
@@ -94,11 +139,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from .config import ConfigError
     from .data import DataError
+    from .artifact import ArtifactError
     from .job import JobError
 
     try:
         return args.func(args)
-    except (ConfigError, DataError, JobError, FileNotFoundError) as e:
+    except (ConfigError, DataError, JobError, ArtifactError, FileNotFoundError) as e:
         print(f"bayesmag: error: {e}", file=sys.stderr)
         return 2
 

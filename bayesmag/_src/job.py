@@ -63,6 +63,20 @@ def resolve_sigma_in(cfg: Config, train: CalibrationData) -> tuple[np.ndarray, s
     return arr, "config: covariance matrix"
 
 
+def _residual_variance(cfg: Config, fit: PhysicsFit, train: CalibrationData, sigma_in: np.ndarray) -> np.ndarray:
+    """Per-axis residual variance beyond the propagated input noise, from the training rows only.
+
+    ``max(s^2 - mean_train(aleatoric^2), 0)``: a fixed property of the calibration (stored in the
+    artifact), so applying it later gives the same intervals as the run itself.
+    """
+    exact = fit.model.is_linear and fit.model.degree is not None
+    uq = physics_uncertainty(fit, inputs_from_data(train), sigma_in=sigma_in,
+                             method="analytic" if exact else cfg.uq.method,
+                             n_params=min(cfg.uq.n_params, 50), n_qmc=min(cfg.uq.n_qmc, 256), seed=cfg.uq.seed,
+                             chunk_size=cfg.uq.chunk_size)
+    return np.maximum(fit.s2 - np.mean(uq.aleatoric**2, axis=0), 0.0)
+
+
 class JobResult(dict):
     """What a job computed (metrics, fit, uq, ...) beside the files it wrote."""
 
@@ -168,7 +182,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     # The paper's physics total sqrt(alea^2 + epi^2) leaves out the scatter the fit could not explain
     # (reference noise, model discrepancy): its 95% intervals cover ~60% on the real data. The residual
     # term is the fit's residual variance beyond what the propagated input noise already accounts for.
-    resid_var = np.maximum(fit.s2 - np.mean(uq.aleatoric**2, axis=0), 0.0) if cfg.uq.residual_term else np.zeros(3)
+    resid_var = _residual_variance(cfg, fit, train, sigma_in) if cfg.uq.residual_term else np.zeros(3)
     residual = np.broadcast_to(np.sqrt(resid_var), uq.mean.shape)
     total = np.sqrt(uq.aleatoric**2 + residual**2 + uq.epistemic**2)
     phys_scores, lo, hi = _gaussian_scores(y, uq.mean, total, cfg.uq.level)
@@ -192,17 +206,17 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     }
     from .domain import Domain
     domain = Domain.from_data(train)
-    metrics["domain"] = domain.summary(test)
-    warnings_ = [w for w in [domain.warning(test)] if w]
+    metrics["domain"] = domain.summary(test, uq.mean)
+    warnings_ = [w for w in [domain.warning(test, uq.mean)] if w]
     metrics["warnings"] = warnings_
     result = JobResult(config=cfg, data=data, split=split, fit=fit, uq=uq, metrics=metrics, sigma_in=sigma_in,
-                       domain=domain)
+                       domain=domain, residual_sd=np.sqrt(resid_var), network_artifact=None)
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,
         "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic, "residual_physics": residual,
         "total": total,
         "lower": lo, "upper": hi, "covered": (y >= lo) & (y <= hi),
-        "in_domain": np.broadcast_to(~domain.outside(test).any(axis=1)[:, None], y.shape),
+        "in_domain": np.broadcast_to(~domain.outside(test, uq.mean).any(axis=1)[:, None], y.shape),
     }
 
     result["writers"] = []          # stages append callables writer(staging_dir) for their own files
@@ -218,6 +232,10 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
         (tmp / "params.json").write_text(json.dumps(fit.to_json(), indent=2))
         write_predictions(tmp / "predictions.csv", test, split.test, columns)
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
+        from .artifact import save_calibration
+        save_calibration(tmp, fit=fit, sigma_in=sigma_in, residual_sd=result["residual_sd"], domain=domain,
+                         config=cfg.to_dict(), likelihood=result.get("primary_likelihood", "gaussian"),
+                         level=cfg.uq.level, network=result["network_artifact"])
         if cfg.output.figures:
             from . import plots
             plots.job_figures(tmp, result, columns)
@@ -227,4 +245,6 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
         for writer in result.get("writers", []):
             writer(tmp)
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        from .report import write_report
+        write_report(tmp)
     return result

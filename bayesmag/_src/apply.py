@@ -1,0 +1,87 @@
+"""Apply a saved calibration to a new recording: checks, chunked prediction, CSV out, optional metrics."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .artifact import load
+from .data import AXES, DataError, load_csv
+
+__all__ = ["apply_calibration", "check_units"]
+
+OUTPUT_COLUMNS = ("calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "aleatoric_nn",
+                  "epistemic_nn", "total", "lower", "upper")
+
+
+def check_units(cal, data) -> list[str]:
+    """Errors for units that cannot be right; warnings for suspicious ones (vs the training domain)."""
+    finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
+    if not finite.any():
+        raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature.")
+    b = np.abs(data.b_meas[finite])
+    train_max = np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max()
+    p99 = float(np.percentile(b, 99))
+    if p99 > 50 * train_max:
+        raise DataError(f"The measured field reaches {p99:.4g} (99th percentile) but the calibration was trained on "
+                        f"|B| up to {train_max:.3g} uT: the file looks like nT (x1000). Convert to uT.")
+    warn = []
+    if train_max > 10 and p99 < train_max / 50:
+        warn.append(f"The measured field is at most {p99:.3g} while training reached {train_max:.3g} uT: "
+                    f"is the file in gauss or mT? bayesmag expects uT.")
+    med_t = float(np.median(data.temperature[finite]))
+    if med_t > 150:
+        raise DataError(f"Column 'temperature' has median {med_t:.2f}, which looks like kelvin, but the calibration "
+                        f"expects Celsius. Use --temperature-unit K.")
+    return warn
+
+
+def apply_calibration(model_dir, data_path, out_path, *, level=None, method="analytic", n_params=100, n_qmc=256,
+                      temperature_unit="C", chunk_size=100_000, progress=False) -> dict:
+    """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``."""
+    t0 = time.perf_counter()
+    cal = load(model_dir)
+    data = load_csv(data_path, temperature_unit=temperature_unit, require_reference=False)
+    warnings = check_units(cal, data)
+    pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
+                       progress=progress)
+    level = cal.level if level is None else level
+    bad = np.flatnonzero(~pred["valid"])
+    if bad.size:
+        shown = ", ".join(str(int(r) + 1) for r in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
+        warnings.append(f"{bad.size} row(s) have non-finite inputs and were not calibrated (marked valid=false): "
+                        f"data row(s) {shown}.")
+    n_out = int((~pred["in_domain"] & pred["valid"]).sum())
+    if n_out:
+        warnings.append(f"{n_out} of {data.n} rows lie outside the calibration's training domain (in_domain=false): "
+                        f"their values are extrapolation and their intervals may be far too narrow.")
+    cols = [c for c in OUTPUT_COLUMNS if c in pred]
+    header = ["time", "run"] + [f"{a}_{c}" for a in AXES for c in cols] + ["in_domain", "valid"]
+    mats = [data.time[:, None], data.run[:, None].astype(np.float64)]
+    for a in range(3):
+        mats += [pred[c][:, a:a + 1] for c in cols]
+    mats += [pred["in_domain"][:, None].astype(np.float64), pred["valid"][:, None].astype(np.float64)]
+    mat = np.concatenate(mats, axis=1)
+    fmt = ["%.6f", "%d"] + ["%.8g"] * (mat.shape[1] - 4) + ["%d", "%d"]
+    out_path = Path(out_path)
+    tmp = out_path.with_name(f".{out_path.name}.partial-{os.getpid()}")
+    try:
+        with open(tmp, "w") as f:
+            f.write(",".join(header) + "\n")
+            for lo in range(0, data.n, 200_000):
+                np.savetxt(f, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
+        tmp.replace(out_path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    summary = {"n_rows": data.n, "n_valid": int(pred["valid"].sum()), "n_outside_domain": n_out,
+               "warnings": warnings, "level": level, "seconds": time.perf_counter() - t0}
+    if data.b_ref is not None:
+        ok = pred["valid"] & np.isfinite(data.b_ref).all(axis=1)
+        y, mu = data.b_ref[ok], pred["calibrated"][ok]
+        inside = (y >= pred["lower"][ok]) & (y <= pred["upper"][ok])
+        summary["metrics"] = {"rmse": dict(zip(AXES, np.sqrt(np.mean((y - mu) ** 2, axis=0)).tolist())),
+                              "coverage": dict(zip(AXES, inside.mean(axis=0).tolist()))}
+    return summary

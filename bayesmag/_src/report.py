@@ -1,0 +1,118 @@
+"""A fit report a metrologist can read: ``report.md`` from a run folder's metrics.json and params.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_report", "render_report"]
+
+AXES = ("x", "y", "z")
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.6g}"
+
+
+def _param_table(ax: str, p: dict, corr_threshold: float) -> list[str]:
+    vals, sds, names = p["values"], p["std"], list(p["values"])
+    lines = [f"### Axis {ax}", "", "| parameter | value | std. error | relative |", "|---|---|---|---|"]
+    for n in names:
+        v, s = vals[n], sds[n]
+        rel = f"{abs(s / v):.2%}" if v != 0 else "-"
+        lines.append(f"| {n} | {_fmt(v)} | {_fmt(s)} | {rel} |")
+    corr = np.asarray(p["correlation"])
+    pairs = [(names[i], names[j], corr[i, j]) for i in range(len(names)) for j in range(i + 1, len(names))
+             if abs(corr[i, j]) > corr_threshold]
+    lines.append("")
+    if pairs:
+        lines.append(f"Correlations with |rho| > {corr_threshold}: " +
+                     ", ".join(f"{a}-{b} {c:+.3f}" for a, b, c in sorted(pairs, key=lambda t: -abs(t[2]))))
+    cond = p["condition_number"]
+    advice = ("well conditioned" if cond < 1e3 else
+              "moderately ill-conditioned: some parameters trade off against each other" if cond < 1e6 else
+              "ill-conditioned: individual parameters are poorly determined even though the predictions are fine; "
+              "see the design notes, and consider [physics] t0 = \"mean\"")
+    lines += ["", f"Condition number (correlation-scaled): {cond:.3g} - {advice}.",
+              f"Residual sd {p['residual_std']:.4g} uT; residual lag-1 autocorrelation "
+              f"{p['lag1_autocorrelation']:.2f}" + (" (the white covariance understates the standard errors; use "
+                                                    "[physics] covariance = \"newey_west\")"
+                                                    if p["lag1_autocorrelation"] > 0.3 and
+                                                    p["covariance_info"].get("method") == "white" else "") + ".", ""]
+    return lines
+
+
+def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_threshold: float = 0.9) -> str:
+    m = metrics
+    lines = ["# Calibration report", "",
+             f"Data: {m['data']['source']} ({m['data']['n_rows']} rows, runs {m['data']['runs']}). "
+             f"Split: {m['split']['description']} ({m['split']['n_train']} train / {m['split']['n_test']} test rows).",
+             f"Covariance: {params.get('covariance_method', '')}. Physics model parameters: "
+             f"{', '.join(params['model']['param_names'])}.", ""]
+    for w in m.get("warnings", []):
+        lines += [f"> **Warning.** {w}", ""]
+    for note in params.get("design_notes", []):
+        lines += [f"> **Design note.** {note}", ""]
+    lines += ["## Accuracy and coverage (test rows)", "",
+              "| stage | metric | x | y | z |", "|---|---|---|---|---|"]
+
+    def row(stage, key, block, pct=False):
+        vals = [block[key][a] * (100 if pct else 1) for a in AXES]
+        f = (lambda v: f"{v:.1f}%") if pct else (lambda v: f"{v:.4g}")
+        lines.append(f"| {stage} | {key} | " + " | ".join(f(v) for v in vals) + " |")
+
+    row("raw", "rmse", m["raw"]); row("raw", "mae", m["raw"])
+    for k in ("rmse", "mae", "nll", "crps"):
+        row("physics", k, m["physics"])
+    row("physics", "coverage", m["physics"], pct=True)
+    for name, block in m.get("hybrid", {}).items():
+        for k in ("rmse", "mae", "nll", "crps"):
+            if k in block:
+                row(f"hybrid ({name})", k, block)
+        if "coverage" in block:
+            row(f"hybrid ({name})", "coverage", block, pct=True)
+    level = m["uq"]["level"]
+    lines += ["", f"Coverage is of central {level:.0%} intervals; a trustworthy model is close to {level:.0%}.", ""]
+    u = m["uq"]
+    lines += ["## Uncertainty budget (mean standard deviation over test rows, uT)", "",
+              "| part | x | y | z |", "|---|---|---|---|"]
+    parts = {"aleatoric (input noise through the model)": u["mean_aleatoric"],
+             "residual (scatter the model does not explain)": u.get("residual_term", {a: 0.0 for a in AXES}),
+             "epistemic (parameter uncertainty)": u["mean_epistemic"]}
+    for k, v in parts.items():
+        lines.append(f"| {k} | " + " | ".join(f"{v[a]:.4g}" for a in AXES) + " |")
+    dom = {a: max(parts, key=lambda k: parts[k][a]).split(" (")[0] for a in AXES}
+    lines += ["", "Dominant part per axis: " + ", ".join(f"{a}: {dom[a]}" for a in AXES) + ".",
+              f"Input noise sd (Bx, By, Bz in uT, T in C): "
+              + ", ".join(f"{k} {v:.3g}" for k, v in u["sigma_in_sd"].items()) + f" ({u['sigma_in_source']}).", ""]
+    d = m.get("domain")
+    if d:
+        lines += ["## Calibration domain", "",
+                  "Training ranges (with margin): " + "; ".join(f"{k} [{lo:.3g}, {hi:.3g}]"
+                                                                for k, (lo, hi) in d["training_ranges"].items()) + ".",
+                  f"Test rows outside it: {d['n_outside']} of {d['n_rows']}.", ""]
+    lines += ["## Physics parameters", ""]
+    for ax in AXES:
+        lines += _param_table(ax, params["axes"][ax], corr_threshold)
+    if figures:
+        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    t = m.get("timings", {})
+    if t:
+        lines += ["Timings (s): " + ", ".join(f"{k} {v:.3g}" for k, v in t.items()) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(run_dir: str | Path) -> Path:
+    """(Re)write ``report.md`` in a run folder from its metrics.json and params.json."""
+    run_dir = Path(run_dir)
+    for f in ("metrics.json", "params.json"):
+        if not (run_dir / f).exists():
+            raise FileNotFoundError(f"{run_dir} has no {f}: give a folder written by `bayesmag run`.")
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    params = json.loads((run_dir / "params.json").read_text())
+    figs = sorted(p.name for p in run_dir.glob("*.png"))
+    out = run_dir / "report.md"
+    out.write_text(render_report(metrics, params, figs))
+    return out

@@ -1,0 +1,115 @@
+"""Saved calibrations: save -> load -> apply reproduces the run; bad artifacts and bad input are clear errors."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+import bayesmag
+from bayesmag import CalibrationData, DataError, write_csv
+from bayesmag._src.apply import apply_calibration
+from bayesmag._src.artifact import ArtifactError, load
+from bayesmag._src.cli import main
+from bayesmag._src.config import config_from_dict
+
+UQ = {"n_params": 40, "n_qmc": 64, "seed": 3}
+
+
+def _run(tmp_path, sim=None, **over):
+    raw = {"data": {"source": "simulated", "simulate": sim or {"design": "campaign", "n": 1200, "seed": 1,
+                                                                "noise_sd": 0.05}},
+           "split": {"kind": "time_blocks", "test_fraction": 0.2}, "uq": UQ, "physics": {"t0": "mean"},
+           "output": {"figures": False, "progress": False}, **over}
+    out = tmp_path / "run"
+    res = bayesmag.run_job(config_from_dict(raw), out)
+    return res, out
+
+
+def test_save_load_apply_reproduces_run_predictions(tmp_path):
+    res, out = _run(tmp_path)
+    cal = load(out)
+    test = res["data"].subset(res["split"].test)
+    pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"])
+    rows = list(csv.DictReader(open(out / "predictions.csv")))
+    for a, ax in enumerate("xyz"):
+        run_pred = np.array([float(r[f"{ax}_predicted"]) for r in rows])
+        run_tot = np.array([float(r[f"{ax}_total"]) for r in rows])
+        np.testing.assert_allclose(pred["calibrated"][:, a], run_pred, rtol=1e-7)    # CSV keeps 8 digits
+        np.testing.assert_allclose(pred["total"][:, a], run_tot, rtol=1e-7)
+    # and exactly (bit for bit) against the in-memory run
+    np.testing.assert_array_equal(pred["calibrated"], res["uq"].mean)
+
+
+def test_apply_cli_without_reference_and_with_nan_rows(tmp_path, capsys):
+    _, out = _run(tmp_path)
+    d = bayesmag.simulate.simulate(300, design="campaign", seed=9, noise_sd=0.05)
+    b = d.b_meas.copy()
+    b[[4, 100], 1] = np.nan
+    p = tmp_path / "field.csv"
+    write_csv(CalibrationData(b, d.temperature, None, d.time, d.run), p)
+    rc = main(["apply", "--model", str(out), "--data", str(p), "--out", str(tmp_path / "cal.csv"), "--no-progress"])
+    assert rc == 0
+    err = capsys.readouterr().err
+    assert "2 row(s) have non-finite inputs" in err and "data row(s) 5, 101" in err
+    rows = list(csv.DictReader(open(tmp_path / "cal.csv")))
+    assert len(rows) == 300                                       # nothing dropped, order kept
+    assert rows[4]["valid"] == "0" and rows[5]["valid"] == "1"
+    np.testing.assert_allclose([float(r["time"]) for r in rows], d.time, atol=1e-6)
+
+
+def test_out_of_domain_rows_flagged(tmp_path):
+    """Train on a restricted field range of a simulated sensor, apply to a wider one."""
+    res, out = _run(tmp_path, sim={"design": "iid", "n": 3000, "seed": 0, "noise_sd": 0.05, "field_range": 20.0},
+                    split={"kind": "random", "test_fraction": 0.2})
+    cal = load(out)
+    wide = bayesmag.simulate.simulate(2000, design="iid", seed=1, noise_sd=0.05, field_range=50.0)
+    pred = cal.predict(wide)
+    # field_range bounds the true (reference) field; the measured field is scaled by the sensor's gains
+    far = (np.abs(wide.b_ref) > 35).any(axis=1)
+    near = (np.abs(wide.b_ref) < 15).all(axis=1)
+    assert pred["in_domain"][far].mean() < 0.05, pred["in_domain"][far].mean()
+    assert pred["in_domain"][near].all()
+    # applying it warns with the count
+    p = tmp_path / "wide.csv"
+    write_csv(wide, p)
+    s = apply_calibration(out, p, tmp_path / "w.csv")
+    assert any("outside the calibration's training domain" in w for w in s["warnings"])
+
+
+def test_bad_artifacts_say_why(tmp_path):
+    _, out = _run(tmp_path)
+    (out / "calibration.npz").rename(tmp_path / "moved.npz")
+    with pytest.raises(ArtifactError, match=r"incomplete: \['calibration.npz'\] missing"):
+        load(out)
+    (tmp_path / "moved.npz").rename(out / "calibration.npz")
+    doc = json.loads((out / "calibration.json").read_text())
+    doc["format_version"] = 99
+    (out / "calibration.json").write_text(json.dumps(doc))
+    with pytest.raises(ArtifactError, match="format version 99; this bayesmag reads versions"):
+        load(out)
+    with pytest.raises(ArtifactError, match="not a folder"):
+        load(out / "metrics.json")
+
+
+def test_units_checked_against_training(tmp_path):
+    _, out = _run(tmp_path)
+    d = bayesmag.simulate.simulate(200, design="campaign", seed=2, noise_sd=0.05)
+    p = tmp_path / "nt.csv"
+    write_csv(CalibrationData(d.b_meas * 1000, d.temperature, None, d.time, d.run), p)
+    with pytest.raises(DataError, match="looks like nT"):
+        apply_calibration(out, p, tmp_path / "o.csv")
+    k = tmp_path / "k.csv"
+    write_csv(CalibrationData(d.b_meas, d.temperature + 273.15, None, d.time, d.run), k)
+    with pytest.raises(DataError, match="--temperature-unit K"):
+        apply_calibration(out, k, tmp_path / "o.csv")
+    s = apply_calibration(out, k, tmp_path / "o.csv", temperature_unit="K")
+    assert s["n_valid"] == 200
+
+
+def test_report_written_and_regenerated(tmp_path, capsys):
+    _, out = _run(tmp_path)
+    text = (out / "report.md").read_text()
+    assert "| S_x |" in text and "Condition number" in text and "Uncertainty budget" in text
+    (out / "report.md").unlink()
+    assert main(["report", str(out)]) == 0 and (out / "report.md").exists()
