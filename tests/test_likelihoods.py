@@ -132,7 +132,7 @@ def test_nll_cdf_icdf_match_scipy(family, shape, dtype, jit):
     ref = sdist.ppf(np.asarray(q, np.float64))
     # float32 tails: the rounding of q, times dx/dq = 1/f(x), is a larger relative error.
     rtol = RTOL[dtype] * np.where((qs < 1e-3) | (qs > 1 - 1e-3), 5.0, 1.0)
-    assert np.all(np.abs(x - ref) <= rtol * np.abs(ref) + 10 * ATOL[dtype])
+    assert np.all(np.abs(np.asarray(x, np.float64) - ref) <= rtol * np.abs(ref) + 10 * ATOL[dtype])
 
 
 @pytest.mark.parametrize("family", FAMILIES)

@@ -44,7 +44,9 @@ References:
     estimation. JASA 102(477), 359-378.
     Jordan, A., Krüger, F. & Lerch, S. (2019). Evaluating probabilistic forecasts with
     scoringRules. J. Stat. Softw. 90(12).
-    Shetty & Marndi (2026). Hybrid physics + heteroscedastic-network magnetometer calibration.
+    Shetty, D. K. & Marndi, A. (2026). Physics-based calibration with neural network residual
+    correction and uncertainty quantification for temperature-aware AMR magnetometers.
+    Metrology 6(3), 45, sec. 2.4.
 """
 
 from __future__ import annotations
@@ -99,8 +101,8 @@ class Likelihood(abc.ABC):
 
     Subclasses are ``@dataclasses.dataclass(frozen=True)``, set the class attribute ``name``
     and implement ``log_prob``, ``cdf``, ``icdf``, ``crps``, ``sample``, ``mean``,
-    ``variance`` and ``from_moments``. Extra shape fields that a network head may learn are listed in
-    ``head_transforms`` as ``(field, raw -> value)`` pairs. The concrete methods here
+    ``variance`` and ``from_moments``. Extra shape fields that a network head may learn are
+    listed in ``head_transforms`` as ``(field, raw -> value)`` pairs. The concrete methods here
     (``nll``, ``pit``, ``interval``, ``std``, ``broadcast``, ``from_head``, ...) are final.
 
     Args:

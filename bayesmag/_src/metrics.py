@@ -10,7 +10,7 @@ References:
     calibration and sharpness. JRSS B 69(2), 243-268.
     Gneiting, T. & Raftery, A. E. (2007). Strictly proper scoring rules, prediction, and
     estimation. JASA 102(477), 359-378.
-    Shetty & Marndi (2026), sec. 4.4 (paired squared-error test).
+    Shetty, D. K. & Marndi, A. (2026). Metrology 6(3), 45, sec. 4.4 (paired squared-error test).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ __all__ = ["rmse", "mae", "coverage", "interval_width", "nll", "crps", "pit",
 
 #: Default nominal levels of :func:`calibration_curve`: 0.05, 0.10, ..., 0.95 and 0.99.
 DEFAULT_LEVELS = np.append(np.linspace(0.05, 0.95, 19), 0.99)
+DEFAULT_LEVELS.setflags(write=False)
 
 Axis = int | tuple[int, ...] | None
 
