@@ -1158,7 +1158,10 @@ def compare_models(models: Mapping[str, Any], *, axis: str | None = None, method
             raise ValueError(f"compare_models: {name!r} and {ref_name!r} were fitted to different data "
                              f"(observed shapes {obs.shape} vs {ref.shape}); LOO/ELPD compares models on the same rows.")
     elpds = {name: loo(m, axis=axis) for name, m in models.items()}
-    return az.compare(elpds, method=method)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)       # arviz internals vs pandas 3 deprecations
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return az.compare(elpds, method=method)
 
 
 # --------------------------------------------------------------------------- outputs
