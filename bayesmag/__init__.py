@@ -29,6 +29,7 @@ from ._src.fit import (
     identifiability as identifiability,
     levenberg_marquardt as levenberg_marquardt,
 )
+from ._src.artifact import ArtifactError as ArtifactError, Calibration as Calibration, load as load
 from ._src.job import JobError as JobError, run_job as run_job
 from ._src.physics import (
     EXTRA_TERMS as EXTRA_TERMS,
@@ -54,6 +55,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "likelihoods", "metrics", "simulate",
+    "ArtifactError", "Calibration", "load",
     "CalibrationData", "Config", "ConfigError", "DataError", "EXTRA_TERMS", "Inputs", "InputTransform", "JobError",
     "LMSolution", "PhysicsFit", "PhysicsModel", "PhysicsUQ", "Split", "Term", "TemperatureQuadratic", "ThermalLag",
     "ThermoAffine", "covariance", "estimate_input_noise", "fetch_dataset", "find_dataset", "fit_physics",
