@@ -30,6 +30,7 @@ from ._src.fit import (
     levenberg_marquardt as levenberg_marquardt,
 )
 from ._src.artifact import ArtifactError as ArtifactError, Calibration as Calibration, load as load
+from ._src.discover import DiscoverOptions as DiscoverOptions, DiscoveryResult as DiscoveryResult, discover as discover
 from ._src.job import JobError as JobError, run_job as run_job
 from ._src.physics import (
     EXTRA_TERMS as EXTRA_TERMS,
@@ -55,7 +56,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "likelihoods", "metrics", "simulate",
-    "ArtifactError", "Calibration", "load",
+    "ArtifactError", "Calibration", "load", "DiscoverOptions", "DiscoveryResult", "discover",
     "CalibrationData", "Config", "ConfigError", "DataError", "EXTRA_TERMS", "Inputs", "InputTransform", "JobError",
     "LMSolution", "PhysicsFit", "PhysicsModel", "PhysicsUQ", "Split", "Term", "TemperatureQuadratic", "ThermalLag",
     "ThermoAffine", "covariance", "estimate_input_noise", "fetch_dataset", "find_dataset", "fit_physics",

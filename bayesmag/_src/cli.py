@@ -5,6 +5,7 @@ Commands::
     bayesmag run CONFIG [--out DIR] [--set key=value]...
     bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
     bayesmag report RUN_DIR
+    bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
     bayesmag data list
 """
@@ -126,6 +127,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("report", help="(re)write report.md in a run folder")
     rp.add_argument("run_dir")
     rp.set_defaults(func=_cmd_report)
+
+    dc = sub.add_parser("discover", help="find physics missing from the calibration model", add_help=False)
+    dc.add_argument("rest", nargs=argparse.REMAINDER)
+    dc.set_defaults(func=lambda a: __import__("bayesmag._src.discover", fromlist=["main"]).main(a.rest))
 
     d = sub.add_parser("data", help="named datasets: list, fetch")
     d.add_argument("action", choices=["fetch", "list"])

@@ -122,6 +122,7 @@ class Config:
     uq: UQConfig = dataclasses.field(default_factory=UQConfig)
     network: NetworkConfig = dataclasses.field(default_factory=NetworkConfig)
     nuts: NutsConfig = dataclasses.field(default_factory=NutsConfig)
+    discover: dict = dataclasses.field(default_factory=dict)   # validated by bayesmag discover (DiscoverOptions)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict:
