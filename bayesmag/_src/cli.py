@@ -141,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["discover"]:            # discover parses its own options (argparse REMAINDER drops --flags)
+        from .discover import main as discover_main
+        return discover_main(argv[1:])
     args = build_parser().parse_args(argv)
     from .config import ConfigError
     from .data import DataError

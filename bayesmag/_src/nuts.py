@@ -651,7 +651,7 @@ def sample_nuts(problems: Sequence[NutsProblem], physics: PhysicsModel, *, likel
                     for b in range(B)]
             sites, stats = jax.tree.map(lambda *x: jnp.stack(x), *outs)
             jax.block_until_ready(stats)
-            seconds["compile"] = float("nan")
+            seconds["compile"] = 0.0                       # pmap compiles on the first call: inside "sampling"
             seconds["sampling"] = time.perf_counter() - t
         else:
             sig = repr(jax.tree.map(lambda x: (x.shape, str(x.dtype)), (z0, keys, stacked)))
@@ -1064,6 +1064,8 @@ def run_nuts(data, fit: PhysicsFit, *, chains: int = 4, warmup: int = 1000, draw
                          draws=draws, target_accept=target_accept, chain_method=chain_method, seed=seed,
                          progress=progress, max_tree_depth=max_tree_depth, dense_mass=dense_mass, names=axes)
     setting_warnings = [str(w.message) for w in caught if issubclass(w.category, NutsWarning)]
+    for w in caught:                                   # re-issue everything, now that it is recorded
+        warnings.warn(w.message, w.category, stacklevel=2)
     t_post = time.perf_counter()
     a_idx = [AXES.index(a) for a in axes]
     lm_cov = np.stack([np.asarray(pr.root) @ np.asarray(pr.root).T if parametrisation == "whitened"
@@ -1221,7 +1223,16 @@ def _markdown(res: NutsResult) -> str:
     lines += ["", "## Summary", "", "mean_diff_lm_sd = (mean_NUTS - theta_LM) / sd_LM; sd_ratio = sd_NUTS / sd_LM.",
               "", "| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
     for _, r in df.iterrows():
-        lines.append("| " + " | ".join(_fmt(r[c]) for c in cols) + " |")
+        cells = []
+        for c in cols:
+            v = r[c]
+            if c == "r_hat" and isinstance(v, float) and np.isfinite(v):
+                cells.append(f"{v:.4f}")
+            elif c.startswith("ess_") and isinstance(v, float) and np.isfinite(v):
+                cells.append(f"{v:.0f}")
+            else:
+                cells.append(_fmt(v))
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
