@@ -113,3 +113,21 @@ def test_report_written_and_regenerated(tmp_path, capsys):
     assert "| S_x |" in text and "Condition number" in text and "Uncertainty budget" in text
     (out / "report.md").unlink()
     assert main(["report", str(out)]) == 0 and (out / "report.md").exists()
+
+
+@pytest.mark.parametrize("likelihood", ["gaussian", "student_t"])
+def test_hybrid_calibration_round_trip(tmp_path, likelihood):
+    """A run with the residual network: save -> load -> apply reproduces the run's hybrid predictions."""
+    net = {"enabled": True, "likelihoods": [likelihood], "hidden_layers": 2, "width": 16, "batch_size": 128,
+           "max_epochs": 20, "patience": 5, "mc_passes": 8, "seed": 2}
+    res, out = _run(tmp_path, network=net)
+    cal = load(out)
+    assert cal.network is not None and cal.likelihood == likelihood
+    test = res["data"].subset(res["split"].test)
+    pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"])
+    rows = list(csv.DictReader(open(out / "predictions.csv")))
+    for a, ax in enumerate("xyz"):
+        np.testing.assert_allclose(pred["calibrated"][:, a], [float(r[f"{ax}_hybrid_predicted"]) for r in rows],
+                                   rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(pred["total"][:, a], [float(r[f"{ax}_hybrid_total"]) for r in rows], rtol=1e-6)
+        np.testing.assert_allclose(pred["upper"][:, a], [float(r[f"{ax}_hybrid_upper"]) for r in rows], rtol=1e-6)

@@ -94,6 +94,14 @@ class Calibration:
                           rmse_in_sample=np.full(3, np.nan), result=("converged",) * 3, n_steps=np.zeros(3),
                           covariance_method="", cov_info=empty, diagnostics=empty)
 
+    def _family_dist(self, mean, var, shape):
+        from .likelihoods import moment_match
+        spec = self.network["meta"]["spec"]
+        if self.likelihood == "student_t":
+            df = shape.get("df") if spec.get("df") is None else spec["df"]
+            return moment_match("student_t", mean, var, df=df)
+        return moment_match(self.likelihood, mean, var)
+
     def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
                 progress: bool = False) -> dict[str, np.ndarray]:
@@ -130,15 +138,20 @@ class Calibration:
             out["aleatoric_physics"][rows] = uq.aleatoric
             out["epistemic_physics"][rows] = uq.epistemic
             out["residual_physics"][rows] = resid
+            dist = None
             if self.network is not None:
-                from .hybrid import apply_network
-                nn_mean, nn_alea, nn_epi = apply_network(self.network, data.subset(rows))
+                nn_mean, nn_alea, nn_epi, shape = apply_network(self.network, data.subset(rows))
                 out.setdefault("aleatoric_nn", np.full((n, 3), np.nan))[rows] = np.sqrt(nn_alea)
                 out.setdefault("epistemic_nn", np.full((n, 3), np.nan))[rows] = np.sqrt(nn_epi)
                 mean = mean + nn_mean
-                var = nn_alea + nn_epi + uq.epistemic**2
+                if self.network["meta"].get("fusion", "moment_match") == "paper":
+                    var = uq.aleatoric**2 + nn_alea + nn_epi + uq.epistemic**2
+                else:   # the network's aleatoric part already holds the propagated input noise
+                    var = nn_alea + nn_epi + uq.epistemic**2
+                    dist = self._family_dist(mean, var, shape)
             sd = np.sqrt(var)
-            lo_, hi_ = (np.asarray(a) for a in Gaussian(mean, sd).interval(level))
+            dist = Gaussian(mean, sd) if dist is None else dist
+            lo_, hi_ = (np.asarray(a) for a in dist.interval(level))
             out["calibrated"][rows], out["total"][rows] = mean, sd
             out["lower"][rows], out["upper"][rows] = lo_, hi_
         in_dom = np.zeros(n, dtype=bool)
@@ -221,3 +234,53 @@ def load(path: str | Path) -> Calibration:
                        likelihood=doc.get("likelihood", "gaussian"), level=doc.get("level", 0.95),
                        config=doc.get("config", {}), network=network, package_version=doc.get("package_version", ""),
                        s2=arrays.get("s2"))
+
+
+# --------------------------------------------------------------------------- network weights
+
+
+def network_to_artifact(net, *, passes: int, seed: int, fusion: str) -> dict:
+    """A trained :class:`~bayesmag._src.network.ResidualNetwork` as JSON metadata + named arrays."""
+    spec = {f.name: getattr(net.spec, f.name) for f in dataclasses.fields(net.spec)}
+    spec["log_scale_clip"] = list(spec["log_scale_clip"])
+    arrays = {f"standardizer/{k}": np.asarray(v) for k, v in net.standardizer._asdict().items()}
+    for i, layer in enumerate(net.params):
+        arrays[f"layer{i}/w"] = np.asarray(layer.w)
+        arrays[f"layer{i}/b"] = np.asarray(layer.b)
+    meta = {"spec": spec, "n_layers": len(net.params), "passes": int(passes), "seed": int(seed), "fusion": fusion,
+            "n_fit": int(net.n_fit), "n_val": int(net.n_val), "inputs": ["bx_meas", "by_meas", "bz_meas", "temperature"]}
+    return {"meta": meta, "arrays": arrays}
+
+
+def network_from_artifact(network: dict):
+    """Rebuild the :class:`~bayesmag._src.network.ResidualNetwork` saved by :func:`network_to_artifact`."""
+    import jax.numpy as jnp
+
+    from .network import Dense, NetworkSpec, ResidualNetwork, Standardizer
+
+    meta, arr = network["meta"], network["arrays"]
+    spec_d = dict(meta["spec"])
+    spec_d["log_scale_clip"] = tuple(spec_d["log_scale_clip"])
+    known = {f.name for f in dataclasses.fields(NetworkSpec)}
+    unknown = set(spec_d) - known
+    if unknown:
+        raise ArtifactError(f"the saved network has settings {sorted(unknown)} this bayesmag does not know; "
+                            f"install the version that wrote it ({known=}).")
+    spec = NetworkSpec(**spec_d)
+    try:
+        params = tuple(Dense(jnp.asarray(arr[f"layer{i}/w"]), jnp.asarray(arr[f"layer{i}/b"]))
+                       for i in range(meta["n_layers"]))
+        st = Standardizer(*(arr[f"standardizer/{k}"] for k in Standardizer._fields))
+    except KeyError as e:
+        raise ArtifactError(f"the saved network lacks array {e}; calibration.npz is damaged.") from None
+    return ResidualNetwork(spec, params, st, None, meta.get("n_fit", 0), meta.get("n_val", 0))
+
+
+def apply_network(network: dict, data: CalibrationData):
+    """MC-DropConnect residual mean, aleatoric and epistemic variances (n, 3) of a saved network."""
+    from .network import mc_predict
+
+    net = network_from_artifact(network)
+    x = np.column_stack([data.b_meas, data.temperature])
+    p = mc_predict(net, x, passes=network["meta"]["passes"], seed=network["meta"]["seed"])
+    return p.mean, p.aleatoric**2, p.epistemic**2, p.shape

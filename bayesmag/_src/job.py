@@ -223,6 +223,11 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     if cfg.network.enabled:
         from .hybrid import run_hybrid_stage
         columns = run_hybrid_stage(cfg, result, train, test, columns, timings, progress=progress)
+        from .artifact import network_to_artifact
+        primary = cfg.network.likelihoods[0]
+        result["primary_likelihood"] = primary
+        result["network_artifact"] = network_to_artifact(result["networks"][primary], passes=cfg.network.mc_passes,
+                                                         seed=cfg.network.seed, fusion=cfg.network.fusion)
     if cfg.nuts.enabled:
         from .nuts import run_nuts_stage
         run_nuts_stage(cfg, result, train, timings, progress=progress)
