@@ -40,7 +40,8 @@ def main(argv=None) -> int:
     p.add_argument("--dense-mass", action="store_true")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "laplace", "student_t"])
     p.add_argument("--t0", default="0", help='reference temperature: a number or "mean"')
-    p.add_argument("--train-split", action="store_true", help="the paper's random 90/10 split (seed 0): train rows only")
+    p.add_argument("--train-split", action="store_true",
+                   help="the paper's random 90/10 split (seed 0): train rows only")
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--json", help="write all results to this file")
     args = p.parse_args(argv)

@@ -241,9 +241,8 @@ def parse_priors(priors: Mapping | None, param_names: Sequence[str], *, likeliho
             overrides[(None, key)] = _param_prior(value, key)
         else:
             raise ConfigError(f"[nuts] priors has unknown key {key!r}; valid keys: {valid}.")
-    return NutsPriors(scale=scale, overrides=tuple(sorted(overrides.items(), key=lambda kv: (kv[0][0] is not None,
-                                                                                               kv[0][0] or 0, kv[0][1]))),
-                      sigma=tuple(sigma), df=df)
+    order = sorted(overrides.items(), key=lambda kv: (kv[0][0] is not None, kv[0][0] or 0, kv[0][1]))
+    return NutsPriors(scale=scale, overrides=tuple(order), sigma=tuple(sigma), df=df)
 
 
 # --------------------------------------------------------------------------- the model
@@ -365,8 +364,8 @@ def build_problem(data, fit: PhysicsFit, axis: int | str, *, likelihood: str = "
     for j, name in enumerate(names):
         if not (np.isfinite(sd[j]) and sd[j] > 0):
             raise ValueError(f"The LM standard error of {name} on axis {AXES[a]} is {sd[j]!r}: the data do not "
-                             f"identify it, so neither the whitening nor the default prior exist. Remove the term, "
-                             f"or give it an absolute prior via [nuts] priors = {{\"{name}\" = ...}} and fix the model.")
+                             f"identify it, so neither the whitening nor the default prior exist. Remove the term "
+                             f"from the model or change the design so that the data identify it.")
     loc, psd = theta_hat.copy(), priors.scale * sd
     for (ax, name), (mean, s) in priors.overrides:
         if ax is None or ax == a:
@@ -950,7 +949,8 @@ def crosscheck(idata, *, fit_cov: np.ndarray | None = None, high_corr: Mapping[s
             "sd_ratio_min": float(ratio.min()), "sd_ratio_max": float(ratio.max()),
             "largest_corr_differences": top, "max_corr_diff": float(np.max(np.abs(diff[iu]))) if p > 1 else 0.0,
             "whitened_eigenvalue_range": [float(eig.min()), float(eig.max())],
-            "max_rhat": float(np.nanmax(rh)), "min_ess_bulk": float(np.nanmin(eb)), "min_ess_tail": float(np.nanmin(et)),
+            "max_rhat": float(np.nanmax(rh)), "min_ess_bulk": float(np.nanmin(eb)),
+            "min_ess_tail": float(np.nanmin(et)),
             "divergences": div, "ebfmi_min": float(ebfmi.min()), "max_tree_depth_fraction": depth_frac,
         }
         if fit_cov is not None:
@@ -979,8 +979,9 @@ def crosscheck(idata, *, fit_cov: np.ndarray | None = None, high_corr: Mapping[s
                          f"the posterior's curvature, so the draws may be biased. Raise [nuts] target_accept (e.g. "
                          f"0.95).{t0_fix}")
         if depth_frac > 0.01:
+            fix = t0_fix or " Check the LM fit (whitening uses its covariance)."
             warns.append(f"NUTS axis {ax}: {depth_frac:.0%} of draws hit the maximum tree depth {max_depth}: the "
-                         f"posterior is badly scaled for the sampler.{t0_fix or ' Check the LM fit (whitening uses its covariance).'}")
+                         f"posterior is badly scaled for the sampler.{fix}")
         if ebfmi.min() < EBFMI_MIN:
             warns.append(f"NUTS axis {ax}: E-BFMI {ebfmi.min():.2f} < {EBFMI_MIN}: the noise scale or a heavy tail is "
                          f"poorly explored; raise [nuts] warmup or reconsider the observation model.")
@@ -1158,7 +1159,8 @@ def compare_models(models: Mapping[str, Any], *, axis: str | None = None, method
             ref_name, ref = name, obs
         elif obs.shape != ref.shape or not np.array_equal(obs.values, ref.values):
             raise ValueError(f"compare_models: {name!r} and {ref_name!r} were fitted to different data "
-                             f"(observed shapes {obs.shape} vs {ref.shape}); LOO/ELPD compares models on the same rows.")
+                             f"(observed shapes {obs.shape} vs {ref.shape}); LOO/ELPD compares models on the "
+                             f"same rows.")
     elpds = {name: loo(m, axis=axis) for name, m in models.items()}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)       # arviz internals vs pandas 3 deprecations
