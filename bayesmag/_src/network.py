@@ -201,7 +201,11 @@ class NetworkSpec:
     """Static settings of a residual network and its training (hashable: a jit static argument).
 
     ``df`` is the Student-t degrees of freedom: a number (fixed) or ``None`` (learned by the
-    head). Build it from a job config with :meth:`from_config`.
+    head). ``lr_plateau_factor < 1`` multiplies the learning rate by that factor after
+    ``lr_plateau_patience`` epochs without a validation improvement (floor
+    ``lr_min_factor * learning_rate``); the default 1 keeps the paper's constant rate (on the
+    real data a factor 0.5 every 20 epochs changed the test RMSE by less than the spread over
+    seeds). Build a spec from a job config with :meth:`from_config`.
     """
 
     likelihood: str = "gaussian"
@@ -218,7 +222,7 @@ class NetworkSpec:
     log_scale_l2: float = 1e-4
     epsilon: float = 1e-6
     df: float | None = 4.0
-    lr_plateau_factor: float = 0.5
+    lr_plateau_factor: float = 1.0
     lr_plateau_patience: int = 20
     lr_min_factor: float = 1e-3
     n_in: int = 4

@@ -1,0 +1,179 @@
+"""Hybrid stage: fusion rules, config checks, end-to-end jobs on simulated and real data."""
+
+import copy
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from bayesmag import ConfigError, PhysicsUQ, run_job
+from bayesmag._src.config import config_from_dict
+from bayesmag._src.hybrid import check_network_config, fuse
+from bayesmag._src.network import MCPrediction, NetworkSpec
+
+LEVEL = 0.95
+# 338 test rows: a 95 % interval's coverage has binomial sd 1.2 %; 3 sd either side.
+COVERAGE_BAND = (0.91, 0.99)
+
+SIMULATED = {
+    "name": "sim_hybrid",
+    "data": {"source": "simulated",
+             "simulate": {"design": "iid", "n": 3000, "seed": 0, "noise_sd": 0.05,
+                          "effects": [{"name": "axis_quadratic", "coeff": 0.01}]}},
+    "split": {"kind": "random", "test_fraction": 0.1, "seed": 0},
+    "uq": {"n_params": 100, "n_qmc": 256},
+    "network": {"enabled": True, "likelihoods": ["gaussian", "laplace"], "max_epochs": 40, "mc_passes": 20},
+    "output": {"progress": False},
+}
+
+
+def _config(base=SIMULATED, **network):
+    raw = copy.deepcopy(base)
+    raw["network"].update(network)
+    return config_from_dict(raw)
+
+
+# --------------------------------------------------------------------------- fusion
+
+
+def _parts(seed=0, n=50):
+    rng = np.random.default_rng(seed)
+    phys = PhysicsUQ(mean=rng.normal(size=(n, 3)), aleatoric=rng.uniform(0.01, 0.02, (n, 3)),
+                     epistemic=rng.uniform(0.001, 0.003, (n, 3)), epistemic_mc=np.zeros((n, 3)),
+                     epistemic_jac=np.zeros((n, 3)))
+    nn = MCPrediction(mean=rng.normal(0, 0.02, (n, 3)), aleatoric=rng.uniform(0.01, 0.03, (n, 3)),
+                      epistemic=rng.uniform(0.001, 0.005, (n, 3)), shape={"df": rng.uniform(3, 9, (n, 3))})
+    return phys, nn
+
+
+@pytest.mark.parametrize("likelihood,df", [("gaussian", 4.0), ("laplace", 4.0), ("student_t", 5.0),
+                                           ("student_t", None)])
+def test_moment_match_fusion_gives_the_family_mean_and_variance(likelihood, df):
+    phys, nn = _parts()
+    pred = fuse(phys, nn, NetworkSpec(likelihood=likelihood, df=df), fusion="moment_match")
+    var = nn.aleatoric**2 + nn.epistemic**2 + phys.epistemic**2          # physics aleatoric not added
+    assert type(pred.dist).name == likelihood
+    np.testing.assert_allclose(pred.mean, phys.mean + nn.mean, rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(pred.dist.mean), pred.mean, rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(pred.dist.variance), var, rtol=1e-12)
+    np.testing.assert_allclose(pred.total**2, var, rtol=1e-12)
+    if likelihood == "student_t":
+        want = nn.shape["df"] if df is None else np.full((50, 3), df)
+        np.testing.assert_allclose(np.broadcast_to(pred.dist.df, (50, 3)), want)
+
+
+def test_paper_fusion_adds_the_physics_aleatoric_part_and_is_gaussian():
+    phys, nn = _parts(1)
+    pred = fuse(phys, nn, NetworkSpec(likelihood="laplace"), fusion="paper")
+    var = phys.aleatoric**2 + nn.aleatoric**2 + phys.epistemic**2 + nn.epistemic**2
+    assert type(pred.dist).name == "gaussian"
+    np.testing.assert_allclose(np.asarray(pred.dist.variance), var, rtol=1e-12)
+    lo, hi = pred.dist.interval(LEVEL)
+    np.testing.assert_allclose(np.asarray(hi) - pred.mean, 1.959963984540054 * np.sqrt(var), rtol=1e-10)
+    # the decomposition sums to the total
+    np.testing.assert_allclose(pred.total**2, pred.aleatoric_physics**2 + pred.aleatoric_nn**2
+                               + pred.epistemic_physics**2 + pred.epistemic_nn**2, rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- config checks
+
+
+def test_network_config_errors_name_the_key_and_the_valid_set():
+    with pytest.raises(ConfigError, match=r"'cauchy'.*\['gaussian', 'laplace', 'student_t'\]"):
+        check_network_config(_config(likelihoods=["gaussian", "cauchy"]))
+    with pytest.raises(ConfigError, match=r"network\.likelihoods.*empty"):
+        check_network_config(_config(likelihoods=[]))
+    with pytest.raises(ConfigError, match=r"repeats"):
+        check_network_config(_config(likelihoods=["laplace", "laplace"]))
+    with pytest.raises(ConfigError, match=r"network\.mc_passes"):
+        check_network_config(_config(mc_passes=1))
+    with pytest.raises(ConfigError, match=r"network\.student_t_df"):
+        check_network_config(_config(likelihoods=["student_t"], student_t_df="guess"))
+    specs = check_network_config(_config(likelihoods=["student_t", "gaussian"], student_t_df="learn"))
+    assert [s.likelihood for s in specs] == ["student_t", "gaussian"] and specs[0].df is None
+
+
+def test_network_too_large_or_validation_too_small_stop_the_job(tmp_path):
+    raw = copy.deepcopy(SIMULATED)
+    raw["data"]["simulate"]["n"] = 400
+    raw["output"]["figures"] = False
+    with pytest.raises(ConfigError, match=r"network\.width.*network\.hidden_layers"):
+        run_job(_config(raw, likelihoods=["gaussian"]), tmp_path / "big")
+    with pytest.raises(ConfigError, match=r"network\.validation_fraction"):
+        run_job(_config(raw, likelihoods=["gaussian"], width=8, validation_fraction=0.02), tmp_path / "val")
+    assert not (tmp_path / "big").exists() and not (tmp_path / "val").exists()
+
+
+def test_nan_loss_warns_with_the_epoch_and_the_job_finishes(tmp_path):
+    raw = copy.deepcopy(SIMULATED)
+    raw["data"]["simulate"]["n"] = 1000
+    raw["output"]["figures"] = False
+    cfg = _config(raw, likelihoods=["gaussian"], hidden_layers=2, width=16, learning_rate=0.3, epsilon=0.0,
+                  log_scale_clip=[-300.0, 300.0], log_scale_l2=0.0)
+    with pytest.warns(RuntimeWarning, match=r"NaN/inf in epoch \d+; training stopped there"):
+        result = run_job(cfg, tmp_path / "nan")
+    info = result["metrics"]["network"]["training"]["gaussian"]
+    assert any(info[ax]["nan_epoch"] >= 0 for ax in "xyz")
+    assert result["metrics"]["network"]["warnings"]
+    assert json.loads((tmp_path / "nan" / "metrics.json").read_text())["network"]["warnings"]
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
+    out = tmp_path / "sim"
+    result = run_job(_config(), out)
+    m = result["metrics"]
+    for name in ("gaussian", "laplace"):
+        h = m["hybrid"][name]
+        assert h["rmse"]["y"] < 0.2 * m["physics"]["rmse"]["y"]        # the quadratic effect is learned
+        assert set(h) == {"rmse", "mae", "coverage", "nll", "crps", "mean_width"}
+        assert m["network"]["training"][name]["y"]["epochs_run"] >= 1
+    # the likelihoods give different scores
+    assert m["hybrid"]["gaussian"]["nll"]["x"] != m["hybrid"]["laplace"]["nll"]["x"]
+    assert m["hybrid"]["gaussian"]["crps"]["x"] != m["hybrid"]["laplace"]["crps"]["x"]
+
+    records = json.loads((out / "likelihood_comparison.json").read_text())
+    assert [r["likelihood"] for r in records] == ["gaussian", "laplace"]
+    assert records[1]["nll"] == m["hybrid"]["laplace"]["nll"]
+    md = (out / "likelihood_comparison.md").read_text()
+    assert "| Likelihood | Axis | RMSE (uT) | MAE (uT) | Coverage (%) | NLL | CRPS (uT) |" in md
+    assert md.count("| laplace |") == 3
+    for fig in ("hybrid_predicted_vs_reference.png", "hybrid_uncertainty_vs_temperature.png",
+                "hybrid_calibration.png", "hybrid_pit.png"):
+        assert (out / fig).stat().st_size > 10_000
+
+    with open(out / "predictions.csv") as f:
+        header = next(csv.reader(f))
+    for col in ("hybrid_predicted", "aleatoric_nn", "epistemic_nn", "hybrid_total", "hybrid_lower",
+                "hybrid_upper", "hybrid_covered"):
+        assert f"y_{col}" in header
+    # primary (gaussian) columns: total^2 = NN aleatoric^2 + NN epistemic^2 + physics epistemic^2
+    pred = result["hybrid"]["gaussian"]
+    np.testing.assert_allclose(pred.total**2, pred.aleatoric_nn**2 + pred.epistemic_nn**2
+                               + pred.epistemic_physics**2, rtol=1e-12)
+    assert "network_train" in m["timings"] and "hybrid_inference" in m["timings"]
+
+
+@pytest.mark.realdata
+def test_real_data_hybrid_beats_physics_on_the_random_split(belsten, tmp_path):
+    raw = {
+        "name": "belsten_hybrid_reduced",
+        "data": {"source": "belsten2023"},
+        "split": {"kind": "random", "test_fraction": 0.1, "seed": 0},
+        "uq": {"n_params": 100, "n_qmc": 256},
+        "network": {"enabled": True, "likelihoods": ["gaussian"], "max_epochs": 200, "mc_passes": 30},
+        "output": {"progress": False, "figures": False},
+    }
+    result = run_job(config_from_dict(raw), tmp_path / "real")
+    m = result["metrics"]
+    assert m["split"]["n_test"] == 338
+    h = m["hybrid"]["gaussian"]
+    for ax in "xyz":
+        assert h["rmse"][ax] < 0.9 * m["physics"]["rmse"][ax]
+        assert COVERAGE_BAND[0] <= h["coverage"][ax] <= COVERAGE_BAND[1]
+        assert h["nll"][ax] < m["physics"]["nll"][ax]
+        # the paper's fusion counts the input noise twice: wider intervals than moment matching
+        assert m["hybrid_paper_fusion"]["gaussian"]["mean_width"][ax] > h["mean_width"][ax]
