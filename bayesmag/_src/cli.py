@@ -5,6 +5,7 @@ Commands::
     bayesmag run CONFIG [--out DIR] [--set key=value]...
     bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
     bayesmag report RUN_DIR
+    bayesmag study CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
     bayesmag data list
@@ -92,6 +93,18 @@ def _cmd_apply(args) -> int:
     return 0
 
 
+def _cmd_study(args) -> int:
+    from .config import load_config
+    from .study import run_study
+
+    cfg = load_config(_resolve_config(args.config), args.set or [])
+    out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+    res = run_study(cfg, out, progress=not args.no_progress)
+    print(f"bayesmag: wrote {out}/ ({res['seconds_total']:.0f} s, peak memory {res['peak_rss_gb']:.2f} GB)")
+    print((out / "simulation_study.md").read_text())
+    return 0
+
+
 def _cmd_report(args) -> int:
     from .report import write_report
 
@@ -123,6 +136,13 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--temperature-unit", choices=["C", "K"], default="C")
     a.add_argument("--no-progress", action="store_true")
     a.set_defaults(func=_cmd_apply)
+
+    st = sub.add_parser("study", help="the paper's simulation study over sample sizes")
+    st.add_argument("config")
+    st.add_argument("--out")
+    st.add_argument("--set", action="append", metavar="KEY=VALUE")
+    st.add_argument("--no-progress", action="store_true")
+    st.set_defaults(func=_cmd_study)
 
     rp = sub.add_parser("report", help="(re)write report.md in a run folder")
     rp.add_argument("run_dir")

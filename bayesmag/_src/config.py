@@ -106,6 +106,15 @@ class NutsConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class StudyConfig:
+    """The simulation study (``bayesmag study``): one simulated data set per size."""
+
+    sizes: list = dataclasses.field(default_factory=lambda: [50000, 100000, 200000, 500000])
+    #: per-size [network] overrides, e.g. {"500000" = {batch_size = 2048, max_epochs = 40}}
+    per_size: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
 class OutputConfig:
     figures: bool = True
     progress: bool = True
@@ -123,6 +132,7 @@ class Config:
     network: NetworkConfig = dataclasses.field(default_factory=NetworkConfig)
     nuts: NutsConfig = dataclasses.field(default_factory=NutsConfig)
     discover: dict = dataclasses.field(default_factory=dict)   # validated by bayesmag discover (DiscoverOptions)
+    study: StudyConfig = dataclasses.field(default_factory=StudyConfig)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict:
