@@ -1,6 +1,6 @@
 """Benchmark: the hybrid stage on the paper's protocol (real data, random 90/10 split, 338 test rows).
 
-Run:  BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_hybrid.py [--seeds 5] [--config configs/paper_hybrid.toml]
+Run:  BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_hybrid.py [--seeds 5] [--config FILE]
 
 For split seeds 0..seeds-1 it runs the job of ``--config`` (paper settings: 4 x 64 ReLU,
 DropConnect 0.01, Adam 5e-4, batch 16, <= 1000 epochs, patience 50, M = 100 passes,
@@ -122,7 +122,8 @@ def main():
     cmd += "".join(f" --set {s}" for s in args.set)
     out.append(f"Command: `{cmd}` (config `{Path(args.config).name}`: {spec.hidden_layers} x {spec.width} "
                f"{spec.activation}, DropConnect {spec.dropconnect}, lr {spec.learning_rate}, batch {spec.batch_size}, "
-               f"<= {spec.max_epochs} epochs, patience {spec.patience}, M = {net_cfg.mc_passes}, Np = {cfg.uq.n_params}, "
+               f"<= {spec.max_epochs} epochs, patience {spec.patience}, M = {net_cfg.mc_passes}, "
+               f"Np = {cfg.uq.n_params}, "
                f"Nq = {cfg.uq.n_qmc}, likelihood {spec.likelihood}, fusion `{net_cfg.fusion}`). Random 90/10 split of "
                f"the {d.n} rows ({sp.test.size} test rows); network seed {net_cfg.seed}.\n")
     out.append("| split seed | RMSE x / y / z (uT) | coverage x / y / z (%) | NLL x / y / z | CRPS x / y / z (uT) "
@@ -145,11 +146,11 @@ def main():
     out.append("")
     out.append(f"- Physics-only test RMSE, mean over seeds: {' / '.join(f'{v:.5f}' for v in phys.mean(0))} uT; "
                f"hybrid / physics: {' / '.join(f'{v:.2f}' for v in (arr['rmse'] / phys).mean(0))}.")
-    out.append(f"- Seeds with hybrid RMSE at or below the paper's, per axis: "
+    out.append("- Seeds with hybrid RMSE at or below the paper's, per axis: "
                + " / ".join(str(int(np.sum(arr['rmse'][:, a] <= PAPER['rmse'][a]))) for a in range(3))
                + f" of {args.seeds}; NLL at or below the paper's: "
                + " / ".join(str(int(np.sum(arr['nll'][:, a] <= PAPER['nll'][a]))) for a in range(3))
-               + f"; 95 % coverage inside 93-97 %: "
+               + "; 95 % coverage inside 93-97 %: "
                + " / ".join(str(int(np.sum((arr['coverage'][:, a] >= 0.93) & (arr['coverage'][:, a] <= 0.97))))
                             for a in range(3)) + ".")
     out.append(f"- The paper's fusion (adds the physics aleatoric part again) on the same networks covers "

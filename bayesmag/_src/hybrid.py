@@ -51,7 +51,7 @@ import json
 import time
 import warnings
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -104,7 +104,8 @@ def check_network_config(cfg: Config) -> list[NetworkSpec]:
     if len(set(names)) != len(names):
         raise ConfigError(f"Config key 'network.likelihoods' = {names} repeats a name.")
     if net.fusion not in FUSIONS:
-        raise ConfigError(f"Config key 'network.fusion' = {net.fusion!r} is not valid; it must be one of {list(FUSIONS)}.")
+        raise ConfigError(f"Config key 'network.fusion' = {net.fusion!r} is not valid; "
+                          f"it must be one of {list(FUSIONS)}.")
     if net.mc_passes < 2:
         raise ConfigError(f"Config key 'network.mc_passes' = {net.mc_passes} must be at least 2 (the epistemic "
                           "variance is a sample variance over passes).")
@@ -157,7 +158,7 @@ def score(y: np.ndarray, pred: HybridPrediction, level: float) -> tuple[dict, np
 
 
 def comparison_records(hybrid_metrics: dict[str, dict]) -> list[dict]:
-    """``likelihood_comparison.json`` rows: ``{"likelihood", "rmse", "mae", "coverage", "nll", "crps", "mean_width"}``."""
+    """Rows of ``likelihood_comparison.json``: likelihood, rmse, mae, coverage, nll, crps, mean_width."""
     keys = ("rmse", "mae", "coverage", "nll", "crps", "mean_width")
     return [{"likelihood": name, **{k: block[k] for k in keys}} for name, block in hybrid_metrics.items()]
 
@@ -187,7 +188,8 @@ def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
     for ax, info in net.info_dict().items():
         if info["nan_epoch"] >= 0:
             kept = (f"the weights of epoch {info['best_epoch']} (best finite validation loss) are used"
-                    if info["best_epoch"] >= 0 else "no epoch finished with a finite loss, so the initial weights are used")
+                    if info["best_epoch"] >= 0
+                    else "no epoch finished with a finite loss, so the initial weights are used")
             msg = (f"Residual network '{name}', axis {ax}: the training loss became NaN/inf in epoch "
                    f"{info['nan_epoch']}; training stopped there and {kept}. Usual causes: a learning rate too "
                    "high for the data (lower 'network.learning_rate') or a log-scale clip that lets the scale "

@@ -416,7 +416,8 @@ def build_trainer(spec: NetworkSpec) -> Callable[..., tuple[Params, TrainInfo]]:
         nan_hist = jnp.full((spec.max_epochs,), jnp.nan, DTYPE)
         s0 = TrainState(params=params, opt_state=opt.init(params), key=key, epoch=jnp.asarray(0),
                         best_params=params, best_loss=jnp.asarray(jnp.inf, DTYPE), best_epoch=jnp.asarray(-1),
-                        wait=jnp.asarray(0), plateau=jnp.asarray(0), nan_epoch=jnp.asarray(-1), train_loss=nan_hist, val_loss=nan_hist)
+                        wait=jnp.asarray(0), plateau=jnp.asarray(0), nan_epoch=jnp.asarray(-1),
+                        train_loss=nan_hist, val_loss=nan_hist)
         s = jax.lax.while_loop(cond, epoch_body, s0)
         info = TrainInfo(epochs_run=s.epoch, best_epoch=s.best_epoch, best_val_loss=s.best_loss,
                          nan_epoch=s.nan_epoch, train_loss=s.train_loss, val_loss=s.val_loss)
