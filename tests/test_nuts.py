@@ -11,8 +11,8 @@ import bayesmag as bm
 from bayesmag._src.config import config_from_dict
 from bayesmag import CalibrationData, ConfigError, PhysicsModel, TemperatureQuadratic, fit_physics, inputs_from_data
 # Implementation path until the package re-exports these names (bayesmag/__init__.py).
-from bayesmag._src.nuts import (NutsWarning, build_problem, check_settings, compare_models, loo, parse_priors,
-                                run_nuts, sample_nuts)
+from bayesmag._src.nuts import (NutsWarning, build_problem, check_settings, compare_models, crosscheck, loo,
+                                parse_priors, run_nuts, sample_nuts)
 
 #: Truth for the simulated sensor (one row per output axis; paper parameter order, T0 = 0).
 THETA = np.array([[1.02, -0.03, 0.05, 2e-3, -1e-3, 5e-4, 1.5, -0.02],
@@ -106,6 +106,51 @@ def test_nonfinite_log_density_at_initial_point_is_named():
         run_nuts(d, bad, chains=2, warmup=10, draws=10)
     msg = str(e.value)
     assert "not finite at the initial point" in msg and "axis y" in msg
+
+
+def _fake_idata(theta_draws, lm_theta, lm_cov, diverging=0):
+    """Minimal InferenceData in run_nuts's layout (one axis "x") from given draws (chain, draw, p)."""
+    az = pytest.importorskip("arviz")
+    import xarray as xr
+    C, D, p = theta_draws.shape
+    names = [f"p{j}" for j in range(p)]
+    rng = np.random.default_rng(0)
+    post = xr.Dataset({"theta": (("chain", "draw", "axis", "parameter"), theta_draws[:, :, None, :]),
+                       "sigma": (("chain", "draw", "axis"), 1 + 0.01 * rng.standard_normal((C, D, 1)))},
+                      coords={"chain": np.arange(C), "draw": np.arange(D), "axis": ["x"], "parameter": names})
+    div = np.zeros((C, D, 1), dtype=bool)
+    div[0, :diverging, 0] = True
+    stats = xr.Dataset({"diverging": (("chain", "draw", "axis"), div),
+                        "energy": (("chain", "draw", "axis"), rng.standard_normal((C, D, 1))),
+                        "tree_depth": (("chain", "draw", "axis"), np.full((C, D, 1), 3))},
+                       coords={"chain": np.arange(C), "draw": np.arange(D), "axis": ["x"]})
+    const = xr.Dataset({"lm_theta": (("axis", "parameter"), lm_theta[None]),
+                        "lm_cov": (("axis", "parameter", "parameter_bis"), lm_cov[None])},
+                       coords={"axis": ["x"], "parameter": names, "parameter_bis": names})
+    return az.InferenceData(posterior=post, sample_stats=stats, constant_data=const)
+
+
+def test_crosscheck_verdicts_follow_the_draws():
+    """The verdict logic against draws with known properties: exact, too wide, shifted, unmixed."""
+    rng = np.random.default_rng(1)
+    m, cov = np.array([1.0, -2.0]), np.array([[4.0, 1.9], [1.9, 1.0]])
+    L = np.linalg.cholesky(cov)
+    good = m + rng.standard_normal((4, 1000, 2)) @ L.T
+    cc, verdicts, warns = crosscheck(_fake_idata(good, m, cov))
+    assert verdicts["x"].startswith("Laplace approximation adequate") and not warns
+    assert cc["x"]["adequate"] and abs(cc["x"]["sd_ratio_min"] - 1) < 0.05
+    wide = m + 1.3 * (good - m)
+    _, verdicts, _ = crosscheck(_fake_idata(wide, m, cov))
+    assert verdicts["x"].startswith("Laplace approximation disagrees") and "sd ratio 1.3" in verdicts["x"]
+    shifted = good - good.mean(axis=(0, 1)) + m + np.array([0.0, 0.5])     # exactly 0.5 LM sd on p1
+    _, verdicts, _ = crosscheck(_fake_idata(shifted, m, cov))
+    assert "p1 mean differs by +0.50 LM sd" in verdicts["x"]
+    stuck = good.copy()
+    stuck[0] += 2.0                                            # one chain elsewhere: R-hat fails
+    cc, verdicts, warns = crosscheck(_fake_idata(stuck, m, cov, diverging=3))
+    assert verdicts["x"].startswith("Inconclusive") and not cc["x"]["adequate"]
+    assert any("R-hat" in w for w in warns) and any("3 divergent transitions" in w and "target_accept" in w
+                                                    for w in warns)
 
 
 # --------------------------------------------------------------------------- known truth

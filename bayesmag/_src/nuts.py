@@ -961,6 +961,7 @@ def crosscheck(idata, *, fit_cov: np.ndarray | None = None, high_corr: Mapping[s
         t0_fix = (f" The LM correlations {', '.join(hc)} exceed 0.999: set [physics] t0 = \"mean\" to remove them."
                   if hc else "")
         problems = []
+        n_warn = len(warns)
         if C >= 2 and np.nanmax(rh) > RHAT_MAX:
             worst = subs.parameter.to_numpy()[np.nanargmax(rh)]
             problems.append(f"R-hat {np.nanmax(rh):.3f} > {RHAT_MAX}")
@@ -985,6 +986,8 @@ def crosscheck(idata, *, fit_cov: np.ndarray | None = None, high_corr: Mapping[s
         if ebfmi.min() < EBFMI_MIN:
             warns.append(f"NUTS axis {ax}: E-BFMI {ebfmi.min():.2f} < {EBFMI_MIN}: the noise scale or a heavy tail is "
                          f"poorly explored; raise [nuts] warmup or reconsider the observation model.")
+        if t0_fix and len(warns) > n_warn + 1:      # say the t0 fix once per axis, on its first warning
+            warns[n_warn + 1:] = [w.replace(t0_fix, "") for w in warns[n_warn + 1:]]
         # verdict
         bad = []
         for j in np.argsort(-np.abs(d)):
@@ -994,15 +997,17 @@ def crosscheck(idata, *, fit_cov: np.ndarray | None = None, high_corr: Mapping[s
             if not SD_RATIO_RANGE[0] <= ratio[j] <= SD_RATIO_RANGE[1]:
                 bad.append(f"{names[j]} sd ratio {ratio[j]:.2f} (NUTS {'wider' if ratio[j] > 1 else 'narrower'})")
         what = "NUTS" if likelihood == "gaussian" else f"NUTS ({likelihood} likelihood)"
-        if not bad:
-            v = (f"Laplace approximation adequate: {what} means within {np.max(np.abs(d)):.3f} LM sd of the LM "
-                 f"estimate (tolerance {MEAN_DIFF_TOL}), sd ratios {ratio.min():.3f}-{ratio.max():.3f} "
-                 f"(tolerance {SD_RATIO_RANGE[0]}-{SD_RATIO_RANGE[1]})")
-        else:
-            shown = bad[:4] + ([f"{len(bad) - 4} more"] if len(bad) > 4 else [])
-            v = f"Laplace approximation disagrees with {what}: " + "; ".join(shown)
+        within = (f"{what} means within {np.max(np.abs(d)):.3f} LM sd of the LM estimate (tolerance "
+                  f"{MEAN_DIFF_TOL}), sd ratios {ratio.min():.3f}-{ratio.max():.3f} (tolerance "
+                  f"{SD_RATIO_RANGE[0]}-{SD_RATIO_RANGE[1]})")
+        shown = "; ".join(bad[:4] + ([f"{len(bad) - 4} more"] if len(bad) > 4 else []))
         if problems:
-            v += f" [sampler diagnostics failed: {', '.join(problems)}; the comparison is not conclusive]"
+            v = (f"Inconclusive: sampler diagnostics failed ({', '.join(problems)}), so the draws cannot judge the "
+                 f"Laplace approximation; as sampled, " + (shown if bad else within))
+        elif not bad:
+            v = f"Laplace approximation adequate: {within}"
+        else:
+            v = f"Laplace approximation disagrees with {what}: {shown}"
         c["adequate"] = bool(not bad and not problems)
         c["verdict"] = v
         verdicts[ax] = v
