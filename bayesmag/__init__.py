@@ -32,6 +32,14 @@ from ._src.fit import (
 from ._src.artifact import ArtifactError as ArtifactError, Calibration as Calibration, load as load
 from ._src.discover import DiscoverOptions as DiscoverOptions, DiscoveryResult as DiscoveryResult, discover as discover
 from ._src.job import JobError as JobError, run_job as run_job
+from ._src.nuts import (
+    NutsResult as NutsResult,
+    compare_models as compare_models,
+    crosscheck as crosscheck,
+    loo as loo,
+    parse_priors as parse_priors,
+    run_nuts as run_nuts,
+)
 from ._src.physics import (
     EXTRA_TERMS as EXTRA_TERMS,
     Inputs as Inputs,
@@ -56,6 +64,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "likelihoods", "metrics", "simulate",
+    "NutsResult", "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts",
     "ArtifactError", "Calibration", "load", "DiscoverOptions", "DiscoveryResult", "discover",
     "CalibrationData", "Config", "ConfigError", "DataError", "EXTRA_TERMS", "Inputs", "InputTransform", "JobError",
     "LMSolution", "PhysicsFit", "PhysicsModel", "PhysicsUQ", "Split", "Term", "TemperatureQuadratic", "ThermalLag",

@@ -38,6 +38,9 @@ def _cmd_run(args) -> int:
     for name, block in m.get("hybrid", {}).items():
         print(f"  hybrid[{name}] RMSE    " + "  ".join(f"{ax}: {block['rmse'][ax]:.4g}" for ax in "xyz")
               + "   coverage " + "  ".join(f"{ax}: {block['coverage'][ax]:.1%}" for ax in "xyz"))
+    for ax, block in m.get("nuts", {}).get("axes", {}).items():
+        if "verdict" in block:
+            print(f"  NUTS {ax}: {block['verdict']}")
     for note in result["fit"].design_notes:
         print(f"  note: {note}")
     for w in m.get("warnings", []):

@@ -147,6 +147,7 @@ _CHOICES = {
     "network.activation": ("relu", "tanh", "gelu", "silu", "elu"),
     "network.fusion": ("moment_match", "paper"),
     "nuts.chain_method": ("vectorized", "parallel", "sequential"),
+    "nuts.likelihood": ("gaussian", "laplace", "student_t"),
 }
 
 

@@ -161,6 +161,15 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     if cfg.physics.temperature_terms and np.ptp(train.temperature) < 1e-6:
         raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
                         "Set [physics] temperature_terms = false or use a split that keeps temperature variation.")
+    if cfg.nuts.enabled:                    # check NUTS settings and priors now, not after the fit
+        from .nuts import check_settings, parse_priors
+        n = cfg.nuts
+        try:
+            check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
+                           chain_method=n.chain_method)
+            parse_priors(n.priors, model.param_names, likelihood=n.likelihood)
+        except ValueError as e:
+            raise ConfigError(str(e) if str(e).startswith("[nuts]") else f"[nuts]: {e}") from None
     timings["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
