@@ -147,7 +147,7 @@ def keep_masks(key: jax.Array, shapes: tuple[tuple[int, ...], ...], rate: float)
     (numbered across all shapes) gets the word :math:`u = h(h(c \oplus s_0) + s_1)` with
     :math:`h` the ``lowbias32`` hash, and is kept iff :math:`u \ge \mathrm{round}(\mathrm{rate}\cdot 2^{32})`.
     Seven times cheaper than ``jax.random.bernoulli`` on CPU (a fresh mask for 13k weights
-    x 3 axes every minibatch step was 60 % of the training time); the drop probability is
+    x 3 axes every minibatch step took about two thirds of the training time); the drop probability is
     exact to :math:`2^{-32}`.
     """
     seeds = jax.random.bits(key, (2,), jnp.uint32)
