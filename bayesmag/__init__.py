@@ -32,6 +32,14 @@ from ._src.fit import (
 from ._src.artifact import ArtifactError as ArtifactError, Calibration as Calibration, load as load
 from ._src.discover import DiscoverOptions as DiscoverOptions, DiscoveryResult as DiscoveryResult, discover as discover
 from ._src.job import JobError as JobError, run_job as run_job
+from ._src.hybrid import HybridPrediction as HybridPrediction, fuse as fuse
+from ._src.network import (
+    MCPrediction as MCPrediction,
+    NetworkSpec as NetworkSpec,
+    ResidualNetwork as ResidualNetwork,
+    fit_residual_network as fit_residual_network,
+    mc_predict as mc_predict,
+)
 from ._src.nuts import (
     NutsResult as NutsResult,
     compare_models as compare_models,
@@ -64,6 +72,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "likelihoods", "metrics", "simulate",
+    "HybridPrediction", "fuse", "MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict",
     "NutsResult", "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts",
     "ArtifactError", "Calibration", "load", "DiscoverOptions", "DiscoveryResult", "discover",
     "CalibrationData", "Config", "ConfigError", "DataError", "EXTRA_TERMS", "Inputs", "InputTransform", "JobError",

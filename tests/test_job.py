@@ -162,3 +162,9 @@ def test_leaving_out_the_heating_run_is_flagged(belsten, tmp_path):
     assert "outside the training domain in" in m["warnings"][0] and "temperature (673 rows)" in m["warnings"][0]
     rows = list(csv.DictReader(open(tmp_path / "r6/predictions.csv")))
     assert all(r["x_in_domain"] == "False" for r in rows)
+
+
+def test_unknown_likelihood_fails_before_any_work(tmp_path):
+    with pytest.raises(ConfigError, match=r"unknown likelihood\(s\) \['cauchy'\]"):
+        bayesmag.run_job(_cfg(network={"enabled": True, "likelihoods": ["cauchy"]},
+                              data={"source": "nosuch"}), tmp_path / "o")   # the data error would come later

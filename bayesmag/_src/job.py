@@ -147,6 +147,9 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     t_all = time.perf_counter()
 
     t = time.perf_counter()
+    if cfg.network.enabled:                 # bad likelihood names and network settings fail before any work
+        from .hybrid import check_network_config
+        check_network_config(cfg)
     data = load_data(cfg)
     try:
         split = make_split(data, kind=cfg.split.kind, test_fraction=cfg.split.test_fraction, seed=cfg.split.seed,
