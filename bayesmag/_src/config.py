@@ -86,6 +86,9 @@ class NetworkConfig:
     epsilon: float = 1e-6
     student_t_df: Union[float, str] = 4.0   # a number, or "learn"
     mc_passes: int = 100
+    lr_plateau_factor: float = 1.0      # < 1: multiply the learning rate after lr_plateau_patience flat epochs
+    lr_plateau_patience: int = 20
+    lr_min_factor: float = 1e-3         # floor of the learning rate, as a fraction of learning_rate
     fusion: str = "moment_match"
     seed: int = 0
 
@@ -257,8 +260,8 @@ def apply_overrides(raw: dict, overrides: list[str]) -> dict:
     return raw
 
 
-def load_config(path: str | Path, overrides: list[str] = ()) -> Config:
-    """Read a TOML config, apply ``--set`` overrides and validate it."""
+def read_config_dict(path: str | Path, overrides: list[str] = ()) -> dict:
+    """The raw TOML dict of a config file with ``--set`` overrides applied (data paths made relative to it)."""
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"Config file {path} does not exist.")
@@ -272,7 +275,12 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> Config:
         p = Path(data["path"]).expanduser()
         if not p.is_absolute() and not p.exists() and (path.parent / p).exists():
             data["path"] = str(path.parent / p)   # relative to the config file
-    return config_from_dict(raw)
+    return raw
+
+
+def load_config(path: str | Path, overrides: list[str] = ()) -> Config:
+    """Read a TOML config, apply ``--set`` overrides and validate it."""
+    return config_from_dict(read_config_dict(path, overrides))
 
 
 def _toml_value(v: Any) -> str:

@@ -40,11 +40,8 @@ import argparse
 import dataclasses
 import json
 import math
-import os
-import shutil
 import sys
 import time as _time
-import tomllib
 from pathlib import Path
 from typing import Sequence
 
@@ -665,29 +662,16 @@ class DiscoveryResult:
 
     def write(self, out: str | Path) -> Path:
         """Write findings.json, report.md and the figures to ``out`` atomically (temp folder, then rename)."""
+        from .outdir import staging_dir
+
         out = Path(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir()
-        try:
+        with staging_dir(out) as tmp:
             figures = []
             if self.options.figures:
                 from . import discover_plots
                 figures = discover_plots.discovery_figures(tmp, self)
             (tmp / "findings.json").write_text(json.dumps(_jsonable(self.to_json()), indent=2))
             (tmp / "report.md").write_text(report_markdown(self, figures))
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        old = None
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            out.rename(old)
-        tmp.rename(out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
         return out
 
 
@@ -1135,22 +1119,10 @@ def _toml_list(specs: list) -> str:
 def load_discover_config(path: str | Path, overrides: Sequence[str] = ()):
     """(Config, DiscoverOptions) from a TOML file whose optional ``[discover]`` table holds
     :class:`DiscoverOptions` fields (validated; unknown keys are errors naming the valid set)."""
-    from .config import ConfigError, apply_overrides, config_from_dict
+    from .config import ConfigError, config_from_dict, read_config_dict
 
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"Config file {path} does not exist.")
-    try:
-        raw = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{path} is not valid TOML: {e}") from None
-    raw = apply_overrides(raw, list(overrides))
+    raw = read_config_dict(path, overrides)
     disc = raw.pop("discover", {})
-    data = raw.get("data", {})
-    if isinstance(data, dict) and data.get("path"):
-        p = Path(data["path"]).expanduser()
-        if not p.is_absolute() and not p.exists() and (path.parent / p).exists():
-            data["path"] = str(path.parent / p)
     cfg = config_from_dict(raw)
     valid = [f.name for f in dataclasses.fields(DiscoverOptions)]
     unknown = sorted(set(disc) - set(valid))

@@ -7,11 +7,8 @@ half-written folder that looks complete.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
-import os
-import shutil
 import time
 from pathlib import Path
 
@@ -22,6 +19,7 @@ from .data import AXES, CalibrationData, DataError, load_csv, make_split, valida
 from .datasets import load_dataset
 from .fit import PhysicsFit, fit_physics
 from .physics import PhysicsModel, inputs_from_data, make_extra
+from .outdir import staging_dir
 from .physics_uq import PhysicsUQ, estimate_input_noise, physics_uncertainty
 
 __all__ = ["run_job", "load_data", "build_model", "resolve_sigma_in", "JobError", "JobResult"]
@@ -79,29 +77,6 @@ def _residual_variance(cfg: Config, fit: PhysicsFit, train: CalibrationData, sig
 
 class JobResult(dict):
     """What a job computed (metrics, fit, uq, ...) beside the files it wrote."""
-
-
-@contextlib.contextmanager
-def _staging_dir(out: Path):
-    """Yield a temporary folder; on success it replaces ``out`` atomically, on failure it is removed."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = None
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
-        out.rename(old)
-    tmp.rename(out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def _per_axis(v) -> dict:
@@ -244,7 +219,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
         from .nuts import run_nuts_stage
         run_nuts_stage(cfg, result, train, timings, progress=progress)
 
-    with _staging_dir(Path(out)) as tmp:
+    with staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
         (tmp / "params.json").write_text(json.dumps(fit.to_json(), indent=2))
         write_predictions(tmp / "predictions.csv", test, split.test, columns)

@@ -274,7 +274,8 @@ class NetworkSpec:
                    max_epochs=int(net.max_epochs), patience=int(net.patience), min_delta=float(net.min_delta),
                    log_scale_clip=tuple(float(v) for v in net.log_scale_clip),
                    log_scale_l2=float(net.log_scale_l2), epsilon=float(net.epsilon),
-                   df=None if df is None else float(df))
+                   df=None if df is None else float(df), lr_plateau_factor=float(net.lr_plateau_factor),
+                   lr_plateau_patience=int(net.lr_plateau_patience), lr_min_factor=float(net.lr_min_factor))
 
     @property
     def family(self) -> type[Likelihood]:

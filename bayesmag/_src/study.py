@@ -28,7 +28,8 @@ from . import metrics as M
 from .config import Config, ConfigError
 from .data import AXES, make_split
 from .fit import fit_physics
-from .job import _staging_dir, build_model
+from .job import build_model
+from .outdir import staging_dir
 from .physics import inputs_from_data
 from .physics_uq import physics_uncertainty
 
@@ -189,7 +190,7 @@ def run_study(cfg: Config, out: str | Path, *, progress: bool = True) -> dict:
                                 "network": r["network"]} for s, r in records.items()}}
     table12 = {s: {k: r[k] for k in ("raw", "physics", "hybrid", "noise_floor")} for s, r in records.items()}
     table13 = {s: r["significance"] for s, r in records.items()}
-    with _staging_dir(Path(out)) as tmp:
+    with staging_dir(Path(out)) as tmp:
         (tmp / "simulation_study.json").write_text(json.dumps(table12, indent=2))
         (tmp / "simulation_study.md").write_text("# Test RMSE (uT) by sample size (the paper's Table 12)\n\n"
                                                  + _table12_md(records))
