@@ -46,6 +46,20 @@ def test_analytic_matches_closed_form():
         np.testing.assert_allclose(u.mean[:, a], phi @ fit.theta[a], atol=1e-10)
 
 
+@pytest.mark.parametrize("correlated", [False, True])
+def test_analytic_node_count_is_exact(correlated):
+    """The default node count (2 per input for independent noise, 3 for correlated) matches 5 nodes per input."""
+    fit, d = _fit()
+    inp = inputs_from_data(d.subset(np.arange(25)))
+    sig = SIGMA.copy()
+    if correlated:
+        sig[0, 3] = sig[3, 0] = 0.5 * np.sqrt(SIGMA[0, 0] * SIGMA[3, 3])
+    a = physics_uncertainty(fit, inp, sigma_in=sig, method="analytic")
+    b = physics_uncertainty(fit, inp, sigma_in=sig, method="analytic", quad_nodes=5)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-14)
+
+
 @pytest.mark.parametrize("chunk", [7, 64, 1000])
 def test_fast_path_equals_brute_force_nested(chunk):
     """The matrix-product path computes the paper's nested estimator exactly (same draws, same Sobol points)."""

@@ -14,8 +14,10 @@ Extension points (each one small frozen class, nothing else changes):
 
 * :class:`Term` -- an additive contribution ``g(params, inputs) -> (n,)``. A term that is
   linear in its parameters also exposes ``features(inputs) -> (n, k)`` so fits and the
-  physics uncertainty can use exact linear algebra; ``degree`` is its polynomial degree
-  in (B, T) (``None`` if not polynomial), used by the analytic uncertainty method.
+  physics uncertainty can use exact linear algebra; ``degree`` is its largest power of any
+  single input among (Bx, By, Bz, T) (``T*B_j`` has degree 1, ``B_j^2`` degree 2; ``None`` if
+  not polynomial), used by the analytic uncertainty method (``degree + 1`` Gauss-Hermite
+  nodes per input are exact).
 * :class:`InputTransform` -- maps the whole input series to new inputs with its own
   (possibly nonlinear) parameters, e.g. a thermal lag or a timing delay.
 
@@ -62,7 +64,8 @@ class Term(abc.ABC):
 
     name: ClassVar[str]
     linear: ClassVar[bool] = True
-    #: Polynomial degree in (B, T); None if the term is not a polynomial in them.
+    #: Largest power of any single input (Bx, By, Bz, T) in the features; None if not polynomial.
+    #: A larger value is still exact, only slower.
     degree: ClassVar[int | None] = 1
 
     @abc.abstractmethod
@@ -106,7 +109,7 @@ class ThermoAffine(Term):
     t0: float = 0.0
     temperature: bool = True
     name: ClassVar[str] = "thermo_affine"
-    degree: ClassVar[int] = 2
+    degree: ClassVar[int] = 1           # B_j, T, T*B_j: each input at most to the first power
 
     def param_names(self):
         if self.temperature:
@@ -233,7 +236,7 @@ class PhysicsModel:
 
     @property
     def degree(self) -> int | None:
-        """Polynomial degree in (B, T) of the features, or None."""
+        """Largest power of any single input in the features (see :class:`Term`), or None."""
         if self.transforms or any(t.degree is None for t in self.terms):
             return None
         return max(t.degree for t in self.terms)

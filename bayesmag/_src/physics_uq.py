@@ -22,6 +22,11 @@ same nested estimator with the same draws, computed with matrix products instead
 polynomial in the inputs: input moments by a tensor Gauss-Hermite rule with ``degree+1``
 nodes per input (exact for polynomials of degree ``2*degree+1``), parameter moments in
 closed form (:math:`E[\theta\theta^T] = \hat\theta\hat\theta^T + \Sigma_\theta`).
+With ``d`` the largest power of any single input in the features (``PhysicsModel.degree``),
+the variance integrand has per-input degree ``2d``, and ``d + 1`` nodes per input integrate it
+exactly when the input noise is independent (Gauss-Hermite with ``k`` nodes is exact to
+degree ``2k - 1`` in each variable): 16 nodes for the thermo-affine model; correlated noise
+mixes the inputs, and ``2d + 1`` nodes are used.
 
 Rows are processed in chunks (``chunk_size``) so memory stays bounded for any test set.
 """
@@ -136,7 +141,7 @@ class _Linear:
         else:
             m = jnp.einsum("q,nqa->na", w, phi)
             dphi = phi - m[:, None, :]
-            C = jnp.einsum("q,nqa,nqb->nab", w, dphi, dphi)
+            C = jnp.einsum("nqa,nqb->nab", dphi * w[None, :, None], dphi)   # batched matmul, no (n,q,p,p)
         phi0 = self.model.features(inputs)                            # (n, p) nominal
         var_jac = jnp.einsum("na,ab,nb->n", phi0, cov_theta, phi0)
         if exact_theta:
@@ -179,7 +184,7 @@ _gen_jit = jax.jit(lambda k, inp, lo, size, *a: k.chunk(inp, lo, size, *a), stat
 
 def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: str = "psqmc",
                         n_params: int = 500, n_qmc: int = 1000, seed: int = 0, chunk_size: int = 256,
-                        progress: bool = False) -> PhysicsUQ:
+                        progress: bool = False, quad_nodes: int | None = None) -> PhysicsUQ:
     """Physics prediction and uncertainty for rows ``inputs`` (module docstring).
 
     Args:
@@ -190,6 +195,7 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
         Monte-Carlo inner loop, for comparison) or ``"analytic"`` (exact moments).
       n_params, n_qmc: Np and Nq. seed: seeds the parameter draws and the Sobol scrambling.
       chunk_size: rows per compiled chunk (bounds memory at chunk x Nq x p floats).
+      quad_nodes: Gauss-Hermite nodes per input for ``"analytic"`` (default ``degree + 1``, exact).
     """
     valid = ("psqmc", "mc", "analytic")
     if method not in valid:
@@ -205,7 +211,11 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
         if model.degree is None or not model.is_linear:
             raise ValueError("uq method 'analytic' needs a model linear in its parameters and polynomial in the "
                              "inputs; use 'psqmc' for this model.")
-        eps, w = gauss_hermite_normal(model.degree + 1, sigma_in)
+        diagonal = np.allclose(sigma_in, np.diag(np.diag(sigma_in)))
+        # Independent noise: d + 1 nodes per input are exact. Correlated noise mixes the standard
+        # normals, so a monomial in two inputs can reach degree 2d in one of them: 2d + 1 nodes.
+        nodes = quad_nodes or (model.degree + 1 if diagonal else 2 * model.degree + 1)
+        eps, w = gauss_hermite_normal(nodes, sigma_in)
         w = jnp.asarray(w)
     elif method == "psqmc":
         eps = sobol_normal(n_qmc, sigma_in, seed=seed)
