@@ -105,6 +105,20 @@ class Logistic(Likelihood):
         return cls(loc=mean, scale=jnp.sqrt(3.0 * jnp.asarray(variance)) / math.pi)
 
 
+
+# Registered only while this module's tests run: defining the class registers it at collection
+# time, which would otherwise leak "logistic" into every other test module's valid-name lists.
+from bayesmag._src import likelihoods as _likelihoods_src  # noqa: E402
+
+_likelihoods_src._REGISTRY.pop("logistic", None)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _logistic_registered():
+    _likelihoods_src._REGISTRY["logistic"] = Logistic
+    yield
+    _likelihoods_src._REGISTRY.pop("logistic", None)
+
 # -- densities, CDFs, quantiles ------------------------------------------------------------------
 
 QS = np.array([1e-6, 0.025, 0.3, 0.5, 0.8, 0.975, 1.0 - 1e-5])
