@@ -131,3 +131,19 @@ def test_hybrid_calibration_round_trip(tmp_path, likelihood):
                                    rtol=1e-6, atol=1e-9)
         np.testing.assert_allclose(pred["total"][:, a], [float(r[f"{ax}_hybrid_total"]) for r in rows], rtol=1e-6)
         np.testing.assert_allclose(pred["upper"][:, a], [float(r[f"{ax}_hybrid_upper"]) for r in rows], rtol=1e-6)
+
+
+def test_hybrid_runs_are_bit_identical(tmp_path):
+    """Same config and seeds on the same machine: identical predictions, metrics and network weights."""
+    net = {"enabled": True, "likelihoods": ["gaussian"], "hidden_layers": 2, "width": 16, "batch_size": 128,
+           "max_epochs": 15, "patience": 5, "mc_passes": 8, "seed": 4}
+    raw = {"data": {"source": "simulated", "simulate": {"design": "campaign", "n": 1200, "seed": 1, "noise_sd": 0.05}},
+           "split": {"kind": "time_blocks", "test_fraction": 0.2}, "uq": UQ, "physics": {"t0": "mean"},
+           "network": net, "output": {"figures": False, "progress": False}}
+    for name in ("a", "b"):
+        bayesmag.run_job(config_from_dict(raw), tmp_path / name)
+    assert (tmp_path / "a/predictions.csv").read_bytes() == (tmp_path / "b/predictions.csv").read_bytes()
+    za, zb = np.load(tmp_path / "a/calibration.npz"), np.load(tmp_path / "b/calibration.npz")
+    assert sorted(za.files) == sorted(zb.files)
+    for k in za.files:
+        np.testing.assert_array_equal(za[k], zb[k])
