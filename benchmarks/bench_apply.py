@@ -1,7 +1,7 @@
 """Benchmark: apply a saved calibration to a large recording (issue #7 targets).
 
 Run:  python benchmarks/bench_apply.py [--rows 1000000]
-Trains the quickstart physics calibration (simulated sensor), writes a recording of --rows
+Trains the quickstart physics calibration (simulated sensor, network off), writes a recording of --rows
 rows without reference columns, and times `bayesmag apply` end to end (read CSV, calibrate
 in chunks, write CSV) with the analytic physics uncertainty and with PS-QMC at Np=100,
 Nq=256, reporting seconds and peak resident memory of each run (separate processes).
@@ -25,7 +25,8 @@ def main():
     tmp = Path(tempfile.mkdtemp(prefix="bench_apply_"))
     run = tmp / "run"
     subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "run", str(ROOT / "configs/quickstart.toml"), "--out",
-                    str(run), "--set", "output.figures=false", "--no-progress"], check=True, capture_output=True)
+                    str(run), "--set", "output.figures=false", "--set", "network.enabled=false", "--no-progress"],
+                   check=True, capture_output=True)
     import bayesmag as bm
     from bayesmag import CalibrationData
     d = bm.simulate.simulate(args.rows, design="iid", seed=11, noise_sd=0.05, field_range=40.0,

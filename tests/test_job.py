@@ -118,7 +118,8 @@ def test_cli_run_with_set_data_path(tmp_path, capsys):
     write_csv(d, p)
     rc = main(["run", str(Path(__file__).resolve().parents[1] / "configs/quickstart.toml"), "--out",
                str(tmp_path / "o"), "--set", f"data.path={p}", "--set", "uq.n_params=20", "--set", "uq.n_qmc=32",
-               '--set', 'split.kind="random"', "--set", "output.figures=false", "--no-progress"])
+               '--set', 'split.kind="random"', "--set", "output.figures=false", "--set", "network.enabled=false",
+               "--no-progress"])
     assert rc == 0
     m = json.loads((tmp_path / "o/metrics.json").read_text())
     assert m["data"]["source"] == str(p) and m["data"]["n_rows"] == 600
