@@ -54,10 +54,19 @@ from ._src.physics import (
     InputTransform as InputTransform,
     PhysicsModel as PhysicsModel,
     Term as Term,
-    ThermalLag as ThermalLag,
     ThermoAffine as ThermoAffine,
-    TemperatureQuadratic as TemperatureQuadratic,
     inputs_from_data as inputs_from_data,
+)
+from ._src.catalogue import (  # the discovery catalogue: model extensions, registered in EXTRA_TERMS
+    CATALOGUE as CATALOGUE,
+    AxisQuadratic as AxisQuadratic,
+    CrossAxisQuadratic as CrossAxisQuadratic,
+    CubicNonlinearity as CubicNonlinearity,
+    Hysteresis as Hysteresis,
+    OffsetDrift as OffsetDrift,
+    TemperatureQuadratic as TemperatureQuadratic,
+    ThermalLag as ThermalLag,
+    TimingOffset as TimingOffset,
 )
 from ._src.physics_uq import (
     PhysicsUQ as PhysicsUQ,
@@ -73,6 +82,8 @@ __version__ = "0.1.0"
 __all__ = [
     "likelihoods", "metrics", "simulate",
     "HybridPrediction", "fuse", "MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict",
+    "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift",
+    "TimingOffset",
     "NutsResult", "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts",
     "ArtifactError", "Calibration", "load", "DiscoverOptions", "DiscoveryResult", "discover",
     "CalibrationData", "Config", "ConfigError", "DataError", "EXTRA_TERMS", "Inputs", "InputTransform", "JobError",

@@ -131,14 +131,13 @@ class CubicNonlinearity(Term):
 class TemperatureQuadratic(Term):
     r"""Second-order thermal terms: :math:`K_{o2} T_c^2` and, with ``scale=True``, :math:`\sum_j K_{s2,j} T_c^2 B_j`.
 
-    ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2. Supersedes
-    :class:`bayesmag._src.physics.TemperatureQuadratic` (same name, same default columns).
+    ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2.
     """
 
     t0: float = 0.0
     scale: bool = False
     name: ClassVar[str] = "temperature_quadratic"
-    degree: ClassVar[int] = 3
+    degree: ClassVar[int] = 2           # T^2 and T^2 B_j: no input beyond the second power
     explanation: ClassVar[str] = ("The bridge offset (and sensitivity) drifts nonlinearly with temperature, beyond "
                                   "the linear Ko (and Ks) coefficients.")
 

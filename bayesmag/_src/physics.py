@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Inputs", "Term", "InputTransform", "ThermoAffine", "TemperatureQuadratic", "ThermalLag",
+__all__ = ["Inputs", "Term", "InputTransform", "ThermoAffine", "ThermalLag",
            "PhysicsModel", "inputs_from_data", "AXES"]
 
 AXES = ("x", "y", "z")
@@ -128,22 +128,6 @@ class ThermoAffine(Term):
             return jnp.concatenate([b, one[..., None]], axis=-1)
         tc = inputs.t - self.t0
         return jnp.concatenate([b, tc[..., None] * b, one[..., None], tc[..., None]], axis=-1)
-
-
-@dataclasses.dataclass(frozen=True)
-class TemperatureQuadratic(Term):
-    """Second-order thermal offset ``Ko2 Tc^2`` (curvature of the offset drift)."""
-
-    t0: float = 0.0
-    name: ClassVar[str] = "temperature_quadratic"
-    degree: ClassVar[int] = 2
-
-    def param_names(self):
-        return ("Ko2",)
-
-    def features(self, inputs):
-        tc = inputs.t - self.t0
-        return (tc * tc)[..., None]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -280,11 +264,9 @@ class PhysicsModel:
         }
 
 
-#: Named model extensions usable as ``[physics] extra_terms = ["name", {name = "...", ...}]``.
-EXTRA_TERMS: dict[str, type] = {
-    "temperature_quadratic": TemperatureQuadratic,
-    "thermal_lag": ThermalLag,
-}
+#: Named model extensions usable as ``[physics] extra_terms = ["name", {name = "...", ...}]``;
+#: filled by :mod:`bayesmag._src.catalogue` (the discovery catalogue) when it is imported.
+EXTRA_TERMS: dict[str, type] = {}
 
 
 def make_extra(spec, *, t0: float = 0.0):
