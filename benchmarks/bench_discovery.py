@@ -23,50 +23,94 @@ import json
 import sys
 import time
 
+import jax
 import numpy as np
 
 import bayesmag  # noqa: F401
 from bayesmag._src import discover as D
 from bayesmag._src.catalogue import SIMULATOR_NAMES
-from bayesmag.simulate import get_effect, simulate
+from bayesmag.simulate import TrueParams, get_effect, simulate
 
 N_ROWS = 5000
 NOISE = 0.5
+#: hidden effects peak (98th percentile) at FACTOR x U(0.8, 1.5) x the calibrated noise sd
+FACTOR = 3.0
 AXES = ("x", "y", "z")
 AXIS_FREE = ("thermal_lag", "timing_offset")
 
 
+def calibrated_noise_sd(clean, axis: int) -> float:
+    """Median sd of the reading noise after calibration on output ``axis``, uT (reference units):
+    NOISE * |row ``axis`` of S + Ks T|, from the true parameters."""
+    p = TrueParams.paper()
+    m = p.S[axis] + p.Ks[axis] * np.asarray(clean.temperature)[:, None]
+    return float(np.median(NOISE * np.sqrt((m * m).sum(1))))
+
+
+def calibrated_size(effect, clean, axis: int) -> float:
+    """98th percentile of |the effect's contribution to the calibrated RESIDUAL on output ``axis``|, uT.
+
+    The effect is applied to the noise-free reading and both readings are calibrated with the
+    TRUE parameters, B_ref = (S + Ks T) B_meas + O + Ko T; the difference on ``axis`` is what
+    discovery sees, less the part the thermo-affine fit absorbs (for the y axis, S_yy + Ks_yy T falls from 2.4 to ~0.3
+    over the temperature range, so a size in measured units would be misleading)."""
+    p = TrueParams.paper()
+    b0 = p.measure(clean.b_ref, clean.temperature)
+    b1, _ = effect.apply(b0, np.asarray(clean.temperature), np.asarray(clean.time), np.asarray(clean.run),
+                         np.asarray(clean.b_ref), jax.random.PRNGKey(0), measure=p.measure)
+    d = p.forward(b1, clean.temperature) - p.forward(b0, clean.temperature)
+    # what the calibration fit cannot absorb: remove the least-squares projection on the
+    # thermo-affine design [B_meas, T B_meas, 1, T] (the baseline model discovery starts from)
+    t = np.asarray(clean.temperature)[:, None]
+    X = np.concatenate([b0, t * b0, np.ones_like(t), t], axis=1)
+    r = d[:, axis] - X @ np.linalg.lstsq(X, d[:, axis], rcond=None)[0]
+    return float(np.quantile(np.abs(r), 0.98))
+
+
+def sized(name: str, clean, k: int, target: float, /, **params):
+    """Effect ``name`` with its linear coefficient (the first of ``params``) scaled so that its
+    calibrated contribution on output axis ``k`` is ``target`` uT at the 98th percentile."""
+    key = next(iter(params))
+    unit = get_effect(name, **params)
+    scale = target / calibrated_size(unit, clean, k)
+    return get_effect(name, **{**params, key: float(params[key] * scale)})
+
+
 def draw_effect(name: str, rng: np.random.Generator, clean) -> tuple:
-    """(effect, output axis or None): a magnitude ~3x the reading noise at the 98th percentile."""
+    """(effect, output axis or None).
+
+    Linear effects are sized in CALIBRATED (reference) units: their contribution to the
+    calibrated output on the concealed axis is FACTOR x U(0.8, 1.5) times the calibrated
+    noise sd on that axis at its 98th percentile (hysteresis and periodic: half of that as
+    amplitude, so the peak-to-peak swing is the same). thermal_lag: tau 15-60 s;
+    timing_offset: |delta| 0.2-1 s (their size follows from the campaign's rates).
+    """
     ax = AXES[int(rng.integers(3))]
     k = AXES.index(ax)
-    b = np.abs(clean.b_meas)
-    peak = 3 * NOISE * rng.uniform(0.8, 1.5)
+    peak = FACTOR * calibrated_noise_sd(clean, k) * rng.uniform(0.8, 1.5)
+    sign = float(rng.choice([-1, 1]))
     if name == "axis_quadratic":
         inp = AXES[int(rng.integers(3))]
-        q = np.quantile(b[:, AXES.index(inp)], 0.98)
-        return get_effect(name, out=ax, inp=inp, coeff=float(peak / q**2 * rng.choice([-1, 1]))), ax
+        return sized(name, clean, k, peak, coeff=sign, out=ax, inp=inp), ax
     if name == "cross_axis_quadratic":
         i, j = [a for a in AXES if a != ax] if rng.random() < 0.5 else (ax, AXES[(k + 1) % 3])
-        q = np.quantile(b[:, AXES.index(i)] * b[:, AXES.index(j)], 0.98)
-        return get_effect(name, out=ax, inp1=i, inp2=j, coeff=float(peak / q * rng.choice([-1, 1]))), ax
+        return sized(name, clean, k, peak, coeff=sign, out=ax, inp1=i, inp2=j), ax
     if name == "cubic":
-        q = np.quantile(b[:, k], 0.98)
-        return get_effect(name, out=ax, inp=ax, coeff=float(-peak / q**3)), ax
+        return sized(name, clean, k, peak, coeff=-1.0, out=ax, inp=ax), ax
     if name == "temperature_quadratic":
-        q = np.quantile((clean.temperature - 24.0) ** 2, 0.98)
-        return get_effect(name, axis=ax, coeff=float(peak / q * rng.choice([-1, 1])), t_ref=24.0), ax
+        return sized(name, clean, k, peak, coeff=sign, axis=ax, t_ref=24.0), ax
     if name == "thermal_lag":
         return get_effect(name, tau=float(rng.uniform(15, 60))), None
     if name == "timing_offset":
         return get_effect(name, delta=float(rng.choice([-1, 1]) * rng.uniform(0.2, 1.0))), None
     if name == "hysteresis":
-        return get_effect(name, axis=ax, h=float(peak / 2), threshold=float(rng.uniform(15, 30))), ax
+        thr = float(rng.uniform(15, 30))
+        return sized(name, clean, k, peak / 2, h=1.0, axis=ax, threshold=thr), ax
     if name == "offset_drift":
-        span = clean.time[-1] - clean.time[0]
-        return get_effect(name, axis=ax, rate=float(peak / span * rng.choice([-1, 1]))), ax
+        return sized(name, clean, k, peak, rate=sign, axis=ax), ax
     if name == "periodic":
-        return get_effect(name, axis=ax, amplitude=float(peak / 2), period=float(rng.uniform(8, 60))), ax
+        period = float(rng.uniform(8, 60))
+        return sized(name, clean, k, peak / 2, amplitude=1.0, axis=ax, period=period), ax
     raise ValueError(name)
 
 

@@ -131,25 +131,34 @@ class CubicNonlinearity(Term):
 class TemperatureQuadratic(Term):
     r"""Second-order thermal terms: :math:`K_{o2} T_c^2` and, with ``scale=True``, :math:`\sum_j K_{s2,j} T_c^2 B_j`.
 
-    ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2.
+    ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2. With ``cubic=True`` a
+    further :math:`K_{o3} T_c^3` (uT/C^3): an offset curvature of the sensor's own reading
+    reaches the calibrated output multiplied by the temperature-dependent gain
+    :math:`S + K_s T`, i.e. as a cubic in T (strongly so on an axis whose gain changes a lot
+    with temperature, such as y of the paper's sensor). Column order: Ko2, [Ko3], [Ks2_j].
     """
 
     t0: float = 0.0
     scale: bool = False
+    cubic: bool = False
     name: ClassVar[str] = "temperature_quadratic"
     degree: ClassVar[int] = 2           # T^2 and T^2 B_j: no input beyond the second power
     explanation: ClassVar[str] = ("The bridge offset (and sensitivity) drifts nonlinearly with temperature, beyond "
                                   "the linear Ko (and Ks) coefficients.")
 
     def param_names(self):
-        return ("Ko2", "Ks2_x", "Ks2_y", "Ks2_z") if self.scale else ("Ko2",)
+        return (("Ko2",) + (("Ko3",) if self.cubic else ())
+                + (("Ks2_x", "Ks2_y", "Ks2_z") if self.scale else ()))
 
     def features(self, inputs):
         tc = inputs.t - self.t0
         tc2 = (tc * tc)[..., None]
+        cols = [tc2]
+        if self.cubic:
+            cols.append(tc2 * tc[..., None])
         if self.scale:
-            return jnp.concatenate([tc2, tc2 * inputs.b], axis=-1)
-        return tc2
+            cols.append(tc2 * inputs.b)
+        return jnp.concatenate(cols, axis=-1) if len(cols) > 1 else tc2
 
 
 @dataclasses.dataclass(frozen=True)

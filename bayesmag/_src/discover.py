@@ -80,6 +80,9 @@ N_PERM = 499
 #: Candidates fitted on fewer training rows than this many per parameter are skipped.
 ROWS_PER_PARAM = 10
 
+#: Systematic (type-B) standard uncertainty of a timing offset from linear interpolation of the
+#: readings, as a fraction of the sampling step (noise-free simulations: |bias| <= dt/10).
+DELTA_SYS_FRACTION = 0.1
 TIME_DOMAIN = ("thermal_lag", "timing_offset", "offset_drift")
 THERMAL = ("thermal_lag", "temperature_quadratic")
 
@@ -415,7 +418,7 @@ class _Variant:
         if self.name == "offset_drift":
             return f"offset_drift(rate={c.rate}, steps={c.steps})"
         if self.name == "temperature_quadratic":
-            return f"temperature_quadratic(scale={c.scale})"
+            return f"temperature_quadratic(scale={c.scale}, cubic={c.cubic})"
         return self.name
 
 
@@ -423,7 +426,8 @@ def _candidate_variants(name: str, data: CalibrationData, t0: float, dt: float) 
     if name in ("axis_quadratic", "cross_axis_quadratic", "cubic_nonlinearity"):
         return [_Variant(name, C.CATALOGUE[name]())]
     if name == "temperature_quadratic":
-        return [_Variant(name, C.TemperatureQuadratic(t0=t0)), _Variant(name, C.TemperatureQuadratic(t0=t0, scale=True))]
+        return [_Variant(name, C.TemperatureQuadratic(t0=t0)), _Variant(name, C.TemperatureQuadratic(t0=t0, scale=True)),
+                _Variant(name, C.TemperatureQuadratic(t0=t0, cubic=True))]
     if name == "thermal_lag":
         taus = np.geomspace(max(2 * dt, 1.0), 1000.0, 14)
         return [_Variant(name, C.ThermalLag(tau0=float(t)), float(np.log(t))) for t in taus]
@@ -925,6 +929,14 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
                 lt = params.pop("log_tau")
                 tau = math.exp(lt["value"])
                 params["tau"] = {"value": tau, "se": tau * lt["se"], "unit": "s"}
+            if v.name == "timing_offset":
+                # delta's Newey-West SE is statistical only; the readings are linearly
+                # interpolated between samples, which biases delta by up to ~dt/10 even on
+                # noise-free data (measured; docs/discovery.md). Type-B term, in quadrature.
+                p = params["delta"]
+                sys_se = DELTA_SYS_FRACTION * dt
+                p.update({"se": math.hypot(p["se"], sys_se), "se_statistical": p["se"],
+                          "se_interpolation": sys_se, "unit": "s"})
             # which located mismatch it removed
             revealed, drop = None, 0.0
             for loc in located:
