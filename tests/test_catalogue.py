@@ -79,3 +79,17 @@ def test_timing_and_lag_recovered_by_lm():
     assert np.all(np.abs(delta - 0.5) < DELTA_TOL_S), delta
     # the y and z axes carry most of the thermal signal
     assert abs(tau[1] / 30.0 - 1) < TAU_RTOL and abs(tau[2] / 30.0 - 1) < TAU_RTOL, tau
+
+
+def test_temperature_quadratic_cubic_option(campaign):
+    inputs = bayesmag.inputs_from_data(campaign)
+    t = C.TemperatureQuadratic(t0=24.0, cubic=True, scale=True)
+    assert t.param_names() == ("Ko2", "Ko3", "Ks2_x", "Ks2_y", "Ks2_z")
+    X = np.asarray(t.features(inputs))
+    tc = campaign.temperature - 24.0
+    np.testing.assert_allclose(X[:, 0], tc**2, rtol=1e-12)
+    np.testing.assert_allclose(X[:, 1], tc**3, rtol=1e-12)
+    np.testing.assert_allclose(X[:, 2:], tc[:, None] ** 2 * campaign.b_meas, rtol=1e-12)
+    # the default is unchanged (one Ko2 column), and the option travels through a config spec
+    assert C.TemperatureQuadratic().param_names() == ("Ko2",)
+    assert make_extra({"name": "temperature_quadratic", "cubic": True}, t0=24.0).cubic

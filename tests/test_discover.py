@@ -105,3 +105,23 @@ def test_cli_writes_folder_atomically(tmp_path):
     extra = bayesmag.PhysicsModel.paper(extra=tuple(
         __import__("bayesmag._src.physics", fromlist=["make_extra"]).make_extra(s) for s in j["extra_terms"]))
     assert "h" in extra.param_names
+
+
+def test_measured_frame_temperature_curvature_on_y_is_named():
+    """An offset curvature added to the y READING reaches the calibrated y output times the
+    gain 2.37 - 0.052 T (a cubic in T): the cubic variant of temperature_quadratic names it."""
+    eff = get_effect("temperature_quadratic", axis="y", coeff=0.03, t_ref=24.0)
+    _, r = _run([eff], seed=6)
+    assert any(f["axis"] == "y" and f["effect"] == "temperature_quadratic" for f in r.findings), r.findings
+    assert {f["effect"] for f in r.findings} == {"temperature_quadratic"}, r.findings
+
+
+def test_timing_offset_se_includes_interpolation_term():
+    d = simulate(N, design="campaign", seed=7, effects=[get_effect("timing_offset", delta=-0.3)])
+    r = discover(d, figures=False, seed=7, candidates=("timing_offset",))
+    assert r.findings
+    for f in r.findings:
+        p = f["parameters"]["delta"]
+        assert p["se_interpolation"] == pytest.approx(0.025)          # dt / 10 at 4 Hz
+        assert p["se"] == pytest.approx(np.hypot(p["se_statistical"], p["se_interpolation"]))
+        assert abs(p["value"] - (-0.3)) <= 2 * p["se"], p
