@@ -78,53 +78,91 @@ def _run_first_last(run: jax.Array) -> tuple[jax.Array, jax.Array]:
 # --------------------------------------------------------------------------- linear terms
 
 
+def _with_thermal(term, X: jax.Array, inputs) -> jax.Array:
+    """``X`` and, with ``term.thermal``, ``X * (T - t0)`` (the term's coefficients varying linearly with T)."""
+    if not term.thermal:
+        return X
+    return jnp.concatenate([X, X * (inputs.t - term.t0)[..., None]], axis=-1)
+
+
+def _thermal_names(term, names: tuple) -> tuple:
+    return names + tuple(f"{n}_T" for n in names) if term.thermal else names
+
+
+_THERMAL_DOC = """
+    With ``thermal=True`` every coefficient gets a temperature slope (parameters ``<name>_T``,
+    per C, about ``t0``): a distortion of the sensor's own reading reaches the calibrated
+    output multiplied by the temperature-dependent gain :math:`S + K_s T`, so in calibrated
+    units its coefficient changes with temperature (strongly on an axis whose gain changes a
+    lot with T, such as y of the paper's sensor, whose gain falls from 2.4 to 0.3)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class AxisQuadratic(Term):
     r"""Squares of the measured field: :math:`\sum_j q_{jj} B_j^2` (``q`` in 1/uT)."""
 
+    t0: float = 0.0
+    thermal: bool = False
     name: ClassVar[str] = "axis_quadratic"
-    degree: ClassVar[int] = 2
     explanation: ClassVar[str] = ("Bridge asymmetry and imperfect set/reset make an axis respond to the square of "
                                   "the field along an axis (even-order nonlinearity).")
 
+    @property
+    def degree(self) -> int:
+        """Largest power of any single input (2; 2 + 1 with the temperature slopes)."""
+        return 2 + int(self.thermal)
+
     def param_names(self):
-        return ("q_xx", "q_yy", "q_zz")
+        return _thermal_names(self, ("q_xx", "q_yy", "q_zz"))
 
     def features(self, inputs):
-        return inputs.b * inputs.b
+        return _with_thermal(self, inputs.b * inputs.b, inputs)
 
 
 @dataclasses.dataclass(frozen=True)
 class CrossAxisQuadratic(Term):
     r"""Products of two measured field components: :math:`q_{xy} B_x B_y + q_{xz} B_x B_z + q_{yz} B_y B_z`."""
 
+    t0: float = 0.0
+    thermal: bool = False
     name: ClassVar[str] = "cross_axis_quadratic"
-    degree: ClassVar[int] = 2
     explanation: ClassVar[str] = ("Nonlinear coupling between the bridges (cross-field effect of AMR films) makes "
                                   "one axis respond to the product of the fields along two axes.")
 
+    @property
+    def degree(self) -> int:
+        """Largest power of any single input (2; 2 + 1 with the temperature slopes)."""
+        return 2 + int(self.thermal)
+
     def param_names(self):
-        return ("q_xy", "q_xz", "q_yz")
+        return _thermal_names(self, ("q_xy", "q_xz", "q_yz"))
 
     def features(self, inputs):
         b = inputs.b
-        return jnp.stack([b[..., 0] * b[..., 1], b[..., 0] * b[..., 2], b[..., 1] * b[..., 2]], axis=-1)
+        X = jnp.stack([b[..., 0] * b[..., 1], b[..., 0] * b[..., 2], b[..., 1] * b[..., 2]], axis=-1)
+        return _with_thermal(self, X, inputs)
 
 
 @dataclasses.dataclass(frozen=True)
 class CubicNonlinearity(Term):
     r"""Cubes of the measured field: :math:`\sum_j c_j B_j^3` (``c`` in 1/uT^2; saturation flattens the response)."""
 
+    t0: float = 0.0
+    thermal: bool = False
     name: ClassVar[str] = "cubic_nonlinearity"
-    degree: ClassVar[int] = 3
     explanation: ClassVar[str] = ("The magnetoresistive response flattens (or steepens) as the film approaches "
                                   "saturation, an odd-order nonlinearity of the transfer curve.")
 
+    @property
+    def degree(self) -> int:
+        """Largest power of any single input (3; 3 + 1 with the temperature slopes)."""
+        return 3 + int(self.thermal)
+
     def param_names(self):
-        return ("c_x", "c_y", "c_z")
+        return _thermal_names(self, ("c_x", "c_y", "c_z"))
 
     def features(self, inputs):
-        return inputs.b ** 3
+        return _with_thermal(self, inputs.b ** 3, inputs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,7 +207,12 @@ class Hysteresis(Term):
     beyond ``+-threshold`` uT. ``mode="direction"``: ``s`` is the sign of the last change
     ``B(t) - B(t - lag samples)`` larger than ``min_step`` uT (direction of travel; the lag
     averages down the sensor noise). ``s = 0`` before the first event of each run.
-    Parameter ``h`` in uT. Thresholds are in *measured* uT (before calibration).
+    Parameter ``h`` in uT. Thresholds are in *measured* uT (before calibration), unless
+    ``cal`` is given: the 8 (or 4, without temperature terms) thermo-affine coefficients
+    ``S_x S_y S_z Ks_x Ks_y Ks_z O Ko`` (``S_x S_y S_z O``) of the output ``axis``, about
+    ``t0``; the history is then that of the *calibrated* field ``(S + Ks T_c) . B + O + Ko T_c``
+    and the thresholds are in calibrated uT (needed where the axis' gain changes strongly
+    with temperature, so a fixed measured threshold is no fixed field).
     """
 
     axis: str = "x"
@@ -177,6 +220,9 @@ class Hysteresis(Term):
     threshold: float = 25.0
     min_step: float = 2.0
     lag: int = 4
+    t0: float = 0.0
+    thermal: bool = False
+    cal: tuple = ()
     name: ClassVar[str] = "hysteresis"
     degree: ClassVar[None] = None
     explanation: ClassVar[str] = ("The permalloy film keeps a remanent magnetisation whose sign follows the last "
@@ -186,21 +232,35 @@ class Hysteresis(Term):
         _check_axis(self.axis, "hysteresis axis")
         if self.mode not in ("excursion", "direction"):
             raise ValueError(f"hysteresis mode is {self.mode!r}; it must be one of ['excursion', 'direction'].")
+        object.__setattr__(self, "cal", tuple(float(c) for c in self.cal))
+        if len(self.cal) not in (0, 4, 8):
+            raise ValueError(f"hysteresis cal has {len(self.cal)} values; it must have 0, 4 (S_x S_y S_z O) or 8 "
+                             f"(S_x S_y S_z Ks_x Ks_y Ks_z O Ko).")
         if not (self.threshold >= 0 and self.min_step >= 0 and int(self.lag) >= 1):
             raise ValueError(f"hysteresis threshold and min_step must be >= 0 uT and lag >= 1 sample; got "
                              f"{self.threshold!r}, {self.min_step!r}, {self.lag!r}.")
 
     def param_names(self):
-        return ("h",)
+        return _thermal_names(self, ("h",))
 
     def state(self, inputs: Inputs) -> jax.Array:
         """(n,) magnetisation sign in {-1, 0, +1}."""
         level = self.threshold if self.mode == "excursion" else self.min_step
-        return hysteresis_state(inputs.b[:, _AXES.index(self.axis)], inputs.run, level,
-                                mode=self.mode, lag=int(self.lag))
+        return hysteresis_state(self.drive(inputs), inputs.run, level, mode=self.mode, lag=int(self.lag))
+
+    def drive(self, inputs: Inputs) -> jax.Array:
+        """(n,) the field whose history sets the state: measured ``axis``, or calibrated with ``cal``."""
+        b = inputs.b
+        if not self.cal:
+            return b[:, _AXES.index(self.axis)]
+        c = jnp.asarray(self.cal, dtype=b.dtype)
+        if c.size == 4:
+            return b @ c[:3] + c[3]
+        tc = inputs.t - self.t0
+        return b @ c[:3] + tc * (b @ c[3:6]) + c[6] + c[7] * tc
 
     def features(self, inputs):
-        return self.state(inputs)[:, None]
+        return _with_thermal(self, self.state(inputs)[:, None], inputs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -299,6 +359,9 @@ class TimingOffset(InputTransform):
         t = jnp.interp(q, tm, inputs.t)
         return inputs._replace(b=b, t=t)
 
+
+for _cls in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, Hysteresis):
+    _cls.__doc__ = (_cls.__doc__ or "") + _THERMAL_DOC
 
 #: The discovery catalogue: name -> class.
 CATALOGUE: dict[str, type] = {

@@ -414,17 +414,25 @@ class _Variant:
             return f"timing_offset(delta={self.nl:.3g} s)"
         if self.name == "hysteresis":
             extra = f"threshold={c.threshold:.3g}" if c.mode == "excursion" else f"min_step={c.min_step:.3g}"
-            return f"hysteresis({c.axis}, {c.mode}, {extra})"
+            return (f"hysteresis({c.axis}, {c.mode}, {extra}{', calibrated' if c.cal else ''}"
+                    f"{', thermal' if c.thermal else ''})")
         if self.name == "offset_drift":
             return f"offset_drift(rate={c.rate}, steps={c.steps})"
         if self.name == "temperature_quadratic":
             return f"temperature_quadratic(scale={c.scale}, cubic={c.cubic})"
+        if getattr(c, "thermal", False):
+            return f"{self.name}(thermal)"
         return self.name
 
 
-def _candidate_variants(name: str, data: CalibrationData, t0: float, dt: float) -> list[_Variant]:
+def _candidate_variants(name: str, data: CalibrationData, t0: float, dt: float,
+                        cal: Sequence[np.ndarray] = ()) -> list[_Variant]:
+    """Settings of candidate ``name``; ``cal``: the baseline thermo-affine coefficients per output
+    axis (hysteresis thresholds in calibrated uT)."""
     if name in ("axis_quadratic", "cross_axis_quadratic", "cubic_nonlinearity"):
-        return [_Variant(name, C.CATALOGUE[name]())]
+        # plain, and with coefficients linear in T (a reading distortion seen through the
+        # temperature-dependent gain S + Ks T)
+        return [_Variant(name, C.CATALOGUE[name]()), _Variant(name, C.CATALOGUE[name](t0=t0, thermal=True))]
     if name == "temperature_quadratic":
         return [_Variant(name, C.TemperatureQuadratic(t0=t0)), _Variant(name, C.TemperatureQuadratic(t0=t0, scale=True)),
                 _Variant(name, C.TemperatureQuadratic(t0=t0, cubic=True))]
@@ -440,12 +448,28 @@ def _candidate_variants(name: str, data: CalibrationData, t0: float, dt: float) 
             m = float(np.quantile(np.abs(data.b_meas[:, k]), 0.98))
             if m <= 0:
                 continue
-            for frac in (0.3, 0.5, 0.7):
-                out.append(_Variant(name, C.Hysteresis(axis=ax, mode="excursion", threshold=round(frac * m, 3))))
             d = np.diff(data.b_meas[:, k])
             noise = 1.4826 * np.median(np.abs(d - np.median(d))) + 1e-6
-            for mult in (6.0,):
-                out.append(_Variant(name, C.Hysteresis(axis=ax, mode="direction", min_step=round(mult * noise, 3), lag=4)))
+            for thermal in (False, True):
+                for frac in (0.3, 0.5, 0.7):
+                    out.append(_Variant(name, C.Hysteresis(axis=ax, mode="excursion", threshold=round(frac * m, 3),
+                                                           t0=t0, thermal=thermal)))
+                for mult in (6.0,):
+                    out.append(_Variant(name, C.Hysteresis(axis=ax, mode="direction", min_step=round(mult * noise, 3),
+                                                           lag=4, t0=t0, thermal=thermal)))
+            if len(cal) == 3:
+                # excursions of the calibrated field: a fixed field threshold even where the
+                # axis' gain changes with temperature
+                coef = tuple(round(float(c), 8) for c in cal[k])
+                probe = C.Hysteresis(axis=ax, t0=t0, cal=coef)
+                fc = np.asarray(probe.drive(inputs_from_data(data)))
+                mc = float(np.quantile(np.abs(fc), 0.98))
+                if mc > 0:
+                    for thermal in (False, True):
+                        for frac in (0.2, 0.3, 0.4, 0.5, 0.6, 0.7):
+                            out.append(_Variant(name, C.Hysteresis(axis=ax, mode="excursion",
+                                                                   threshold=round(frac * mc, 3), t0=t0,
+                                                                   thermal=thermal, cal=coef)))
         return out
     if name == "offset_drift":
         t_ref = float(data.time[0])
@@ -491,8 +515,10 @@ class _Designs:
                 inp = self._transformed(transforms)
                 if isinstance(term, C.Hysteresis):       # one compile for every threshold of the grid
                     level = term.threshold if term.mode == "excursion" else term.min_step
-                    f = _hyst_jit(inp.b[:, AXES.index(term.axis)], inp.run, jnp.asarray(level), term.mode,
+                    f = _hyst_jit(term.drive(inp), inp.run, jnp.asarray(level), term.mode,
                                   int(term.lag))[:, None]
+                    if term.thermal:
+                        f = jnp.concatenate([f, f * (inp.t - term.t0)[:, None]], axis=1)
                 else:
                     f = _features_jit(term, inp)
                 self._feat_cache[key] = np.asarray(f)
@@ -818,7 +844,8 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
     designs = _Designs(base, inputs)
     y_all = np.asarray(data.b_ref)
     X0 = designs.matrix(())
-    base_resid = np.stack([y_all[:, a] - X0 @ _lstsq(X0, y_all[:, a]) for a in range(3)], 1)
+    base_theta = [_lstsq(X0, y_all[:, a]) for a in range(3)]
+    base_resid = np.stack([y_all[:, a] - X0 @ base_theta[a] for a in range(3)], 1)
     corr_rows = max(_block_length(base_resid[:, a]) for a in range(3))
     folds, blocks, cv_desc = _folds(data, options, notes, corr_rows)
     same = ~_run_starts(data.run)[1:]
@@ -837,7 +864,7 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
         if name == "timing_offset" and (np.diff(data.time)[same] <= 0).any():
             skipped.append({"candidate": name, "reason": "needs time increasing within each run"})
             continue
-        vs = _candidate_variants(name, data, t0, dt)
+        vs = _candidate_variants(name, data, t0, dt, cal=base_theta)
         if not vs:
             skipped.append({"candidate": name, "reason": "no usable setting for these data"})
             continue
