@@ -147,3 +147,11 @@ def test_hybrid_runs_are_bit_identical(tmp_path):
     assert sorted(za.files) == sorted(zb.files)
     for k in za.files:
         np.testing.assert_array_equal(za[k], zb[k])
+
+
+def test_report_shows_network_parts_when_hybrid(tmp_path):
+    net = {"enabled": True, "likelihoods": ["gaussian"], "hidden_layers": 2, "width": 16, "batch_size": 128,
+           "max_epochs": 10, "patience": 5, "mc_passes": 8}
+    _, out = _run(tmp_path, network=net)
+    text = (out / "report.md").read_text()
+    assert "network aleatoric" in text and "network epistemic" in text and "`moment_match`" in text

@@ -21,7 +21,7 @@ def _param_table(ax: str, p: dict, corr_threshold: float) -> list[str]:
     lines = [f"### Axis {ax}", "", "| parameter | value | std. error | relative |", "|---|---|---|---|"]
     for n in names:
         v, s = vals[n], sds[n]
-        rel = f"{abs(s / v):.2%}" if v != 0 else "-"
+        rel = f"{abs(s / v) * 100:.2g}%" if v != 0 else "-"
         lines.append(f"| {n} | {_fmt(v)} | {_fmt(s)} | {rel} |")
     corr = np.asarray(p["correlation"])
     pairs = [(names[i], names[j], corr[i, j]) for i in range(len(names)) for j in range(i + 1, len(names))
@@ -44,7 +44,8 @@ def _param_table(ax: str, p: dict, corr_threshold: float) -> list[str]:
     return lines
 
 
-def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_threshold: float = 0.9) -> str:
+def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_threshold: float = 0.9,
+                  network_parts: dict | None = None) -> str:
     m = metrics
     lines = ["# Calibration report", "",
              f"Data: {m['data']['source']} ({m['data']['n_rows']} rows, runs {m['data']['runs']}). "
@@ -84,7 +85,19 @@ def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_thr
     for k, v in parts.items():
         lines.append(f"| {k} | " + " | ".join(f"{v[a]:.4g}" for a in AXES) + " |")
     dom = {a: max(parts, key=lambda k: parts[k][a]).split(" (")[0] for a in AXES}
-    lines += ["", "Dominant part per axis: " + ", ".join(f"{a}: {dom[a]}" for a in AXES) + ".",
+    if network_parts:
+        for k, v in network_parts.items():
+            lines.append(f"| {k} | " + " | ".join(f"{v[a]:.4g}" for a in AXES) + " |")
+        if m.get("network", {}).get("fusion", "moment_match") == "paper":
+            lines += ["", "With the residual network (fusion `paper`), the hybrid's total variance is the paper's "
+                      "root-sum-of-squares of physics aleatoric, physics epistemic, network aleatoric and network "
+                      "epistemic parts (the input noise is counted twice: intervals tend to over-cover)."]
+        else:
+            lines += ["", "With the residual network (fusion `moment_match`), the hybrid's total variance is network "
+                      "aleatoric + network epistemic + physics epistemic: the network learned its aleatoric part "
+                      "from residuals that already contain the propagated input noise and the unexplained scatter, "
+                      "so the physics aleatoric and residual parts are not added again."]
+    lines += ["", "Dominant physics part per axis: " + ", ".join(f"{a}: {dom[a]}" for a in AXES) + ".",
               f"Input noise sd (Bx, By, Bz in uT, T in C): "
               + ", ".join(f"{k} {v:.3g}" for k, v in u["sigma_in_sd"].items()) + f" ({u['sigma_in_source']}).", ""]
     d = m.get("domain")
@@ -104,6 +117,22 @@ def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_thr
     return "\n".join(lines) + "\n"
 
 
+def _network_parts(path: Path) -> dict | None:
+    """Mean network aleatoric / epistemic sd per axis from predictions.csv, if the hybrid stage ran."""
+    import csv
+    if not path.exists():
+        return None
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or "x_aleatoric_nn" not in rows[0]:
+        return None
+    out = {}
+    for label, col in (("network aleatoric (learned from the residuals)", "aleatoric_nn"),
+                       ("network epistemic (MC DropConnect)", "epistemic_nn")):
+        out[label] = {a: float(np.mean([float(r[f"{a}_{col}"]) for r in rows])) for a in AXES}
+    return out
+
+
 def write_report(run_dir: str | Path) -> Path:
     """(Re)write ``report.md`` in a run folder from its metrics.json and params.json."""
     run_dir = Path(run_dir)
@@ -114,5 +143,5 @@ def write_report(run_dir: str | Path) -> Path:
     params = json.loads((run_dir / "params.json").read_text())
     figs = sorted(p.name for p in run_dir.glob("*.png"))
     out = run_dir / "report.md"
-    out.write_text(render_report(metrics, params, figs))
+    out.write_text(render_report(metrics, params, figs, network_parts=_network_parts(run_dir / "predictions.csv")))
     return out
