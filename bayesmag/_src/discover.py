@@ -593,6 +593,31 @@ def _bic(sse: float, n_eff: float, k: int) -> float:
     return n_eff * math.log(max(sse, 1e-300) / max(n_eff, 1.0)) + k * math.log(max(n_eff, 2.0))
 
 
+#: Candidates (by single out-of-sample gain) tried in pairs when none passes alone.
+PAIR_TOP = 3
+
+
+def _best_pair(scores, cands, designs, current, y, folds, blocks, e_cur, r_cur, k_cur, n_eff):
+    """(first, joint score of first + second) of the best accepted pair among the top single
+    candidates, or None. The joint score is of the second given the first, against the model
+    without either, so it is held to the same acceptance criteria as a single term."""
+    top = sorted((s for s in scores if s.gain > 0), key=lambda s: -s.gain)[:PAIR_TOP]
+    best = None
+    for i, a in enumerate(top):
+        for b in top[i + 1:]:
+            if a.name == b.name:
+                continue
+            joint = _score_candidate(b.name, cands[b.name], designs, current + (a.variant,), y, folds, blocks,
+                                     e_cur, r_cur, k_cur, n_eff)
+            extra = (1 if a.variant.nl is not None else 0) + (1 if len(cands[a.name]) > 1 else 0)
+            joint.n_params += extra
+            joint.dbic += extra * math.log(n_eff)
+            joint.accepted = joint.z >= Z_MIN and joint.gain >= MIN_GAIN and joint.dbic <= -DBIC_MIN
+            if joint.accepted and (best is None or joint.gain > best[1].gain):
+                best = (a, joint)
+    return best
+
+
 def _score_candidate(name, options, designs, current, y, folds, blocks, e_base, r_base, k_base, n_eff) -> _Score:
     e = _cv_residuals(designs, current, options, y, folds)
     sse, chosen, r, k = _in_sample(designs, current, options, y)
@@ -898,6 +923,8 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
         steps = []
         considered: dict[str, _Score] = {}
         for step in range(int(options.max_terms)):
+            if len(current) >= int(options.max_terms):
+                break
             rho = lag1_autocorrelation(r_cur, data.run)
             n_eff = y.size * (1 - max(rho, 0.0)) / (1 + max(rho, 0.0))
             scores = []
@@ -912,7 +939,20 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
                 considered.setdefault(name, s)
             ok = [s for s in scores if s.accepted]
             if not ok:
-                break
+                # two effects on one axis can each explain too little of the mixed residual
+                # to pass alone: try the best pairs of candidates jointly (same criteria)
+                pair = _best_pair(scores, cands, designs, current, y, folds, blocks, e_cur, r_cur, k_cur, n_eff)
+                if pair is None or len(current) + 2 > int(options.max_terms):
+                    break
+                first, second = pair
+                steps.append({"score": first, "alternatives": [], "e_before": e_cur, "r_before": r_cur,
+                              "joint_with": second.name})
+                steps.append({"score": second, "alternatives": [], "e_before": e_cur, "r_before": first.resid,
+                              "joint_with": first.name})
+                current = current + (first.variant, second.variant)
+                e_cur, r_cur = second.e_oos, second.resid
+                k_cur = k_cur + second.n_params
+                continue
             best = max(ok, key=lambda s: s.gain)
             alts = []
             for s in ok:
@@ -996,6 +1036,7 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
                 },
                 "explanation": C.explanation(s.name),
                 "indistinguishable_from": alts,
+                "accepted_jointly_with": st.get("joint_with"),
                 "config": _spec_of(v, theta[offs[v][0]] if v.nl is not None else None),
             }
             findings.append(finding)

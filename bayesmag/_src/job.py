@@ -167,7 +167,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     y = test.b_ref
     from . import metrics as M
     # The paper's physics total sqrt(alea^2 + epi^2) leaves out the scatter the fit could not explain
-    # (reference noise, model discrepancy): its 95% intervals cover ~60% on the real data. The residual
+    # (reference noise, model discrepancy): its 95% intervals cover 39-46% on the paper split. The residual
     # term is the fit's residual variance beyond what the propagated input noise already accounts for.
     resid_var = _residual_variance(cfg, fit, train, sigma_in) if cfg.uq.residual_term else np.zeros(3)
     residual = np.broadcast_to(np.sqrt(resid_var), uq.mean.shape)
