@@ -599,8 +599,10 @@ PAIR_TOP = 3
 
 def _best_pair(scores, cands, designs, current, y, folds, blocks, e_cur, r_cur, k_cur, n_eff):
     """(first, joint score of first + second) of the best accepted pair among the top single
-    candidates, or None. The joint score is of the second given the first, against the model
-    without either, so it is held to the same acceptance criteria as a single term."""
+    candidates, or None. The joint score is of the pair against the model without either,
+    held to the same acceptance criteria as a single term, and each member must also improve
+    the out-of-sample loss given the other with z >= Z_MIN (so a pair is not one real term
+    plus a passenger)."""
     top = sorted((s for s in scores if s.gain > 0), key=lambda s: -s.gain)[:PAIR_TOP]
     best = None
     for i, a in enumerate(top):
@@ -613,6 +615,11 @@ def _best_pair(scores, cands, designs, current, y, folds, blocks, e_cur, r_cur, 
             joint.n_params += extra
             joint.dbic += extra * math.log(n_eff)
             joint.accepted = joint.z >= Z_MIN and joint.gain >= MIN_GAIN and joint.dbic <= -DBIC_MIN
+            if joint.accepted:
+                # each member must be needed given the other (out of sample, same z threshold)
+                z_a = _block_z(b.e_oos**2 - joint.e_oos**2, blocks, joint.e_oos)
+                z_b = _block_z(a.e_oos**2 - joint.e_oos**2, blocks, joint.e_oos)
+                joint.accepted = min(z_a, z_b) >= Z_MIN
             if joint.accepted and (best is None or joint.gain > best[1].gain):
                 best = (a, joint)
     return best
