@@ -911,6 +911,10 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
         notes.append(f"Candidate {s['candidate']} skipped: {s['reason']}.")
 
     k0 = len(base.param_names())
+    _thermal = lambda v: bool(getattr(v.component, "thermal", False))     # noqa: E731
+    tiers = ({n: [v for v in vs if not _thermal(v)] for n, vs in cands.items()},
+             {n: [v for v in vs if _thermal(v)] for n, vs in cands.items()})
+    tiers = (tiers[0], {n: vs for n, vs in tiers[1].items() if vs})
 
     # ---- baseline fit and locate
     base_oos = np.empty_like(y_all)
@@ -934,21 +938,31 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
                 break
             rho = lag1_autocorrelation(r_cur, data.run)
             n_eff = y.size * (1 - max(rho, 0.0)) / (1 + max(rho, 0.0))
-            scores = []
-            for name, vs in cands.items():
-                if any(v.name == name for v in current):
-                    continue
-                if name in ("thermal_lag", "timing_offset") and any(v.nl is not None and v.name == name for v in current):
-                    continue
-                s = _score_candidate(name, vs, designs, current, y, folds, blocks, e_cur, r_cur, k_cur, n_eff)
-                s.accepted = s.z >= Z_MIN and s.gain >= MIN_GAIN and s.dbic <= -DBIC_MIN
-                scores.append(s)
-                considered.setdefault(name, s)
-            ok = [s for s in scores if s.accepted]
+            # tier 1: constant coefficients; tier 2 (only if tier 1 finds nothing): coefficients
+            # with a temperature slope (a reading distortion seen through the gain S + Ks T).
+            # Offering both at once lets the richer variant win folds and overfit.
+            for tier in tiers:
+                scores = []
+                for name, vs in tier.items():
+                    if any(v.name == name for v in current):
+                        continue
+                    if name in ("thermal_lag", "timing_offset") and any(v.nl is not None and v.name == name
+                                                                        for v in current):
+                        continue
+                    s = _score_candidate(name, vs, designs, current, y, folds, blocks, e_cur, r_cur, k_cur, n_eff)
+                    s.accepted = s.z >= Z_MIN and s.gain >= MIN_GAIN and s.dbic <= -DBIC_MIN
+                    scores.append(s)
+                    considered.setdefault(name, s)
+                ok = [s for s in scores if s.accepted]
+                if ok:
+                    break
+                if tier is tiers[0]:
+                    first_scores = scores
             if not ok:
+                scores = first_scores
                 # two effects on one axis can each explain too little of the mixed residual
                 # to pass alone: try the best pairs of candidates jointly (same criteria)
-                pair = _best_pair(scores, cands, designs, current, y, folds, blocks, e_cur, r_cur, k_cur, n_eff)
+                pair = _best_pair(scores, tiers[0], designs, current, y, folds, blocks, e_cur, r_cur, k_cur, n_eff)
                 if pair is None or len(current) + 2 > int(options.max_terms):
                     break
                 first, second = pair
