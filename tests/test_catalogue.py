@@ -93,3 +93,23 @@ def test_temperature_quadratic_cubic_option(campaign):
     # the default is unchanged (one Ko2 column), and the option travels through a config spec
     assert C.TemperatureQuadratic().param_names() == ("Ko2",)
     assert make_extra({"name": "temperature_quadratic", "cubic": True}, t0=24.0).cubic
+
+
+def test_thermal_slopes_and_calibrated_hysteresis(campaign):
+    inputs = bayesmag.inputs_from_data(campaign)
+    tc = campaign.temperature - 24.0
+    q = C.AxisQuadratic(t0=24.0, thermal=True)
+    assert q.param_names() == ("q_xx", "q_yy", "q_zz", "q_xx_T", "q_yy_T", "q_zz_T") and q.degree == 3
+    X = np.asarray(q.features(inputs))
+    np.testing.assert_allclose(X[:, 3:], X[:, :3] * tc[:, None], rtol=1e-12)
+    assert C.AxisQuadratic().param_names() == ("q_xx", "q_yy", "q_zz") and C.AxisQuadratic().degree == 2
+    # hysteresis driven by the calibrated field: with cal = the identity row it is the measured one
+    ident = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    a = np.asarray(C.Hysteresis(axis="x", threshold=10.0).state(inputs))
+    b = np.asarray(C.Hysteresis(axis="x", threshold=10.0, t0=24.0, cal=list(ident)).state(inputs))
+    np.testing.assert_array_equal(a, b)
+    h = C.Hysteresis(axis="y", thermal=True, t0=24.0, cal=ident)
+    assert h.param_names() == ("h", "h_T") and isinstance(h.cal, tuple) and hash(h)
+    with pytest.raises(ValueError, match="cal has 3 values"):
+        C.Hysteresis(cal=(1.0, 0.0, 0.0))
+    assert make_extra({"name": "hysteresis", "axis": "y", "cal": list(ident), "thermal": True}, t0=24.0).thermal
