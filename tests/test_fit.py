@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from helpers import TRUE_THETA, affine_data
+
 from bayesmag import (CalibrationData, PhysicsModel, ThermalLag, covariance, fit_physics, inputs_from_data,
                       levenberg_marquardt)
 
@@ -19,16 +21,9 @@ TABLES = json.loads((Path(__file__).resolve().parents[2] / "shared/reference/pap
 AGREE_IN_SD = 1e-5
 
 
-def _sim(n=400, seed=0, noise=0.02, t0=0.0):
-    r = np.random.default_rng(seed)
-    b = r.uniform(-50, 50, (n, 3))
-    t = r.uniform(0, 40, n)
-    theta = np.array([[1.02, -0.16, -0.21, 0.003, 0.004, 0.008, -1.2, 0.036],
-                      [-0.16, 2.37, 0.04, 0.0027, -0.05, -0.0028, -0.07, -0.0009],
-                      [-0.086, 0.096, 1.21, 0.0046, -0.0011, -0.004, 4.32, -0.16]])
-    X = np.asarray(PhysicsModel.paper().features(inputs_from_data(CalibrationData(b, t, None))))
-    y = X @ theta.T + noise * r.standard_normal((n, 3))
-    return CalibrationData(b, t, y, time=np.arange(n) * 0.25), theta, X
+def _sim(n=400, seed=0, noise=0.02):
+    data, X = affine_data(n, seed, noise)
+    return data, TRUE_THETA, X
 
 
 @pytest.mark.parametrize("jit", [False, True])

@@ -5,6 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from helpers import affine_data
+
 from bayesmag import CalibrationData, PhysicsModel, estimate_input_noise, fit_physics, inputs_from_data, \
     physics_uncertainty, sobol_normal
 from bayesmag._src.physics_uq import _General, _gen_jit
@@ -13,14 +15,7 @@ SIGMA = np.diag([0.3, 0.2, 0.4, 0.5]) ** 2
 
 
 def _fit(n=300, seed=0):
-    r = np.random.default_rng(seed)
-    b = r.uniform(-50, 50, (n, 3))
-    t = r.uniform(0, 40, n)
-    th = np.array([[1.02, -0.16, -0.21, 0.003, 0.004, 0.008, -1.2, 0.036],
-                   [-0.16, 2.37, 0.04, 0.0027, -0.05, -0.0028, -0.07, -0.0009],
-                   [-0.086, 0.096, 1.21, 0.0046, -0.0011, -0.004, 4.32, -0.16]])
-    X = np.asarray(PhysicsModel.paper().features(inputs_from_data(CalibrationData(b, t, None))))
-    d = CalibrationData(b, t, X @ th.T + 0.05 * r.standard_normal((n, 3)))
+    d, _ = affine_data(n, seed, 0.05)
     return fit_physics(d), d
 
 

@@ -268,14 +268,11 @@ class NetworkSpec:
             if df != "learn":
                 raise ConfigError(f"Config key 'network.student_t_df' = {df!r} must be a number > 2 or \"learn\".")
             df = None
-        return cls(likelihood=likelihood, hidden_layers=int(net.hidden_layers), width=int(net.width),
-                   activation=net.activation, dropconnect=float(net.dropconnect),
-                   learning_rate=float(net.learning_rate), batch_size=int(net.batch_size),
-                   max_epochs=int(net.max_epochs), patience=int(net.patience), min_delta=float(net.min_delta),
-                   log_scale_clip=tuple(float(v) for v in net.log_scale_clip),
-                   log_scale_l2=float(net.log_scale_l2), epsilon=float(net.epsilon),
-                   df=None if df is None else float(df), lr_plateau_factor=float(net.lr_plateau_factor),
-                   lr_plateau_patience=int(net.lr_plateau_patience), lr_min_factor=float(net.lr_min_factor))
+        # every setting the spec shares with [network] by name is taken from it (one list, no drift)
+        shared = {f.name for f in dataclasses.fields(cls)} & {f.name for f in dataclasses.fields(net)}
+        kw = {k: getattr(net, k) for k in shared}
+        kw["log_scale_clip"] = tuple(float(v) for v in kw["log_scale_clip"])
+        return cls(likelihood=likelihood, df=None if df is None else float(df), **kw)
 
     @property
     def family(self) -> type[Likelihood]:
