@@ -207,3 +207,51 @@ def test_bad_network_settings_are_config_errors():
         N.NetworkSpec(dropconnect=1.0)
     with pytest.raises(ConfigError, match=r"network\.student_t_df"):
         N.NetworkSpec(likelihood="student_t", df=2.0)
+
+
+# --------------------------------------------------------------------------- Fourier input features
+
+
+FOURIER_SD_RTOL = 0.1        # 4 x 400 frequencies: their sd within 10 % of fourier_scale (sd error ~3.5 %)
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_fourier_embedding_is_the_closed_form(jit):
+    spec = small_spec(fourier_features=400, fourier_scale=3.0)
+    b = N.fourier_frequencies(spec, seed=7)
+    assert b.shape == (4, 400)
+    np.testing.assert_array_equal(b, N.fourier_frequencies(spec, seed=7))          # seeded
+    assert abs(b.std() / 3.0 - 1) < FOURIER_SD_RTOL and abs(b.mean()) < 0.3
+    z = np.random.default_rng(0).normal(size=(5, 4)).astype(np.float32)
+    f = jax.jit(N.embed)(z, b) if jit else N.embed(jnp.asarray(z), b)
+    a = 2 * np.pi * z.astype(np.float64) @ b
+    np.testing.assert_allclose(np.asarray(f), np.hstack([z, np.sin(a), np.cos(a)]), atol=2e-4)
+    assert N.embed(jnp.asarray(z), None) is not None and np.array_equal(N.embed(jnp.asarray(z), None), z)
+    assert spec.n_features == 804
+    assert spec.n_params == N.count_params(804, 2, hidden_layers=2, width=16)
+
+
+def test_fourier_features_fit_structure_a_plain_mlp_smooths_over():
+    """A residual with 3 cycles across the standardised input range: the same small ReLU MLP
+    leaves most of it unfitted, with 16 Fourier features (scale 1) it fits to near the noise."""
+    rng = np.random.default_rng(3)
+    x = np.zeros((3000, 4))
+    x[:, 0] = rng.uniform(-1.7, 1.7, 3000)           # ~ standardised already
+    r = (0.3 * np.sin(2 * np.pi * 3 * x[:, 0] / 3.4) + 0.02 * rng.normal(size=3000))[:, None]
+    kw = dict(width=32, max_epochs=120, patience=30, learning_rate=3e-3, batch_size=64, dropconnect=0.0)
+    grid = np.zeros((200, 4))
+    grid[:, 0] = np.linspace(-1.6, 1.6, 200)
+    truth = 0.3 * np.sin(2 * np.pi * 3 * grid[:, 0] / 3.4)
+    err = {}
+    for m in (0, 16):
+        net = N.fit_residual_network(x, r, small_spec(fourier_features=m, **kw), seed=0)
+        err[m] = np.sqrt(np.mean((N.mc_predict(net, grid, passes=2).mean[:, 0] - truth) ** 2))
+    assert err[16] < 0.015                      # under the noise sd (0.02) from the truth
+    assert err[16] < 0.5 * err[0]
+
+
+def test_bad_fourier_settings_are_config_errors():
+    with pytest.raises(ConfigError, match=r"network\.fourier_features"):
+        N.NetworkSpec(fourier_features=-1)
+    with pytest.raises(ConfigError, match=r"network\.fourier_scale"):
+        N.NetworkSpec(fourier_scale=0.0)

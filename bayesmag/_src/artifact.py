@@ -247,6 +247,8 @@ def network_to_artifact(net, *, passes: int, seed: int, fusion: str) -> dict:
     for i, layer in enumerate(net.params):
         arrays[f"layer{i}/w"] = np.asarray(layer.w)
         arrays[f"layer{i}/b"] = np.asarray(layer.b)
+    if net.frequencies is not None:
+        arrays["fourier/frequencies"] = np.asarray(net.frequencies)
     meta = {"spec": spec, "n_layers": len(net.params), "passes": int(passes), "seed": int(seed), "fusion": fusion,
             "n_fit": int(net.n_fit), "n_val": int(net.n_val), "inputs": ["bx_meas", "by_meas", "bz_meas", "temperature"]}
     return {"meta": meta, "arrays": arrays}
@@ -271,9 +273,10 @@ def network_from_artifact(network: dict):
         params = tuple(Dense(jnp.asarray(arr[f"layer{i}/w"]), jnp.asarray(arr[f"layer{i}/b"]))
                        for i in range(meta["n_layers"]))
         st = Standardizer(*(arr[f"standardizer/{k}"] for k in Standardizer._fields))
+        freqs = np.asarray(arr["fourier/frequencies"], np.float64) if spec.fourier_features else None
     except KeyError as e:
         raise ArtifactError(f"the saved network lacks array {e}; calibration.npz is damaged.") from None
-    return ResidualNetwork(spec, params, st, None, meta.get("n_fit", 0), meta.get("n_val", 0))
+    return ResidualNetwork(spec, params, st, None, meta.get("n_fit", 0), meta.get("n_val", 0), freqs)
 
 
 def apply_network(network: dict, data: CalibrationData):

@@ -89,6 +89,8 @@ class NetworkConfig:
     lr_plateau_factor: float = 1.0      # < 1: multiply the learning rate after lr_plateau_patience flat epochs
     lr_plateau_patience: int = 20
     lr_min_factor: float = 1e-3         # floor of the learning rate, as a fraction of learning_rate
+    fourier_features: int = 0           # m > 0: add m random Fourier features of the inputs (not in the paper)
+    fourier_scale: float = 1.0          # sd of their frequencies, per standardised input unit
     fusion: str = "moment_match"
     seed: int = 0
 

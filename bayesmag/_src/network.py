@@ -17,6 +17,15 @@ raw head of a predictive family (:mod:`bayesmag.likelihoods`) for the physics re
   and the minibatch loop inside it a :func:`jax.lax.scan`. Minibatches are reshuffled
   every epoch from a seeded key; a final short batch is padded with zero-weight rows.
 
+Optional random Fourier input features (``fourier_features = m > 0``; not in the paper): the
+standardised inputs ``z`` are extended to :math:`[z, \sin(2\pi zB), \cos(2\pi zB)]` with a fixed
+``(n_in, m)`` matrix :math:`B \sim N(0, \sigma^2)` (``sigma = fourier_scale``) drawn from the
+network seed (Tancik et al. 2020). A ReLU MLP on raw inputs learns smooth functions first
+(spectral bias); the embedding lets it fit sharper structure in the residual. On a random row
+split of an autocorrelated recording that sharper structure is mostly interpolation between
+time neighbours, so it helps there far more than on held-out stretches of time
+(``docs/hybrid.md``); it is off by default.
+
 Loss (sec. 2.4), on the *standardised* residual :math:`\tilde r = (r - m_r)/s_r`:
 
 .. math::  L(\phi) = \frac1N\sum_i \Big[-\log p(\tilde r_i \mid \mu_i, s_i)
@@ -59,6 +68,8 @@ References:
     Shetty & Marndi (2026). Metrology 6(3), 45, sections 2.4 and 3.6.
     Wan, L., Zeiler, M., Zhang, S., LeCun, Y. & Fergus, R. (2013). Regularization of neural
     networks using DropConnect. ICML.
+    Tancik, M. et al. (2020). Fourier features let networks learn high frequency functions in
+    low dimensional domains. NeurIPS.
     Mobiny, A. et al. (2021). DropConnect is effective in modeling uncertainty of Bayesian
     deep networks. Scientific Reports 11, 5458.
 """
@@ -80,7 +91,8 @@ from .likelihoods import LIKELIHOODS, Likelihood, get_likelihood
 
 __all__ = ["Dense", "NetworkSpec", "Standardizer", "TrainInfo", "ResidualNetwork", "MCPrediction",
            "ACTIVATIONS", "MAX_PARAMS_PER_ROW", "MIN_VALIDATION_ROWS", "init", "apply", "drop_connect", "keep_masks",
-           "count_params", "head_distribution", "regularized_nll", "build_trainer", "validation_rows",
+           "count_params", "fourier_frequencies", "embed", "head_distribution", "regularized_nll", "build_trainer",
+           "validation_rows",
            "check_network_size", "fit_residual_network", "mc_predict"]
 
 DTYPE = jnp.float32
@@ -89,6 +101,8 @@ DTYPE = jnp.float32
 MAX_PARAMS_PER_ROW = 10
 #: Early stopping needs at least this many validation rows.
 MIN_VALIDATION_ROWS = 20
+#: ``fold_in`` stream of the Fourier frequency matrix (the axis networks use streams 0, 1, 2, ...).
+FOURIER_STREAM = 0x46465431
 
 ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
     "relu": jax.nn.relu, "tanh": jnp.tanh, "gelu": jax.nn.gelu, "silu": jax.nn.silu, "elu": jax.nn.elu,
@@ -225,6 +239,8 @@ class NetworkSpec:
     lr_plateau_factor: float = 1.0
     lr_plateau_patience: int = 20
     lr_min_factor: float = 1e-3
+    fourier_features: int = 0
+    fourier_scale: float = 1.0
     n_in: int = 4
 
     def __post_init__(self):
@@ -248,6 +264,8 @@ class NetworkSpec:
             ("lr_plateau_factor", 0.0 < self.lr_plateau_factor <= 1.0, "in (0, 1]"),
             ("lr_plateau_patience", self.lr_plateau_patience >= 1, "at least 1"),
             ("lr_min_factor", 0.0 < self.lr_min_factor <= 1.0, "in (0, 1]"),
+            ("fourier_features", self.fourier_features >= 0, "a count >= 0 (0: the plain MLP)"),
+            ("fourier_scale", self.fourier_scale > 0, "positive"),
         ]
         for key, ok, what in checks:
             if not ok:
@@ -288,8 +306,39 @@ class NetworkSpec:
         return self.family.n_head_params(**self.fixed_shape)
 
     @property
+    def n_features(self) -> int:
+        """Width of the MLP's input: the ``n_in`` standardised inputs plus ``2 * fourier_features``."""
+        return self.n_in + 2 * self.fourier_features
+
+    @property
     def n_params(self) -> int:
-        return count_params(self.n_in, self.n_out, hidden_layers=self.hidden_layers, width=self.width)
+        """Trained weights and biases per axis (the fixed Fourier frequencies are not counted)."""
+        return count_params(self.n_features, self.n_out, hidden_layers=self.hidden_layers, width=self.width)
+
+
+def fourier_frequencies(spec: NetworkSpec, seed: int) -> np.ndarray:
+    """The fixed ``(n_in, fourier_features)`` frequency matrix ``B ~ N(0, fourier_scale^2)`` of seed ``seed``.
+
+    Drawn once from ``fold_in(key(seed), FOURIER_STREAM)`` and never trained (Tancik et al. 2020).
+    """
+    key = jax.random.fold_in(jax.random.key(seed), FOURIER_STREAM)
+    b = jax.random.normal(key, (spec.n_in, spec.fourier_features), jnp.float32)
+    return np.asarray(b, np.float64) * spec.fourier_scale
+
+
+def embed(z: jax.Array, frequencies: np.ndarray | None) -> jax.Array:
+    r"""Random Fourier input features :math:`[z, \sin(2\pi zB), \cos(2\pi zB)]` (``z`` standardised).
+
+    ``frequencies`` ``(n_in, m)``; ``None`` or ``m = 0`` returns ``z`` unchanged (the paper's MLP).
+
+    Example:
+        >>> embed(jnp.zeros((2, 4)), np.ones((4, 3))).shape
+        (2, 10)
+    """
+    if frequencies is None or frequencies.shape[-1] == 0:
+        return z
+    a = (2.0 * np.pi) * (z @ jnp.asarray(frequencies, z.dtype))
+    return jnp.concatenate([z, jnp.sin(a), jnp.cos(a)], axis=-1)
 
 
 def head_distribution(spec: NetworkSpec, raw: jax.Array) -> Likelihood:
@@ -431,7 +480,7 @@ def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val):
 
     def one(key, r_f, r_v):
         k_init, k_train = jax.random.split(key)
-        params = init(k_init, spec.n_in, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width)
+        params = init(k_init, spec.n_features, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width)
         return train(params, k_train, x_fit, r_f, x_val, r_v)
 
     return jax.vmap(one, in_axes=(0, 1, 1))(keys, r_fit, r_val)
@@ -471,6 +520,7 @@ class ResidualNetwork(NamedTuple):
     info: TrainInfo
     n_fit: int
     n_val: int
+    frequencies: np.ndarray | None = None    # (n_in, fourier_features) fixed Fourier frequencies, or None
 
     def info_dict(self, axes: tuple[str, ...] = ("x", "y", "z")) -> dict:
         """Per-axis ``epochs_run``, ``best_epoch``, ``best_val_loss``, ``nan_epoch`` as plain Python."""
@@ -527,9 +577,10 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *, val
     st = Standardizer.fit(x[fit_rows], r[fit_rows])
     base = jax.random.key(seed)
     keys = jax.vmap(lambda a: jax.random.fold_in(base, a))(jnp.arange(r.shape[1]))
-    params, info = _train_axes(spec, keys, st.x(x[fit_rows]), st.r(r[fit_rows]), st.x(x[val_rows]),
-                               st.r(r[val_rows]))
-    return ResidualNetwork(spec, params, st, jax.device_get(info), int(fit_rows.size), int(val_rows.size))
+    freqs = fourier_frequencies(spec, seed) if spec.fourier_features else None
+    params, info = _train_axes(spec, keys, embed(st.x(x[fit_rows]), freqs), st.r(r[fit_rows]),
+                               embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]))
+    return ResidualNetwork(spec, params, st, jax.device_get(info), int(fit_rows.size), int(val_rows.size), freqs)
 
 
 # --------------------------------------------------------------------------- MC DropConnect inference
@@ -581,7 +632,8 @@ def mc_predict(net: ResidualNetwork, x: np.ndarray, *, passes: int, seed: int = 
         raise ConfigError(f"Config key 'network.mc_passes' = {passes} must be at least 2 (the epistemic "
                           "variance is a sample variance over passes).")
     st = net.standardizer
-    mean, alea, epi, shape = jax.device_get(_mc_axes(net.spec, net.params, st.x(x), jax.random.key(seed), passes))
+    mean, alea, epi, shape = jax.device_get(_mc_axes(net.spec, net.params, embed(st.x(x), net.frequencies),
+                                                         jax.random.key(seed), passes))
     rs = st.r_scale
     mean = np.asarray(mean, np.float64) * rs + st.r_mean
     alea = np.sqrt(np.asarray(alea, np.float64)) * rs
