@@ -46,6 +46,25 @@ def fmt(key, v):
     return f"{100 * v:.1f}" if key == "coverage" else (f"{v:.3f}" if key == "nll" else f"{v:.5f}")
 
 
+def knn_rmse(data, split, k=3):
+    """Test RMSE per axis of a k-nearest-neighbour lookup of the physics residual (no network).
+
+    Neighbours in the standardised (Bx, By, Bz, T) of the training rows (scipy cKDTree): a
+    baseline that can only interpolate, to show what a split rewards.
+    """
+    from scipy.spatial import cKDTree
+
+    train, test = data.subset(split.train), data.subset(split.test)
+    fit = bm.fit_physics(train)
+    r_train = train.b_ref - fit.predict(bm.inputs_from_data(train))
+    r_test = test.b_ref - fit.predict(bm.inputs_from_data(test))
+    x_train, x_test = network_inputs(train), network_inputs(test)
+    mu, sd = x_train.mean(0), x_train.std(0)
+    _, idx = cKDTree((x_train - mu) / sd).query((x_test - mu) / sd, k=k)
+    err = r_test - r_train[idx.reshape(len(x_test), -1)].mean(1)
+    return [float(v) for v in np.sqrt(np.mean(err**2, axis=0))]
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default=str(Path(__file__).resolve().parents[1] / "configs" / "paper_hybrid.toml"))
@@ -59,7 +78,8 @@ def main():
     cfg = load_config(args.config, ["split.seed=0", "output.figures=false", "output.progress=false", *args.set])
     spec = check_network_config(cfg)[0]
     d = bm.load_dataset(cfg.data.source)
-    sp = bm.make_split(d, kind=cfg.split.kind, test_fraction=cfg.split.test_fraction, seed=0)
+    sp = bm.make_split(d, kind=cfg.split.kind, test_fraction=cfg.split.test_fraction, seed=0,
+                       test_runs=cfg.split.test_runs, n_blocks=cfg.split.n_blocks)
     train, test = d.subset(sp.train), d.subset(sp.test)
     fit = bm.fit_physics(train)
     sigma_in = bm.estimate_input_noise(train)
@@ -111,11 +131,12 @@ def main():
                              **{k: [h[k][a] for a in AXES] for k in KEYS},
                              "paper_fusion_coverage": [m["hybrid_paper_fusion"][name]["coverage"][a] for a in AXES],
                              "epochs": [m["network"]["training"][name][a]["epochs_run"] for a in AXES],
-                             "train_s": m["timings"]["network_train"]})
+                             "train_s": m["timings"]["network_train"],
+                             "knn3_rmse": knn_rmse(res["data"], res["split"], k=3)})
 
     # -- report ------------------------------------------------------------------------------------
     out = []
-    out.append(f"## Hybrid stage (issue #3): paper protocol, {args.seeds} split seeds\n")
+    out.append(f"## Hybrid stage (issue #3): `{cfg.name}`, `{cfg.split.kind}` split, {args.seeds} split seeds\n")
     cmd = "BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_hybrid.py --seeds " + str(args.seeds)
     if args.config != ap.get_default("config"):
         cmd += f" --config {args.config}"
@@ -124,8 +145,11 @@ def main():
                f"{spec.activation}, DropConnect {spec.dropconnect}, lr {spec.learning_rate}, batch {spec.batch_size}, "
                f"<= {spec.max_epochs} epochs, patience {spec.patience}, M = {net_cfg.mc_passes}, "
                f"Np = {cfg.uq.n_params}, "
-               f"Nq = {cfg.uq.n_qmc}, likelihood {spec.likelihood}, fusion `{net_cfg.fusion}`). Random 90/10 split of "
-               f"the {d.n} rows ({sp.test.size} test rows); network seed {net_cfg.seed}.\n")
+               f"Nq = {cfg.uq.n_qmc}, likelihood {spec.likelihood}, fusion `{net_cfg.fusion}`, "
+               f"Fourier features {spec.fourier_features}"
+               + (f" at scale {spec.fourier_scale:g}" if spec.fourier_features else "")
+               + f"). Split `{cfg.split.kind}` ({cfg.split.test_fraction:.0%} test) of "
+               f"the {d.n} rows ({sp.test.size} test rows at seed 0); network seed {net_cfg.seed}.\n")
     out.append("| split seed | RMSE x / y / z (uT) | coverage x / y / z (%) | NLL x / y / z | CRPS x / y / z (uT) "
                "| epochs x / y / z |")
     out.append("|---|---|---|---|---|---|")
@@ -142,10 +166,13 @@ def main():
     out.append("| straightforward reimplementation, seed 0 | "
                + " | ".join(" / ".join(fmt(k, v) for v in REFERENCE[k]) for k in KEYS) + " | |")
     phys = np.array([r["physics_rmse"] for r in per_seed])
+    knn = np.array([r["knn3_rmse"] for r in per_seed])
     pcov = np.array([r["paper_fusion_coverage"] for r in per_seed])
     out.append("")
     out.append(f"- Physics-only test RMSE, mean over seeds: {' / '.join(f'{v:.5f}' for v in phys.mean(0))} uT; "
                f"hybrid / physics: {' / '.join(f'{v:.2f}' for v in (arr['rmse'] / phys).mean(0))}.")
+    out.append(f"- Baseline without a network: physics + the mean residual of the 3 nearest training rows in "
+               f"standardised (B, T), test RMSE mean over seeds {' / '.join(f'{v:.5f}' for v in knn.mean(0))} uT.")
     out.append("- Seeds with hybrid RMSE at or below the paper's, per axis: "
                + " / ".join(str(int(np.sum(arr['rmse'][:, a] <= PAPER['rmse'][a]))) for a in range(3))
                + f" of {args.seeds}; NLL at or below the paper's: "
