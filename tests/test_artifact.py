@@ -115,15 +115,19 @@ def test_report_written_and_regenerated(tmp_path, capsys):
     assert main(["report", str(out)]) == 0 and (out / "report.md").exists()
 
 
-@pytest.mark.parametrize("likelihood,fourier", [("gaussian", 0), ("student_t", 0), ("gaussian", 8)])
-def test_hybrid_calibration_round_trip(tmp_path, likelihood, fourier):
+@pytest.mark.parametrize("likelihood,fourier,extra", [
+    ("gaussian", 0, {}), ("student_t", 0, {}),
+    ("gaussian", 8, {"validation": "time_blocks", "recalibrate": True})])
+def test_hybrid_calibration_round_trip(tmp_path, likelihood, fourier, extra):
     """A run with the residual network: save -> load -> apply reproduces the run's hybrid predictions."""
     net = {"enabled": True, "likelihoods": [likelihood], "hidden_layers": 2, "width": 16, "batch_size": 128,
-           "max_epochs": 20, "patience": 5, "mc_passes": 8, "seed": 2, "fourier_features": fourier}
+           "max_epochs": 20, "patience": 5, "mc_passes": 8, "seed": 2, "fourier_features": fourier,
+           **extra}
     res, out = _run(tmp_path, network=net)
     cal = load(out)
     assert cal.network is not None and cal.likelihood == likelihood
     assert ("fourier/frequencies" in cal.network["arrays"]) == (fourier > 0)
+    assert ("recalibration/variance_scale" in cal.network["arrays"]) == bool(extra)
     test = res["data"].subset(res["split"].test)
     pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"])
     rows = list(csv.DictReader(open(out / "predictions.csv")))

@@ -255,3 +255,53 @@ def test_bad_fourier_settings_are_config_errors():
         N.NetworkSpec(fourier_features=-1)
     with pytest.raises(ConfigError, match=r"network\.fourier_scale"):
         N.NetworkSpec(fourier_scale=0.0)
+
+
+# --------------------------------------------------------------------------- validation rows and recalibration
+
+
+def test_time_block_validation_rows_are_one_block_per_run():
+    groups = np.repeat([1, 2, 5], [400, 250, 350])
+    fit, val = N.validation_rows(1000, 0.1, seed=3, kind="time_blocks", groups=groups)
+    assert np.array_equal(np.sort(np.concatenate([fit, val])), np.arange(1000))
+    for g, n in [(1, 400), (2, 250), (5, 350)]:
+        rows = val[groups[val] == g]
+        assert rows.size == round(0.1 * n) and np.all(np.diff(rows) == 1)     # contiguous, 10 % of the run
+    with pytest.raises(ConfigError, match=r"network\.validation.*random.*time_blocks"):
+        N.validation_rows(1000, 0.1, seed=0, kind="blocks")
+
+
+RECAL_RTOL = 0.012           # the grid step is log(400)/600 = 0.010 in log c
+
+
+@pytest.mark.parametrize("likelihood", ["gaussian", "laplace", "student_t"])
+def test_recalibration_minimises_the_validation_nll(likelihood):
+    """The fitted factor equals scipy's 1-D minimiser of the same NLL (Gaussian: the closed form)."""
+    from scipy import optimize, stats
+
+    x, r, _ = _hetero_problem(1500, 5)
+    spec = small_spec(likelihood=likelihood, max_epochs=30, patience=30, learning_rate=3e-3, batch_size=64)
+    net = N.fit_residual_network(x, r, spec, seed=1)
+    xv, rv = x[net.val_rows], r[net.val_rows] * 1.0
+    rv = rv + 0.6 * (rv - np.sin(2 * xv[:, :1]))                      # wider errors than trained on: c > 1
+    out = N.recalibrate(net, xv, rv, passes=20, seed=4)
+    base = N.mc_predict(net, xv, passes=20, seed=4)
+    mu, var, e = base.mean[:, 0], base.aleatoric[:, 0] ** 2 + base.epistemic[:, 0] ** 2, rv[:, 0]
+
+    def nll(logc):
+        v = np.exp(logc) * var
+        if likelihood == "gaussian":
+            return -np.mean(stats.norm.logpdf(e, mu, np.sqrt(v)))
+        if likelihood == "laplace":
+            return -np.mean(stats.laplace.logpdf(e, mu, np.sqrt(v / 2)))
+        return -np.mean(stats.t.logpdf(e, 4.0, mu, np.sqrt(v * 2 / 4)))
+
+    ref = np.exp(optimize.minimize_scalar(nll, bounds=(np.log(0.05), np.log(20)), method="bounded").x)
+    assert out.variance_scale[0] > 1.2
+    np.testing.assert_allclose(out.variance_scale[0], ref, rtol=RECAL_RTOL)
+    if likelihood == "gaussian":
+        np.testing.assert_allclose(out.variance_scale[0], np.mean((e - mu) ** 2 / var), rtol=RECAL_RTOL)
+    scaled = N.mc_predict(out, xv, passes=20, seed=4)                 # both parts scaled, mean untouched
+    np.testing.assert_allclose(scaled.aleatoric, base.aleatoric * np.sqrt(out.variance_scale), rtol=1e-6)
+    np.testing.assert_allclose(scaled.epistemic, base.epistemic * np.sqrt(out.variance_scale), rtol=1e-6)
+    np.testing.assert_array_equal(scaled.mean, base.mean)

@@ -249,6 +249,8 @@ def network_to_artifact(net, *, passes: int, seed: int, fusion: str) -> dict:
         arrays[f"layer{i}/b"] = np.asarray(layer.b)
     if net.frequencies is not None:
         arrays["fourier/frequencies"] = np.asarray(net.frequencies)
+    if net.variance_scale is not None:
+        arrays["recalibration/variance_scale"] = np.asarray(net.variance_scale, np.float64)
     meta = {"spec": spec, "n_layers": len(net.params), "passes": int(passes), "seed": int(seed), "fusion": fusion,
             "n_fit": int(net.n_fit), "n_val": int(net.n_val), "inputs": ["bx_meas", "by_meas", "bz_meas", "temperature"]}
     return {"meta": meta, "arrays": arrays}
@@ -274,9 +276,11 @@ def network_from_artifact(network: dict):
                        for i in range(meta["n_layers"]))
         st = Standardizer(*(arr[f"standardizer/{k}"] for k in Standardizer._fields))
         freqs = np.asarray(arr["fourier/frequencies"], np.float64) if spec.fourier_features else None
+        vscale = arr.get("recalibration/variance_scale")
     except KeyError as e:
         raise ArtifactError(f"the saved network lacks array {e}; calibration.npz is damaged.") from None
-    return ResidualNetwork(spec, params, st, None, meta.get("n_fit", 0), meta.get("n_val", 0), freqs)
+    return ResidualNetwork(spec, params, st, None, meta.get("n_fit", 0), meta.get("n_val", 0), freqs,
+                           None if vscale is None else np.asarray(vscale, np.float64))
 
 
 def apply_network(network: dict, data: CalibrationData):

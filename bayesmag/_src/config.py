@@ -91,6 +91,8 @@ class NetworkConfig:
     lr_min_factor: float = 1e-3         # floor of the learning rate, as a fraction of learning_rate
     fourier_features: int = 0           # m > 0: add m random Fourier features of the inputs (not in the paper)
     fourier_scale: float = 1.0          # sd of their frequencies, per standardised input unit
+    validation: str = "random"          # validation rows: "random" (paper) | "time_blocks" (one block per run)
+    recalibrate: bool = False           # fit a variance factor per axis on the validation rows (NLL)
     fusion: str = "moment_match"
     seed: int = 0
 
@@ -151,6 +153,7 @@ _CHOICES = {
     "data.temperature_unit": ("C", "K"),
     "network.activation": ("relu", "tanh", "gelu", "silu", "elu"),
     "network.fusion": ("moment_match", "paper"),
+    "network.validation": ("random", "time_blocks"),
     "nuts.chain_method": ("vectorized", "parallel", "sequential"),
     "nuts.likelihood": ("gaussian", "laplace", "student_t"),
 }

@@ -60,7 +60,7 @@ from .config import Config, ConfigError
 from .data import AXES, CalibrationData
 from .likelihoods import LIKELIHOODS, Gaussian, Likelihood, moment_match
 from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
-                      mc_predict, validation_rows)
+                      mc_predict, recalibrate, validation_rows)
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
 
@@ -244,7 +244,10 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
                 bar.set_postfix_str(f"training {name}")
             t = time.perf_counter()
             net = fit_residual_network(x_train, r_train, spec, validation_fraction=net_cfg.validation_fraction,
-                                       seed=net_cfg.seed)
+                                       seed=net_cfg.seed, validation=net_cfg.validation, groups=train.run)
+            if net_cfg.recalibrate:
+                net = recalibrate(net, x_train[net.val_rows], r_train[net.val_rows], passes=net_cfg.mc_passes,
+                                  seed=net_cfg.seed)
             train_s = time.perf_counter() - t
             timings["network_train"] += train_s
             nan_messages += _warn_nan(name, net)
@@ -263,6 +266,9 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
                                  "p": float(pt["p"][a]), "cohens_d": float(pt["cohens_d"][a])}
                             for a, ax in enumerate(AXES)}
             training[name] = {**net.info_dict(), "train_seconds": round(train_s, 3)}
+            if net.variance_scale is not None:
+                for a, ax in enumerate(AXES):
+                    training[name][ax]["variance_scale"] = float(net.variance_scale[a])
             if name == specs[0].likelihood:
                 columns = dict(columns)
                 columns.update({

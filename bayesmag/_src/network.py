@@ -93,7 +93,7 @@ __all__ = ["Dense", "NetworkSpec", "Standardizer", "TrainInfo", "ResidualNetwork
            "ACTIVATIONS", "MAX_PARAMS_PER_ROW", "MIN_VALIDATION_ROWS", "init", "apply", "drop_connect", "keep_masks",
            "count_params", "fourier_frequencies", "embed", "head_distribution", "regularized_nll", "build_trainer",
            "validation_rows",
-           "check_network_size", "fit_residual_network", "mc_predict"]
+           "check_network_size", "fit_residual_network", "mc_predict", "recalibrate", "VALIDATION_KINDS"]
 
 DTYPE = jnp.float32
 
@@ -101,6 +101,8 @@ DTYPE = jnp.float32
 MAX_PARAMS_PER_ROW = 10
 #: Early stopping needs at least this many validation rows.
 MIN_VALIDATION_ROWS = 20
+#: How validation rows are chosen from the training rows (``network.validation``).
+VALIDATION_KINDS = ("random", "time_blocks")
 #: ``fold_in`` stream of the Fourier frequency matrix (the axis networks use streams 0, 1, 2, ...).
 FOURIER_STREAM = 0x46465431
 
@@ -521,6 +523,8 @@ class ResidualNetwork(NamedTuple):
     n_fit: int
     n_val: int
     frequencies: np.ndarray | None = None    # (n_in, fourier_features) fixed Fourier frequencies, or None
+    variance_scale: np.ndarray | None = None  # (A,) factor on the MC variances from :func:`recalibrate`, or None
+    val_rows: np.ndarray | None = None       # rows of the training inputs held out for early stopping
 
     def info_dict(self, axes: tuple[str, ...] = ("x", "y", "z")) -> dict:
         """Per-axis ``epochs_run``, ``best_epoch``, ``best_val_loss``, ``nan_epoch`` as plain Python."""
@@ -531,14 +535,32 @@ class ResidualNetwork(NamedTuple):
         return out
 
 
-def validation_rows(n: int, fraction: float, *, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Seeded random ``(fit_rows, val_rows)`` of ``range(n)``; ``ConfigError`` if val < ``MIN_VALIDATION_ROWS``."""
+def validation_rows(n: int, fraction: float, *, seed: int, kind: str = "random",
+                    groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded ``(fit_rows, val_rows)`` of ``range(n)``; ``ConfigError`` if val < ``MIN_VALIDATION_ROWS``.
+
+    ``kind = "random"``: rows drawn at random (the paper). ``kind = "time_blocks"``: one
+    contiguous block of ``fraction`` of the rows inside every group of ``groups`` (the run of
+    each row, rows in time order), so early stopping and recalibration see rows whose time
+    neighbours were not fitted.
+    """
+    if kind not in VALIDATION_KINDS:
+        raise ConfigError(f"Config key 'network.validation' = {kind!r} is not valid; it must be one of "
+                          f"{list(VALIDATION_KINDS)}.")
     n_val = int(round(fraction * n))
     if not 0.0 < fraction < 1.0 or n_val < MIN_VALIDATION_ROWS or n - n_val < 1:
         raise ConfigError(
             f"Config key 'network.validation_fraction' = {fraction} leaves {n_val} of {n} training rows for "
             f"validation; early stopping needs at least {MIN_VALIDATION_ROWS} (and some rows left to fit). "
             f"Raise it to at least {math.ceil(MIN_VALIDATION_ROWS / max(n, 1) * 1000) / 1000:g} or use more data.")
+    if kind == "time_blocks":
+        from .data import split_time_blocks
+
+        groups = np.zeros(n, int) if groups is None else np.asarray(groups)
+        if groups.shape != (n,):
+            raise ValueError(f"groups must have shape ({n},), got {groups.shape}")
+        sp = split_time_blocks(groups, test_fraction=fraction, seed=seed)
+        return sp.train, sp.test
     perm = np.random.default_rng(seed).permutation(n)
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
@@ -556,10 +578,12 @@ def check_network_size(spec: NetworkSpec, n_fit: int) -> None:
 
 
 def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *, validation_fraction: float = 0.1,
-                         seed: int = 0) -> ResidualNetwork:
+                         seed: int = 0, validation: str = "random",
+                         groups: np.ndarray | None = None) -> ResidualNetwork:
     """Train one network per column of the residuals ``r`` ``(n, A)`` on inputs ``x`` ``(n, n_in)``.
 
-    A seeded ``validation_fraction`` of the rows is held out for early stopping; inputs and
+    A seeded ``validation_fraction`` of the rows is held out for early stopping (chosen as
+    :func:`validation_rows` ``kind = validation`` with the rows' run ``groups``); inputs and
     residuals are standardised by the fitting rows' mean and sd. Axis ``a`` uses the key
     ``fold_in(key(seed), a)``, so a column trains exactly as it would alone. The whole
     training is one jit-compiled, vmapped call.
@@ -572,7 +596,7 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *, val
         raise ValueError(f"r must have shape ({x.shape[0]}, A), got {r.shape}")
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
         raise ValueError("x and r must be finite")
-    fit_rows, val_rows = validation_rows(x.shape[0], validation_fraction, seed=seed)
+    fit_rows, val_rows = validation_rows(x.shape[0], validation_fraction, seed=seed, kind=validation, groups=groups)
     check_network_size(spec, fit_rows.size)
     st = Standardizer.fit(x[fit_rows], r[fit_rows])
     base = jax.random.key(seed)
@@ -580,7 +604,8 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *, val
     freqs = fourier_frequencies(spec, seed) if spec.fourier_features else None
     params, info = _train_axes(spec, keys, embed(st.x(x[fit_rows]), freqs), st.r(r[fit_rows]),
                                embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]))
-    return ResidualNetwork(spec, params, st, jax.device_get(info), int(fit_rows.size), int(val_rows.size), freqs)
+    return ResidualNetwork(spec, params, st, jax.device_get(info), int(fit_rows.size), int(val_rows.size), freqs,
+                           None, val_rows)
 
 
 # --------------------------------------------------------------------------- MC DropConnect inference
@@ -635,7 +660,48 @@ def mc_predict(net: ResidualNetwork, x: np.ndarray, *, passes: int, seed: int = 
     mean, alea, epi, shape = jax.device_get(_mc_axes(net.spec, net.params, embed(st.x(x), net.frequencies),
                                                          jax.random.key(seed), passes))
     rs = st.r_scale
+    if net.variance_scale is not None:
+        rs_var = rs * np.sqrt(np.asarray(net.variance_scale, np.float64))
+    else:
+        rs_var = rs
     mean = np.asarray(mean, np.float64) * rs + st.r_mean
-    alea = np.sqrt(np.asarray(alea, np.float64)) * rs
-    epi = np.sqrt(np.asarray(epi, np.float64)) * rs
+    alea = np.sqrt(np.asarray(alea, np.float64)) * rs_var
+    epi = np.sqrt(np.asarray(epi, np.float64)) * rs_var
     return MCPrediction(mean, alea, epi, {k: np.asarray(v, np.float64) for k, v in shape.items()})
+
+
+# --------------------------------------------------------------------------- recalibration
+
+#: Grid of variance factors searched by :func:`recalibrate` (log-spaced, 1/20 to 20).
+RECALIBRATION_GRID = np.exp(np.linspace(np.log(0.05), np.log(20.0), 601))
+
+
+def recalibrate(net: ResidualNetwork, x_val: np.ndarray, r_val: np.ndarray, *, passes: int,
+                seed: int = 0) -> ResidualNetwork:
+    r"""``net`` with a per-axis variance factor :math:`c_a` fitted on held-out rows.
+
+    The MC-DropConnect predictive of the residual, the family moment-matched to
+    :math:`(\mu, c_a(\sigma^2_{alea} + \sigma^2_{epi}))`, has its mean NLL on ``(x_val, r_val)``
+    minimised over :data:`RECALIBRATION_GRID` (for the Gaussian the optimum is
+    :math:`c = \overline{(r-\mu)^2/\sigma^2}`; Levi et al. 2022). Both variance parts are
+    scaled, so the aleatoric/epistemic split is kept. Use rows the network was not fitted on
+    (its validation rows); with ``validation = "time_blocks"`` they stand for new stretches
+    of time.
+
+    References:
+        Levi, D., Gispan, L., Giladi, N. & Fetaya, E. (2022). Evaluating and calibrating
+        uncertainty prediction in regression tasks. Sensors 22(15), 5540.
+    """
+    from .likelihoods import moment_match
+
+    base = mc_predict(net._replace(variance_scale=None), x_val, passes=passes, seed=seed)
+    var = base.aleatoric**2 + base.epistemic**2
+    r_val = np.asarray(r_val, np.float64)
+    shape = {}
+    if net.spec.likelihood == "student_t":
+        shape["df"] = base.shape["df"] if net.spec.df is None else net.spec.df
+    c = RECALIBRATION_GRID[:, None, None]
+    dist = moment_match(net.spec.likelihood, base.mean[None], c * var[None],
+                        **{k: np.asarray(v)[None] if np.ndim(v) else v for k, v in shape.items()})
+    nll = np.asarray(dist.nll(jnp.asarray(r_val[None]))).mean(axis=1)          # (grid, A)
+    return net._replace(variance_scale=RECALIBRATION_GRID[np.argmin(nll, axis=0)])
