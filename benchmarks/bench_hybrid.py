@@ -12,7 +12,8 @@ it times
 * inference for the 338 test rows x 3 axes: physics PS-QMC UQ (Np, Nq) + M MC-DropConnect
   passes + fusion, median of repeats after one warm-up call;
 
-and prints a markdown section with ratios to the paper's Table 11 (505.5 s training,
+and a no-network baseline (physics + mean residual of the 3 nearest training rows), and
+prints a markdown section with ratios to the paper's Table 11 (505.5 s training,
 39.47 s inference, validation settings).
 """
 
