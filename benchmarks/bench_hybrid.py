@@ -30,8 +30,8 @@ import numpy as np
 
 import bayesmag as bm
 from bayesmag._src.config import load_config
-from bayesmag._src.hybrid import check_network_config, fuse, network_inputs
-from bayesmag._src.network import fit_residual_network, mc_predict
+from bayesmag._src.hybrid import check_network_config, fuse, network_inputs, train_network
+from bayesmag._src.network import mc_predict
 
 PAPER_TRAIN_S = 505.5
 PAPER_INFER_S = 39.47
@@ -89,8 +89,7 @@ def main():
     net_cfg = cfg.network
 
     def train_once():
-        return fit_residual_network(x_train, r_train, spec, validation_fraction=net_cfg.validation_fraction,
-                                    seed=net_cfg.seed)
+        return train_network(x_train, r_train, spec, net_cfg, groups=train.run)
 
     t = time.perf_counter()
     net = train_once()

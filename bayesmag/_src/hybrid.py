@@ -56,7 +56,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import metrics as M
-from .config import Config, ConfigError
+from .config import Config, ConfigError, NetworkConfig
 from .data import AXES, CalibrationData
 from .likelihoods import LIKELIHOODS, Gaussian, Likelihood, moment_match
 from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
@@ -64,7 +64,7 @@ from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
 
-__all__ = ["FUSIONS", "HybridPrediction", "check_network_config", "network_inputs", "fuse", "score",
+__all__ = ["FUSIONS", "HybridPrediction", "check_network_config", "network_inputs", "train_network", "fuse", "score",
            "run_hybrid_stage", "comparison_markdown", "comparison_records"]
 
 FUSIONS = ("moment_match", "paper")
@@ -115,6 +115,19 @@ def check_network_config(cfg: Config) -> list[NetworkSpec]:
 def network_inputs(data: CalibrationData) -> np.ndarray:
     """The network's inputs ``(n, 4)``: measured field (3) and temperature, float64 (standardised later)."""
     return np.column_stack([data.b_meas, data.temperature]).astype(np.float64)
+
+
+def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig,
+                  groups: np.ndarray | None = None) -> ResidualNetwork:
+    """Train the axis networks as ``[network]`` says: validation rows, then optional recalibration.
+
+    ``groups``: the run of every row (time order within a run), used by ``validation = "time_blocks"``.
+    """
+    net = fit_residual_network(x, r, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
+                               validation=net_cfg.validation, groups=groups)
+    if net_cfg.recalibrate:
+        net = recalibrate(net, x[net.val_rows], r[net.val_rows], passes=net_cfg.mc_passes, seed=net_cfg.seed)
+    return net
 
 
 def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str = "moment_match") -> HybridPrediction:
@@ -243,11 +256,7 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
             if bar is not None:
                 bar.set_postfix_str(f"training {name}")
             t = time.perf_counter()
-            net = fit_residual_network(x_train, r_train, spec, validation_fraction=net_cfg.validation_fraction,
-                                       seed=net_cfg.seed, validation=net_cfg.validation, groups=train.run)
-            if net_cfg.recalibrate:
-                net = recalibrate(net, x_train[net.val_rows], r_train[net.val_rows], passes=net_cfg.mc_passes,
-                                  seed=net_cfg.seed)
+            net = train_network(x_train, r_train, spec, net_cfg, groups=train.run)
             train_s = time.perf_counter() - t
             timings["network_train"] += train_s
             nan_messages += _warn_nan(name, net)

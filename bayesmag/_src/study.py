@@ -61,7 +61,8 @@ def _peak_rss_gb() -> float:
 
 def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     """Simulate ``size`` rows, calibrate and score; returns the per-size record."""
-    from .network import NetworkSpec, fit_residual_network, mc_predict, recalibrate
+    from .hybrid import train_network
+    from .network import NetworkSpec, mc_predict
     from .simulate import simulate_from_config
 
     t = {}
@@ -95,11 +96,7 @@ def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     spec = NetworkSpec.from_config(net_cfg, likelihood)
     x_train = np.column_stack([train.b_meas, train.temperature])
     r_train = train.b_ref - fit.predict(inputs_from_data(train))
-    net = fit_residual_network(x_train, r_train, spec, validation_fraction=net_cfg.validation_fraction,
-                               seed=net_cfg.seed, validation=net_cfg.validation, groups=train.run)
-    if net_cfg.recalibrate:
-        net = recalibrate(net, x_train[net.val_rows], r_train[net.val_rows], passes=net_cfg.mc_passes,
-                          seed=net_cfg.seed)
+    net = train_network(x_train, r_train, spec, net_cfg, groups=train.run)
     t["network_train"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     x_test = np.column_stack([test.b_meas, test.temperature])
