@@ -9,29 +9,24 @@ from pathlib import Path
 import numpy as np
 
 from .artifact import load
-from .data import AXES, DataError, load_csv
+from .data import AXES, DataError, check_field_unit, load_csv
 
-__all__ = ["apply_calibration", "check_units"]
+__all__ = ["apply_calibration", "check_units", "check_apply_paths"]
 
 OUTPUT_COLUMNS = ("calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "aleatoric_nn",
                   "epistemic_nn", "total", "lower", "upper")
 
 
 def check_units(cal, data) -> list[str]:
-    """Errors for units that cannot be right; warnings for suspicious ones (vs the training domain)."""
+    """Errors for units that cannot be right; warnings for suspicious ones (vs the training domain).
+
+    The field check is :func:`~bayesmag._src.data.check_field_unit`, shared with ``run`` and ``discover``.
+    """
     finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
     if not finite.any():
         raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature.")
-    b = np.abs(data.b_meas[finite])
-    train_max = np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max()
-    p99 = float(np.percentile(b, 99))
-    if p99 > 50 * train_max:
-        raise DataError(f"The measured field reaches {p99:.4g} (99th percentile) but the calibration was trained on "
-                        f"|B| up to {train_max:.3g} uT: the file looks like nT (x1000). Convert to uT.")
-    warn = []
-    if train_max > 10 and p99 < train_max / 50:
-        warn.append(f"The measured field is at most {p99:.3g} while training reached {train_max:.3g} uT: "
-                    f"is the file in gauss or mT? bayesmag expects uT.")
+    train_max = float(np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max())
+    warn = check_field_unit(data.subset(finite), train_max_ut=train_max, fix="use --field-unit nT")
     med_t = float(np.median(data.temperature[finite]))
     if med_t > 150:
         raise DataError(f"Column 'temperature' has median {med_t:.2f}, which looks like kelvin, but the calibration "
@@ -39,12 +34,46 @@ def check_units(cal, data) -> list[str]:
     return warn
 
 
+def check_apply_paths(model_dir, data_path, out_path) -> Path:
+    """Refuse an ``--out`` that would overwrite the recording, a file of the calibration, or a folder."""
+    out, data, model = Path(out_path), Path(data_path), Path(model_dir)
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder; give the path of the output CSV file, e.g. {out / 'calibrated.csv'}.")
+    if out.exists() and data.exists() and out.resolve() == data.resolve():
+        raise DataError(f"--out {out} is the input recording --data {data}; it would be overwritten. "
+                        f"Give another output file name.")
+    try:
+        out.resolve().relative_to(model.resolve())
+        inside = True
+    except ValueError:
+        inside = False
+    if inside:
+        raise DataError(f"--out {out} lies inside the calibration folder --model {model}; writing there could "
+                        f"overwrite the calibration. Give an output file outside it.")
+    return out
+
+
+def _check_magnitudes(data) -> None:
+    """Absurd magnitudes (|B| > 1 T, |T| > 1e4 C) are corrupt data, refused naming the row (NaN rows stay allowed)."""
+    from .data import _check_values
+    _check_values(data, f" in {data.source}", allow_nonfinite=True)
+
+
 def apply_calibration(model_dir, data_path, out_path, *, level=None, method="analytic", n_params=100, n_qmc=256,
-                      temperature_unit="C", chunk_size=100_000, progress=False) -> dict:
-    """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``."""
+                      temperature_unit="C", field_unit="uT", columns=None, chunk_size=100_000,
+                      progress=False) -> dict:
+    """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``.
+
+    ``columns`` maps canonical names to the file's columns; ``field_unit`` and ``temperature_unit``
+    are converted at load. The output never replaces the recording or a file of the calibration, and
+    is written to a temporary sibling first, then renamed into place.
+    """
     t0 = time.perf_counter()
+    out_path = check_apply_paths(model_dir, data_path, out_path)
     cal = load(model_dir)
-    data = load_csv(data_path, temperature_unit=temperature_unit, require_reference=False)
+    data = load_csv(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                    require_reference=False)
+    _check_magnitudes(data)
     warnings = check_units(cal, data)
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
                        progress=progress)
@@ -52,7 +81,8 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
     bad = np.flatnonzero(~pred["valid"])
     if bad.size:
         shown = ", ".join(str(int(r) + 1) for r in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
-        warnings.append(f"{bad.size} row(s) have non-finite inputs and were not calibrated (marked valid=false): "
+        warnings.append(f"{bad.size} row(s) have non-finite inputs or outputs and were not calibrated (marked "
+                        f"valid=false): "
                         f"data row(s) {shown}.")
     n_out = int((~pred["in_domain"] & pred["valid"]).sum())
     if n_out:
@@ -66,7 +96,6 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
     mats += [pred["in_domain"][:, None].astype(np.float64), pred["valid"][:, None].astype(np.float64)]
     mat = np.concatenate(mats, axis=1)
     fmt = ["%.6f", "%d"] + ["%.8g"] * (mat.shape[1] - 4) + ["%d", "%d"]
-    out_path = Path(out_path)
     tmp = out_path.with_name(f".{out_path.name}.partial-{os.getpid()}")
     try:
         with open(tmp, "w") as f:

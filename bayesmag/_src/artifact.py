@@ -28,7 +28,8 @@ from .data import AXES, CalibrationData
 from .domain import Domain
 from .physics import PhysicsModel, ThermoAffine
 
-__all__ = ["Calibration", "save_calibration", "load", "ArtifactError", "FORMAT", "FORMAT_VERSION"]
+__all__ = ["Calibration", "save_calibration", "load", "validate_artifact", "ArtifactError", "FORMAT",
+           "FORMAT_VERSION"]
 
 FORMAT = "bayesmag.calibration"
 FORMAT_VERSION = 1
@@ -154,6 +155,8 @@ class Calibration:
             lo_, hi_ = (np.asarray(a) for a in dist.interval(level))
             out["calibrated"][rows], out["total"][rows] = mean, sd
             out["lower"][rows], out["upper"][rows] = lo_, hi_
+        valid = valid & np.all([np.isfinite(out[k]).all(axis=1) for k in ("calibrated", "total", "lower", "upper")],
+                               axis=0)                     # a NaN output is never valid
         in_dom = np.zeros(n, dtype=bool)
         in_dom[valid] = ~self.domain.outside(data.subset(valid), out["calibrated"][valid]).any(axis=1)
         out["in_domain"] = in_dom
@@ -194,46 +197,174 @@ def _json_default(o: Any):
 
 
 def load(path: str | Path) -> Calibration:
-    """Load the calibration a ``bayesmag run`` wrote into folder ``path``."""
+    """Load the calibration a ``bayesmag run`` wrote into folder ``path``.
+
+    Every field is checked (:func:`validate_artifact`); a damaged, tampered or unfinished
+    calibration raises :class:`ArtifactError` naming the file and field, never a wrong result.
+    """
+    from .outdir import is_staging_name, marker_status
+
     path = Path(path)
     j, z = path / "calibration.json", path / "calibration.npz"
     if not path.is_dir():
         raise ArtifactError(f"{path} is not a folder; give the run folder that holds calibration.json.")
+    if is_staging_name(path.name):
+        raise ArtifactError(f"{path} is a temporary folder of an unfinished or interrupted bayesmag run, not a "
+                            f"calibration; give the run folder itself (re-run `bayesmag run` if it is missing).")
+    mark = marker_status(path)
+    if mark is not None and not mark.get("complete"):
+        raise ArtifactError(f"{path} was not finished (its .bayesmag-run marker says incomplete); re-run "
+                            f"`bayesmag run` to write a full calibration.")
     missing = [p.name for p in (j, z) if not p.exists()]
     if missing:
         raise ArtifactError(f"{path} is incomplete: {missing} missing. Re-run `bayesmag run` to write a full calibration.")
     try:
         doc = json.loads(j.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ArtifactError(f"{j} is not valid JSON ({e}); the file is damaged.") from None
-    if doc.get("format") != FORMAT:
-        raise ArtifactError(f"{j} is not a bayesmag calibration (format {doc.get('format')!r}).")
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise ArtifactError(f"{j} is not a bayesmag calibration "
+                            f"(format {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}).")
     v = doc.get("format_version")
     if v not in READABLE_VERSIONS:
         raise ArtifactError(f"{j} has calibration format version {v}; this bayesmag reads versions "
                             f"{list(READABLE_VERSIONS)}. It was written by bayesmag {doc.get('package_version')}: "
                             f"install that version (or newer) to apply it.")
-    with np.load(z, allow_pickle=False) as f:
-        arrays = {k: f[k] for k in f.files}
+    try:
+        with np.load(z, allow_pickle=False) as f:
+            arrays = {k: np.asarray(f[k]) for k in f.files}
+    except Exception as e:          # BadZipFile, pickled data, truncated members, zlib errors ...
+        raise ArtifactError(f"{z} cannot be read as a numpy .npz archive ({type(e).__name__}: {e}); "
+                            f"the file is damaged.") from None
+    try:
+        return validate_artifact(doc, arrays, where=str(path))
+    except ArtifactError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
+        raise ArtifactError(f"{j}: the calibration description is damaged ({type(e).__name__}: {e}).") from None
+
+
+def _field(name: str, value, where: str, *, shape=None, finite=True) -> np.ndarray:
+    arr = np.asarray(value)
+    if not (np.issubdtype(arr.dtype, np.number) and not np.issubdtype(arr.dtype, np.complexfloating)):
+        raise ArtifactError(f"{where}: field '{name}' holds {arr.dtype} values, not real numbers; the file is damaged.")
+    arr = arr.astype(np.float64)
+    if shape is not None and arr.shape != shape:
+        raise ArtifactError(f"{where}: field '{name}' has shape {arr.shape}; expected {shape}. The file is damaged.")
+    if finite and not np.isfinite(arr).all():
+        raise ArtifactError(f"{where}: field '{name}' holds {int((~np.isfinite(arr)).sum())} NaN/inf value(s); "
+                            f"the calibration is damaged and would give NaN results.")
+    return arr
+
+
+def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") -> Calibration:
+    """A :class:`Calibration` from the parsed ``calibration.json`` and ``.npz`` arrays, every field checked.
+
+    Refused with :class:`ArtifactError` naming the field: missing keys, wrong shapes or
+    types, NaN/inf anywhere (parameters, covariance, noise model, domain, network weights), a
+    covariance that is not symmetric positive definite, an input-noise covariance that is not
+    positive semi-definite, a negative residual sd, an unknown likelihood or fusion, ``level``
+    outside (0, 1), and network weights without a network description (or the reverse).
+    """
+    from .likelihoods import LIKELIHOODS
+
+    for key in ("model", "param_names", "domain"):
+        if key not in doc:
+            raise ArtifactError(f"{where}: calibration.json lacks field '{key}'; the file is damaged.")
     need = {"theta", "cov", "sigma_in", "residual_sd"}
     if not need <= set(arrays):
-        raise ArtifactError(f"{z} lacks arrays {sorted(need - set(arrays))}; the file is damaged or incomplete.")
+        raise ArtifactError(f"{where}: calibration.npz lacks arrays {sorted(need - set(arrays))}; the file is "
+                            f"damaged or incomplete.")
     model = model_from_json(doc["model"])
-    if tuple(doc["param_names"]) != model.param_names or arrays["theta"].shape != (3, model.n_params):
-        raise ArtifactError(f"{path}: parameters do not match the model description; the files are inconsistent.")
-    network = None
-    if doc.get("network") is not None:
-        network = {"meta": doc["network"],
-                   "arrays": {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("network/")}}
+    p = model.n_params
+    if tuple(doc["param_names"]) != model.param_names:
+        raise ArtifactError(f"{where}: field 'param_names' {doc['param_names']} does not match the model "
+                            f"{list(model.param_names)}; the files are inconsistent.")
+    theta = _field("theta", arrays["theta"], where, shape=(3, p))
+    cov = _field("cov", arrays["cov"], where, shape=(3, p, p))
+    sigma_in = _field("sigma_in", arrays["sigma_in"], where, shape=(4, 4))
+    residual_sd = _field("residual_sd", arrays["residual_sd"], where, shape=(3,))
+    s2 = _field("s2", arrays["s2"], where, shape=(3,)) if "s2" in arrays else None
+    for a, ax in enumerate(AXES):
+        c = cov[a]
+        d = np.sqrt(np.abs(np.diag(c)))
+        if not (np.diag(c) > 0).all() or not np.allclose(c, c.T, rtol=1e-8, atol=0):
+            raise ArtifactError(f"{where}: field 'cov' (axis {ax}) is not a symmetric matrix with a positive "
+                                f"diagonal; the calibration is damaged.")
+        try:
+            np.linalg.cholesky(c / np.outer(d, d))
+        except np.linalg.LinAlgError:
+            raise ArtifactError(f"{where}: field 'cov' (axis {ax}) is not positive definite; the calibration "
+                                f"is damaged.") from None
+    if not np.allclose(sigma_in, sigma_in.T) or np.linalg.eigvalsh(sigma_in).min() < -1e-12 * max(
+            1.0, np.abs(sigma_in).max()):
+        raise ArtifactError(f"{where}: field 'sigma_in' is not a symmetric positive semi-definite 4x4 matrix.")
+    if (residual_sd < 0).any() or (s2 is not None and (s2 < 0).any()):
+        raise ArtifactError(f"{where}: field 'residual_sd' or 's2' is negative; the calibration is damaged.")
+    likelihood = doc.get("likelihood", "gaussian")
+    if likelihood not in LIKELIHOODS:
+        raise ArtifactError(f"{where}: field 'likelihood' = {likelihood!r} is not known; it must be one of "
+                            f"{sorted(LIKELIHOODS)}.")
+    level = doc.get("level", 0.95)
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
+        raise ArtifactError(f"{where}: field 'level' = {level!r} must be a number in (0, 1).")
     dom = doc["domain"]
-    return Calibration(model=model, theta=arrays["theta"], cov=arrays["cov"], sigma_in=arrays["sigma_in"],
-                       residual_sd=arrays["residual_sd"],
-                       domain=Domain(tuple(dom["low"]), tuple(dom["high"]), dom.get("margin", 0.05),
-                                     dom.get("out_low") and tuple(dom["out_low"]),
-                                     dom.get("out_high") and tuple(dom["out_high"])),
-                       likelihood=doc.get("likelihood", "gaussian"), level=doc.get("level", 0.95),
-                       config=doc.get("config", {}), network=network, package_version=doc.get("package_version", ""),
-                       s2=arrays.get("s2"))
+    if not isinstance(dom, dict):
+        raise ArtifactError(f"{where}: field 'domain' must be a table; got {dom!r}.")
+    low = _field("domain.low", dom.get("low"), where, shape=(4,))
+    high = _field("domain.high", dom.get("high"), where, shape=(4,))
+    out_lo = None if dom.get("out_low") is None else _field("domain.out_low", dom["out_low"], where, shape=(3,))
+    out_hi = None if dom.get("out_high") is None else _field("domain.out_high", dom["out_high"], where, shape=(3,))
+    margin = float(_field("domain.margin", dom.get("margin", 0.05), where, shape=()))
+    if (low > high).any():
+        raise ArtifactError(f"{where}: field 'domain' has low > high; the calibration is damaged.")
+    net_arrays = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("network/")}
+    meta = doc.get("network")
+    network = None
+    if meta is None and net_arrays:
+        raise ArtifactError(f"{where}: field 'network' is null but calibration.npz holds network weights "
+                            f"{sorted(net_arrays)[:3]}...; the files are inconsistent.")
+    if meta is not None:
+        network = _check_network(meta, net_arrays, where)
+    return Calibration(model=model, theta=theta, cov=cov, sigma_in=sigma_in, residual_sd=residual_sd,
+                       domain=Domain(tuple(low.tolist()), tuple(high.tolist()), margin,
+                                     None if out_lo is None else tuple(out_lo.tolist()),
+                                     None if out_hi is None else tuple(out_hi.tolist())),
+                       likelihood=likelihood, level=float(level), config=doc.get("config", {}), network=network,
+                       package_version=doc.get("package_version", ""), s2=s2)
+
+
+def _check_network(meta, arrays: dict, where: str) -> dict:
+    """The saved network's description and weights: known fusion, complete finite weights, matching shapes."""
+    from .hybrid import FUSIONS
+
+    if not isinstance(meta, dict) or not isinstance(meta.get("spec"), dict):
+        raise ArtifactError(f"{where}: field 'network' must be a table with 'spec'; the file is damaged.")
+    fusion = meta.get("fusion", "moment_match")
+    if fusion not in FUSIONS:
+        raise ArtifactError(f"{where}: field 'network.fusion' = {fusion!r} is not known; it must be one of "
+                            f"{list(FUSIONS)}.")
+    n_layers, passes = meta.get("n_layers"), meta.get("passes")
+    for name, v in (("network.n_layers", n_layers), ("network.passes", passes)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ArtifactError(f"{where}: field '{name}' = {v!r} must be a positive integer.")
+    if not arrays:
+        raise ArtifactError(f"{where}: field 'network' describes a network but calibration.npz holds no network "
+                            f"weights; the files are inconsistent.")
+    for k, v in arrays.items():
+        _field(f"network/{k}", v, where)
+    width = None
+    for i in range(n_layers):
+        w, b = arrays.get(f"layer{i}/w"), arrays.get(f"layer{i}/b")
+        if w is None or b is None:
+            raise ArtifactError(f"{where}: calibration.npz lacks network/layer{i}/w or /b; the file is damaged.")
+        if w.ndim < 2 or b.shape != w.shape[:-2] + w.shape[-1:] or (width is not None and w.shape[-2] != width):
+            raise ArtifactError(f"{where}: network layer {i} has shapes w {w.shape}, b {b.shape} that do not chain; "
+                                f"the file is damaged.")
+        width = w.shape[-1]
+    network = {"meta": meta, "arrays": arrays}
+    network_from_artifact(network)          # every remaining key and setting present and known
+    return network
 
 
 # --------------------------------------------------------------------------- network weights

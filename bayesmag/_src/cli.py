@@ -4,11 +4,16 @@ Commands::
 
     bayesmag run CONFIG [--out DIR] [--set key=value]...
     bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
+                   [--columns time=t,bx_meas=X,...] [--field-unit uT|nT|mT|G] [--temperature-unit C|K]
     bayesmag report RUN_DIR
     bayesmag study CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
     bayesmag data list
+
+Expected errors (bad config, data, calibration or output path; any OSError) print one line on
+stderr and exit with status 2; output folders follow the rules in ``outdir`` (never replace a
+folder bayesmag did not write, lock, two-phase swap).
 """
 
 from __future__ import annotations
@@ -25,9 +30,13 @@ def _cmd_run(args) -> int:
     from .config import load_config
     from .job import run_job
 
-    cfg = load_config(_resolve_config(args.config), args.set or [])
+    from .outdir import reserve
+
+    cfg_path = _resolve_config(args.config)
+    cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
-    result = run_job(cfg, out, progress=not args.no_progress)
+    with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
+        result = run_job(cfg, out, progress=not args.no_progress)
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")
@@ -84,6 +93,7 @@ def _cmd_apply(args) -> int:
 
     summary = apply_calibration(args.model, args.data, args.out, level=args.level, method=args.uq,
                                 n_params=args.n_params, n_qmc=args.n_qmc, temperature_unit=args.temperature_unit,
+                                field_unit=args.field_unit, columns=_parse_columns(args.columns),
                                 progress=not args.no_progress)
     print(f"bayesmag: calibrated {summary['n_valid']} of {summary['n_rows']} rows -> {args.out} "
           f"({summary['seconds']:.2f} s)")
@@ -96,13 +106,33 @@ def _cmd_apply(args) -> int:
     return 0
 
 
+def _parse_columns(text: str | None) -> dict[str, str] | None:
+    """``time=t,bx_meas=X`` -> {"time": "t", "bx_meas": "X"} (names checked by ``load_csv``)."""
+    from .data import DataError
+
+    if not text:
+        return None
+    mapping = {}
+    for item in text.split(","):
+        if item.count("=") != 1 or not all(part.strip() for part in item.split("=")):
+            raise DataError(f"--columns item {item!r} must look like CANONICAL=FILE_COLUMN, e.g. "
+                            f"--columns time=t,bx_meas=X.")
+        k, v = (part.strip() for part in item.split("="))
+        mapping[k] = v
+    return mapping
+
+
 def _cmd_study(args) -> int:
     from .config import load_config
     from .study import run_study
 
-    cfg = load_config(_resolve_config(args.config), args.set or [])
+    from .outdir import reserve
+
+    cfg_path = _resolve_config(args.config)
+    cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
-    res = run_study(cfg, out, progress=not args.no_progress)
+    with reserve(out, inputs=[cfg_path, cfg.data.path]):
+        res = run_study(cfg, out, progress=not args.no_progress)
     print(f"bayesmag: wrote {out}/ ({res['seconds_total']:.0f} s, peak memory {res['peak_rss_gb']:.2f} GB)")
     print((out / "simulation_study.md").read_text())
     return 0
@@ -136,7 +166,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="physics uncertainty method (analytic: exact moments, fastest)")
     a.add_argument("--n-params", type=int, default=100, help="Np for --uq psqmc")
     a.add_argument("--n-qmc", type=int, default=256, help="Nq for --uq psqmc")
-    a.add_argument("--temperature-unit", choices=["C", "K"], default="C")
+    a.add_argument("--temperature-unit", choices=["C", "K"], default="C", help="temperature unit of --data")
+    a.add_argument("--field-unit", choices=["uT", "nT", "mT", "G"], default="uT",
+                   help="field unit of --data (converted to uT at load)")
+    a.add_argument("--columns", metavar="NAME=COL,...",
+                   help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")
     a.set_defaults(func=_cmd_apply)
 
@@ -163,21 +197,51 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _cmd_discover(argv: list[str]) -> int:
+    """``bayesmag discover``: check and lock --out before the search, then run discover's own CLI."""
+    from .config import read_config_dict
+    from .discover import build_parser as discover_parser, main as discover_main
+    from .outdir import reserve
+
+    args = discover_parser().parse_args(argv)
+    if args.out:
+        out = Path(args.out)
+    elif args.data and not args.config:
+        out = Path("runs") / f"discover_{Path(args.data).stem}"
+    elif args.config and not args.data:
+        out = Path("runs") / f"discover_{read_config_dict(args.config, args.set or []).get('name', 'bayesmag')}"
+    else:
+        return discover_main(argv)          # discover names the usage error
+    inputs = [args.data, args.config]
+    if args.config:
+        inputs.append(read_config_dict(args.config, args.set or []).get("data", {}).get("path"))
+    with reserve(out, inputs=inputs):
+        return discover_main(argv)
+
+
+def _one_line(e: BaseException) -> str:
+    if isinstance(e, OSError) and not type(e).__module__.startswith("bayesmag"):
+        where = f" {e.filename}" if e.filename else ""
+        return f"cannot use{where}: {e.strerror or e}" + (f" (errno {e.errno})" if e.errno else "")
+    return " ".join(str(e).split())
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["discover"]:            # discover parses its own options (argparse REMAINDER drops --flags)
-        from .discover import main as discover_main
-        return discover_main(argv[1:])
-    args = build_parser().parse_args(argv)
+    from .artifact import ArtifactError
     from .config import ConfigError
     from .data import DataError
-    from .artifact import ArtifactError
     from .job import JobError
+    from .outdir import OutputError
 
+    expected = (ConfigError, DataError, JobError, ArtifactError, OutputError, OSError)
     try:
+        if argv[:1] == ["discover"]:        # discover parses its own options (argparse REMAINDER drops --flags)
+            return _cmd_discover(argv[1:])
+        args = build_parser().parse_args(argv)
         return args.func(args)
-    except (ConfigError, DataError, JobError, ArtifactError, FileNotFoundError) as e:
-        print(f"bayesmag: error: {e}", file=sys.stderr)
+    except expected as e:
+        print(f"bayesmag: error: {_one_line(e)}", file=sys.stderr)
         return 2
 
 

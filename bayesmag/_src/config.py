@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import tomllib
 import types
 import typing
@@ -204,7 +205,40 @@ def _build(cls, raw: dict, prefix: str):
     return cls(**kwargs)
 
 
+#: Smallest valid value of integer keys (a seed is a non-negative integer; counts and sizes are positive).
+_INT_MIN = {
+    "split.seed": 0, "split.n_blocks": 1, "uq.seed": 0, "uq.chunk_size": 1, "uq.n_params": 2, "uq.n_qmc": 2,
+    "network.seed": 0, "network.hidden_layers": 0, "network.width": 1, "network.batch_size": 1,
+    "network.max_epochs": 1, "network.patience": 1, "network.mc_passes": 1, "network.lr_plateau_patience": 1,
+    "network.fourier_features": 0, "nuts.seed": 0, "nuts.chains": 1, "nuts.warmup": 0, "nuts.draws": 1,
+}
+
+
+def _numbers(x):
+    if isinstance(x, bool):
+        return
+    if isinstance(x, (int, float)):
+        yield x
+    elif isinstance(x, (list, tuple)):
+        for v in x:
+            yield from _numbers(v)
+
+
+def _check_numbers(cfg: Config) -> None:
+    """Every number in a section is finite; integer keys respect :data:`_INT_MIN`."""
+    for section in ("split", "physics", "uq", "network", "nuts", "output"):
+        block = getattr(cfg, section)
+        for f in dataclasses.fields(block):
+            key, value = f"{section}.{f.name}", getattr(block, f.name)
+            if any(not math.isfinite(v) for v in _numbers(value)):
+                raise ConfigError(f"Config key '{key}' = {value!r} must be finite (no nan or inf).")
+            lo = _INT_MIN.get(key)
+            if lo is not None and value < lo:
+                raise ConfigError(f"Config key '{key}' = {value!r} must be at least {lo}.")
+
+
 def _check_semantics(cfg: Config) -> None:
+    _check_numbers(cfg)
     d = cfg.data
     if d.source is not None and d.path is not None:
         raise ConfigError("[data] names both 'source' and 'path'; give one.")
@@ -270,8 +304,12 @@ def read_config_dict(path: str | Path, overrides: list[str] = ()) -> dict:
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"Config file {path} does not exist.")
+    if path.is_dir():
+        raise ConfigError(f"Config {path} is a folder; give a TOML config file (e.g. configs/quickstart.toml).")
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+    except UnicodeDecodeError:
+        raise ConfigError(f"Config {path} is not a text file (not UTF-8); give a TOML config file.") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path} is not valid TOML: {e}") from None
     raw = apply_overrides(raw, list(overrides))

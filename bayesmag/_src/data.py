@@ -22,6 +22,9 @@ __all__ = [
     "load_belsten",
     "write_csv",
     "validate",
+    "validate_for_discover",
+    "check_field_unit",
+    "FIELD_UNITS",
     "split_random",
     "split_by_run",
     "split_time_blocks",
@@ -45,6 +48,14 @@ _REQUIRED = ("bx_meas", "by_meas", "bz_meas", "temperature")
 _REF = ("bx_ref", "by_ref", "bz_ref")
 #: A temperature column whose median is above this is almost surely kelvin.
 _KELVIN_THRESHOLD_C = 150.0
+#: Field units ``load_csv`` converts from, as the factor to microtesla.
+FIELD_UNITS = {"uT": 1.0, "nT": 1e-3, "mT": 1e3, "G": 100.0}
+#: Without a training domain, a field whose 99th percentile |component| lies outside this range (uT) is in
+#: the wrong unit: the Earth's field is 25-65 uT and calibration coils reach a few hundred uT, i.e.
+#: 25 000-65 000 in nT (above the range) but 0.025-0.065 in mT and 0.25-0.65 in gauss (below it).
+_PLAUSIBLE_P99_UT = (1.0, 2000.0)
+#: No magnetometer reading (uT) or temperature (C) has a magnitude above these; larger values are corrupt.
+_MAX_ABS = {"field": 1e6, "temperature": 1e4}
 
 
 class DataError(ValueError):
@@ -142,6 +153,104 @@ def _bad_rows(mask: np.ndarray, limit: int = 5) -> str:
     return f"data row(s) {shown}{more}"
 
 
+def _columns(data: CalibrationData) -> dict[str, np.ndarray]:
+    cols = {"bx_meas": data.b_meas[:, 0], "by_meas": data.b_meas[:, 1], "bz_meas": data.b_meas[:, 2],
+            "temperature": data.temperature, "time": data.time}
+    if data.b_ref is not None:
+        cols.update({c: data.b_ref[:, i] for i, c in enumerate(_REF)})
+    return cols
+
+
+def _check_values(data: CalibrationData, where: str, *, allow_nonfinite: bool = False) -> None:
+    """Non-finite values (unless allowed) and absurd magnitudes, naming the column and rows."""
+    for name, col in _columns(data).items():
+        bad = ~np.isfinite(col)
+        if bad.any() and not allow_nonfinite:
+            raise DataError(
+                f"Column '{name}'{where} has {int(bad.sum())} non-finite value(s) (NaN or inf) at "
+                f"{_bad_rows(bad)}. Remove or repair those rows before calibrating."
+            )
+        limit = _MAX_ABS["temperature"] if name == "temperature" else _MAX_ABS["field"] if name != "time" else None
+        if limit is not None:
+            huge = np.isfinite(col) & (np.abs(np.where(np.isfinite(col), col, 0.0)) > limit)
+            if huge.any():
+                r = int(np.flatnonzero(huge)[0])
+                raise DataError(
+                    f"Column '{name}'{where} holds {col[r]:.6g} at {_bad_rows(huge)}: no "
+                    f"{'temperature (C)' if name == 'temperature' else 'field (uT)'} is that large "
+                    f"(|value| > {limit:.0e}). The value is corrupt; repair or remove those rows."
+                )
+
+
+def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
+                     fix: str = "convert the field columns to uT") -> list[str]:
+    """Refuse a field that is not in microtesla; return warnings for a suspicious one.
+
+    With ``train_max_ut`` (the largest |B| a calibration was trained on, ``apply``): a 99th
+    percentile |component| above 50x that is nT (refused); below 1/50 of it a warning (mT or
+    gauss?). Without it (``run``, ``discover``): the 99th percentile must lie in
+    :data:`_PLAUSIBLE_P99_UT`; above is nT, below is mT or gauss (both refused). Measured and
+    reference columns are checked alike.
+    """
+    where = f" in {origin}" if origin else ""
+    groups = [("measured field (bx_meas, by_meas, bz_meas)", data.b_meas)]
+    if data.b_ref is not None and train_max_ut is None:
+        groups.append(("reference field (bx_ref, by_ref, bz_ref)", data.b_ref))
+    warn = []
+    for label, b in groups:
+        ok = np.isfinite(b).all(axis=1)
+        if not ok.any():
+            raise DataError(f"No row{where} has a finite {label}.")
+        p99 = float(np.percentile(np.abs(b[ok]), 99))
+        if train_max_ut is not None:
+            if p99 > 50 * train_max_ut:
+                raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile) but the calibration was "
+                                f"trained on |B| up to {train_max_ut:.3g} uT: the file looks like nT (x1000). "
+                                f"{fix[0].upper() + fix[1:]}.")
+            if train_max_ut > 10 and p99 < train_max_ut / 50:
+                warn.append(f"The {label} is at most {p99:.3g} while training reached {train_max_ut:.3g} uT: "
+                            f"is the file in gauss or mT? bayesmag expects uT.")
+            continue
+        lo, hi = _PLAUSIBLE_P99_UT
+        if p99 > hi:
+            raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile of |component|), but bayesmag "
+                            f"expects microtesla and a calibration field is at most a few hundred uT: the file looks "
+                            f"like nT (x1000). Divide by 1000 ({fix}).")
+        if p99 < lo:
+            raise DataError(f"The {label}{where} stays below {p99:.3g} (99th percentile of |component|), but "
+                            f"bayesmag expects microtesla (the Earth's field is 25-65 uT): the file looks like mT "
+                            f"(x1000) or gauss (x100). Convert to uT ({fix}).")
+    return warn
+
+
+def _check_time(data: CalibrationData, where: str, *, duplicates: bool, order: bool) -> None:
+    """Within each run: rows in time order (if ``order``), no repeated timestamp after sorting (if ``duplicates``)."""
+    for r in np.unique(data.run):
+        sel = np.flatnonzero(data.run == r)
+        t = data.time[sel]
+        if order:
+            back = np.flatnonzero(np.diff(t) < 0)
+            if back.size:
+                i = sel[back[0] + 1]
+                raise DataError(
+                    f"Column 'time'{where} is not sorted within run {int(r)}: data row {i + 1} (time {data.time[i]:.6g}) "
+                    f"comes after data row {i} (time {data.time[i - 1]:.6g}). Sort the file by run, then time."
+                )
+        if duplicates:
+            o = np.argsort(t, kind="stable")
+            same = np.diff(t[o]) == 0
+            if same.any():
+                dup = np.zeros(data.n, dtype=bool)
+                dup[sel[o[1:][same]]] = True
+                first = np.zeros(data.n, dtype=bool)
+                first[sel[o[:-1][same]]] = True
+                raise DataError(
+                    f"Column 'time'{where} has duplicated timestamps within run {int(r)} at {_bad_rows(dup)} "
+                    f"(same time as {_bad_rows(first)}). Give each row a distinct time (or distinct 'run' ids "
+                    f"for separate recordings)."
+                )
+
+
 def validate(
     data: CalibrationData,
     *,
@@ -153,25 +262,17 @@ def validate(
 ) -> None:
     """Check a recording before fitting; raise :class:`DataError` naming what is wrong.
 
-    Checks: non-finite values (row and column), missing reference, enough rows for
-    ``n_params`` parameters, temperature in kelvin, constant temperature (temperature
-    terms not identifiable), duplicated timestamps within a run.
+    Checks: non-finite or absurdly large values (row and column), missing reference, field
+    units (:func:`check_field_unit`), enough rows for ``n_params`` parameters, temperature in
+    kelvin, constant temperature (temperature terms not identifiable), duplicated timestamps
+    within a run (after sorting by time).
     Row numbers in messages count data rows from 1 (the header is not counted).
     """
     where = f" in {origin}" if origin else ""
-    cols = {"bx_meas": data.b_meas[:, 0], "by_meas": data.b_meas[:, 1], "bz_meas": data.b_meas[:, 2],
-            "temperature": data.temperature, "time": data.time}
-    if data.b_ref is not None:
-        cols.update({c: data.b_ref[:, i] for i, c in enumerate(_REF)})
-    for name, col in cols.items():
-        bad = ~np.isfinite(col)
-        if bad.any():
-            raise DataError(
-                f"Column '{name}'{where} has {int(bad.sum())} non-finite value(s) (NaN or inf) at "
-                f"{_bad_rows(bad)}. Remove or repair those rows before calibrating."
-            )
+    _check_values(data, where)
     if need_reference and data.b_ref is None:
         raise DataError(f"The recording{where} has no reference columns {_REF}; a calibration needs them.")
+    check_field_unit(data, origin=origin)
     if data.n < n_params + 1:
         raise DataError(
             f"The recording{where} has {data.n} rows but the physics model has {n_params} parameters per axis; "
@@ -189,40 +290,76 @@ def validate(
             f"terms Ks and Ko are not identifiable. Set [physics] temperature_terms = false to fit S and O only."
         )
     if not allow_duplicate_times:
-        for r in np.unique(data.run):
-            sel = np.flatnonzero(data.run == r)
-            t = data.time[sel]
-            dup = np.zeros(data.n, dtype=bool)
-            same = np.diff(t) == 0
-            if same.any():
-                dup[sel[1:][same]] = True
-                raise DataError(
-                    f"Column 'time'{where} has duplicated timestamps within run {int(r)} at {_bad_rows(dup)}. "
-                    f"Give each row a distinct time (or distinct 'run' ids for separate recordings)."
-                )
+        _check_time(data, where, duplicates=True, order=False)
+
+
+def validate_for_discover(data: CalibrationData, *, origin: str = "") -> None:
+    """The checks ``discover`` needs before it starts: finite, plausible values in uT and Celsius, rows sorted
+    by time within each run. Raises :class:`DataError` naming the row and column."""
+    origin = origin or data.source
+    where = f" in {origin}" if origin else ""
+    _check_values(data, where)
+    check_field_unit(data, origin=origin)
+    med = float(np.median(data.temperature))
+    if med > _KELVIN_THRESHOLD_C:
+        raise DataError(f"Column 'temperature'{where} has median {med:.2f}, which looks like kelvin, but Celsius is "
+                        f"expected. Set [data] temperature_unit = \"K\" (or subtract 273.15).")
+    _check_time(data, where, duplicates=False, order=True)
 
 
 # --------------------------------------------------------------------------- loaders
 
 
-def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
-    """Read a comma-separated file with a header row into (header, float array).
+_DELIMITERS = {",": "comma", ";": "semicolon", "\t": "tab"}
 
-    Fast path: ``numpy.loadtxt``; on any irregularity the row-by-row reader below names the
-    row and column at fault.
+
+def _sniff_delimiter(path: Path, header_line: str, data_line: str) -> str:
+    """The one of ``, ; tab`` that splits the header and the first data row into the same number of fields.
+
+    A single-column file reads as comma-separated. When two candidates fit, the error names both.
     """
-    with open(path, newline="") as f:
-        first = f.readline()
-    header = [h.strip() for h in first.strip().split(",")] if first else []
+    fits = [d for d in _DELIMITERS if header_line.count(d) > 0
+            and (not data_line.strip() or data_line.count(d) == header_line.count(d))]
+    if len(fits) == 1:
+        return fits[0]
+    if not fits:
+        if not any(d in header_line for d in _DELIMITERS):
+            return ","
+        used = [_DELIMITERS[d] for d in _DELIMITERS if d in header_line]
+        raise DataError(f"{path}: the header and the first data row split into different numbers of fields with "
+                        f"every delimiter bayesmag reads ({', '.join(used)} found in the header). Write the file "
+                        f"with one delimiter: comma, semicolon or tab.")
+    names = " and ".join(_DELIMITERS[d] for d in fits)
+    raise DataError(f"{path}: cannot tell the delimiter: both {names} split the header and the first data row "
+                    f"consistently. Write the file comma-separated (with '.' as the decimal point).")
+
+
+def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
+    """Read a delimited file (comma, semicolon or tab; sniffed) with a header row into (header, float array).
+
+    A UTF-8 byte-order mark is removed. Fast path: ``numpy.loadtxt``; on any irregularity the
+    row-by-row reader below names the row and column at fault.
+    """
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            first = f.readline()
+            second = f.readline()
+    except UnicodeDecodeError:
+        raise DataError(f"{path} is not a text file (not UTF-8); expected a CSV with a header row.") from None
+    except IsADirectoryError:
+        raise DataError(f"{path} is a folder; expected a CSV file.") from None
+    first = first.rstrip("\r\n")
+    delim = _sniff_delimiter(path, first, second.rstrip("\r\n"))
+    header = [h.strip() for h in first.split(delim)] if first.strip() else []
     if header:
         try:
-            arr = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
+            arr = np.loadtxt(path, delimiter=delim, skiprows=1, ndmin=2, dtype=np.float64, encoding="utf-8-sig")
             if arr.shape[0] > 0 and arr.shape[1] == len(header):
                 return header, arr
-        except ValueError:
+        except (ValueError, UnicodeDecodeError):
             pass
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
+    with open(path, newline="", encoding="utf-8-sig", errors="replace") as f:
+        reader = csv.reader(f, delimiter=delim)
         try:
             header = [h.strip() for h in next(reader)]
         except StopIteration:
@@ -233,7 +370,8 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
                 continue
             if len(row) != len(header):
                 raise DataError(
-                    f"{path}: data row {i} has {len(row)} fields but the header has {len(header)}."
+                    f"{path}: data row {i} has {len(row)} fields but the header has {len(header)} "
+                    f"({_DELIMITERS[delim]}-separated)."
                 )
             vals = []
             for j, c in enumerate(row):
@@ -241,8 +379,10 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
                 try:
                     vals.append(float(c) if c else np.nan)
                 except ValueError:
+                    hint = (" Decimal commas are not read: use '.' as the decimal point."
+                            if "," in c and delim != "," else "")
                     raise DataError(
-                        f"{path}: data row {i}, column '{header[j]}' holds {c!r}, which is not a number."
+                        f"{path}: data row {i}, column '{header[j]}' holds {c!r}, which is not a number.{hint}"
                     ) from None
             rows.append(vals)
     if not rows:
@@ -255,6 +395,7 @@ def load_csv(
     *,
     columns: Mapping[str, str] | None = None,
     temperature_unit: str = "C",
+    field_unit: str = "uT",
     require_reference: bool = True,
 ) -> CalibrationData:
     """Load a canonical CSV (``time,run,bx_meas,by_meas,bz_meas,temperature,bx_ref,by_ref,bz_ref``).
@@ -263,15 +404,21 @@ def load_csv(
       path: the file.
       columns: optional mapping canonical name -> the file's column name, for other layouts.
       temperature_unit: ``"C"`` or ``"K"`` (kelvin is converted to Celsius).
+      field_unit: one of :data:`FIELD_UNITS` (``uT``, ``nT``, ``mT``, ``G``); converted to uT.
       require_reference: if False, the ``*_ref`` columns may be absent.
 
-    ``run`` is optional (all rows one run); ``time`` is optional (row index).
+    ``run`` is optional (all rows one run); ``time`` is optional (row index). The delimiter
+    (comma, semicolon or tab) is sniffed from the header and first row.
     """
     path = Path(path)
     if not path.exists():
         raise DataError(f"Data file {path} does not exist.")
     if temperature_unit not in ("C", "K"):
         raise DataError(f"temperature_unit is {temperature_unit!r}; it must be one of ['C', 'K'].")
+    if field_unit not in FIELD_UNITS:
+        raise DataError(f"field_unit is {field_unit!r}; it must be one of {list(FIELD_UNITS)}.")
+    if path.is_dir():
+        raise DataError(f"Data file {path} is a folder; expected a CSV file.")
     header, arr = _read_table(path)
     mapping = {c: c for c in CANONICAL_COLUMNS}
     if columns:
@@ -293,7 +440,7 @@ def load_csv(
             return None
         return arr[:, idx[src]]
 
-    b = np.stack([col(c, True) for c in _REQUIRED[:3]], axis=1)
+    b = np.stack([col(c, True) for c in _REQUIRED[:3]], axis=1) * FIELD_UNITS[field_unit]
     t = col("temperature", True)
     if temperature_unit == "K":
         t = t - 273.15
@@ -301,7 +448,7 @@ def load_csv(
     if any(r is None for r in refs) and not all(r is None for r in refs):
         missing = [c for c, r in zip(_REF, refs) if r is None]
         raise DataError(f"{path} has some reference columns but not {missing}; give all three or none.")
-    ref = None if refs[0] is None else np.stack(refs, axis=1)
+    ref = None if refs[0] is None else np.stack(refs, axis=1) * FIELD_UNITS[field_unit]
     time = col("time", False)
     run = col("run", False)
     if run is not None and np.isfinite(run).all() and np.any(run != np.round(run)):

@@ -862,6 +862,8 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, **kw
         raise TypeError(f"data must be a CalibrationData; got {type(data).__name__}.")
     if data.b_ref is None:
         raise ValueError("discovery needs a recording with reference columns (b_ref); this one has none.")
+    from .data import validate_for_discover
+    validate_for_discover(data)             # finite, plausible uT/Celsius values, rows sorted by time (issue 11)
     if data.n < 50:
         raise ValueError(f"discovery needs at least 50 rows; the data has {data.n}.")
     notes, skipped = [], []

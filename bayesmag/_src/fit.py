@@ -31,7 +31,7 @@ import numpy as np
 from .physics import AXES, Inputs, PhysicsModel
 
 __all__ = ["LMSolution", "RESULTS", "levenberg_marquardt", "PhysicsFit", "fit_physics", "covariance",
-           "identifiability", "lag1_autocorrelation"]
+           "identifiability", "lag1_autocorrelation", "unidentifiable", "RANK_RTOL"]
 
 RESULTS = ("converged", "max_steps_reached", "nonfinite")
 
@@ -228,6 +228,37 @@ def identifiability(cov: np.ndarray, names: tuple[str, ...], *, corr_threshold: 
     return {"corr": corr, "condition_number": cond, "high_corr_pairs": pairs, "weak_directions": weak}
 
 
+# --------------------------------------------------------------------------- rank check
+
+#: Relative singular-value threshold of the column-scaled Jacobian below which it is rank-deficient:
+#: sqrt(float64 eps) = 1.5e-8. The covariance inverts J^T J, whose eigenvalues are the squared singular
+#: values, so a ratio below sqrt(eps) makes J^T J singular to working precision and its inverse noise.
+#: The Belsten recordings, nearly collinear in S/Ks, sit at 1.1e-3 (t0 = 0) -- five orders above.
+RANK_RTOL = float(np.sqrt(np.finfo(np.float64).eps))
+
+
+def unidentifiable(J: np.ndarray, names: tuple[str, ...], *, rtol: float = RANK_RTOL) -> tuple[list[str], float]:
+    """Parameters the data cannot inform: those in the numerical null space of ``J`` (n, p).
+
+    Columns are scaled to unit norm first (units do not matter); a column of zeros is
+    unidentifiable on its own. Returns ``(names, ratio)``: the parameters with weight > 0.1 in
+    a singular vector whose singular value is below ``rtol`` times the largest, and the smallest
+    relative singular value (0 for a zero column).
+    """
+    J = np.asarray(J, dtype=np.float64)
+    norm = np.linalg.norm(J, axis=0)
+    zero = norm <= np.finfo(np.float64).tiny
+    if zero.any():
+        return [names[i] for i in np.flatnonzero(zero)], 0.0
+    _, sv, Vt = np.linalg.svd(J / norm, full_matrices=False)
+    ratio = float(sv.min() / sv.max())
+    bad = set()
+    for k in np.flatnonzero(sv < rtol * sv.max()):
+        v = Vt[k]
+        bad.update(int(i) for i in np.flatnonzero(np.abs(v) > 0.1))
+    return [names[i] for i in sorted(bad)], ratio
+
+
 # --------------------------------------------------------------------------- physics fit
 
 
@@ -331,8 +362,22 @@ _solve_jit = jax.jit(lambda prob, th0, inputs, y: prob.solve(th0, inputs, y), st
 _jac_jit = jax.jit(lambda prob, th, inputs: prob.jacobian(th, inputs), static_argnums=0)
 
 
+def _refuse_unidentifiable(J: np.ndarray, names: tuple[str, ...]) -> None:
+    from .data import DataError
+    msgs = []
+    for a, ax in enumerate(AXES):
+        bad, ratio = unidentifiable(J[a], names)
+        if bad:
+            msgs.append(f"axis {ax}: {bad} (smallest relative singular value {ratio:.2g} < {RANK_RTOL:.2g})")
+    if msgs:
+        raise DataError("The data cannot inform these parameters (the Jacobian is rank-deficient): "
+                        + "; ".join(msgs) + ". Their standard errors would be meaningless. Usually a measured "
+                        "field axis or the temperature is constant (or zero) in the training rows: vary every "
+                        "field axis, or drop the terms (e.g. [physics] temperature_terms = false).")
+
+
 def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: str = "white",
-                theta0: np.ndarray | None = None) -> PhysicsFit:
+                theta0: np.ndarray | None = None, check_rank: bool = True) -> PhysicsFit:
     """Fit ``model`` row-wise (each output axis separately) by Levenberg-Marquardt.
 
     Args:
@@ -340,6 +385,8 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
       model: defaults to the paper's thermo-affine model.
       covariance_method: ``"white"``, ``"ar1"`` or ``"newey_west"`` (module docstring).
       theta0: optional (3, p) starting point (default: identity gain, zero elsewhere).
+      check_rank: refuse (:class:`~bayesmag.DataError`) a rank-deficient Jacobian, naming the parameters
+        the data cannot inform (:func:`unidentifiable`).
     """
     from .physics import inputs_from_data
 
@@ -351,6 +398,8 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
     sol = _solve_jit(prob, th0, inputs, y)
     theta = np.asarray(sol.theta)
     J = np.asarray(_jac_jit(prob, jnp.asarray(theta), inputs))          # (3, n, p)
+    if check_rank:
+        _refuse_unidentifiable(J, model.param_names)
     pred = np.asarray(model.predict_all(jnp.asarray(theta), inputs))
     resid = np.asarray(data.b_ref) - pred
     covs, infos, diags = [], [], []

@@ -117,6 +117,12 @@ def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, colum
 
 def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``."""
+    from .outdir import reserve
+    with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
+        return _run_job(cfg, out, progress=progress)
+
+
+def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
     progress = cfg.output.progress if progress is None else progress
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
