@@ -292,6 +292,35 @@ def test_unwritable_out_fails_before_computing(tmp_path, capsys, no_work, kind):
     assert rc == 2 and err.startswith("bayesmag: error: cannot use") and err.count("\n") == 1
 
 
+def test_disk_full_while_writing_is_one_line_and_keeps_the_old_run(tmp_path, capsys, monkeypatch, model):
+    import errno
+
+    import bayesmag._src.report as report
+    rec = _write(tmp_path / "rec.csv")
+    out = tmp_path / "out"
+    shutil.copytree(model, out)
+    before = (out / "calibration.npz").read_bytes()
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(out / "report.md"))
+    monkeypatch.setattr(report, "write_report", full)
+    rc = main(["run", str(_config(tmp_path, rec)), "--out", str(out), "--no-progress"])
+    err = _err(capsys)
+    assert rc == 2 and "No space left on device" in err and err.count("\n") == 1
+    assert (out / "calibration.npz").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cfg.toml", "out", "rec.csv"]
+
+
+@pytest.mark.parametrize("kind", ["missing_folder", "too_long"])
+def test_apply_unwritable_out_fails_before_computing(tmp_path, capsys, monkeypatch, model, kind):
+    import bayesmag._src.apply as apply_module
+    monkeypatch.setattr(apply_module, "load", lambda *a: (_ for _ in ()).throw(AssertionError("loaded")))
+    rec = _write(tmp_path / "rec.csv")
+    out = tmp_path / "nope" / "o.csv" if kind == "missing_folder" else tmp_path / ("o" * 250 + ".csv")
+    assert main(["apply", "--model", str(model), "--data", str(rec), "--out", str(out), "--no-progress"]) == 2
+    assert ("does not exist" if kind == "missing_folder" else "File name too long") in _err(capsys)
+
+
 # --------------------------------------------------------------------------- 6. tampered calibrations
 
 

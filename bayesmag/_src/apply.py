@@ -50,6 +50,12 @@ def check_apply_paths(model_dir, data_path, out_path) -> Path:
     if inside:
         raise DataError(f"--out {out} lies inside the calibration folder --model {model}; writing there could "
                         f"overwrite the calibration. Give an output file outside it.")
+    parent = out.parent
+    if not parent.is_dir():
+        raise DataError(f"--out {out}: the folder {parent} does not exist; create it or give another path.")
+    probe = parent / f".{out.name}.partial-{os.getpid()}"
+    probe.touch()                           # unwritable, read-only or over-long: OSError now, not after the work
+    probe.unlink()
     return out
 
 
