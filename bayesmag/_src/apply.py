@@ -26,7 +26,7 @@ def check_units(cal, data) -> list[str]:
     if not finite.any():
         raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature.")
     train_max = float(np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max())
-    warn = check_field_unit(data.subset(finite), train_max_ut=train_max, fix="use --field-unit nT")
+    warn = check_field_unit(data.subset(finite), train_max_ut=train_max, fix="Use --field-unit nT")
     med_t = float(np.median(data.temperature[finite]))
     if med_t > 150:
         raise DataError(f"Column 'temperature' has median {med_t:.2f}, which looks like kelvin, but the calibration "

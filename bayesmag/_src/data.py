@@ -183,7 +183,7 @@ def _check_values(data: CalibrationData, where: str, *, allow_nonfinite: bool = 
 
 
 def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
-                     fix: str = "convert the field columns to uT") -> list[str]:
+                     fix: str = "Convert the field columns to uT") -> list[str]:
     """Refuse a field that is not in microtesla; return warnings for a suspicious one.
 
     With ``train_max_ut`` (the largest |B| a calibration was trained on, ``apply``): a 99th
@@ -205,8 +205,7 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
         if train_max_ut is not None:
             if p99 > 50 * train_max_ut:
                 raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile) but the calibration was "
-                                f"trained on |B| up to {train_max_ut:.3g} uT: the file looks like nT (x1000). "
-                                f"{fix[0].upper() + fix[1:]}.")
+                                f"trained on |B| up to {train_max_ut:.3g} uT: the file looks like nT (x1000). {fix}.")
             if train_max_ut > 10 and p99 < train_max_ut / 50:
                 warn.append(f"The {label} is at most {p99:.3g} while training reached {train_max_ut:.3g} uT: "
                             f"is the file in gauss or mT? bayesmag expects uT.")
@@ -215,11 +214,11 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
         if p99 > hi:
             raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile of |component|), but bayesmag "
                             f"expects microtesla and a calibration field is at most a few hundred uT: the file looks "
-                            f"like nT (x1000). Divide by 1000 ({fix}).")
+                            f"like nT (x1000). {fix} (divide by 1000).")
         if p99 < lo:
             raise DataError(f"The {label}{where} stays below {p99:.3g} (99th percentile of |component|), but "
                             f"bayesmag expects microtesla (the Earth's field is 25-65 uT): the file looks like mT "
-                            f"(x1000) or gauss (x100). Convert to uT ({fix}).")
+                            f"(x1000) or gauss (x100). {fix}.")
     return warn
 
 

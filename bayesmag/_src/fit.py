@@ -364,11 +364,12 @@ _jac_jit = jax.jit(lambda prob, th, inputs: prob.jacobian(th, inputs), static_ar
 
 def _refuse_unidentifiable(J: np.ndarray, names: tuple[str, ...]) -> None:
     from .data import DataError
-    msgs = []
+    found = {}
     for a, ax in enumerate(AXES):
         bad, ratio = unidentifiable(J[a], names)
         if bad:
-            msgs.append(f"axis {ax}: {bad} (smallest relative singular value {ratio:.2g} < {RANK_RTOL:.2g})")
+            found.setdefault(f"{bad} (smallest relative singular value {ratio:.2g} < {RANK_RTOL:.2g})", []).append(ax)
+    msgs = [f"axis {', '.join(axes)}: {what}" for what, axes in found.items()]
     if msgs:
         raise DataError("The data cannot inform these parameters (the Jacobian is rank-deficient): "
                         + "; ".join(msgs) + ". Their standard errors would be meaningless. Usually a measured "

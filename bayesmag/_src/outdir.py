@@ -103,8 +103,7 @@ def check_out(out: str | Path, *, inputs=()) -> Path:
     (it holds :data:`MARKER`) that contains none of ``inputs``. Everything else raises
     :class:`OutputError` naming the folder and suggesting a new name. The parent folder is
     created and a probe folder with the longest name the swap uses is made and removed, so an
-    unwritable, read-only or over-long target fails here with :class:`OSError`, not after the
-    computation.
+    unwritable, read-only or over-long target fails here, not after the computation.
     """
     out = Path(out)
     if out.name in ("", ".", ".."):
@@ -124,15 +123,19 @@ def check_out(out: str | Path, *, inputs=()) -> Path:
                                   f"Give a new folder name, e.g. --out {_suggest(out)}.")
     if is_staging_name(out.name):
         raise OutputError(f"--out {out} has the name of a bayesmag temporary folder; choose another name.")
-    out.parent.mkdir(parents=True, exist_ok=True)
     probe = out.parent / f".{out.name}.partial-{os.getpid()}-probe"
-    probe.mkdir()
     try:
-        (probe / MARKER).write_text("probe\n")
-        (probe / MARKER).unlink()
-    finally:
-        with contextlib.suppress(OSError):
-            probe.rmdir()
+        out.parent.mkdir(parents=True, exist_ok=True)
+        probe.mkdir()
+        try:
+            (probe / MARKER).write_text("probe\n")
+            (probe / MARKER).unlink()
+        finally:
+            with contextlib.suppress(OSError):
+                probe.rmdir()
+    except OSError as e:
+        raise OutputError(f"--out {out} cannot be written ({e.strerror or e}: {e.filename}); checked before any "
+                          f"computation. Give a writable folder (with a shorter name if the name is too long).") from None
     return out
 
 
