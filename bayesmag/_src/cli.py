@@ -220,7 +220,7 @@ def _cmd_discover(argv: list[str]) -> int:
 
 
 def _one_line(e: BaseException) -> str:
-    if isinstance(e, OSError) and not type(e).__module__.startswith("bayesmag"):
+    if isinstance(e, OSError) and e.strerror and not type(e).__module__.startswith("bayesmag"):
         where = f" {e.filename}" if e.filename else ""
         return f"cannot use{where}: {e.strerror or e}" + (f" (errno {e.errno})" if e.errno else "")
     return " ".join(str(e).split())
