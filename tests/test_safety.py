@@ -117,6 +117,27 @@ def test_run_refuses_a_run_folder_that_holds_its_input(tmp_path, capsys, model):
     assert rec.exists()
 
 
+def test_run_refuses_a_run_folder_holding_a_users_file(tmp_path, capsys, model, no_work):
+    run = tmp_path / "run"
+    shutil.copytree(model, run)
+    (run / "notes.txt").write_text("mine")
+    rec = _write(tmp_path / "rec.csv")
+    rc = main(["run", str(_config(tmp_path, rec)), "--out", str(run), "--no-progress"])
+    assert rc == 2 and "also holds files bayesmag did not write (notes.txt)" in _err(capsys)
+    assert (run / "notes.txt").read_text() == "mine"
+
+
+def test_study_refuses_a_foreign_out_before_computing(tmp_path, capsys, monkeypatch):
+    import bayesmag._src.study as study
+    monkeypatch.setattr(study, "run_study", lambda *a, **k: (_ for _ in ()).throw(AssertionError("computed")))
+    (tmp_path / "u").mkdir()
+    (tmp_path / "u" / "thesis.txt").write_text("x")
+    cfg = tmp_path / "s.toml"
+    cfg.write_text('[data]\nsource = "simulated"\n')
+    assert main(["study", str(cfg), "--out", str(tmp_path / "u")]) == 2
+    assert "did not write" in _err(capsys) and (tmp_path / "u" / "thesis.txt").exists()
+
+
 def test_run_refuses_a_file_as_out(tmp_path, capsys, no_work):
     rec = _write(tmp_path / "rec.csv")
     rc = main(["run", str(_config(tmp_path, rec)), "--out", str(rec), "--no-progress"])
@@ -218,6 +239,8 @@ def test_sigkill_between_the_two_renames_is_recovered(tmp_path):
     new = [p for p in tmp_path.iterdir() if ".partial-" in p.name]
     assert len(old) == 1 and marker_status(old[0])["complete"] and (old[0] / "a.txt").read_text() == "old"
     assert len(new) == 1 and marker_status(new[0])["complete"]  # ... has both complete folders
+    with pytest.raises(ArtifactError, match=r"earlier result in .*\.run\.old-"):
+        load(out)
     done = recover(tmp_path)
     assert any("restored" in d for d in done) and (out / "a.txt").read_text() == "old"
     assert not [p for p in tmp_path.iterdir() if ".old-" in p.name or ".partial-" in p.name]

@@ -207,7 +207,10 @@ def load(path: str | Path) -> Calibration:
     path = Path(path)
     j, z = path / "calibration.json", path / "calibration.npz"
     if not path.is_dir():
-        raise ArtifactError(f"{path} is not a folder; give the run folder that holds calibration.json.")
+        old = sorted(path.parent.glob(f".{path.name}.old-*")) if not path.exists() else []
+        hint = (f" An interrupted run left the earlier result in {old[0]}; the next bayesmag run into "
+                f"{path.parent} restores it (or rename it yourself)." if old else "")
+        raise ArtifactError(f"{path} is not a folder; give the run folder that holds calibration.json.{hint}")
     if is_staging_name(path.name):
         raise ArtifactError(f"{path} is a temporary folder of an unfinished or interrupted bayesmag run, not a "
                             f"calibration; give the run folder itself (re-run `bayesmag run` if it is missing).")

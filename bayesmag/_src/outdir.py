@@ -2,10 +2,11 @@
 
 One mechanism for every command that writes a folder (``run``, ``study``, ``discover``):
 
-* **Ownership.** Every folder bayesmag writes holds a marker file :data:`MARKER`. An existing
-  target may be replaced only if it holds the marker; any other non-empty target (a folder
-  with a user's files, ``.``, the folder holding the input recording) is refused *before* any
-  computation by :func:`check_out`. Nothing without the marker is ever deleted.
+* **Ownership.** Every folder bayesmag writes holds a marker file :data:`MARKER` listing the
+  files it wrote. An existing target may be replaced only if it holds the marker and no other
+  files; any other non-empty target (a folder with a user's files, ``.``, a run folder holding
+  the input recording or a file added later) is refused *before* any computation by
+  :func:`check_out`. Nothing bayesmag did not write is ever deleted.
 * **Lock.** :func:`reserve` takes ``.<name>.lock`` beside the target (created exclusively,
   holding the owner's pid) for the whole command; a second process writing the same target
   is refused. A lock whose pid is no longer alive is stale and taken over.
@@ -33,7 +34,8 @@ from pathlib import Path
 __all__ = ["staging_dir", "reserve", "check_out", "recover", "OutputError", "MARKER", "marker_status",
            "is_staging_name"]
 
-#: The marker file in every folder bayesmag writes (JSON: tool, version, complete, written).
+#: The marker file in every folder bayesmag writes (JSON: tool, version, complete, written, and the files
+#: it wrote once complete).
 MARKER = ".bayesmag-run"
 _SIDE = re.compile(r"^\.(?P<name>.+)\.(?P<kind>partial|old)-(?P<pid>\d+)$")
 _HELD: dict[Path, int] = {}          # locks this process holds -> nesting depth
@@ -60,10 +62,17 @@ def marker_status(folder: str | Path) -> dict | None:
     return doc if isinstance(doc, dict) else {"complete": False, "damaged": True}
 
 
+def _files(folder: Path) -> set[str]:
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*")
+            if not p.is_dir() and not p.name.startswith(MARKER)}
+
+
 def _write_marker(folder: Path, complete: bool) -> None:
     from .. import __version__
     doc = {"tool": "bayesmag", "version": __version__, "complete": complete,
            "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    if complete:
+        doc["files"] = sorted(_files(folder))
     tmp = folder / (MARKER + ".tmp")
     tmp.write_text(json.dumps(doc) + "\n")
     os.replace(tmp, folder / MARKER)
@@ -121,6 +130,12 @@ def check_out(out: str | Path, *, inputs=()) -> Path:
             if p is not None and _inside(Path(p), out):
                 raise OutputError(f"--out {out} contains the input {p}; replacing the folder would delete it. "
                                   f"Give a new folder name, e.g. --out {_suggest(out)}.")
+        foreign = sorted(_files(out) - set(mark.get("files", []))) if mark and "files" in mark else []
+        if foreign:
+            shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+            raise OutputError(f"--out {out} is a bayesmag run folder, but it also holds files bayesmag did not write "
+                              f"({shown}); replacing it would delete them. Move them out, or give a new folder "
+                              f"name, e.g. --out {_suggest(out)}.")
     if is_staging_name(out.name):
         raise OutputError(f"--out {out} has the name of a bayesmag temporary folder; choose another name.")
     probe = out.parent / f".{out.name}.partial-{os.getpid()}-probe"
