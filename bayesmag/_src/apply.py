@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .artifact import load
-from .data import AXES, DataError, check_field_unit, load_csv
+from .data import AXES, DataError, check_field_unit, check_values, load_csv
 
 __all__ = ["apply_calibration", "check_units", "check_apply_paths"]
 
@@ -61,8 +61,7 @@ def check_apply_paths(model_dir, data_path, out_path) -> Path:
 
 def _check_magnitudes(data) -> None:
     """Absurd magnitudes (|B| > 1 T, |T| > 1e4 C) are corrupt data, refused naming the row (NaN rows stay allowed)."""
-    from .data import _check_values
-    _check_values(data, f" in {data.source}", allow_nonfinite=True)
+    check_values(data, origin=data.source, allow_nonfinite=True)
 
 
 def apply_calibration(model_dir, data_path, out_path, *, level=None, method="analytic", n_params=100, n_qmc=256,
@@ -87,9 +86,8 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
     bad = np.flatnonzero(~pred["valid"])
     if bad.size:
         shown = ", ".join(str(int(r) + 1) for r in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
-        warnings.append(f"{bad.size} row(s) have non-finite inputs or outputs and were not calibrated (marked "
-                        f"valid=false): "
-                        f"data row(s) {shown}.")
+        warnings.append(f"{bad.size} row(s) have non-finite inputs or outputs and were not calibrated "
+                        f"(marked valid=false): data row(s) {shown}.")
     n_out = int((~pred["in_domain"] & pred["valid"]).sum())
     if n_out:
         warnings.append(f"{n_out} of {data.n} rows lie outside the calibration's training domain (in_domain=false): "

@@ -29,7 +29,6 @@ __all__ = ["main"]
 def _cmd_run(args) -> int:
     from .config import load_config
     from .job import run_job
-
     from .outdir import reserve
 
     cfg_path = _resolve_config(args.config)
@@ -124,9 +123,8 @@ def _parse_columns(text: str | None) -> dict[str, str] | None:
 
 def _cmd_study(args) -> int:
     from .config import load_config
-    from .study import run_study
-
     from .outdir import reserve
+    from .study import run_study
 
     cfg_path = _resolve_config(args.config)
     cfg = load_config(cfg_path, args.set or [])
@@ -204,25 +202,20 @@ def _cmd_discover(argv: list[str]) -> int:
     from .outdir import reserve
 
     args = discover_parser().parse_args(argv)
-    if args.out:
-        out = Path(args.out)
-    elif args.data and not args.config:
-        out = Path("runs") / f"discover_{Path(args.data).stem}"
-    elif args.config and not args.data:
-        out = Path("runs") / f"discover_{read_config_dict(args.config, args.set or []).get('name', 'bayesmag')}"
-    else:
+    if bool(args.data) == bool(args.config):
         return discover_main(argv)          # discover names the usage error
-    inputs = [args.data, args.config]
-    if args.config:
-        inputs.append(read_config_dict(args.config, args.set or []).get("data", {}).get("path"))
-    with reserve(out, inputs=inputs):
+    raw = read_config_dict(args.config, args.set or []) if args.config else {}
+    name = Path(args.data).stem if args.data else raw.get("name", "bayesmag")
+    out = Path(args.out) if args.out else Path("runs") / f"discover_{name}"
+    data_table = raw.get("data") if isinstance(raw.get("data"), dict) else {}
+    with reserve(out, inputs=[args.data, args.config, data_table.get("path")]):
         return discover_main(argv)
 
 
 def _one_line(e: BaseException) -> str:
     if isinstance(e, OSError) and e.strerror and not type(e).__module__.startswith("bayesmag"):
         where = f" {e.filename}" if e.filename else ""
-        return f"cannot use{where}: {e.strerror or e}" + (f" (errno {e.errno})" if e.errno else "")
+        return f"cannot use{where}: {e.strerror}" + (f" (errno {e.errno})" if e.errno else "")
     return " ".join(str(e).split())
 
 

@@ -24,6 +24,7 @@ __all__ = [
     "validate",
     "validate_for_discover",
     "check_field_unit",
+    "check_values",
     "FIELD_UNITS",
     "split_random",
     "split_by_run",
@@ -161,8 +162,12 @@ def _columns(data: CalibrationData) -> dict[str, np.ndarray]:
     return cols
 
 
-def _check_values(data: CalibrationData, where: str, *, allow_nonfinite: bool = False) -> None:
-    """Non-finite values (unless allowed) and absurd magnitudes, naming the column and rows."""
+def check_values(data: CalibrationData, *, origin: str = "", allow_nonfinite: bool = False) -> None:
+    """Refuse non-finite values (unless ``allow_nonfinite``) and absurd magnitudes, naming the column and rows.
+
+    Absurd: |field| > 1e6 uT (1 T) or |temperature| > 1e4 C; such a value is corrupt, not a reading.
+    """
+    where = f" in {origin}" if origin else ""
     for name, col in _columns(data).items():
         bad = ~np.isfinite(col)
         if bad.any() and not allow_nonfinite:
@@ -268,7 +273,7 @@ def validate(
     Row numbers in messages count data rows from 1 (the header is not counted).
     """
     where = f" in {origin}" if origin else ""
-    _check_values(data, where)
+    check_values(data, origin=origin)
     if need_reference and data.b_ref is None:
         raise DataError(f"The recording{where} has no reference columns {_REF}; a calibration needs them.")
     check_field_unit(data, origin=origin)
@@ -297,7 +302,7 @@ def validate_for_discover(data: CalibrationData, *, origin: str = "") -> None:
     by time within each run. Raises :class:`DataError` naming the row and column."""
     origin = origin or data.source
     where = f" in {origin}" if origin else ""
-    _check_values(data, where)
+    check_values(data, origin=origin)
     check_field_unit(data, origin=origin)
     med = float(np.median(data.temperature))
     if med > _KELVIN_THRESHOLD_C:
