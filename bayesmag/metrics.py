@@ -10,7 +10,9 @@ from ._src.metrics import nll as nll
 from ._src.metrics import paired_test as paired_test
 from ._src.metrics import pit as pit
 from ._src.metrics import rmse as rmse
+from ._src.metrics import score as score
+from ._src.metrics import score_per_axis as score_per_axis
 from ._src.metrics import summarize as summarize
 
 __all__ = ["rmse", "mae", "coverage", "interval_width", "nll", "crps", "pit",
-           "calibration_curve", "paired_test", "summarize", "DEFAULT_LEVELS"]
+           "calibration_curve", "paired_test", "score", "score_per_axis", "summarize", "DEFAULT_LEVELS"]

@@ -95,13 +95,18 @@ class Calibration:
                           rmse_in_sample=np.full(3, np.nan), result=("converged",) * 3, n_steps=np.zeros(3),
                           covariance_method="", cov_info=empty, diagnostics=empty)
 
-    def _family_dist(self, mean, var, shape):
-        from .likelihoods import moment_match
-        spec = self.network["meta"]["spec"]
-        if self.likelihood == "student_t":
-            df = shape.get("df") if spec.get("df") is None else spec["df"]
-            return moment_match("student_t", mean, var, df=df)
-        return moment_match(self.likelihood, mean, var)
+    def predictor(self, *, method: str = "analytic", n_params: int = 100, n_qmc: int = 256, seed: int = 0,
+                  chunk_size: int = 256):
+        """The saved :class:`~bayesmag._src.predictor.Predictor` with these physics-UQ settings."""
+        from .predictor import Predictor, UQOptions
+        net, passes, nseed, fusion = None, 100, 0, "moment_match"
+        if self.network is not None:
+            meta = self.network["meta"]
+            net = network_from_artifact(self.network)
+            passes, nseed, fusion = meta["passes"], meta["seed"], meta.get("fusion", "moment_match")
+        return Predictor(fit=self.physics_fit(), sigma_in=self.sigma_in, residual_sd=self.residual_sd, network=net,
+                         passes=passes, network_seed=nseed, fusion=fusion, domain=self.domain,
+                         uq=UQOptions(method, n_params, n_qmc, seed, chunk_size))
 
     def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
@@ -111,50 +116,35 @@ class Calibration:
         Rows with non-finite inputs are not dropped: their outputs are NaN and ``valid`` is False.
         Returns a dict of (n, 3) arrays: ``calibrated, aleatoric_physics, epistemic_physics,
         residual_physics, total, lower, upper`` (plus ``aleatoric_nn, epistemic_nn`` with a network),
-        and (n,) arrays ``in_domain`` and ``valid``.
+        and (n,) arrays ``in_domain`` and ``valid``. Every chunk is predicted by :meth:`predictor`.
         """
-        from .likelihoods import Gaussian
-        from .physics import Inputs
-        from .physics_uq import physics_uncertainty
-
         level = self.level if level is None else level
         n = data.n
         x = np.column_stack([data.b_meas, data.temperature])
         valid = np.isfinite(x).all(axis=1) & np.isfinite(data.time)
-        out = {k: np.full((n, 3), np.nan) for k in ("calibrated", "aleatoric_physics", "epistemic_physics",
-                                                    "residual_physics", "total", "lower", "upper")}
+        names = ["calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "total", "lower", "upper"]
+        if self.network is not None:
+            names += ["aleatoric_nn", "epistemic_nn"]
+        out = {k: np.full((n, 3), np.nan) for k in names}
         idx = np.flatnonzero(valid)
-        fit = self.physics_fit()
+        base = self.predictor(method=method, n_params=n_params, n_qmc=n_qmc, seed=seed)
         starts = range(0, idx.size, chunk_size)
         if progress:
             from tqdm.auto import tqdm
             starts = tqdm(starts, desc="apply", unit="chunk", leave=False)
         for lo in starts:
             rows = idx[lo:lo + chunk_size]
-            inp = Inputs(data.b_meas[rows], data.temperature[rows], data.time[rows], data.run[rows])
-            uq = physics_uncertainty(fit, inp, sigma_in=self.sigma_in, method=method, n_params=n_params,
-                                     n_qmc=n_qmc, seed=seed, chunk_size=min(4096, max(256, rows.size)))
-            resid = np.broadcast_to(self.residual_sd, uq.mean.shape)
-            mean, var = uq.mean, uq.aleatoric**2 + resid**2 + uq.epistemic**2
-            out["aleatoric_physics"][rows] = uq.aleatoric
-            out["epistemic_physics"][rows] = uq.epistemic
-            out["residual_physics"][rows] = resid
-            dist = None
-            if self.network is not None:
-                nn_mean, nn_alea, nn_epi, shape = apply_network(self.network, data.subset(rows))
-                out.setdefault("aleatoric_nn", np.full((n, 3), np.nan))[rows] = np.sqrt(nn_alea)
-                out.setdefault("epistemic_nn", np.full((n, 3), np.nan))[rows] = np.sqrt(nn_epi)
-                mean = mean + nn_mean
-                if self.network["meta"].get("fusion", "moment_match") == "paper":
-                    var = uq.aleatoric**2 + nn_alea + nn_epi + uq.epistemic**2
-                else:   # the network's aleatoric part already holds the propagated input noise
-                    var = nn_alea + nn_epi + uq.epistemic**2
-                    dist = self._family_dist(mean, var, shape)
-            sd = np.sqrt(var)
-            dist = Gaussian(mean, sd) if dist is None else dist
-            lo_, hi_ = (np.asarray(a) for a in dist.interval(level))
-            out["calibrated"][rows], out["total"][rows] = mean, sd
+            pr = dataclasses.replace(base, uq=dataclasses.replace(base.uq, chunk_size=min(4096, max(256, rows.size))),
+                                     domain=None)
+            pred = pr.predict(data.subset(rows))
+            lo_, hi_ = pred.interval(level)
+            out["calibrated"][rows], out["total"][rows] = pred.mean, pred.total
             out["lower"][rows], out["upper"][rows] = lo_, hi_
+            for k, v in pred.parts.items():
+                if k == "residual_physics" and self.network is not None:
+                    continue
+                out.setdefault(k, np.full((n, 3), np.nan))[rows] = v
+        out["residual_physics"][idx] = np.broadcast_to(self.residual_sd, (idx.size, 3))
         valid = valid & np.all([np.isfinite(out[k]).all(axis=1) for k in ("calibrated", "total", "lower", "upper")],
                                axis=0)                     # a NaN output is never valid
         in_dom = np.zeros(n, dtype=bool)
@@ -164,23 +154,25 @@ class Calibration:
         return out
 
 
-def save_calibration(path: Path, *, fit, sigma_in: np.ndarray, residual_sd: np.ndarray, domain: Domain,
-                     config: dict, likelihood: str = "gaussian", level: float = 0.95,
-                     network: dict | None = None) -> None:
-    """Write ``calibration.json`` and ``calibration.npz`` into folder ``path``."""
+def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95) -> None:
+    """Write the :class:`~bayesmag._src.predictor.Predictor` as ``calibration.json`` and ``calibration.npz``
+    into folder ``path``."""
     from .. import __version__
-    arrays = {"theta": np.asarray(fit.theta), "cov": np.asarray(fit.cov), "sigma_in": np.asarray(sigma_in),
-              "residual_sd": np.asarray(residual_sd, dtype=np.float64), "s2": np.asarray(fit.s2)}
+    fit = predictor.fit
+    arrays = {"theta": np.asarray(fit.theta), "cov": np.asarray(fit.cov), "sigma_in": np.asarray(predictor.sigma_in),
+              "residual_sd": np.asarray(predictor.residual_sd, dtype=np.float64), "s2": np.asarray(fit.s2)}
     meta_net = None
-    if network is not None:
+    if predictor.network is not None:
+        network = network_to_artifact(predictor.network, passes=predictor.passes, seed=predictor.network_seed,
+                                      fusion=predictor.fusion)
         meta_net = network["meta"]
         for k, v in network["arrays"].items():
             arrays[f"network/{k}"] = np.asarray(v)
     doc = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
         "model": model_to_json(fit.model), "param_names": list(fit.model.param_names),
-        "axes": list(AXES), "likelihood": likelihood, "level": level,
-        "domain": dataclasses.asdict(domain), "config": config, "network": meta_net,
+        "axes": list(AXES), "likelihood": predictor.family, "level": level,
+        "domain": dataclasses.asdict(predictor.domain), "config": config, "network": meta_net,
         "arrays": {"file": "calibration.npz", "keys": sorted(arrays)},
         "units": {"field": "uT", "temperature": "C", "time": "s"},
     }
@@ -420,8 +412,8 @@ def network_from_artifact(network: dict):
 def apply_network(network: dict, data: CalibrationData):
     """MC-DropConnect residual mean, aleatoric and epistemic variances (n, 3) of a saved network."""
     from .network import mc_predict
+    from .predictor import network_inputs
 
     net = network_from_artifact(network)
-    x = np.column_stack([data.b_meas, data.temperature])
-    p = mc_predict(net, x, passes=network["meta"]["passes"], seed=network["meta"]["seed"])
+    p = mc_predict(net, network_inputs(data), passes=network["meta"]["passes"], seed=network["meta"]["seed"])
     return p.mean, p.aleatoric**2, p.epistemic**2, p.shape

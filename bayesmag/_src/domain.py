@@ -59,6 +59,16 @@ class Domain:
             out[:, :3] |= (c < np.asarray(self.out_low)) | (c > np.asarray(self.out_high))
         return out
 
+    def reasons(self, out: np.ndarray) -> np.ndarray:
+        """(n,) strings: why each row of :meth:`outside`'s ``out`` is out of domain ('' when inside)."""
+        names = np.array(["field_range"] * 3 + ["temperature"] + ["field_rate"] * 3 + ["temperature_rate"])
+        out = np.asarray(out, bool)
+        res = []
+        for row in out:
+            hit = list(dict.fromkeys(names[:row.size][row]))
+            res.append(";".join(hit))
+        return np.array(res, dtype=object)
+
     def summary(self, data, calibrated: np.ndarray | None = None) -> dict:
         out = self.outside(data, calibrated)
         rows = out.any(axis=1)

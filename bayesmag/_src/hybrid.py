@@ -47,43 +47,56 @@ figures (:mod:`~bayesmag._src.hybrid_plots`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 import warnings
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from . import metrics as M
 from .config import Config, ConfigError, NetworkConfig
 from .data import AXES, CalibrationData
-from .likelihoods import LIKELIHOODS, Gaussian, Likelihood, moment_match
+from .likelihoods import LIKELIHOODS
 from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
-                      mc_predict, recalibrate, validation_rows)
+                      recalibrate, validation_rows)
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
+from .predictor import FUSIONS, Components, Prediction, Predictor, compose, network_inputs
 
-__all__ = ["FUSIONS", "HybridPrediction", "check_network_config", "network_inputs", "train_network", "fuse", "score",
-           "run_hybrid_stage", "comparison_markdown", "comparison_records"]
+__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "check_network_config", "network_inputs", "train_network",
+           "fuse", "score", "run_hybrid_stage", "hybrid_metrics", "hybrid_columns", "hybrid_writers",
+           "comparison_markdown", "comparison_records"]
 
-FUSIONS = ("moment_match", "paper")
+
+#: The fused hybrid prediction: a :class:`~bayesmag._src.predictor.Prediction` (mean, dist, total,
+#: and the named parts ``aleatoric_nn, epistemic_nn, aleatoric_physics, epistemic_physics``).
+HybridPrediction = Prediction
 
 
-class HybridPrediction(NamedTuple):
-    """Fused hybrid prediction, each array ``(n, 3)`` in uT (sds, not variances).
+@dataclasses.dataclass(frozen=True)
+class HybridStage:
+    """What the hybrid stage computed, per likelihood name (the first is the primary one).
 
-    ``dist`` is the predictive distribution all probabilistic scores come from.
+    ``predictors``: the full :class:`Predictor` (physics + network + fusion) per likelihood;
+    ``predictions`` / ``alternates``: its prediction of the test rows with the configured and
+    with the other fusion; ``training``: per-axis training outcome and seconds.
     """
 
-    mean: np.ndarray
-    dist: Likelihood
-    total: np.ndarray
-    aleatoric_nn: np.ndarray
-    epistemic_nn: np.ndarray
-    aleatoric_physics: np.ndarray
-    epistemic_physics: np.ndarray
+    specs: tuple
+    networks: dict
+    predictors: dict
+    predictions: dict
+    alternates: dict
+    training: dict
+    nan_messages: list
     fusion: str
+    other_fusion: str
+
+    @property
+    def primary(self) -> str:
+        return self.specs[0].likelihood
 
 
 def check_network_config(cfg: Config) -> list[NetworkSpec]:
@@ -112,11 +125,6 @@ def check_network_config(cfg: Config) -> list[NetworkSpec]:
     return [NetworkSpec.from_config(net, name) for name in names]
 
 
-def network_inputs(data: CalibrationData) -> np.ndarray:
-    """The network's inputs ``(n, 4)``: measured field (3) and temperature, float64 (standardised later)."""
-    return np.column_stack([data.b_meas, data.temperature]).astype(np.float64)
-
-
 def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig,
                   groups: np.ndarray | None = None) -> ResidualNetwork:
     """Train the axis networks as ``[network]`` says: validation rows, then optional recalibration.
@@ -130,44 +138,20 @@ def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: Netw
     return net
 
 
-def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str = "moment_match") -> HybridPrediction:
+def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str = "moment_match") -> Prediction:
     """Combine the physics PS-QMC prediction and the MC-DropConnect residual prediction.
 
-    See the module docstring for the two rules. ``physics`` and ``nn`` are for the same rows.
+    See the module docstring for the two rules (:func:`~bayesmag._src.predictor.compose`).
+    ``physics`` and ``nn`` are for the same rows.
     """
-    if fusion not in FUSIONS:
-        raise ValueError(f"fusion {fusion!r} is not known; it must be one of {list(FUSIONS)}")
-    mean = np.asarray(physics.mean, np.float64) + nn.mean
-    var = nn.aleatoric**2 + nn.epistemic**2 + physics.epistemic**2
-    if fusion == "paper":
-        var = var + physics.aleatoric**2
-        dist = Gaussian(mean, np.sqrt(var))
-    else:
-        shape = {}
-        if spec.likelihood == "student_t":
-            shape["df"] = nn.shape["df"] if spec.df is None else spec.df
-        dist = moment_match(spec.likelihood, mean, var, **shape)
-    return HybridPrediction(mean, dist, np.sqrt(var), nn.aleatoric, nn.epistemic, np.asarray(physics.aleatoric),
-                            np.asarray(physics.epistemic), fusion)
+    return compose(physics, nn, fusion=fusion, family=spec.likelihood, df=spec.df)
 
 
-def _per_axis(v) -> dict:
-    v = np.asarray(v, dtype=np.float64).reshape(3)
-    return {ax: float(x) for ax, x in zip(AXES, v)}
-
-
-def score(y: np.ndarray, pred: HybridPrediction, level: float) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Per-axis ``rmse, mae, coverage, nll, crps, mean_width`` and the central ``level`` interval."""
-    lo, hi = (np.asarray(a, np.float64) for a in pred.dist.interval(level))
-    scores = {
-        "rmse": _per_axis(M.rmse(y, pred.mean)),
-        "mae": _per_axis(M.mae(y, pred.mean)),
-        "coverage": _per_axis(M.coverage(y, lo, hi)),
-        "nll": _per_axis(M.nll(pred.dist, y)),
-        "crps": _per_axis(M.crps(pred.dist, y)),
-        "mean_width": _per_axis(M.interval_width(lo, hi)),
-    }
-    return scores, lo, hi
+def score(y: np.ndarray, pred: Prediction, level: float) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Per-axis ``rmse, mae, coverage, nll, crps, mean_width`` (:func:`~bayesmag.metrics.score`) and the
+    central ``level`` interval."""
+    lo, hi = pred.interval(level)
+    return M.score_per_axis(y, pred.dist, level, mean=pred.mean), lo, hi
 
 
 def comparison_records(hybrid_metrics: dict[str, dict]) -> list[dict]:
@@ -212,15 +196,11 @@ def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
     return msgs
 
 
-def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: CalibrationData,
-                     columns: dict[str, np.ndarray], timings: dict[str, float], *,
-                     progress: bool = False) -> dict[str, np.ndarray]:
-    """Train the residual networks, fuse, score; extend ``result`` and return the extended ``columns``.
+def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: CalibrationData,
+                     test: CalibrationData, timings: dict[str, float], *, progress: bool = False) -> HybridStage:
+    """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them.
 
-    Adds ``result["metrics"]["hybrid"]``, ``["network"]``, ``["hybrid_vs_physics"]`` and
-    ``["hybrid_<other fusion>_fusion"]``, ``result["networks"]`` (name -> ResidualNetwork),
-    ``result["hybrid"]`` (name -> HybridPrediction), writers for the comparison table and
-    figures, and ``timings["network_train"]`` / ``["hybrid_inference"]`` (s).
+    Adds ``timings["network_train"]`` / ``["hybrid_inference"]`` (s).
     """
     specs = check_network_config(cfg)
     net_cfg = cfg.network
@@ -229,19 +209,11 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
     for spec in specs:
         check_network_size(spec, fit_rows.size)
 
-    fit, uq = result["fit"], result["uq"]
-    level = cfg.uq.level
-    y = test.b_ref
-    x_train, x_test = network_inputs(train), network_inputs(test)
+    fit = physics.fit
+    x_train = network_inputs(train)
     r_train = train.b_ref - fit.predict(inputs_from_data(train))
-
-    networks: dict[str, ResidualNetwork] = {}
-    preds: dict[str, HybridPrediction] = {}
-    hybrid_metrics: dict[str, dict] = {}
     other = "paper" if net_cfg.fusion == "moment_match" else "moment_match"
-    other_metrics: dict[str, dict] = {}
-    paired: dict[str, dict] = {}
-    training: dict[str, dict] = {}
+    networks, predictors, preds, alts, training = {}, {}, {}, {}, {}
     nan_messages: list[str] = []
     timings.setdefault("network_train", 0.0)
     timings.setdefault("hybrid_inference", 0.0)
@@ -262,57 +234,72 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
             nan_messages += _warn_nan(name, net)
 
             t = time.perf_counter()
-            nn = mc_predict(net, x_test, passes=net_cfg.mc_passes, seed=net_cfg.seed)
-            pred = fuse(uq, nn, spec, fusion=net_cfg.fusion)
+            pr = dataclasses.replace(physics, network=net, passes=net_cfg.mc_passes, network_seed=net_cfg.seed,
+                                     fusion=net_cfg.fusion)
+            comp = Components(uq, pr.network_part(test))
+            pred = pr.compose(comp)
             timings["hybrid_inference"] += time.perf_counter() - t
 
-            networks[name], preds[name] = net, pred
-            hybrid_metrics[name], lo, hi = score(y, pred, level)
-            alt, _, _ = score(y, fuse(uq, nn, spec, fusion=other), level)
-            other_metrics[name] = {k: alt[k] for k in ("coverage", "nll", "crps", "mean_width")}
-            pt = M.paired_test(y - uq.mean, y - pred.mean)
-            paired[name] = {ax: {"mean_diff": float(pt["mean_diff"][a]), "t": float(pt["t"][a]),
-                                 "p": float(pt["p"][a]), "cohens_d": float(pt["cohens_d"][a])}
-                            for a, ax in enumerate(AXES)}
+            networks[name], predictors[name], preds[name] = net, pr, pred
+            alts[name] = pr.compose(comp, fusion=other)
             training[name] = {**net.info_dict(), "train_seconds": round(train_s, 3)}
             if net.variance_scale is not None:
                 for a, ax in enumerate(AXES):
                     training[name][ax]["variance_scale"] = float(net.variance_scale[a])
-            if name == specs[0].likelihood:
-                columns = dict(columns)
-                columns.update({
-                    "hybrid_predicted": pred.mean, "aleatoric_nn": pred.aleatoric_nn,
-                    "epistemic_nn": pred.epistemic_nn, "hybrid_total": pred.total,
-                    "hybrid_lower": lo, "hybrid_upper": hi, "hybrid_covered": (y >= lo) & (y <= hi),
-                })
             if bar is not None:
                 bar.update(1)
     finally:
         if bar is not None:
             bar.close()
+    return HybridStage(tuple(specs), networks, predictors, preds, alts, training, nan_messages, net_cfg.fusion,
+                       other)
 
-    first = networks[specs[0].likelihood]
-    m = result["metrics"]
-    m["hybrid"] = hybrid_metrics
-    m[f"hybrid_{other}_fusion"] = other_metrics
-    m["hybrid_vs_physics"] = paired
-    m["network"] = {
-        "fusion": net_cfg.fusion,
-        "primary": specs[0].likelihood,
-        "residual_physics_mean": "plug-in fit.predict on the training rows; PS-QMC mean on the test rows",
-        "n_fit_rows": first.n_fit, "n_validation_rows": first.n_val,
-        "n_params_per_axis": {s.likelihood: s.n_params for s in specs},
-        "mc_passes": net_cfg.mc_passes,
-        "training": training,
-        "warnings": nan_messages,
+
+def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int) -> dict:
+    """``hybrid``, ``hybrid_<other>_fusion``, ``hybrid_vs_physics`` and ``network`` blocks of metrics.json."""
+    scores, other, paired = {}, {}, {}
+    for name, pred in hs.predictions.items():
+        scores[name] = M.score_per_axis(y, pred.dist, level, mean=pred.mean)
+        alt = M.score_per_axis(y, hs.alternates[name].dist, level, mean=hs.alternates[name].mean)
+        other[name] = {k: alt[k] for k in ("coverage", "nll", "crps", "mean_width")}
+        pt = M.paired_test(y - physics_mean, y - pred.mean)
+        paired[name] = {ax: {"mean_diff": float(pt["mean_diff"][a]), "t": float(pt["t"][a]),
+                             "p": float(pt["p"][a]), "cohens_d": float(pt["cohens_d"][a])}
+                        for a, ax in enumerate(AXES)}
+    first = hs.networks[hs.primary]
+    return {
+        "hybrid": scores,
+        f"hybrid_{hs.other_fusion}_fusion": other,
+        "hybrid_vs_physics": paired,
+        "network": {
+            "fusion": hs.fusion,
+            "primary": hs.primary,
+            "residual_physics_mean": "plug-in fit.predict on the training rows; PS-QMC mean on the test rows",
+            "n_fit_rows": first.n_fit, "n_validation_rows": first.n_val,
+            "n_params_per_axis": {s.likelihood: s.n_params for s in hs.specs},
+            "mc_passes": passes,
+            "training": hs.training,
+            "warnings": hs.nan_messages,
+        },
     }
-    result["networks"] = networks
-    result["hybrid"] = preds
 
-    writers = result.setdefault("writers", [])
-    if len(specs) > 1:
-        md = comparison_markdown(hybrid_metrics, fusion=net_cfg.fusion, level=level, n_test=test.n)
-        records = comparison_records(hybrid_metrics)
+
+def hybrid_columns(hs: HybridStage, y: np.ndarray, level: float) -> dict[str, np.ndarray]:
+    """predictions.csv columns of the primary likelihood's hybrid prediction."""
+    pred = hs.predictions[hs.primary]
+    lo, hi = pred.interval(level)
+    return {"hybrid_predicted": pred.mean, "aleatoric_nn": pred.aleatoric_nn, "epistemic_nn": pred.epistemic_nn,
+            "hybrid_total": pred.total, "hybrid_lower": lo, "hybrid_upper": hi,
+            "hybrid_covered": (y >= lo) & (y <= hi)}
+
+
+def hybrid_writers(cfg: Config, hs: HybridStage, columns: dict, test: CalibrationData, level: float) -> list:
+    """Writers ``f(folder)`` of the stage's files: likelihood comparison (several likelihoods), figures."""
+    writers = []
+    if len(hs.specs) > 1:
+        scores = {name: M.score_per_axis(test.b_ref, p.dist, level, mean=p.mean) for name, p in hs.predictions.items()}
+        md = comparison_markdown(scores, fusion=hs.fusion, level=level, n_test=test.n)
+        records = comparison_records(scores)
 
         def write_comparison(out: Path) -> None:
             (Path(out) / "likelihood_comparison.md").write_text(md)
@@ -321,7 +308,7 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
         writers.append(write_comparison)
     if cfg.output.figures:
         temperature = np.asarray(test.temperature)
-        dists = {name: p.dist for name, p in preds.items()}
+        dists = {name: p.dist for name, p in hs.predictions.items()}
         cols = dict(columns)
 
         def write_figures(out: Path) -> None:
@@ -329,4 +316,4 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
             hybrid_figures(Path(out), cols, temperature, dists, level=level)
 
         writers.append(write_figures)
-    return columns
+    return writers

@@ -8,6 +8,7 @@ half-written folder that looks complete.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -21,8 +22,11 @@ from .fit import PhysicsFit, fit_physics
 from .physics import PhysicsModel, inputs_from_data, make_extra
 from .outdir import staging_dir
 from .physics_uq import PhysicsUQ, estimate_input_noise, physics_uncertainty
+from .predictor import Components, Prediction, Predictor, UQOptions
+from . import metrics as M
 
-__all__ = ["run_job", "load_data", "build_model", "resolve_sigma_in", "JobError", "JobResult"]
+__all__ = ["run_job", "run_physics_stage", "load_data", "build_model", "resolve_sigma_in", "uq_options", "JobError",
+           "JobResult", "PhysicsStage"]
 
 
 class JobError(RuntimeError):
@@ -76,27 +80,30 @@ def _residual_variance(cfg: Config, fit: PhysicsFit, train: CalibrationData, sig
 
 
 class JobResult(dict):
-    """What a job computed (metrics, fit, uq, ...) beside the files it wrote."""
+    """What a job computed (metrics, fit, uq, predictor, ...) beside the files it wrote.
+
+    Assembled by :func:`run_job` from the typed stage results (:class:`PhysicsStage`,
+    :class:`~bayesmag._src.hybrid.HybridStage`); a dict so later stages and callers can index it.
+    """
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsStage:
+    """The physics stage's result: fit, noise model, predictor, and its prediction of the test rows."""
+
+    fit: PhysicsFit
+    sigma_in: np.ndarray
+    sigma_source: str
+    residual_sd: np.ndarray
+    predictor: Predictor
+    uq: PhysicsUQ                  # physics part on the test rows (shared with the hybrid stage)
+    prediction: Prediction         # physics-only predictive distribution (with the residual term)
+    paper_prediction: Prediction   # the paper's physics total sqrt(alea^2 + epi^2), for comparison
 
 
 def _per_axis(v) -> dict:
     v = np.asarray(v, dtype=np.float64).reshape(3)
     return {ax: float(x) for ax, x in zip(AXES, v)}
-
-
-def _gaussian_scores(y, mean, sd, level):
-    from .likelihoods import Gaussian
-    from . import metrics as M
-    dist = Gaussian(mean, sd)
-    lo, hi = (np.asarray(a) for a in dist.interval(level))
-    return {
-        "rmse": _per_axis(M.rmse(y, mean)),
-        "mae": _per_axis(M.mae(y, mean)),
-        "coverage": _per_axis(np.mean((y >= lo) & (y <= hi), axis=0)),
-        "nll": _per_axis(M.nll(dist, y)),
-        "crps": _per_axis(M.crps(dist, y)),
-        "mean_width": _per_axis(np.mean(hi - lo, axis=0)),
-    }, lo, hi
 
 
 def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, columns: dict[str, np.ndarray]) -> None:
@@ -113,6 +120,36 @@ def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, colum
                     v = c[k, a]
                     rec.append(bool(v) if isinstance(v, (np.bool_, bool)) else f"{float(v):.8g}")
             w.writerow(rec)
+
+
+def uq_options(cfg: Config) -> UQOptions:
+    u = cfg.uq
+    return UQOptions(method=u.method, n_params=u.n_params, n_qmc=u.n_qmc, seed=u.seed, chunk_size=u.chunk_size)
+
+
+def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData, model: PhysicsModel,
+                      domain, timings: dict[str, float], *, progress: bool = False) -> PhysicsStage:
+    """Fit the physics model on ``train`` and predict ``test`` through a :class:`Predictor`."""
+    t = time.perf_counter()
+    fit = fit_physics(train, model, covariance_method=cfg.physics.covariance)
+    timings["physics_fit"] = time.perf_counter() - t
+    if not fit.converged:
+        raise JobError(f"The Levenberg-Marquardt fit did not converge: {dict(zip(AXES, fit.result))}. "
+                       "Check the data for outliers or give a better starting point.")
+
+    t = time.perf_counter()
+    sigma_in, sigma_src = resolve_sigma_in(cfg, train)
+    # The paper's physics total sqrt(alea^2 + epi^2) leaves out the scatter the fit could not explain
+    # (reference noise, model discrepancy): its 95% intervals cover 39-46% on the paper split. The residual
+    # term is the fit's residual variance beyond what the propagated input noise already accounts for.
+    resid_var = _residual_variance(cfg, fit, train, sigma_in) if cfg.uq.residual_term else np.zeros(3)
+    predictor = Predictor(fit=fit, sigma_in=sigma_in, residual_sd=np.sqrt(resid_var), domain=domain,
+                          uq=uq_options(cfg))
+    uq = predictor.physics_part(test, progress=progress)
+    timings["physics_uq"] = time.perf_counter() - t
+    comp = Components(uq)
+    return PhysicsStage(fit, sigma_in, sigma_src, np.sqrt(resid_var), predictor, uq, predictor.compose(comp),
+                        dataclasses.replace(predictor, residual_sd=np.zeros(3)).compose(comp))
 
 
 def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
@@ -156,30 +193,16 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
             raise ConfigError(str(e) if str(e).startswith("[nuts]") else f"[nuts]: {e}") from None
     timings["load"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    fit = fit_physics(train, model, covariance_method=cfg.physics.covariance)
-    timings["physics_fit"] = time.perf_counter() - t
-    if not fit.converged:
-        raise JobError(f"The Levenberg-Marquardt fit did not converge: {dict(zip(AXES, fit.result))}. "
-                       "Check the data for outliers or give a better starting point.")
-
-    t = time.perf_counter()
-    sigma_in, sigma_src = resolve_sigma_in(cfg, train)
-    uq = physics_uncertainty(fit, inputs_from_data(test), sigma_in=sigma_in, method=cfg.uq.method,
-                             n_params=cfg.uq.n_params, n_qmc=cfg.uq.n_qmc, seed=cfg.uq.seed,
-                             chunk_size=cfg.uq.chunk_size, progress=progress)
-    timings["physics_uq"] = time.perf_counter() - t
+    from .domain import Domain
+    domain = Domain.from_data(train)
+    ps = run_physics_stage(cfg, train, test, model, domain, timings, progress=progress)
+    fit, uq, sigma_in = ps.fit, ps.uq, ps.sigma_in
 
     y = test.b_ref
-    from . import metrics as M
-    # The paper's physics total sqrt(alea^2 + epi^2) leaves out the scatter the fit could not explain
-    # (reference noise, model discrepancy): its 95% intervals cover 39-46% on the paper split. The residual
-    # term is the fit's residual variance beyond what the propagated input noise already accounts for.
-    resid_var = _residual_variance(cfg, fit, train, sigma_in) if cfg.uq.residual_term else np.zeros(3)
-    residual = np.broadcast_to(np.sqrt(resid_var), uq.mean.shape)
-    total = np.sqrt(uq.aleatoric**2 + residual**2 + uq.epistemic**2)
-    phys_scores, lo, hi = _gaussian_scores(y, uq.mean, total, cfg.uq.level)
-    paper_scores, _, _ = _gaussian_scores(y, uq.mean, uq.total, cfg.uq.level)
+    level = cfg.uq.level
+    phys_scores = M.score_per_axis(y, ps.prediction.dist, level, mean=ps.prediction.mean)
+    paper_scores = M.score_per_axis(y, ps.paper_prediction.dist, level, mean=ps.paper_prediction.mean)
+    lo, hi = ps.prediction.interval(level)
     resid_train = train.b_ref - fit.predict(inputs_from_data(train))
     metrics = {
         "raw": {"rmse": _per_axis(M.rmse(y, test.b_meas)), "mae": _per_axis(M.mae(y, test.b_meas))},
@@ -192,35 +215,36 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         },
         "uq": {"method": cfg.uq.method, "n_params": cfg.uq.n_params, "n_qmc": cfg.uq.n_qmc, "level": cfg.uq.level,
                "sigma_in_sd": dict(zip(["bx", "by", "bz", "T"], map(float, np.sqrt(np.diag(sigma_in))))),
-               "sigma_in_source": sigma_src, "residual_term": _per_axis(np.sqrt(resid_var)),
+               "sigma_in_source": ps.sigma_source, "residual_term": _per_axis(ps.residual_sd),
                "mean_aleatoric": _per_axis(uq.aleatoric.mean(0)), "mean_epistemic": _per_axis(uq.epistemic.mean(0))},
         "split": split.as_dict(),
         "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs]},
     }
-    from .domain import Domain
-    domain = Domain.from_data(train)
     metrics["domain"] = domain.summary(test, uq.mean)
     warnings_ = [w for w in [domain.warning(test, uq.mean)] if w]
     metrics["warnings"] = warnings_
     result = JobResult(config=cfg, data=data, split=split, fit=fit, uq=uq, metrics=metrics, sigma_in=sigma_in,
-                       domain=domain, residual_sd=np.sqrt(resid_var), network_artifact=None)
+                       domain=domain, residual_sd=ps.residual_sd, network_artifact=None, physics=ps,
+                       predictor=ps.predictor)
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,
-        "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic, "residual_physics": residual,
-        "total": total,
+        "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic,
+        "residual_physics": ps.prediction.residual_physics, "total": ps.prediction.total,
         "lower": lo, "upper": hi, "covered": (y >= lo) & (y <= hi),
         "in_domain": np.broadcast_to(~domain.outside(test, uq.mean).any(axis=1)[:, None], y.shape),
     }
 
-    result["writers"] = []          # stages append callables writer(staging_dir) for their own files
+    writers: list = []              # (name, writer(staging_dir)) for stage files, called in the staging folder
+    hs = None
     if cfg.network.enabled:
-        from .hybrid import run_hybrid_stage
-        columns = run_hybrid_stage(cfg, result, train, test, columns, timings, progress=progress)
-        from .artifact import network_to_artifact
-        primary = cfg.network.likelihoods[0]
-        result["primary_likelihood"] = primary
-        result["network_artifact"] = network_to_artifact(result["networks"][primary], passes=cfg.network.mc_passes,
-                                                         seed=cfg.network.seed, fusion=cfg.network.fusion)
+        from .hybrid import hybrid_columns, hybrid_metrics, hybrid_writers, run_hybrid_stage
+        hs = run_hybrid_stage(cfg, ps.predictor, uq, train, test, timings, progress=progress)
+        metrics.update(hybrid_metrics(hs, y, uq.mean, level, cfg.network.mc_passes))
+        columns = {**columns, **hybrid_columns(hs, y, level)}
+        result.update(networks=hs.networks, hybrid=hs.predictions, primary_likelihood=hs.primary,
+                      predictor=hs.predictors[hs.primary])
+        writers += hybrid_writers(cfg, hs, columns, test, level)
+    result["writers"] = writers
     if cfg.nuts.enabled:
         from .nuts import run_nuts_stage
         run_nuts_stage(cfg, result, train, timings, progress=progress)
@@ -231,9 +255,7 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         write_predictions(tmp / "predictions.csv", test, split.test, columns)
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
         from .artifact import save_calibration
-        save_calibration(tmp, fit=fit, sigma_in=sigma_in, residual_sd=result["residual_sd"], domain=domain,
-                         config=cfg.to_dict(), likelihood=result.get("primary_likelihood", "gaussian"),
-                         level=cfg.uq.level, network=result["network_artifact"])
+        save_calibration(tmp, result["predictor"], config=cfg.to_dict(), level=cfg.uq.level)
         if cfg.output.figures:
             from . import plots
             plots.job_figures(tmp, result, columns)

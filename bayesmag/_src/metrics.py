@@ -25,7 +25,8 @@ import scipy.stats
 from .likelihoods import Likelihood
 
 __all__ = ["rmse", "mae", "coverage", "interval_width", "nll", "crps", "pit",
-           "calibration_curve", "paired_test", "summarize", "DEFAULT_LEVELS"]
+           "calibration_curve", "paired_test", "score", "score_per_axis", "summarize", "SCORE_KEYS",
+           "DEFAULT_LEVELS"]
 
 #: Default nominal levels of :func:`calibration_curve`: 0.05, 0.10, ..., 0.95 and 0.99.
 DEFAULT_LEVELS = np.append(np.linspace(0.05, 0.95, 19), 0.99)
@@ -173,22 +174,44 @@ def paired_test(err_a: Any, err_b: Any, axis: int = 0) -> dict[str, Any]:
     }
 
 
+#: The keys of :func:`score`, in order.
+SCORE_KEYS = ("rmse", "mae", "coverage", "nll", "crps", "mean_width")
+
+
+def score(y: Any, dist: Likelihood, level: float = 0.95, *, mean: Any = None) -> dict[str, np.ndarray]:
+    """The one scorer: ``rmse``, ``mae`` (of ``mean``, default ``dist.mean``), ``coverage`` and
+    ``mean_width`` of the central ``level`` interval, ``nll`` and ``crps`` of ``dist``, each
+    reduced over the rows (axis 0) of ``y``.
+    """
+    y = _f64(y)
+    _prep(dist, y)
+    lower, upper = (_f64(v) for v in dist.interval(level))
+    mean = _f64(dist.mean if mean is None else mean)
+    return {"rmse": rmse(y, mean), "mae": mae(y, mean), "coverage": coverage(y, lower, upper),
+            "nll": nll(dist, y), "crps": crps(dist, y), "mean_width": interval_width(lower, upper)}
+
+
+def score_per_axis(y: Any, dist: Likelihood, level: float = 0.95, *, mean: Any = None,
+                   axes: Sequence[str] = ("x", "y", "z")) -> dict[str, dict[str, float]]:
+    """:func:`score` of ``(n, k)`` arrays as ``{metric: {axis: float}}`` (the layout of metrics.json)."""
+    y = _f64(y)
+    if y.ndim != 2 or y.shape[1] != len(axes):
+        raise ValueError(f"scores need y of shape (n, {len(axes)}), got {y.shape}")
+    return {k: {ax: float(v[i]) for i, ax in enumerate(axes)} for k, v in score(y, dist, level, mean=mean).items()}
+
+
 def summarize(y: Any, dist: Likelihood, level: float = 0.95,
               axes: Sequence[str] = ("x", "y", "z")) -> dict[str, dict[str, float]]:
     """Per-axis ``rmse``, ``mae`` (of ``dist.mean``), ``coverage`` and ``width`` of the central
-    ``level`` interval, ``nll`` and ``crps`` for ``(n, k)`` arrays, keyed by ``axes``.
+    ``level`` interval, ``nll`` and ``crps`` for ``(n, k)`` arrays, keyed by ``axes``
+    (:func:`score`, transposed; ``mean_width`` named ``width``).
 
     Returns plain floats, e.g. ``{"x": {"rmse": ..., ...}, "y": {...}, "z": {...}}``.
     """
     y = _f64(y)
     if y.ndim != 2 or y.shape[1] != len(axes):
         raise ValueError(f"summarize needs y of shape (n, {len(axes)}), got {y.shape}")
-    _prep(dist, y)
-    lower, upper = (_f64(v) for v in dist.interval(level))
-    mean = _f64(dist.mean)
-    per = {
-        "rmse": rmse(y, mean), "mae": mae(y, mean),
-        "coverage": coverage(y, lower, upper), "width": interval_width(lower, upper),
-        "nll": nll(dist, y), "crps": crps(dist, y),
-    }
-    return {ax: {k: float(v[i]) for k, v in per.items()} for i, ax in enumerate(axes)}
+    per = score(y, dist, level)
+    names = {"mean_width": "width"}
+    order = ("rmse", "mae", "coverage", "mean_width", "nll", "crps")
+    return {ax: {names.get(k, k): float(per[k][i]) for k in order} for i, ax in enumerate(axes)}

@@ -28,10 +28,10 @@ from . import metrics as M
 from .config import Config, ConfigError
 from .data import AXES, make_split
 from .fit import fit_physics
-from .job import build_model
+from .job import build_model, uq_options
 from .outdir import staging_dir
 from .physics import inputs_from_data
-from .physics_uq import physics_uncertainty
+from .predictor import Components, Predictor, network_inputs
 
 __all__ = ["run_study"]
 
@@ -62,7 +62,7 @@ def _peak_rss_gb() -> float:
 def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     """Simulate ``size`` rows, calibrate and score; returns the per-size record."""
     from .hybrid import train_network
-    from .network import NetworkSpec, mc_predict
+    from .network import NetworkSpec
     from .simulate import simulate_from_config
 
     t = {}
@@ -79,9 +79,8 @@ def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     t["physics_fit"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sigma_in = np.diag(np.r_[np.full(3, float(sim.get("noise_sd", 0.5))), max(float(sim.get("temp_noise_sd", 0.0)), 1e-3)] ** 2)
-    uq = physics_uncertainty(fit, inputs_from_data(test), sigma_in=sigma_in, method=cfg.uq.method,
-                             n_params=cfg.uq.n_params, n_qmc=cfg.uq.n_qmc, seed=cfg.uq.seed,
-                             chunk_size=cfg.uq.chunk_size, progress=progress)
+    physics = Predictor(fit=fit, sigma_in=sigma_in, residual_sd=np.zeros(3), uq=uq_options(cfg))
+    uq = physics.physics_part(test, progress=progress)
     t["physics_uq"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -94,30 +93,25 @@ def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
                           f"valid: {sorted(valid)}.")
     net_cfg = dataclasses.replace(cfg.network, **over)
     spec = NetworkSpec.from_config(net_cfg, likelihood)
-    x_train = np.column_stack([train.b_meas, train.temperature])
     r_train = train.b_ref - fit.predict(inputs_from_data(train))
-    net = train_network(x_train, r_train, spec, net_cfg, groups=train.run)
+    net = train_network(network_inputs(train), r_train, spec, net_cfg, groups=train.run)
     t["network_train"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    x_test = np.column_stack([test.b_meas, test.temperature])
-    nn_mean, nn_alea, nn_epi = (np.zeros((test.n, 3)) for _ in range(3))
-    step = 50_000
-    for lo in range(0, test.n, step):                     # bounded memory for the MC passes
-        p = mc_predict(net, x_test[lo:lo + step], passes=net_cfg.mc_passes, seed=net_cfg.seed)
-        nn_mean[lo:lo + step], nn_alea[lo:lo + step], nn_epi[lo:lo + step] = p.mean, p.aleatoric, p.epistemic
+    hyb = dataclasses.replace(physics, network=net, passes=net_cfg.mc_passes, network_seed=net_cfg.seed,
+                              fusion=net_cfg.fusion)
+    pred = hyb.compose(Components(uq, hyb.network_part(test)))      # the family and fusion of [network]
     t["network_predict"] = time.perf_counter() - t0
 
     y = test.b_ref
-    hybrid = uq.mean + nn_mean
-    sd = np.sqrt(nn_alea**2 + nn_epi**2 + uq.epistemic**2)
-    lo_, hi_ = hybrid - 1.959963984540054 * sd, hybrid + 1.959963984540054 * sd
+    hybrid = pred.mean
+    lo_, hi_ = pred.interval(cfg.uq.level)
     e_phys, e_hyb = y - uq.mean, y - hybrid
     sig = {ax: M.paired_test(e_phys[:, a], e_hyb[:, a]) for a, ax in enumerate(AXES)}
     return {
         "n": int(size), "n_train": int(train.n), "n_test": int(test.n),
         "raw": _axes(M.rmse(y, test.b_meas)), "physics": _axes(M.rmse(y, uq.mean)), "hybrid": _axes(M.rmse(y, hybrid)),
         "noise_floor": _noise_floor(sim, test),
-        "hybrid_coverage_95": _axes(M.coverage(y, lo_, hi_)),
+        "hybrid_coverage": _axes(M.coverage(y, lo_, hi_)), "level": cfg.uq.level,
         "significance": {ax: {k: (v if not isinstance(v, (np.floating, np.integer)) else float(v))
                               for k, v in s.items()} for ax, s in sig.items()},
         "network": {"epochs_run": net.info_dict(), "likelihood": likelihood,
