@@ -73,9 +73,16 @@ def main():
     ap.add_argument("--repeats", type=int, default=5, help="repeats of the inference timing")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
     ap.add_argument("--json", help="also write the numbers here")
+    ap.add_argument("--no-timing", action="store_true", help="skip the training / inference timing")
+    ap.add_argument("--loro", action="store_true",
+                    help="leave each run out instead (split.kind = by_run): per run RMSE, coverage, misses flagged")
     args = ap.parse_args()
+    if args.loro:
+        return loro(args)
 
     # -- timing on split seed 0 (fresh process: the first training includes compilation) -------
+    if args.no_timing:
+        return accuracy_only(args)
     cfg = load_config(args.config, ["split.seed=0", "output.figures=false", "output.progress=false", *args.set])
     spec = check_network_config(cfg)[0]
     d = bm.load_dataset(cfg.data.source)
@@ -199,6 +206,84 @@ def main():
         Path(args.json).write_text(json.dumps({"per_seed": per_seed, "train_cold_s": train_cold,
                                                "train_warm_s": train_warm, "infer_cold_s": infer_cold,
                                                "infer_warm_s": infer_warm, "epochs_seed0": epochs}, indent=2))
+
+
+def _split_scores(res) -> dict:
+    """Hybrid (or physics) test scores of one job, with the domain flags and the transfer part."""
+    m, data, split = res["metrics"], res["data"], res["split"]
+    test = data.subset(split.test)
+    level = m["uq"]["level"]
+    pred = res["hybrid"][res["primary_likelihood"]] if "hybrid" in res else res["physics"].prediction
+    lo, hi = pred.interval(level)
+    y = test.b_ref
+    miss = (y < lo) | (y > hi)
+    out = res["domain"].outside(test, res["uq"].mean)
+    dom = ~out.any(axis=1)
+    n_miss = np.maximum(miss.sum(0), 1)
+    return {"n": int(test.n), "n_in_domain": int(dom.sum()),
+            "rmse": np.sqrt(np.mean((y - pred.mean) ** 2, axis=0)).tolist(),
+            "coverage": (~miss).mean(0).tolist(),
+            "coverage_in_domain": ((~miss[dom]).mean(0) if dom.any() else np.full(3, np.nan)).tolist(),
+            "misses_flagged": ((miss & ~dom[:, None]).sum(0) / n_miss).tolist(),
+            "covered_or_flagged": (1 - (miss & dom[:, None]).mean(0)).tolist(),
+            "transfer_sd": [m["transfer"]["sd"][a] for a in AXES],
+            "reasons": m["domain"].get("by_reason", {})}
+
+
+def loro(args):
+    """Leave-one-run-out over the recording's runs through the job (``split.kind = by_run``)."""
+    base = load_config(args.config, ["output.figures=false", "output.progress=false", *args.set])
+    runs = [int(r) for r in bm.load_dataset(base.data.source).runs]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in runs:
+            c = load_config(args.config, ['split.kind="by_run"', f"split.test_runs=[{r}]", "output.figures=false",
+                                          "output.progress=false", *args.set])
+            rows.append({"run": r, **_split_scores(bm.run_job(c, Path(tmp) / f"r{r}"))})
+    cmd = f"python benchmarks/bench_hybrid.py --loro --config {args.config}" + "".join(f" --set {s}" for s in args.set)
+    f3 = lambda v, p=3: " / ".join(f"{x:.{p}g}" for x in v)                      # noqa: E731
+    pc = lambda v: " / ".join("-" if np.isnan(x) else f"{100 * x:.0f}" for x in v)  # noqa: E731
+    print(f"## Leave one run out (`{cmd}`)\n")
+    print("| left-out run | test rows (in domain) | RMSE x / y / z (uT) | coverage x / y / z (%) | in-domain coverage (%) "
+          "| misses flagged (%) | rows covered or flagged (%) | transfer sd (uT) | out-of-domain reasons |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['run']} | {r['n']} ({r['n_in_domain']}) | {f3(r['rmse'])} | {pc(r['coverage'])} | "
+              f"{pc(r['coverage_in_domain'])} | {pc(r['misses_flagged'])} | {pc(r['covered_or_flagged'])} | "
+              f"{f3(r['transfer_sd'])} | {', '.join(f'{k} {v}' for k, v in r['reasons'].items()) or '-'} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+
+
+def accuracy_only(args):
+    """Scores over split seeds 0..seeds-1 without the timing section."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(args.seeds):
+            c = load_config(args.config, [f"split.seed={seed}", "output.figures=false", "output.progress=false",
+                                          *args.set])
+            res = bm.run_job(c, Path(tmp) / f"s{seed}")
+            h = res["metrics"]["hybrid"][res["primary_likelihood"]]
+            rows.append({"seed": seed, **{k: [h[k][a] for a in AXES] for k in KEYS},
+                         "interval_scale": [res["metrics"]["network"]["training"][res["primary_likelihood"]][a]
+                                            .get("interval_scale", 1.0) for a in AXES]})
+    cmd = f"python benchmarks/bench_hybrid.py --no-timing --seeds {args.seeds} --config {args.config}"
+    cmd += "".join(f" --set {s}" for s in args.set)
+    print(f"## `{cmd}`\n")
+    print("| split seed | RMSE x / y / z (uT) | coverage x / y / z (%) | NLL x / y / z | CRPS x / y / z (uT) "
+          "| interval scale x / y / z |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['seed']} | " + " | ".join(" / ".join(fmt(k, v) for v in r[k]) for k in KEYS)
+              + " | " + " / ".join(f"{v:.2f}" for v in r["interval_scale"]) + " |")
+    arr = {k: np.array([r[k] for r in rows]) for k in KEYS}
+    print("| **mean** | " + " | ".join(" / ".join(fmt(k, v) for v in arr[k].mean(0)) for k in KEYS) + " | |")
+    cov = arr["coverage"]
+    print("\n95 % coverage inside 93-97 % per axis: "
+          + " / ".join(str(int(np.sum((cov[:, a] >= 0.93) & (cov[:, a] <= 0.97)))) for a in range(3))
+          + f" of {args.seeds} seeds.")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
 
 
 if __name__ == "__main__":

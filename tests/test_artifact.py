@@ -30,8 +30,11 @@ def test_save_load_apply_reproduces_run_predictions(tmp_path):
     res, out = _run(tmp_path)
     cal = load(out)
     test = res["data"].subset(res["split"].test)
-    pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"])
+    # the test rows are time blocks of the training runs: same session, no transfer part
+    pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"],
+                       new_session=False)
     rows = list(csv.DictReader(open(out / "predictions.csv")))
+    assert all(float(r["x_transfer"]) == 0.0 for r in rows)
     for a, ax in enumerate("xyz"):
         run_pred = np.array([float(r[f"{ax}_predicted"]) for r in rows])
         run_tot = np.array([float(r[f"{ax}_total"]) for r in rows])
@@ -39,6 +42,14 @@ def test_save_load_apply_reproduces_run_predictions(tmp_path):
         np.testing.assert_allclose(pred["total"][:, a], run_tot, rtol=1e-7)
     # and exactly (bit for bit) against the in-memory run
     np.testing.assert_array_equal(pred["calibrated"], res["uq"].mean)
+    # a new recording (the default) adds the saved transfer sd in quadrature, reported as its own column
+    tau = np.array([res["metrics"]["transfer"]["sd"][a] for a in "xyz"])
+    np.testing.assert_array_equal(cal.transfer_sd, tau)
+    assert res["metrics"]["transfer"]["method"] == "leave_one_run_out" and np.all(tau > 0)
+    new = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"])
+    np.testing.assert_allclose(new["total"] ** 2, pred["total"] ** 2 + tau**2, rtol=1e-10)
+    np.testing.assert_array_equal(new["transfer"], np.broadcast_to(tau, new["transfer"].shape))
+    assert "Transfer to a new session" in (out / "report.md").read_text()
 
 
 def test_apply_cli_without_reference_and_with_nan_rows(tmp_path, capsys):
@@ -55,6 +66,7 @@ def test_apply_cli_without_reference_and_with_nan_rows(tmp_path, capsys):
     rows = list(csv.DictReader(open(tmp_path / "cal.csv")))
     assert len(rows) == 300                                       # nothing dropped, order kept
     assert rows[4]["valid"] == "0" and rows[5]["valid"] == "1"
+    assert rows[4]["in_domain_reason"] == "invalid" and float(rows[5]["y_transfer"]) > 0
     np.testing.assert_allclose([float(r["time"]) for r in rows], d.time, atol=1e-6)
 
 
@@ -69,7 +81,10 @@ def test_out_of_domain_rows_flagged(tmp_path):
     far = (np.abs(wide.b_ref) > 35).any(axis=1)
     near = (np.abs(wide.b_ref) < 15).all(axis=1)
     assert pred["in_domain"][far].mean() < 0.05, pred["in_domain"][far].mean()
-    assert pred["in_domain"][near].all()
+    assert all("field_range" in w for w in pred["in_domain_reason"][far & ~pred["in_domain"]])
+    # near rows are inside the value ranges (iid rows jump between random fields, so the wider recording's
+    # field rates can exceed the training ones: flagged as field_rate, never as a range)
+    assert not any("range" in w or "temperature" in w for w in pred["in_domain_reason"][near])
     # applying it warns with the count
     p = tmp_path / "wide.csv"
     write_csv(wide, p)
@@ -129,7 +144,9 @@ def test_hybrid_calibration_round_trip(tmp_path, likelihood, fourier, extra):
     assert ("fourier/frequencies" in cal.network["arrays"]) == (fourier > 0)
     assert ("recalibration/variance_scale" in cal.network["arrays"]) == bool(extra)
     test = res["data"].subset(res["split"].test)
-    pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"])
+    assert cal.interval_scale is not None                              # conformal scale (default) saved
+    pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"],
+                       new_session=False)
     rows = list(csv.DictReader(open(out / "predictions.csv")))
     for a, ax in enumerate("xyz"):
         np.testing.assert_allclose(pred["calibrated"][:, a], [float(r[f"{ax}_hybrid_predicted"]) for r in rows],

@@ -164,7 +164,8 @@ def test_real_data_hybrid_beats_physics_on_the_random_split(belsten, tmp_path):
         "data": {"source": "belsten2023"},
         "split": {"kind": "random", "test_fraction": 0.1, "seed": 0},
         "uq": {"n_params": 100, "n_qmc": 256},
-        "network": {"enabled": True, "likelihoods": ["gaussian"], "max_epochs": 200, "mc_passes": 30},
+        "network": {"enabled": True, "likelihoods": ["gaussian"], "max_epochs": 200, "mc_passes": 30,
+                    "validation": "random", "interval_calibration": "none"},          # the paper's protocol
         "output": {"progress": False, "figures": False},
     }
     result = run_job(config_from_dict(raw), tmp_path / "real")

@@ -162,7 +162,9 @@ def test_leaving_out_the_heating_run_is_flagged(belsten, tmp_path):
     assert m["domain"]["n_outside"] == 673 and m["domain"]["by_input"]["temperature"] == 673
     assert "outside the training domain in" in m["warnings"][0] and "temperature (673 rows)" in m["warnings"][0]
     rows = list(csv.DictReader(open(tmp_path / "r6/predictions.csv")))
-    assert all(r["x_in_domain"] == "False" for r in rows)
+    assert all(r["x_in_domain"] == "False" and "temperature" in r["x_in_domain_reason"] for r in rows)
+    assert m["transfer"]["n_test_rows_new_session"] == 673                 # run 6 is a new session
+    assert float(rows[0]["x_transfer"]) == pytest.approx(m["transfer"]["sd"]["x"], rel=1e-7) and float(rows[0]["x_transfer"]) > 0
 
 
 def test_unknown_likelihood_fails_before_any_work(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 import time
 from pathlib import Path
@@ -14,7 +15,7 @@ from .data import AXES, DataError, check_field_unit, check_values, load_csv
 __all__ = ["apply_calibration", "check_units", "check_apply_paths"]
 
 OUTPUT_COLUMNS = ("calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "aleatoric_nn",
-                  "epistemic_nn", "total", "lower", "upper")
+                  "epistemic_nn", "transfer", "total", "lower", "upper")
 
 
 def check_units(cal, data) -> list[str]:
@@ -93,7 +94,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
         warnings.append(f"{n_out} of {data.n} rows lie outside the calibration's training domain (in_domain=false): "
                         f"their values are extrapolation and their intervals may be far too narrow.")
     cols = [c for c in OUTPUT_COLUMNS if c in pred]
-    header = ["time", "run"] + [f"{a}_{c}" for a in AXES for c in cols] + ["in_domain", "valid"]
+    header = ["time", "run"] + [f"{a}_{c}" for a in AXES for c in cols] + ["in_domain", "valid", "in_domain_reason"]
     mats = [data.time[:, None], data.run[:, None].astype(np.float64)]
     for a in range(3):
         mats += [pred[c][:, a:a + 1] for c in cols]
@@ -105,11 +106,18 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
         with open(tmp, "w") as f:
             f.write(",".join(header) + "\n")
             for lo in range(0, data.n, 200_000):
-                np.savetxt(f, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
+                buf = io.StringIO()
+                np.savetxt(buf, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
+                reasons = pred["in_domain_reason"][lo:lo + 200_000]
+                f.writelines(f"{line},{why}\n" for line, why in zip(buf.getvalue().splitlines(), reasons))
         tmp.replace(out_path)
     finally:
         tmp.unlink(missing_ok=True)
     summary = {"n_rows": data.n, "n_valid": int(pred["valid"].sum()), "n_outside_domain": n_out,
+               "outside_domain_by_reason": {k: int(np.sum(pred["in_domain_reason"][pred["valid"]] == k))
+                                            for k in sorted(set(pred["in_domain_reason"][pred["valid"]])) if k},
+               "transfer_sd": (None if cal.transfer_sd is None
+                               else dict(zip(AXES, np.asarray(cal.transfer_sd, float).tolist()))),
                "warnings": warnings, "level": level, "seconds": time.perf_counter() - t0}
     if data.b_ref is not None:
         ok = pred["valid"] & np.isfinite(data.b_ref).all(axis=1)
@@ -117,4 +125,10 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
         inside = (y >= pred["lower"][ok]) & (y <= pred["upper"][ok])
         summary["metrics"] = {"rmse": dict(zip(AXES, np.sqrt(np.mean((y - mu) ** 2, axis=0)).tolist())),
                               "coverage": dict(zip(AXES, inside.mean(axis=0).tolist()))}
+        dom = pred["in_domain"][ok]
+        if dom.any():
+            summary["metrics"]["coverage_in_domain"] = dict(zip(AXES, inside[dom].mean(axis=0).tolist()))
+        miss = ~inside
+        summary["metrics"]["misses_flagged"] = dict(zip(AXES, [float((miss[:, a] & ~dom).sum() / max(miss[:, a].sum(), 1))
+                                                               for a in range(3)]))
     return summary

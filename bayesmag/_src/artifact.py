@@ -6,13 +6,19 @@ A run folder holds the calibration as two files:
   (terms and transforms with their settings), parameter names, the input-noise covariance,
   residual standard deviations, the training domain, the likelihood family, the resolved
   config, and the names of the arrays below;
-* ``calibration.npz`` -- numeric arrays (``theta`` (3, p), ``cov`` (3, p, p), and, when the
-  hybrid stage ran, the network weights and standardisation under ``network/...`` keys),
-  written with ``numpy.savez`` (loaded with ``allow_pickle=False``).
+* ``calibration.npz`` -- numeric arrays (``theta`` (3, p), ``cov`` (3, p, p), ``transfer_sd`` (3,)
+  the between-session sd, ``interval_scale`` (3,) the conformal interval factor when the hybrid
+  stage set one, and, when the hybrid stage ran, the network weights and standardisation under
+  ``network/...`` keys), written with ``numpy.savez`` (loaded with ``allow_pickle=False``).
+
+Together they describe one :class:`~bayesmag._src.predictor.Predictor`: :func:`save_calibration`
+writes it, :meth:`Calibration.predictor` rebuilds it, and :meth:`Calibration.predict` only chunks
+rows through it.
 
 :func:`load` returns a :class:`Calibration` whose :meth:`~Calibration.predict` is sklearn-like:
 it takes a recording (no reference needed) and returns calibrated values with their
-uncertainty parts, a central interval and an ``in_domain`` flag per row.
+uncertainty parts (the ``transfer`` part for a new session included), a central interval, an
+``in_domain`` flag and its ``in_domain_reason`` per row.
 """
 
 from __future__ import annotations
@@ -81,6 +87,8 @@ class Calibration:
     network: dict | None = None          # {"meta": {...}, "arrays": {name: array}} when the hybrid stage ran
     package_version: str = ""
     s2: np.ndarray | None = None
+    transfer_sd: np.ndarray | None = None    # (3,) between-session sd added for new recordings
+    interval_scale: np.ndarray | None = None  # (3,) conformal interval factor of the hybrid prediction
 
     @property
     def param_names(self):
@@ -105,18 +113,22 @@ class Calibration:
             net = network_from_artifact(self.network)
             passes, nseed, fusion = meta["passes"], meta["seed"], meta.get("fusion", "moment_match")
         return Predictor(fit=self.physics_fit(), sigma_in=self.sigma_in, residual_sd=self.residual_sd, network=net,
-                         passes=passes, network_seed=nseed, fusion=fusion, domain=self.domain,
+                         passes=passes, network_seed=nseed, fusion=fusion, transfer_sd=self.transfer_sd,
+                         scale=self.interval_scale, domain=self.domain,
                          uq=UQOptions(method, n_params, n_qmc, seed, chunk_size))
 
     def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
-                progress: bool = False) -> dict[str, np.ndarray]:
+                new_session: bool = True, progress: bool = False) -> dict[str, np.ndarray]:
         """Calibrated field and uncertainty for every row of ``data`` (reference columns not needed).
 
         Rows with non-finite inputs are not dropped: their outputs are NaN and ``valid`` is False.
         Returns a dict of (n, 3) arrays: ``calibrated, aleatoric_physics, epistemic_physics,
-        residual_physics, total, lower, upper`` (plus ``aleatoric_nn, epistemic_nn`` with a network),
-        and (n,) arrays ``in_domain`` and ``valid``. Every chunk is predicted by :meth:`predictor`.
+        residual_physics, total, lower, upper`` (plus ``aleatoric_nn, epistemic_nn`` with a network,
+        and ``transfer`` when the calibration holds a transfer sd), and (n,) arrays ``in_domain``,
+        ``in_domain_reason`` (strings, '' inside) and ``valid``. Every chunk is predicted by
+        :meth:`predictor`. ``new_session`` (default True: ``data`` is a new recording) adds the
+        transfer part; False treats the rows as from the training sessions.
         """
         level = self.level if level is None else level
         n = data.n
@@ -136,7 +148,7 @@ class Calibration:
             rows = idx[lo:lo + chunk_size]
             pr = dataclasses.replace(base, uq=dataclasses.replace(base.uq, chunk_size=min(4096, max(256, rows.size))),
                                      domain=None)
-            pred = pr.predict(data.subset(rows))
+            pred = pr.predict(data.subset(rows), new_session=new_session)
             lo_, hi_ = pred.interval(level)
             out["calibrated"][rows], out["total"][rows] = pred.mean, pred.total
             out["lower"][rows], out["upper"][rows] = lo_, hi_
@@ -148,8 +160,12 @@ class Calibration:
         valid = valid & np.all([np.isfinite(out[k]).all(axis=1) for k in ("calibrated", "total", "lower", "upper")],
                                axis=0)                     # a NaN output is never valid
         in_dom = np.zeros(n, dtype=bool)
-        in_dom[valid] = ~self.domain.outside(data.subset(valid), out["calibrated"][valid]).any(axis=1)
+        reason = np.full(n, "invalid", dtype=object)
+        outside = self.domain.outside(data.subset(valid), out["calibrated"][valid])
+        in_dom[valid] = ~outside.any(axis=1)
+        reason[valid] = self.domain.reasons(outside)
         out["in_domain"] = in_dom
+        out["in_domain_reason"] = reason
         out["valid"] = valid
         return out
 
@@ -161,6 +177,10 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
     fit = predictor.fit
     arrays = {"theta": np.asarray(fit.theta), "cov": np.asarray(fit.cov), "sigma_in": np.asarray(predictor.sigma_in),
               "residual_sd": np.asarray(predictor.residual_sd, dtype=np.float64), "s2": np.asarray(fit.s2)}
+    if predictor.transfer_sd is not None:
+        arrays["transfer_sd"] = np.asarray(predictor.transfer_sd, np.float64)
+    if predictor.scale is not None:
+        arrays["interval_scale"] = np.asarray(predictor.scale, np.float64)
     meta_net = None
     if predictor.network is not None:
         network = network_to_artifact(predictor.network, passes=predictor.passes, seed=predictor.network_seed,
@@ -311,6 +331,10 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
     out_lo = None if dom.get("out_low") is None else _field("domain.out_low", dom["out_low"], where, shape=(3,))
     out_hi = None if dom.get("out_high") is None else _field("domain.out_high", dom["out_high"], where, shape=(3,))
     margin = float(_field("domain.margin", dom.get("margin", 0.05), where, shape=()))
+    rate_hi = None if dom.get("rate_high") is None else _field("domain.rate_high", dom["rate_high"], where, shape=(4,))
+    extra = {k: _field(k, arrays[k], where, shape=(3,)) for k in ("transfer_sd", "interval_scale") if k in arrays}
+    if any((v < 0).any() for v in extra.values()):
+        raise ArtifactError(f"{where}: field 'transfer_sd' or 'interval_scale' is negative; the calibration is damaged.")
     if (low > high).any():
         raise ArtifactError(f"{where}: field 'domain' has low > high; the calibration is damaged.")
     net_arrays = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("network/")}
@@ -324,9 +348,10 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
     return Calibration(model=model, theta=theta, cov=cov, sigma_in=sigma_in, residual_sd=residual_sd,
                        domain=Domain(tuple(low.tolist()), tuple(high.tolist()), margin,
                                      None if out_lo is None else tuple(out_lo.tolist()),
-                                     None if out_hi is None else tuple(out_hi.tolist())),
+                                     None if out_hi is None else tuple(out_hi.tolist()),
+                                     None if rate_hi is None else tuple(rate_hi.tolist())),
                        likelihood=likelihood, level=float(level), config=doc.get("config", {}), network=network,
-                       package_version=doc.get("package_version", ""), s2=s2)
+                       package_version=doc.get("package_version", ""), s2=s2, **extra)
 
 
 def _check_network(meta, arrays: dict, where: str) -> dict:

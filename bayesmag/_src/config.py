@@ -64,6 +64,7 @@ class UQConfig:
     seed: int = 0
     chunk_size: int = 256
     residual_term: bool = True          # add the fit's unexplained residual variance (false = the paper's total)
+    transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "off"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,7 +93,8 @@ class NetworkConfig:
     lr_min_factor: float = 1e-3         # floor of the learning rate, as a fraction of learning_rate
     fourier_features: int = 0           # m > 0: add m random Fourier features of the inputs (not in the paper)
     fourier_scale: float = 1.0          # sd of their frequencies, per standardised input unit
-    validation: str = "random"          # validation rows: "random" (paper) | "time_blocks" (one block per run)
+    validation: str = "time_blocks"     # validation rows: "random" (paper) | "time_blocks" (one block per run)
+    interval_calibration: str = "conformal"  # "conformal": scale the intervals to cover uq.level of the validation rows
     recalibrate: bool = False           # fit a variance factor per axis on the validation rows (NLL)
     fusion: str = "moment_match"
     seed: int = 0
@@ -155,6 +157,8 @@ _CHOICES = {
     "network.activation": ("relu", "tanh", "gelu", "silu", "elu"),
     "network.fusion": ("moment_match", "paper"),
     "network.validation": ("random", "time_blocks"),
+    "network.interval_calibration": ("conformal", "none"),
+    "uq.transfer": ("loro", "off"),
     "nuts.chain_method": ("vectorized", "parallel", "sequential"),
     "nuts.likelihood": ("gaussian", "laplace", "student_t"),
 }

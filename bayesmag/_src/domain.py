@@ -4,6 +4,12 @@ A calibration extrapolates outside the inputs it was fitted on (the Belsten reco
 without run 6 never saw temperatures above 25 C: predictions at 40-66 C are off by tens of
 uT while the model's own uncertainty stays small). Rows outside the per-input ranges of the
 training data (with a small margin) are flagged, and the job reports their count.
+
+The domain is dynamic too: a sensor read while the field or its temperature changes fast
+lags and smears (timing offsets, thermal lag), which a calibration fitted on slow changes has
+not seen. The rates |dB/dt| per channel and |dT/dt| are computed within each run (rows in time
+order, differences to both time neighbours, the larger kept) and flagged above the training
+maximum (with the same margin).
 """
 
 from __future__ import annotations
@@ -12,9 +18,14 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["Domain"]
+__all__ = ["Domain", "rates", "REASONS"]
 
 _NAMES = ("bx_meas", "by_meas", "bz_meas", "temperature")
+_RATE_NAMES = ("dbx_dt", "dby_dt", "dbz_dt", "dT_dt")
+#: Reason of every column of :meth:`Domain.outside`.
+REASONS = ("field_range",) * 3 + ("temperature",) + ("field_rate",) * 3 + ("temperature_rate",)
+#: Floor of the margin on the rate limits: 0.5 uT/s for the field, 0.05 C/s for temperature.
+RATE_FLOOR = (0.5, 0.5, 0.5, 0.05)
 
 
 def _box(x: np.ndarray, margin: float, floor: float):
@@ -23,13 +34,40 @@ def _box(x: np.ndarray, margin: float, floor: float):
     return tuple(map(float, lo - pad)), tuple(map(float, hi + pad))
 
 
+def rates(data) -> np.ndarray:
+    """(n, 4) |dBx/dt|, |dBy/dt|, |dBz/dt| (uT/s) and |dT/dt| (C/s) of the measured inputs.
+
+    Within each run, rows in time order; each row gets the larger absolute difference quotient
+    to its two time neighbours (0 for a run of one row; rows at equal times are skipped).
+    """
+    x = np.column_stack([data.b_meas, data.temperature]).astype(np.float64)
+    t = np.asarray(data.time, np.float64)
+    out = np.zeros_like(x)
+    for r in np.unique(data.run):
+        idx = np.flatnonzero(data.run == r)
+        idx = idx[np.argsort(t[idx], kind="stable")]
+        if idx.size < 2:
+            continue
+        dt = np.diff(t[idx])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = np.where(dt[:, None] > 0, np.abs(np.diff(x[idx], axis=0)) / dt[:, None], 0.0)
+        q = np.nan_to_num(q, nan=np.inf)                # a non-finite input makes its neighbours' rates infinite
+        r_rate = np.zeros((idx.size, 4))
+        r_rate[1:] = q
+        r_rate[:-1] = np.maximum(r_rate[:-1], q)
+        out[idx] = r_rate
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class Domain:
     """Training ranges, widened by ``margin`` of the span (floor 0.5 uT / 0.5 C).
 
     ``low``/``high``: inputs (Bx, By, Bz measured in uT, T in C). ``out_low``/``out_high``:
     the reference field (uT) seen in training; a calibrated value outside it is extrapolation
-    in field space even when each measured input is inside its own range.
+    in field space even when each measured input is inside its own range. ``rate_high``: the
+    largest |dB/dt| per channel (uT/s) and |dT/dt| (C/s) seen within training runs, times
+    ``1 + margin`` plus :data:`RATE_FLOOR` (None: rates not checked).
     """
 
     low: tuple[float, float, float, float]
@@ -37,46 +75,63 @@ class Domain:
     margin: float = 0.05
     out_low: tuple[float, float, float] | None = None
     out_high: tuple[float, float, float] | None = None
+    rate_high: tuple[float, float, float, float] | None = None
 
     @classmethod
-    def from_data(cls, data, *, margin: float = 0.05) -> "Domain":
+    def from_data(cls, data, *, margin: float = 0.05, rates: bool = True) -> "Domain":
         lo, hi = _box(np.column_stack([data.b_meas, data.temperature]), margin, 0.5)
         olo = ohi = None
         if data.b_ref is not None:
             olo, ohi = _box(data.b_ref, margin, 0.5)
-        return cls(lo, hi, margin, olo, ohi)
+        rh = None
+        if rates:
+            rmax = _rates(data).max(axis=0)
+            rh = tuple(float(v) for v in rmax * (1 + margin) + np.asarray(RATE_FLOOR))
+        return cls(lo, hi, margin, olo, ohi, rh)
 
     def outside(self, data, calibrated: np.ndarray | None = None) -> np.ndarray:
-        """(n, 4) boolean: input j of row i lies outside the training range.
+        """(n, 4) boolean, or (n, 8) with rate limits: input j of row i lies outside the training range.
 
-        With ``calibrated`` (n, 3), a row whose calibrated field leaves the training reference
-        range is marked on the field columns too.
+        Columns: Bx, By, Bz, T values, then (with ``rate_high``) their rates; the reason of every
+        column is in :data:`REASONS`. With ``calibrated`` (n, 3), a row whose calibrated field
+        leaves the training reference range is marked on the field columns too.
         """
         x = np.column_stack([data.b_meas, data.temperature])
         out = (x < np.asarray(self.low)) | (x > np.asarray(self.high))
         if calibrated is not None and self.out_low is not None:
             c = np.asarray(calibrated)
             out[:, :3] |= (c < np.asarray(self.out_low)) | (c > np.asarray(self.out_high))
+        if self.rate_high is not None:
+            out = np.concatenate([out, _rates(data) > np.asarray(self.rate_high)], axis=1)
         return out
 
-    def reasons(self, out: np.ndarray) -> np.ndarray:
-        """(n,) strings: why each row of :meth:`outside`'s ``out`` is out of domain ('' when inside)."""
-        names = np.array(["field_range"] * 3 + ["temperature"] + ["field_rate"] * 3 + ["temperature_rate"])
+    @staticmethod
+    def reasons(out: np.ndarray) -> np.ndarray:
+        """(n,) strings from :meth:`outside`'s result: the reasons a row is out of domain, joined
+        by ``;`` in the order ``field_range, temperature, field_rate, temperature_rate`` ('' inside)."""
         out = np.asarray(out, bool)
-        res = []
-        for row in out:
-            hit = list(dict.fromkeys(names[:row.size][row]))
-            res.append(";".join(hit))
-        return np.array(res, dtype=object)
+        names = np.array(REASONS[:out.shape[1]])
+        order = ("field_range", "temperature", "field_rate", "temperature_rate")
+        hit = {k: out[:, names == k].any(axis=1) for k in order}
+        res = np.full(out.shape[0], "", dtype=object)
+        for k in order:
+            res[hit[k]] = np.where(res[hit[k]] == "", k, res[hit[k]] + ";" + k)
+        return res
 
     def summary(self, data, calibrated: np.ndarray | None = None) -> dict:
         out = self.outside(data, calibrated)
         rows = out.any(axis=1)
-        return {
+        names = (_NAMES + _RATE_NAMES)[:out.shape[1]]
+        s = {
             "n_rows": int(data.n), "n_outside": int(rows.sum()), "fraction_outside": float(rows.mean()),
-            "by_input": {n: int(c) for n, c in zip(_NAMES, out.sum(axis=0))},
+            "by_input": {n: int(c) for n, c in zip(names, out.sum(axis=0))},
             "training_ranges": {n: [lo, hi] for n, lo, hi in zip(_NAMES, self.low, self.high)},
         }
+        if self.rate_high is not None:
+            s["training_rate_limits"] = dict(zip(_RATE_NAMES, self.rate_high))
+            s["by_reason"] = {k: int(v) for k, v in
+                              zip(*np.unique(self.reasons(out)[rows].astype(str), return_counts=True))}
+        return s
 
     def warning(self, data, calibrated: np.ndarray | None = None) -> str | None:
         s = self.summary(data, calibrated)
@@ -86,3 +141,6 @@ class Domain:
         return (f"{s['n_outside']} of {s['n_rows']} test rows ({s['fraction_outside']:.0%}) lie outside the "
                 f"training domain in {which}: their predictions are extrapolation and their intervals may be far "
                 f"too narrow. Train on data that covers them.")
+
+
+_rates = rates

@@ -22,7 +22,7 @@ from .fit import PhysicsFit, fit_physics
 from .physics import PhysicsModel, inputs_from_data, make_extra
 from .outdir import staging_dir
 from .physics_uq import PhysicsUQ, estimate_input_noise, physics_uncertainty
-from .predictor import Components, Prediction, Predictor, UQOptions
+from .predictor import Components, Prediction, Predictor, TransferEstimate, UQOptions, estimate_transfer
 from . import metrics as M
 
 __all__ = ["run_job", "run_physics_stage", "load_data", "build_model", "resolve_sigma_in", "uq_options", "JobError",
@@ -99,6 +99,8 @@ class PhysicsStage:
     uq: PhysicsUQ                  # physics part on the test rows (shared with the hybrid stage)
     prediction: Prediction         # physics-only predictive distribution (with the residual term)
     paper_prediction: Prediction   # the paper's physics total sqrt(alea^2 + epi^2), for comparison
+    transfer: TransferEstimate     # between-session sd (zero with method "off")
+    new_session: np.ndarray        # (n_test,) test rows from runs the fit did not see (they get the transfer part)
 
 
 def _per_axis(v) -> dict:
@@ -118,7 +120,8 @@ def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, colum
             for a in range(3):
                 for c in cols:
                     v = c[k, a]
-                    rec.append(bool(v) if isinstance(v, (np.bool_, bool)) else f"{float(v):.8g}")
+                    rec.append(bool(v) if isinstance(v, (np.bool_, bool)) else v if isinstance(v, str)
+                               else f"{float(v):.8g}")
             w.writerow(rec)
 
 
@@ -147,9 +150,19 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
                           uq=uq_options(cfg))
     uq = predictor.physics_part(test, progress=progress)
     timings["physics_uq"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    if cfg.uq.transfer == "loro":
+        tr = estimate_transfer(train, fit, lambda d: fit_physics(d, model, covariance_method=cfg.physics.covariance))
+    else:
+        tr = TransferEstimate(np.zeros(3), "off", {})
+    predictor = dataclasses.replace(predictor, transfer_sd=tr.sd)
+    timings["transfer"] = time.perf_counter() - t
+    new = ~np.isin(test.run, train.run)
     comp = Components(uq)
-    return PhysicsStage(fit, sigma_in, sigma_src, np.sqrt(resid_var), predictor, uq, predictor.compose(comp),
-                        dataclasses.replace(predictor, residual_sd=np.zeros(3)).compose(comp))
+    paper = dataclasses.replace(predictor, residual_sd=np.zeros(3), transfer_sd=None)
+    return PhysicsStage(fit, sigma_in, sigma_src, np.sqrt(resid_var), predictor, uq,
+                        predictor.compose(comp, new_session=new), paper.compose(comp), tr, new)
 
 
 def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
@@ -221,24 +234,28 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs]},
     }
     metrics["domain"] = domain.summary(test, uq.mean)
-    warnings_ = [w for w in [domain.warning(test, uq.mean)] if w]
+    metrics["transfer"] = {**ps.transfer.as_dict(), "n_test_rows_new_session": int(ps.new_session.sum())}
+    warnings_ = [w for w in [domain.warning(test, uq.mean), ps.transfer.warning] if w]
     metrics["warnings"] = warnings_
+    outside = domain.outside(test, uq.mean)
     result = JobResult(config=cfg, data=data, split=split, fit=fit, uq=uq, metrics=metrics, sigma_in=sigma_in,
                        domain=domain, residual_sd=ps.residual_sd, network_artifact=None, physics=ps,
                        predictor=ps.predictor)
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,
         "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic,
-        "residual_physics": ps.prediction.residual_physics, "total": ps.prediction.total,
-        "lower": lo, "upper": hi, "covered": (y >= lo) & (y <= hi),
-        "in_domain": np.broadcast_to(~domain.outside(test, uq.mean).any(axis=1)[:, None], y.shape),
+        "residual_physics": ps.prediction.residual_physics, "transfer": ps.prediction.transfer,
+        "total": ps.prediction.total, "lower": lo, "upper": hi, "covered": (y >= lo) & (y <= hi),
+        "in_domain": np.broadcast_to(~outside.any(axis=1)[:, None], y.shape),
+        "in_domain_reason": np.broadcast_to(domain.reasons(outside)[:, None], y.shape),
     }
 
     writers: list = []              # (name, writer(staging_dir)) for stage files, called in the staging folder
     hs = None
     if cfg.network.enabled:
         from .hybrid import hybrid_columns, hybrid_metrics, hybrid_writers, run_hybrid_stage
-        hs = run_hybrid_stage(cfg, ps.predictor, uq, train, test, timings, progress=progress)
+        hs = run_hybrid_stage(cfg, ps.predictor, uq, train, test, timings, new_session=ps.new_session,
+                              progress=progress)
         metrics.update(hybrid_metrics(hs, y, uq.mean, level, cfg.network.mc_passes))
         columns = {**columns, **hybrid_columns(hs, y, level)}
         result.update(networks=hs.networks, hybrid=hs.predictions, primary_likelihood=hs.primary,

@@ -11,16 +11,20 @@ calibration cannot drift apart.
 Composition (:func:`compose`), per row and axis, with physics aleatoric / epistemic sds
 :math:`a_p, e_p` (PS-QMC), residual sd :math:`r` (training scatter beyond the propagated input
 noise), network aleatoric / epistemic sds :math:`a, e` (MC DropConnect) and transfer sd
-:math:`\tau` (between-recording variation, :mod:`~bayesmag._src.transfer`):
+:math:`\tau` (between-session variation, :func:`estimate_transfer`), and interval scale :math:`k`
+(split-conformal factor on held-out time, :func:`conformal_scale`; 1 when absent):
 
-* physics only: :math:`N(\bar y_{phys},\; a_p^2 + r^2 + e_p^2 + \tau^2)`;
+* physics only: :math:`N(\bar y_{phys},\; k^2 (a_p^2 + r^2 + e_p^2) + \tau^2)`;
 * network, ``fusion = "moment_match"``: mean :math:`\bar y_{phys} + \mu_{NN}`, variance
-  :math:`a^2 + e^2 + e_p^2 + \tau^2`, the network's likelihood family moment-matched to it
+  :math:`k^2 (a^2 + e^2 + e_p^2) + \tau^2`, the network's likelihood family moment-matched to it
   (the network learned :math:`a^2` from residuals that already hold :math:`a_p^2` and :math:`r^2`);
-* network, ``fusion = "paper"``: Gaussian with :math:`a_p^2 + a^2 + e^2 + e_p^2 + \tau^2`
+* network, ``fusion = "paper"``: Gaussian with :math:`k^2 (a_p^2 + a^2 + e^2 + e_p^2) + \tau^2`
   (Shetty & Marndi 2026, sec. 2.5).
 
-The transfer part is absent (not zero-added) when ``transfer_sd`` is None.
+The transfer part enters only rows of a *new session* (``new_session``: a recording that is not
+one of the training runs -- every row of a recording given to ``bayesmag apply``); rows of the
+training sessions (random or time-block test rows) get :math:`\tau = 0`. It is absent (not
+zero-added) when ``transfer_sd`` is None, and :math:`k` when ``scale`` is None.
 """
 
 from __future__ import annotations
@@ -32,9 +36,13 @@ import numpy as np
 
 from .likelihoods import Gaussian, Likelihood, moment_match
 
-__all__ = ["FUSIONS", "UQOptions", "Components", "Prediction", "Predictor", "compose", "network_inputs"]
+__all__ = ["FUSIONS", "UQOptions", "Components", "Prediction", "Predictor", "TransferEstimate", "compose",
+           "conformal_scale", "estimate_transfer", "network_inputs"]
 
 FUSIONS = ("moment_match", "paper")
+
+#: Confidence of the upper bound on the transfer variance (:func:`estimate_transfer`).
+TRANSFER_CONFIDENCE = 0.8
 
 #: Rows per MC-DropConnect call (bounds memory of the passes on large recordings).
 NN_CHUNK = 50_000
@@ -99,24 +107,32 @@ class Prediction:
 
 
 def compose(physics, nn=None, *, residual_sd=None, fusion: str = "moment_match", family: str = "gaussian",
-            df: float | None = None, transfer_sd=None) -> Prediction:
+            df: float | None = None, transfer_sd=None, scale=None, new_session=True) -> Prediction:
     """The predictive distribution from its computed parts (rules in the module docstring).
 
     ``physics``: a :class:`~bayesmag.PhysicsUQ`; ``nn``: an MC-DropConnect
     :class:`~bayesmag._src.network.MCPrediction` or None; ``residual_sd``, ``transfer_sd``:
     ``(3,)`` or ``(n, 3)`` sds or None; ``df``: fixed Student-t degrees of freedom (None: the
-    network's learned per-row df).
+    network's learned per-row df); ``scale``: ``(3,)`` interval factor or None; ``new_session``:
+    bool or ``(n,)`` mask of the rows the transfer part enters.
     """
     if fusion not in FUSIONS:
         raise ValueError(f"fusion {fusion!r} is not known; it must be one of {list(FUSIONS)}")
     p_mean = np.asarray(physics.mean, np.float64)
     parts = {"aleatoric_physics": np.asarray(physics.aleatoric), "epistemic_physics": np.asarray(physics.epistemic)}
-    tau = None if transfer_sd is None else np.broadcast_to(np.asarray(transfer_sd, np.float64), p_mean.shape)
+    tau = None
+    if transfer_sd is not None:
+        new = np.broadcast_to(np.asarray(new_session, bool).reshape(-1, 1) if np.ndim(new_session) else
+                              np.asarray(bool(new_session)), (p_mean.shape[0], 1))
+        tau = np.where(new, np.broadcast_to(np.asarray(transfer_sd, np.float64), p_mean.shape), 0.0)
+    k2 = None if scale is None else np.asarray(scale, np.float64) ** 2
     if nn is None:
         resid = np.broadcast_to(np.zeros(3) if residual_sd is None else np.asarray(residual_sd, np.float64),
                                 p_mean.shape)
         parts["residual_physics"] = resid
         var = physics.aleatoric**2 + resid**2 + physics.epistemic**2
+        if k2 is not None:
+            var = k2 * var
         if tau is not None:
             var = var + tau**2
         mean, dist_fam = p_mean, "gaussian"
@@ -128,6 +144,8 @@ def compose(physics, nn=None, *, residual_sd=None, fusion: str = "moment_match",
         var = nn.aleatoric**2 + nn.epistemic**2 + physics.epistemic**2
         if fusion == "paper":
             var = var + physics.aleatoric**2
+        if k2 is not None:
+            var = k2 * var
         if tau is not None:
             var = var + tau**2
         if fusion == "paper":
@@ -150,7 +168,8 @@ class Predictor:
     calibration gives); ``sigma_in``: (4, 4) input-noise covariance; ``residual_sd``: (3,)
     residual term; ``network``: trained :class:`~bayesmag._src.network.ResidualNetwork` or None,
     predicted with ``passes`` MC passes from ``network_seed``; ``fusion``: one of
-    :data:`FUSIONS`; ``transfer_sd``: (3,) between-recording sd or None; ``domain``: the
+    :data:`FUSIONS`; ``transfer_sd``: (3,) between-session sd or None; ``scale``: (3,) interval
+    factor (:func:`conformal_scale`) or None; ``domain``: the
     training :class:`~bayesmag._src.domain.Domain` or None; ``uq``: physics UQ settings.
     """
 
@@ -162,6 +181,7 @@ class Predictor:
     network_seed: int = 0
     fusion: str = "moment_match"
     transfer_sd: np.ndarray | None = None
+    scale: np.ndarray | None = None
     domain: Any = None
     uq: UQOptions = UQOptions()
 
@@ -203,16 +223,127 @@ class Predictor:
         """Physics UQ and the MC network output for every row of ``data``."""
         return Components(self.physics_part(data, progress=progress), self.network_part(data))
 
-    def compose(self, c: Components, *, fusion: str | None = None) -> Prediction:
-        """The prediction from already computed components (``fusion`` overrides the predictor's)."""
+    def compose(self, c: Components, *, fusion: str | None = None, new_session=True) -> Prediction:
+        """The prediction from already computed components (``fusion`` overrides the predictor's;
+        ``new_session``: bool or (n,) mask of rows from sessions the calibration was not fitted on)."""
         spec = None if self.network is None else self.network.spec
         return compose(c.physics, c.nn, residual_sd=self.residual_sd, fusion=fusion or self.fusion,
-                       family=self.family, df=None if spec is None else spec.df, transfer_sd=self.transfer_sd)
+                       family=self.family, df=None if spec is None else spec.df, transfer_sd=self.transfer_sd,
+                       scale=self.scale, new_session=new_session)
 
-    def predict(self, data, *, progress: bool = False) -> Prediction:
-        """The predictive distribution for every row of ``data`` (no reference needed)."""
-        pred = self.compose(self.components(data, progress=progress))
+    def predict(self, data, *, new_session=True, progress: bool = False) -> Prediction:
+        """The predictive distribution for every row of ``data`` (no reference needed).
+
+        ``new_session`` (default True: a recording given to a saved calibration is a new session)
+        adds the transfer part; False predicts rows of the training sessions.
+        """
+        pred = self.compose(self.components(data, progress=progress), new_session=new_session)
         if self.domain is None:
             return pred
         out = self.domain.outside(data, pred.mean)
         return dataclasses.replace(pred, in_domain=~out.any(axis=1), domain_reason=self.domain.reasons(out))
+
+
+def conformal_scale(y: np.ndarray, pred: Prediction, level: float) -> np.ndarray:
+    """Per-axis factor ``k`` on the sd so that the central ``level`` intervals of ``pred`` cover
+    ``level`` of the held-out rows ``y`` (split conformal: the ``ceil((n+1) level)``-th smallest
+    ratio ``|y - mean| / half-width``; Vovk et al. 2005, Lei et al. 2018). Location-scale
+    families: multiplying the sd by ``k`` multiplies the interval half-width by ``k``.
+    """
+    lo, hi = pred.interval(level)
+    ratio = np.abs(np.asarray(y, np.float64) - pred.mean) / (0.5 * (hi - lo))
+    n = ratio.shape[0]
+    if n < 20:
+        raise ValueError(f"conformal_scale needs at least 20 held-out rows, got {n}")
+    rank = min(int(np.ceil((n + 1) * level)), n)
+    return np.sort(ratio, axis=0)[rank - 1]
+
+
+@dataclasses.dataclass(frozen=True)
+class TransferEstimate:
+    """Between-session sd per axis and how it was obtained.
+
+    ``method``: ``"leave_one_run_out"``, ``"largest_offset_change"`` (fewer than 3 usable runs)
+    or ``"off"``; ``per_run``: for every left-out run, its in-domain rows and RMSE per axis;
+    ``warning``: text for the user, or None.
+    """
+
+    sd: np.ndarray
+    method: str
+    per_run: dict
+    warning: str | None = None
+
+    def as_dict(self) -> dict:
+        return {"sd": {ax: float(v) for ax, v in zip("xyz", self.sd)}, "method": self.method,
+                "per_run": self.per_run, "warning": self.warning}
+
+
+def _weighted_quantile(v: np.ndarray, w: np.ndarray, q: float) -> float:
+    order = np.argsort(v)
+    cum = np.cumsum(w[order]) / np.sum(w)
+    return float(v[order][min(np.searchsorted(cum, q - 1e-12), v.size - 1)])
+
+
+def estimate_transfer(train, fit, fit_fn, *, level: float = 0.95, min_runs: int = 3) -> TransferEstimate:
+    r"""Between-session (transfer) sd from the training runs: leave-one-run-out, conformal over runs.
+
+    For every training run ``r``: refit with ``fit_fn(train without r)`` and predict run ``r``'s
+    rows that lie inside the other runs' value domain (rows outside it are extrapolation, flagged
+    by the domain check, not transfer). Row ``i`` of a left-out run is covered by a central
+    ``level`` Gaussian interval of variance :math:`s^2 + 	au^2` (:math:`s^2`: the pooled fit's
+    residual variance, the within-session part) iff
+    :math:`	au^2 \ge (e_i / z)^2 - s^2`, :math:`z = \Phi^{-1}((1+\mathrm{level})/2)`. The transfer
+    variance is the ``level`` quantile of that bound over the left-out rows, every run weighted
+    equally (grouped, Mondrian-style conformal calibration with runs as groups), multiplied by
+    :math:`(R-1)/\chi^2_{R-1}(1 - c)` for the :math:`R` usable runs, the one-sided
+    :data:`TRANSFER_CONFIDENCE` = c upper bound of a variance estimated from :math:`R` groups
+    (x 1.29 at R = 30, x 2.1 at R = 6): the runs, not the rows, are the sample. With fewer than
+    ``min_runs`` usable runs it cannot be estimated: the sd is widened to the largest change of the
+    per-run mean residual of the pooled ``fit`` between two runs (0 for one run), with a warning.
+    """
+    import scipy.stats
+
+    from .domain import Domain
+    from .physics import inputs_from_data
+
+    runs = [int(r) for r in np.unique(train.run)]
+    per_run, need, weight = {}, [], []
+    s2 = np.asarray(fit.s2, np.float64)
+    z = scipy.stats.norm.ppf(0.5 + level / 2)
+    if len(runs) >= min_runs:
+        for r in runs:
+            held, rest = train.run == r, train.run != r
+            other, left = train.subset(np.flatnonzero(rest)), train.subset(np.flatnonzero(held))
+            inside = ~Domain.from_data(other, rates=False).outside(left).any(axis=1)
+            per_run[str(r)] = {"n_in_domain": int(inside.sum()), "rmse": None}
+            if inside.sum() < 2:
+                continue
+            try:
+                f = fit_fn(other)
+                ok = bool(getattr(f, "converged", True))
+            except Exception:            # an unidentifiable fold (e.g. no temperature variation) is skipped
+                ok = False
+            if not ok:
+                continue
+            rows = left.subset(np.flatnonzero(inside))
+            e = rows.b_ref - np.asarray(f.predict(inputs_from_data(rows)))
+            need.append((e / z) ** 2 - s2)
+            weight.append(np.full(rows.n, 1.0 / rows.n))
+            per_run[str(r)]["rmse"] = {ax: float(v) for ax, v in zip("xyz", np.sqrt(np.mean(e**2, axis=0)))}
+    if len(need) >= min_runs:
+        v, w = np.concatenate(need), np.concatenate(weight)
+        tau2 = np.array([_weighted_quantile(v[:, a], w, level) for a in range(3)])
+        r = len(need)           # few runs estimate a variance poorly: upper confidence bound (chi-square, R - 1 dof)
+        inflate = (r - 1) / scipy.stats.chi2.ppf(1 - TRANSFER_CONFIDENCE, r - 1)
+        return TransferEstimate(np.sqrt(np.maximum(tau2, 0.0) * inflate), "leave_one_run_out", per_run)
+    usable = len(need)
+    resid = train.b_ref - np.asarray(fit.predict(inputs_from_data(train)))
+    means = np.array([resid[train.run == r].mean(axis=0) for r in runs])
+    tau = means.max(axis=0) - means.min(axis=0)
+    warning = (f"The training data hold {len(runs)} run(s) ({usable} usable for leave-one-run-out; at least "
+               f"{min_runs} are needed), so the transfer (between-session) uncertainty cannot be estimated. The "
+               f"intervals for new sessions are widened by the largest run-to-run change of the mean residual, "
+               f"{' / '.join(f'{v:.3g}' for v in tau)} uT (x / y / z)"
+               + (" -- zero with one run: they hold no between-session term at all" if len(runs) < 2 else "")
+               + ". Record at least 3 sessions to estimate it.")
+    return TransferEstimate(tau, "largest_offset_change", per_run, warning)

@@ -100,6 +100,7 @@ def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_thr
     lines += ["", "Dominant physics part per axis: " + ", ".join(f"{a}: {dom[a]}" for a in AXES) + ".",
               f"Input noise sd (Bx, By, Bz in uT, T in C): "
               + ", ".join(f"{k} {v:.3g}" for k, v in u["sigma_in_sd"].items()) + f" ({u['sigma_in_source']}).", ""]
+    lines += transfer_section(m)
     d = m.get("domain")
     if d:
         lines += ["## Calibration domain", "",
@@ -115,6 +116,41 @@ def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_thr
     if t:
         lines += ["Timings (s): " + ", ".join(f"{k} {v:.3g}" for k, v in t.items()) + "."]
     return "\n".join(lines) + "\n"
+
+
+def transfer_section(m: dict) -> list[str]:
+    """report.md lines on the transfer (between-session) part of the budget and the dynamic domain."""
+    tr = m.get("transfer")
+    if not tr:
+        return []
+    sd, z = tr["sd"], 1.959963984540054
+    lines = ["## Transfer to a new session", ""]
+    if tr["method"] == "off":
+        return lines + ["Transfer uncertainty is off (`[uq] transfer = \"off\"`): intervals for new recordings "
+                        "hold within-session parts only and will be too narrow if the sensor changes between "
+                        "sessions.", ""]
+    lines.append(f"This calibration transfers to a new session with +/- {z * sd['x']:.3g} / {z * sd['y']:.3g} / "
+                 f"{z * sd['z']:.3g} uT (x / y / z; 1.96 x the between-session sd {sd['x']:.3g} / {sd['y']:.3g} / "
+                 f"{sd['z']:.3g} uT), added in quadrature to every prediction of a new recording (`bayesmag apply`; "
+                 f"column `transfer`).")
+    if tr["method"] == "leave_one_run_out":
+        rows = [(r, v) for r, v in tr["per_run"].items()]
+        lines += ["Estimated by leaving each training run out (rows inside the other runs' value domain):", "",
+                  "| left-out run | in-domain rows | RMSE x / y / z (uT) |", "|---|---|---|"]
+        for r, v in rows:
+            rm = " / ".join(f"{v['rmse'][a]:.3g}" for a in AXES) if v["rmse"] else "not refitted"
+            lines.append(f"| {r} | {v['n_in_domain']} | {rm} |")
+    else:
+        lines.append(f"> **Warning.** {tr['warning']}")
+    n_new = tr.get("n_test_rows_new_session", 0)
+    lines += ["", f"Test rows from runs not in the training data (they include the transfer part): {n_new}."
+              + (" The test rows share sessions with the training rows, so their scores above do not include it."
+                 if n_new == 0 else ""), ""]
+    d = m.get("domain", {})
+    if d.get("by_reason"):
+        lines += ["Test rows out of domain by reason: " + ", ".join(f"{k} {v}" for k, v in d["by_reason"].items())
+                  + ".", ""]
+    return lines
 
 
 def _network_parts(path: Path) -> dict | None:

@@ -1,0 +1,103 @@
+"""The one Predictor: composition rules in closed form, purity, conformal interval scale, the one scorer."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.stats
+
+import bayesmag
+from bayesmag import PhysicsUQ, metrics
+from bayesmag._src.likelihoods import Gaussian
+from bayesmag._src.network import MCPrediction
+from bayesmag._src.predictor import Components, Predictor, UQOptions, compose, conformal_scale
+
+Z95 = scipy.stats.norm.ppf(0.975)
+
+
+def _parts(seed=0, n=40):
+    rng = np.random.default_rng(seed)
+    phys = PhysicsUQ(mean=rng.normal(size=(n, 3)), aleatoric=rng.uniform(0.01, 0.02, (n, 3)),
+                     epistemic=rng.uniform(0.001, 0.003, (n, 3)), epistemic_mc=np.zeros((n, 3)),
+                     epistemic_jac=np.zeros((n, 3)))
+    nn = MCPrediction(mean=rng.normal(0, 0.02, (n, 3)), aleatoric=rng.uniform(0.01, 0.03, (n, 3)),
+                      epistemic=rng.uniform(0.001, 0.005, (n, 3)), shape={"df": rng.uniform(3, 9, (n, 3))})
+    return phys, nn
+
+
+def test_physics_only_adds_residual_scale_and_transfer_for_new_sessions_only():
+    phys, _ = _parts()
+    r, tau, k = np.array([0.01, 0.02, 0.03]), np.array([0.1, 0.2, 0.3]), np.array([1.5, 1.0, 2.0])
+    new = np.arange(40) % 2 == 0
+    p = compose(phys, residual_sd=r, transfer_sd=tau, scale=k, new_session=new)
+    within = phys.aleatoric**2 + r**2 + phys.epistemic**2
+    want = k**2 * within + np.where(new[:, None], tau**2, 0.0)
+    np.testing.assert_allclose(p.total**2, want, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(p.dist.variance), want, rtol=1e-12)
+    np.testing.assert_array_equal(p.transfer[~new], 0.0)
+    np.testing.assert_array_equal(p.transfer[new], np.broadcast_to(tau, (new.sum(), 3)))
+    lo, hi = p.interval(0.95)
+    np.testing.assert_allclose(hi - p.mean, Z95 * np.sqrt(want), rtol=1e-10)
+    # no transfer, no scale: the part is absent and the total is the within-session one
+    q = compose(phys, residual_sd=r)
+    assert q.transfer is None
+    np.testing.assert_allclose(q.total**2, within, rtol=1e-12)
+
+
+@pytest.mark.parametrize("fusion", ["moment_match", "paper"])
+def test_hybrid_transfer_enters_in_quadrature(fusion):
+    phys, nn = _parts(1)
+    tau = np.array([0.05, 0.0, 0.4])
+    p = compose(phys, nn, residual_sd=np.ones(3), fusion=fusion, family="laplace", transfer_sd=tau)
+    var = nn.aleatoric**2 + nn.epistemic**2 + phys.epistemic**2 + (phys.aleatoric**2 if fusion == "paper" else 0)
+    np.testing.assert_allclose(np.asarray(p.dist.variance), var + tau**2, rtol=1e-12)  # residual not added
+    assert type(p.dist).name == ("gaussian" if fusion == "paper" else "laplace")
+    np.testing.assert_allclose(p.mean, phys.mean + nn.mean, rtol=1e-14)
+
+
+def test_predict_is_pure_and_matches_its_parts():
+    d = bayesmag.simulate.simulate(400, design="iid", seed=0, noise_sd=0.05)
+    fit = bayesmag.fit_physics(d)
+    pr = Predictor(fit=fit, sigma_in=np.diag([0.05**2] * 3 + [1e-6]), residual_sd=np.full(3, 0.01),
+                   transfer_sd=np.array([0.1, 0.2, 0.3]), uq=UQOptions(method="analytic"))
+    a, b = pr.predict(d), pr.predict(d)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.total, b.total)
+    c = pr.compose(Components(pr.physics_part(d)), new_session=True)
+    np.testing.assert_array_equal(a.total, c.total)
+    same = pr.predict(d, new_session=False)
+    assert np.all(same.total < a.total) and np.all(same.transfer == 0)
+    with pytest.raises(ValueError, match=r"fusion 'rss'.*\['moment_match', 'paper'\]"):
+        dataclasses.replace(pr, fusion="rss")
+
+
+def test_conformal_scale_recovers_a_known_misscale():
+    """Predicted sd half the truth: the factor is ~2 and the scaled intervals cover the level."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    y = rng.normal(0.0, 2.0, (n, 3))
+    unit = PhysicsUQ(np.zeros((n, 3)), np.ones((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)))
+    k = conformal_scale(y, compose(unit), 0.95)
+    np.testing.assert_allclose(k, 2.0, rtol=0.05)        # sampling sd of the 95% quantile ~1.5% at n = 4000
+    lo, hi = compose(unit, scale=k).interval(0.95)
+    cov = metrics.coverage(y, lo, hi)
+    assert np.all(cov >= 0.95) and np.all(cov <= 0.955)   # split conformal: at least the level, ceil((n+1)0.95)/n
+    with pytest.raises(ValueError, match="at least 20"):
+        conformal_scale(y[:10], compose(PhysicsUQ(*(np.ones((10, 3)),) * 5)), 0.95)
+
+
+def test_score_is_the_one_scorer():
+    rng = np.random.default_rng(0)
+    n = 300
+    d = Gaussian(rng.normal(size=(n, 3)), rng.uniform(0.5, 1.5, (n, 3)))
+    y = rng.normal(size=(n, 3))
+    s = metrics.score(y, d, 0.9)
+    assert tuple(s) == ("rmse", "mae", "coverage", "nll", "crps", "mean_width")
+    lo, hi = d.interval(0.9)
+    np.testing.assert_allclose(s["coverage"], metrics.coverage(y, lo, hi))
+    np.testing.assert_allclose(s["mean_width"], np.mean(2 * scipy.stats.norm.ppf(0.95) * np.asarray(d.scale), 0),
+                               rtol=1e-10)
+    per = metrics.score_per_axis(y, d, 0.9)
+    summ = metrics.summarize(y, d, 0.9)
+    for a in "xyz":
+        assert per["mean_width"][a] == summ[a]["width"] and per["nll"][a] == summ[a]["nll"]
