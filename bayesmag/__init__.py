@@ -9,6 +9,11 @@ import jax as _jax
 # The physics fit and its uncertainty need float64; the residual network casts to float32 itself.
 _jax.config.update("jax_enable_x64", True)
 
+from ._src.cache import configure_compile_cache as configure_compile_cache
+
+# Cold start: reuse compiled code across processes (off: BAYESMAG_COMPILE_CACHE=0 or [output] compile_cache = false).
+configure_compile_cache()
+
 from ._src.config import Config as Config, ConfigError as ConfigError, load_config as load_config
 from ._src.data import (
     CalibrationData as CalibrationData,
@@ -80,7 +85,7 @@ from . import likelihoods as likelihoods, metrics as metrics, simulate as simula
 __version__ = "0.1.0"
 
 __all__ = [
-    "likelihoods", "metrics", "simulate",
+    "likelihoods", "metrics", "simulate", "configure_compile_cache",
     "HybridPrediction", "fuse", "MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict",
     "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift",
     "TimingOffset",

@@ -33,6 +33,9 @@ def _cmd_run(args) -> int:
 
     cfg_path = _resolve_config(args.config)
     cfg = load_config(cfg_path, args.set or [])
+    if not cfg.output.compile_cache:        # before anything compiles (bayesmag switches it on at import)
+        from .cache import configure_compile_cache
+        configure_compile_cache(False)
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
         result = run_job(cfg, out, progress=not args.no_progress)
@@ -56,11 +59,20 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def packaged_configs_dir() -> Path:
+    """The shipped configs: ``bayesmag/configs`` when installed, the repository's ``configs/`` in a checkout."""
+    here = Path(__file__).resolve().parent.parent
+    for d in (here / "configs", here.parent / "configs"):
+        if d.is_dir() and any(d.glob("*.toml")):
+            return d
+    return here / "configs"
+
+
 def _resolve_config(name: str) -> Path:
     p = Path(name)
     if p.exists():
         return p
-    packaged = Path(__file__).resolve().parent.parent / "configs" / f"{name.removesuffix('.toml')}.toml"
+    packaged = packaged_configs_dir() / f"{Path(name).name.removesuffix('.toml')}.toml"
     if packaged.exists():
         return packaged
     return p
@@ -144,7 +156,9 @@ def _cmd_report(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
     p = argparse.ArgumentParser(prog="bayesmag", description="Magnetometer calibration with trustworthy uncertainty.")
+    p.add_argument("--version", action="version", version=f"bayesmag {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run a calibration job from a TOML config")

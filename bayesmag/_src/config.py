@@ -126,6 +126,7 @@ class StudyConfig:
 class OutputConfig:
     figures: bool = True
     progress: bool = True
+    compile_cache: bool = True          # JAX persistent compilation cache in the user cache folder (cache.py)
 
 
 @dataclasses.dataclass(frozen=True)
