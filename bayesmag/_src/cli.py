@@ -6,6 +6,7 @@ Commands::
     bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
                    [--columns time=t,bx_meas=X,...] [--field-unit uT|nT|mT|G] [--temperature-unit C|K]
     bayesmag report RUN_DIR
+    bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T]
     bayesmag study CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
@@ -148,6 +149,20 @@ def _cmd_study(args) -> int:
     return 0
 
 
+def _cmd_export(args) -> int:
+    from .export import ExportError, export_run, limitations
+
+    try:
+        path, ex = export_run(args.run_dir, args.format, args.out, t_ref=args.temperature)
+    except ExportError as e:
+        print(f"bayesmag: error: {e}", file=sys.stderr)
+        return 2
+    print(f"bayesmag: wrote {path}")
+    for line in limitations(args.format, ex):
+        print(f"  {line}")
+    return 0
+
+
 def _cmd_report(args) -> int:
     from .report import write_report
 
@@ -196,6 +211,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("report", help="(re)write report.md in a run folder")
     rp.add_argument("run_dir")
     rp.set_defaults(func=_cmd_report)
+
+    ex = sub.add_parser("export", help="write a run's calibration for firmware/other tools")
+    ex.add_argument("run_dir", help="run folder written by `bayesmag run`")
+    ex.add_argument("--format", required=True, choices=["json", "c-header", "ardupilot", "px4", "magcal"])
+    ex.add_argument("--out", help="output file (default RUN_DIR/calibration.<ext>)")
+    ex.add_argument("--temperature", type=float, default=None,
+                    help="reference temperature (C) of the hard/soft-iron form (default: middle of the training range)")
+    ex.set_defaults(func=_cmd_export)
 
     dc = sub.add_parser("discover", help="find physics missing from the calibration model", add_help=False)
     dc.add_argument("rest", nargs=argparse.REMAINDER)
