@@ -34,6 +34,9 @@ from ._src.fit import (
     identifiability as identifiability,
     levenberg_marquardt as levenberg_marquardt,
 )
+from ._src.frames import from_frame as from_frame, prediction_frame as prediction_frame, read_parquet as read_parquet, to_frame as to_frame
+from ._src.calibrator import Calibrator as Calibrator
+from ._src.export import ExportError as ExportError, export_run as export_run
 from ._src.artifact import ArtifactError as ArtifactError, Calibration as Calibration, load as load
 from ._src.discover import DiscoverOptions as DiscoverOptions, DiscoveryResult as DiscoveryResult, discover as discover
 from ._src.job import JobError as JobError, run_job as run_job
@@ -86,6 +89,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "likelihoods", "metrics", "simulate", "configure_compile_cache",
+    "Calibrator", "ExportError", "export_run", "from_frame", "prediction_frame", "read_parquet", "to_frame",
     "HybridPrediction", "fuse", "MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict",
     "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift",
     "TimingOffset",
