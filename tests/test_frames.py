@@ -81,6 +81,16 @@ def test_calibrator_fit_predict_matches_the_physics_fit(data, tmp_path):
     np.testing.assert_array_equal(as_df["x_upper"].to_numpy(), as_dict["upper"][:, 0])
     assert as_df["in_domain"].dtype == bool and isinstance(as_dict, dict)
     assert (tmp_path / "run" / "calibration.json").exists()
+    # the command line: another layout, field in nT, semicolons would be data.py's business; commas here
+    f = field.rename(columns={"bx_meas": "Bx", "by_meas": "By", "bz_meas": "Bz", "temperature": "T"})
+    f[["Bx", "By", "Bz"]] *= 1e3
+    f.to_csv(tmp_path / "nt.csv", index=False)
+    from bayesmag._src.cli import main
+    assert main(["apply", "--model", str(tmp_path / "run"), "--data", str(tmp_path / "nt.csv"), "--out",
+                 str(tmp_path / "o.csv"), "--columns", "bx_meas=Bx,by_meas=By,bz_meas=Bz,temperature=T",
+                 "--field-unit", "nT", "--no-progress"]) == 0
+    got = pd.read_csv(tmp_path / "o.csv")
+    np.testing.assert_allclose(got["z_calibrated"].to_numpy(), as_dict["calibrated"][:, 2], rtol=1e-7)
 
 
 def test_calibrator_needs_a_reference_and_a_fit(data):

@@ -13,12 +13,11 @@ from typing import Mapping
 
 import numpy as np
 
-from .data import AXES, CANONICAL_COLUMNS, CalibrationData, DataError
+from .data import AXES, CANONICAL_COLUMNS, FIELD_UNITS, CalibrationData, DataError
 
-__all__ = ["FIELD_UNITS", "frame_io", "from_frame", "to_frame", "prediction_frame", "read_parquet", "as_data", "is_frame"]
+__all__ = ["FIELD_UNITS", "frame_io", "load_table", "from_frame", "to_frame", "prediction_frame", "read_parquet", "as_data",
+           "is_frame"]
 
-#: Multiply a field in this unit by the factor to get uT.
-FIELD_UNITS = {"uT": 1.0, "nT": 1e-3, "mT": 1e3, "G": 100.0, "mG": 0.1}
 _FIELD = ("bx_meas", "by_meas", "bz_meas", "bx_ref", "by_ref", "bz_ref")
 
 
@@ -159,3 +158,14 @@ def frame_io(method=None, *, physics_inputs: bool = False):
             return prediction_frame(out if isinstance(out, Mapping) else {"calibrated": np.asarray(out)}, index)
         return wrapper
     return deco if method is None else deco(method)
+
+
+def load_table(path: str | Path, *, columns: Mapping[str, str] | None = None, temperature_unit: str = "C",
+               field_unit: str = "uT", require_reference: bool = True) -> CalibrationData:
+    """A recording from CSV (``data.load_csv``) or Parquet (by suffix), with column mapping and units."""
+    if Path(path).suffix.lower() in (".parquet", ".pq"):
+        return read_parquet(path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                            require_reference=require_reference)
+    from .data import load_csv
+    return load_csv(path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                    require_reference=require_reference)
