@@ -118,3 +118,36 @@ def test_report_of_a_run_uses_reference_sd_from_the_config(tmp_path):
 def test_reference_sd_is_validated():
     with pytest.raises(bayesmag.ConfigError, match="reference_sd"):
         config_from_dict({"data": {"source": "simulated"}, "uq": {"reference_sd": -1.0}})
+
+
+def test_residual_figures_label_axes_and_count_rows_inside_the_band(tmp_path):
+    from bayesmag._src import plots
+    rng = np.random.default_rng(1)
+    n = 4000
+    sd = np.tile([0.1, 0.2, 0.05], (n, 1))
+    ref = rng.uniform(-50, 50, (n, 3))
+    d = bayesmag.CalibrationData(ref, rng.uniform(10, 40, n), ref, np.arange(n) * 0.25, np.repeat([1, 2], n // 2))
+    pred = ref - sd * rng.standard_normal((n, 3))          # residuals exactly N(0, sd^2)
+    fig = plots.residuals_vs(d.b_ref, d.b_ref - pred, sd, xlabels=["a", "b", "c"], title="t")
+    share = [float(re.search(r"([\d.]+)% inside", ax.get_title()).group(1)) for ax in fig.axes]
+    assert len(share) == 9 and all(abs(s - 95.45) < 1.5 for s in share)     # P(|Z| <= 2) = 95.45%
+    assert fig.axes[1].get_xlabel() == "b" and fig.axes[3].get_ylabel() == "residual By (uT)"
+    files = plots.residual_figures(tmp_path, d, pred, sd)
+    assert all((tmp_path / f).stat().st_size > 10_000 for f in files)
+    tfig = plots.residuals_vs_time(d.time, d.run, d.b_ref - pred, sd)
+    assert len(tfig.axes) == 6 and tfig.axes[0].get_xlabel() == "time since run start (s)"
+
+
+def test_histogram_and_pit_panels_are_labelled(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+    from bayesmag._src import hybrid_plots, plots
+    from bayesmag.likelihoods import Gaussian
+    saved = []
+    monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    r = np.random.default_rng(0).standard_normal((200, 3))
+    plots.residual_histograms(tmp_path / "h.png", {"physics": r})
+    hybrid_plots.pit_histograms(tmp_path / "p.png", {"gaussian": Gaussian(np.zeros((200, 3)), np.ones((200, 3)))}, r)
+    for fig in saved:
+        for ax in fig.axes:
+            assert ax.get_xlabel() and ax.get_ylabel()
