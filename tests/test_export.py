@@ -166,6 +166,7 @@ def test_a_rotated_sensor_loses_accuracy_in_symmetric_targets_and_says_so():
     rows = _rows(n=600, seed=6)
     rows = CalibrationData(rows.b_meas, rows.temperature, _physics(cal, rows))
     ex = E.build_export(cal, rows)
+    assert ex.t_ref == pytest.approx(np.median(rows.temperature))        # where the training rows are
     acc = ex.accuracy["formats"]
     assert max(acc["json"]["vs_full_model"].values()) < 1e-9
     assert max(acc["magcal"]["vs_full_model"].values()) < 1e-9          # Ks = Ko = 0: exact at every T

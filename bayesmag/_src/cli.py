@@ -217,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--format", required=True, choices=["json", "c-header", "ardupilot", "px4", "magcal"])
     ex.add_argument("--out", help="output file (default RUN_DIR/calibration.<ext>)")
     ex.add_argument("--temperature", type=float, default=None,
-                    help="reference temperature (C) of the hard/soft-iron form (default: middle of the training range)")
+                    help="reference temperature (C) of the hard/soft-iron and PX4 forms (default: median training temperature)")
     ex.set_defaults(func=_cmd_export)
 
     dc = sub.add_parser("discover", help="find physics missing from the calibration model", add_help=False)

@@ -11,7 +11,8 @@ with row ``i`` of ``M`` the gains of output axis ``i``. The targets:
 * ``c-header``: the thermo-affine coefficients and a C99 ``static inline`` function that applies
   them (double precision). Exact for the thermo-affine model; extra terms are not written.
 * ``magcal``: the hard/soft-iron form :math:`B_{\mathrm{cal}} = (B - b)\,A` (row vectors, as
-  MATLAB's ``magcal``) at one reference temperature: :math:`A = M(T_r)^\top`,
+  MATLAB's ``magcal``) at one reference temperature :math:`T_r` (default: the median training
+  temperature): :math:`A = M(T_r)^\top`,
   :math:`b = -M(T_r)^{-1} o(T_r)`. Exact at :math:`T_r`; the temperature terms are dropped.
 * ``px4``: PX4's ``CAL_MAG0_*`` (symmetric 3x3 scale, offsets, gauss) and ``TC_M0_*`` thermal
   offset polynomial (cubic in :math:`T - T_{\mathrm{ref}}`, reference and range from the
@@ -244,7 +245,9 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
     coef = thermo_affine_coefficients(cal)
     lo, hi = cal.domain.low, cal.domain.high
     t_range = (float(lo[3]), float(hi[3]))
-    t_ref = 0.5 * (t_range[0] + t_range[1]) if t_ref is None else float(t_ref)
+    if t_ref is None:                    # where most training rows are; the domain's middle without them
+        t_ref = float(np.median(train.temperature)) if train is not None else 0.5 * (t_range[0] + t_range[1])
+    t_ref = float(t_ref)
     A, b = hard_soft_iron(*affine_at(coef, t_ref))
     rows, source = train, "training rows"
     if rows is None:                     # a 9^4 grid over the domain box stands in for the data
