@@ -119,3 +119,13 @@ def test_config_switch_turns_the_cache_off(monkeypatch):
     finally:
         jax.config.update("jax_compilation_cache_dir", before[0])
         jax.config.update("jax_enable_compilation_cache", before[1])
+
+
+def test_import_is_lazy_and_every_public_name_resolves():
+    code = ("import sys, bayesmag, bayesmag._src.cli; heavy = [m for m in ('numpyro', 'arviz', 'bayesmag._src.discover',"
+            " 'bayesmag._src.nuts', 'optax') if m in sys.modules]; print(heavy);"
+            " assert all(hasattr(bayesmag, n) for n in bayesmag.__all__); print(len(bayesmag.EXTRA_TERMS) > 0)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ["[]", "True"]
