@@ -32,7 +32,8 @@ def test_packaged_config_by_name_from_another_folder(tmp_path, monkeypatch):
         assert p.read_text() == (ROOT / "configs" / Path(name).name.removesuffix(".toml")).with_suffix(".toml").read_text()
     assert sorted(x.name for x in packaged_configs_dir().glob("*.toml")) == sorted(
         x.name for x in (ROOT / "configs").glob("*.toml"))
-    assert not _resolve_config("no_such_config").exists()      # load_config then names the missing file
+    with pytest.raises(bayesmag.ConfigError, match="not a packaged config; those are: .*quickstart"):
+        _resolve_config("no_such_config")
 
 
 def _check_tree(names: set[str]) -> None:

@@ -76,7 +76,10 @@ def _resolve_config(name: str) -> Path:
     packaged = packaged_configs_dir() / f"{Path(name).name.removesuffix('.toml')}.toml"
     if packaged.exists():
         return packaged
-    return p
+    from .config import ConfigError
+    names = sorted(x.stem for x in packaged_configs_dir().glob("*.toml"))
+    raise ConfigError(f"Config file {name} does not exist, and it is not a packaged config; those are: "
+                      f"{', '.join(names)}.")
 
 
 def _cmd_data(args) -> int:
