@@ -57,8 +57,8 @@ def residual_histograms(path: Path, residuals: dict[str, np.ndarray], title: str
 def _band_panel(ax, x, r, sd, k: float = 2.0) -> float:
     """Residuals against x with the +-k sd band (sorted by x); returns the fraction inside the band."""
     order = np.argsort(x)
-    ax.scatter(x, r, s=4, alpha=0.5, color="C0", label="residual")
-    ax.fill_between(x[order], -k * sd[order], k * sd[order], color="C1", alpha=0.25, lw=0, label=f"+-{k:g} sd")
+    ax.scatter(x, r, s=4, alpha=0.6, color="C0", label="residual", zorder=2)
+    ax.fill_between(x[order], -k * sd[order], k * sd[order], color="C1", alpha=0.25, lw=0, label=f"+-{k:g} sd", zorder=0)
     ax.axhline(0, color="k", lw=0.6)
     return float(np.mean(np.abs(r) <= k * sd))
 
