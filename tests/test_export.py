@@ -199,6 +199,8 @@ def test_export_cli_on_a_run_measures_the_loss(tmp_path, capsys):
     assert doc["format"] == "bayesmag.calibration"
     assert json.loads((out / "calibration.export.json").read_text())["format"] == "bayesmag.export"
     assert bayesmag.load(out).theta.shape == (3, 8)
+    from bayesmag._src.outdir import check_out
+    check_out(out)                     # the exports are listed in the run's marker: the folder may be re-run
 
 
 def test_unknown_format_is_an_error_naming_the_valid_ones(tmp_path):

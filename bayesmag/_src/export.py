@@ -406,4 +406,24 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     ex = build_export(cal, train, t_ref=t_ref)
     out = Path(out) if out else Path(run_dir) / f"calibration{FORMATS[fmt]}"
     out.write_text(render(fmt, ex))
+    _register(Path(run_dir), out)
     return out, ex
+
+
+def _register(run_dir: Path, path: Path) -> None:
+    """List an export written inside a run folder in its marker, so a later run may still replace the folder."""
+    import os
+
+    from .outdir import MARKER, marker_status
+
+    mark = marker_status(run_dir)
+    try:
+        rel = path.resolve().relative_to(run_dir.resolve()).as_posix()
+    except ValueError:
+        return
+    if not mark or "files" not in mark or rel in mark["files"]:
+        return
+    mark["files"] = sorted(set(mark["files"]) | {rel})
+    tmp = run_dir / (MARKER + ".tmp")
+    tmp.write_text(json.dumps(mark) + "\n")
+    os.replace(tmp, run_dir / MARKER)
