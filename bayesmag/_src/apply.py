@@ -77,8 +77,9 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
     t0 = time.perf_counter()
     out_path = check_apply_paths(model_dir, data_path, out_path)
     cal = load(model_dir)
-    data = load_csv(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                    require_reference=False)
+    from .frames import load_table      # CSV, or Parquet by suffix
+    data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                      require_reference=False)
     _check_magnitudes(data)
     warnings = check_units(cal, data)
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,

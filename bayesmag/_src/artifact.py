@@ -32,6 +32,7 @@ import numpy as np
 
 from .data import AXES, CalibrationData
 from .domain import Domain
+from .frames import frame_io
 from .physics import PhysicsModel, ThermoAffine
 
 __all__ = ["Calibration", "save_calibration", "load", "validate_artifact", "ArtifactError", "FORMAT",
@@ -117,6 +118,7 @@ class Calibration:
                          scale=self.interval_scale, domain=self.domain,
                          uq=UQOptions(method, n_params, n_qmc, seed, chunk_size))
 
+    @frame_io    # a pandas DataFrame in, a DataFrame out (frames.py); CalibrationData in, the dict below out
     def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
                 new_session: bool = True, progress: bool = False) -> dict[str, np.ndarray]:

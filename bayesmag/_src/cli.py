@@ -6,6 +6,7 @@ Commands::
     bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
                    [--columns time=t,bx_meas=X,...] [--field-unit uT|nT|mT|G] [--temperature-unit C|K]
     bayesmag report RUN_DIR
+    bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T]
     bayesmag study CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
@@ -33,6 +34,9 @@ def _cmd_run(args) -> int:
 
     cfg_path = _resolve_config(args.config)
     cfg = load_config(cfg_path, args.set or [])
+    if not cfg.output.compile_cache:        # before anything compiles (bayesmag switches it on at import)
+        from .cache import configure_compile_cache
+        configure_compile_cache(False)
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
         result = run_job(cfg, out, progress=not args.no_progress)
@@ -56,14 +60,26 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def packaged_configs_dir() -> Path:
+    """The shipped configs: ``bayesmag/configs`` when installed, the repository's ``configs/`` in a checkout."""
+    here = Path(__file__).resolve().parent.parent
+    for d in (here / "configs", here.parent / "configs"):
+        if d.is_dir() and any(d.glob("*.toml")):
+            return d
+    return here / "configs"
+
+
 def _resolve_config(name: str) -> Path:
     p = Path(name)
     if p.exists():
         return p
-    packaged = Path(__file__).resolve().parent.parent / "configs" / f"{name.removesuffix('.toml')}.toml"
+    packaged = packaged_configs_dir() / f"{Path(name).name.removesuffix('.toml')}.toml"
     if packaged.exists():
         return packaged
-    return p
+    from .config import ConfigError
+    names = sorted(x.stem for x in packaged_configs_dir().glob("*.toml"))
+    raise ConfigError(f"Config file {name} does not exist, and it is not a packaged config; those are: "
+                      f"{', '.join(names)}.")
 
 
 def _cmd_data(args) -> int:
@@ -136,6 +152,20 @@ def _cmd_study(args) -> int:
     return 0
 
 
+def _cmd_export(args) -> int:
+    from .export import ExportError, export_run, limitations
+
+    try:
+        path, ex = export_run(args.run_dir, args.format, args.out, t_ref=args.temperature)
+    except ExportError as e:
+        print(f"bayesmag: error: {e}", file=sys.stderr)
+        return 2
+    print(f"bayesmag: wrote {path}")
+    for line in limitations(args.format, ex):
+        print(f"  {line}")
+    return 0
+
+
 def _cmd_report(args) -> int:
     from .report import write_report
 
@@ -144,7 +174,9 @@ def _cmd_report(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
     p = argparse.ArgumentParser(prog="bayesmag", description="Magnetometer calibration with trustworthy uncertainty.")
+    p.add_argument("--version", action="version", version=f"bayesmag {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run a calibration job from a TOML config")
@@ -182,6 +214,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("report", help="(re)write report.md in a run folder")
     rp.add_argument("run_dir")
     rp.set_defaults(func=_cmd_report)
+
+    ex = sub.add_parser("export", help="write a run's calibration for firmware/other tools")
+    ex.add_argument("run_dir", help="run folder written by `bayesmag run`")
+    ex.add_argument("--format", required=True, choices=["json", "c-header", "ardupilot", "px4", "magcal"])
+    ex.add_argument("--out", help="output file (default RUN_DIR/calibration.<ext>)")
+    ex.add_argument("--temperature", type=float, default=None,
+                    help="reference temperature (C) of the hard/soft-iron and PX4 forms (default: median training temperature)")
+    ex.set_defaults(func=_cmd_export)
 
     dc = sub.add_parser("discover", help="find physics missing from the calibration model", add_help=False)
     dc.add_argument("rest", nargs=argparse.REMAINDER)

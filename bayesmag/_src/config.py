@@ -65,6 +65,7 @@ class UQConfig:
     chunk_size: int = 256
     residual_term: bool = True          # add the fit's unexplained residual variance (false = the paper's total)
     transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "off"
+    reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,6 +129,7 @@ class StudyConfig:
 class OutputConfig:
     figures: bool = True
     progress: bool = True
+    compile_cache: bool = True          # JAX persistent compilation cache in the user cache folder (cache.py)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -262,6 +264,10 @@ def _check_semantics(cfg: Config) -> None:
     if isinstance(s, list) and not (len(s) == 4 and (all(isinstance(v, (int, float)) for v in s)
                                                      or all(isinstance(r, list) and len(r) == 4 for r in s))):
         raise ConfigError("Config key 'uq.sigma_in' must be 4 standard deviations [Bx, By, Bz, T] or a 4x4 matrix.")
+    r = cfg.uq.reference_sd
+    if not (isinstance(r, (int, float)) and r >= 0 or isinstance(r, list) and len(r) == 3
+            and all(isinstance(v, (int, float)) and v >= 0 for v in r)):
+        raise ConfigError(f"Config key 'uq.reference_sd' = {r!r} must be a standard uncertainty >= 0 in uT, or 3 of them.")
     lo_hi = cfg.network.log_scale_clip
     if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
         raise ConfigError(f"Config key 'network.log_scale_clip' = {lo_hi} must be [low, high] with low < high.")

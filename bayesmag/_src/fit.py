@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .frames import frame_io
 from .physics import AXES, Inputs, PhysicsModel
 
 __all__ = ["LMSolution", "RESULTS", "levenberg_marquardt", "PhysicsFit", "fit_physics", "covariance",
@@ -291,6 +292,7 @@ class PhysicsFit:
     def converged(self) -> bool:
         return all(r == "converged" for r in self.result)
 
+    @frame_io(physics_inputs=True)   # also a CalibrationData, or a DataFrame (then a DataFrame out)
     def predict(self, inputs: Inputs) -> np.ndarray:
         return np.asarray(self.model.predict_all(jnp.asarray(self.theta), inputs))
 

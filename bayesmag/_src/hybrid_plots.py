@@ -99,6 +99,8 @@ def pit_histograms(path: Path, dists: dict[str, Likelihood], y: np.ndarray, bins
             ax.axhline(1.0, color="k", ls="--", lw=0.8)
             ax.set_title(f"{name}, {AXES[a]} axis", fontsize=9)
             ax.set_xlim(0, 1)
+            ax.set_xlabel("PIT value F(y)")
+            ax.set_ylabel("density")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -1,0 +1,153 @@
+"""The calibration certificate: units, fit statistics, Type A/B budget with nu_eff, k and U = k u_c."""
+
+import math
+import re
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import bayesmag
+from bayesmag._src.config import config_from_dict
+from bayesmag._src.report import (coverage_factor, parameter_unit, render_report, welch_satterthwaite)
+
+
+def test_welch_satterthwaite_hand_computed():
+    # u = (0.3, 0.4), nu = (4, 9): u_c^4 = 0.25^2 = 0.0625; sum u^4/nu = 0.0081/4 + 0.0256/9 = 0.00486944...
+    assert welch_satterthwaite([0.3, 0.4], [4, 9]) == pytest.approx(12.835139760410724, rel=1e-12)
+    # a Type B term (infinite dof) raises nu_eff: only the finite terms count in the denominator
+    assert welch_satterthwaite([0.3, 0.4], [4, math.inf]) == pytest.approx(0.0625 / (0.0081 / 4), rel=1e-12)
+    assert welch_satterthwaite([0.3, 0.4], [math.inf, math.inf]) == math.inf
+    assert welch_satterthwaite([0.5], [7]) == pytest.approx(7.0)                 # one component: its own dof
+    assert welch_satterthwaite([0.0, 0.2], [3, 10]) == pytest.approx(10.0)       # a zero term adds nothing
+
+
+@pytest.mark.parametrize("nu, level", [(9, 0.95), (12.835, 0.95), (3, 0.99), (1000, 0.6827)])
+def test_coverage_factor_is_students_t(nu, level):
+    assert coverage_factor(nu, level) == pytest.approx(stats.t.ppf(0.5 + level / 2, nu), rel=1e-12)
+
+
+def test_coverage_factor_textbook_values():
+    assert coverage_factor(9, 0.95) == pytest.approx(2.262157, abs=1e-6)     # GUM table G.2
+    assert coverage_factor(math.inf, 0.95) == pytest.approx(1.959964, abs=1e-6)
+
+
+@pytest.mark.parametrize("name, unit", [("S_x", "1"), ("Ks_z", "1/C"), ("O", "uT"), ("Ko", "uT/C"),
+                                        ("q_xx", "1/uT"), ("q_xy_T", "(1/uT)/C"), ("Ko2", "uT/C^2"),
+                                        ("log_tau", "ln(s)"), ("delta", "s"), ("drift_rate", "uT/s")])
+def test_parameter_units(name, unit):
+    assert parameter_unit(name) == unit
+
+
+def _metrics_params(n=1000, p=8):
+    names = ["S_x", "S_y", "S_z", "Ks_x", "Ks_y", "Ks_z", "O", "Ko"][:p]
+    ax = {"values": {k: 1.0 for k in names}, "std": {k: 0.01 for k in names}, "correlation": np.eye(p).tolist(),
+          "condition_number": 1.0, "residual_std": 0.1, "rmse_in_sample": 0.1, "lag1_autocorrelation": 0.0,
+          "solver": {"result": "converged", "steps": 4}, "covariance_info": {"method": "white"}}
+    per = lambda v: {a: v for a in "xyz"}  # noqa: E731
+    m = {"data": {"source": "test", "n_rows": n + 100, "runs": [0]},
+         "split": {"description": "d", "n_train": n, "n_test": 100},
+         "raw": {"rmse": per(1.0), "mae": per(1.0)},
+         "physics": {k: per(0.1) for k in ("rmse", "mae", "nll", "crps", "coverage")},
+         "uq": {"level": 0.95, "mean_aleatoric": per(0.06), "residual_term": per(0.08), "mean_epistemic": per(0.01),
+                "sigma_in_sd": {"bx": 0.05, "by": 0.05, "bz": 0.05, "T": 0.0}, "sigma_in_source": "auto: x"}}
+    params = {"n_rows": n, "model": {"param_names": names}, "axes": {a: ax for a in "xyz"}}
+    return m, params
+
+
+def _row(text, label):
+    line = next(ln for ln in text.splitlines() if ln.startswith(f"| {label}"))
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def test_budget_combines_with_reference_and_reports_k_and_U():
+    m, params = _metrics_params()
+    text = render_report(m, params, reference_sd=0.05)
+    ref = _row(text, "reference magnetometer")
+    assert ref[1:6] == ["B", "inf", "0.05", "0.05", "0.05"]
+    assert _row(text, "aleatoric")[1:3] == ["A", "999"] and _row(text, "epistemic")[1:3] == ["A", "992"]
+    uc = math.sqrt(0.06**2 + 0.08**2 + 0.01**2 + 0.05**2)
+    assert float(_row(text, "**combined u_c")[3]) == pytest.approx(uc, rel=1e-3)
+    nu = welch_satterthwaite([0.06, 0.08, 0.01, 0.05], [999, 992, 992, math.inf])
+    k = stats.t.ppf(0.975, nu)
+    assert float(_row(text, "coverage factor k")[3]) == pytest.approx(k, abs=1e-4)
+    assert float(_row(text, "**expanded uncertainty")[3]) == pytest.approx(k * uc, rel=1e-3)
+    # without the reference the combined uncertainty is smaller
+    assert float(_row(render_report(m, params), "**combined u_c")[3]) == pytest.approx(
+        math.sqrt(uc**2 - 0.05**2), rel=1e-3)
+
+
+def test_fit_statistics_block():
+    m, params = _metrics_params(n=1000, p=8)
+    row = _row(render_report(m, params), "x | 1000")
+    rss = 1000 * 0.1**2
+    assert float(row[4]) == pytest.approx(rss)
+    assert float(row[6]) == pytest.approx(rss / 0.06**2, rel=1e-4)                   # chi^2 vs the input noise
+    assert float(row[8]) == pytest.approx(1000 * math.log(rss / 1000) + 2 * 9, abs=0.01)            # AIC
+    assert float(row[9]) == pytest.approx(1000 * math.log(rss / 1000) + 9 * math.log(1000), abs=0.01)  # BIC
+    assert row[10:] == ["4", "converged"]
+
+
+def test_units_on_every_parameter_and_nuts_and_hybrid_sections():
+    m, params = _metrics_params()
+    m["nuts"] = {"axes": {"x": {"verdict": "agrees with LM", "max_rhat": 1.001, "min_ess_bulk": 2100.0,
+                                "min_ess_tail": 1800.0, "divergences": 0}}, "thresholds": {"rhat_max": 1.01, "ess_min": 400}}
+    rows = [{"axis": "x", "parameter": "S_x", "mean": "1.0", "sd": "0.01", "r_hat": "1.0004", "ess_bulk": "2500",
+             "ess_tail": "2000"}]
+    m["hybrid_vs_physics"] = {"gaussian": {"x": {"mean_diff": 0.01, "t": 5.0, "p": 1e-6, "cohens_d": 0.2}}}
+    m["network"] = {"training": {"gaussian": {"x": {"epochs_run": 120, "best_epoch": 70, "best_val_loss": -1.5}}}}
+    text = render_report(m, params, nuts_rows=rows)
+    table = [ln for ln in text.splitlines() if re.match(r"\| (S|Ks|O|Ko)", ln)]
+    assert len(table) == 24 and all(ln.split("|")[4].strip() in ("1", "1/C", "uT", "uT/C") for ln in table)
+    assert "| x | agrees with LM | 1.0010 | 2100 | 1800 | 0 |" in text
+    assert "| x | S_x | 1 | 0.01 | 1.0004 | 2500 | 2000 |" in text
+    assert "| gaussian | x | 0.01 | 5.000 | 1e-06 | 0.200 |" in text
+    assert "| gaussian | x | 120 | 70 | -1.5 |" in text
+
+
+def test_report_of_a_run_uses_reference_sd_from_the_config(tmp_path):
+    raw = {"data": {"source": "simulated", "simulate": {"design": "campaign", "n": 800, "seed": 3, "noise_sd": 0.05}},
+           "split": {"kind": "time_blocks", "test_fraction": 0.2}, "uq": {"method": "analytic", "reference_sd": 0.02},
+           "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}}
+    bayesmag.run_job(config_from_dict(raw), tmp_path / "run")
+    text = (tmp_path / "run" / "report.md").read_text()
+    assert _row(text, "reference magnetometer")[1:6] == ["B", "inf", "0.02", "0.02", "0.02"]
+    assert "## Fit statistics" in text and "expanded uncertainty U = k u_c" in text
+
+
+def test_reference_sd_is_validated():
+    with pytest.raises(bayesmag.ConfigError, match="reference_sd"):
+        config_from_dict({"data": {"source": "simulated"}, "uq": {"reference_sd": -1.0}})
+
+
+def test_residual_figures_label_axes_and_count_rows_inside_the_band(tmp_path):
+    from bayesmag._src import plots
+    rng = np.random.default_rng(1)
+    n = 4000
+    sd = np.tile([0.1, 0.2, 0.05], (n, 1))
+    ref = rng.uniform(-50, 50, (n, 3))
+    d = bayesmag.CalibrationData(ref, rng.uniform(10, 40, n), ref, np.arange(n) * 0.25, np.repeat([1, 2], n // 2))
+    pred = ref - sd * rng.standard_normal((n, 3))          # residuals exactly N(0, sd^2)
+    fig = plots.residuals_vs(d.b_ref, d.b_ref - pred, sd, xlabels=["a", "b", "c"], title="t")
+    share = [float(re.search(r"([\d.]+)% inside", ax.get_title()).group(1)) for ax in fig.axes]
+    assert len(share) == 9 and all(abs(s - 95.45) < 1.5 for s in share)     # P(|Z| <= 2) = 95.45%
+    assert fig.axes[1].get_xlabel() == "b" and fig.axes[3].get_ylabel() == "residual By (uT)"
+    files = plots.residual_figures(tmp_path, d, pred, sd)
+    assert all((tmp_path / f).stat().st_size > 10_000 for f in files)
+    tfig = plots.residuals_vs_time(d.time, d.run, d.b_ref - pred, sd)
+    assert len(tfig.axes) == 6 and tfig.axes[0].get_xlabel() == "time since run start (s)"
+
+
+def test_histogram_and_pit_panels_are_labelled(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+    from bayesmag._src import hybrid_plots, plots
+    from bayesmag.likelihoods import Gaussian
+    saved = []
+    monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    r = np.random.default_rng(0).standard_normal((200, 3))
+    plots.residual_histograms(tmp_path / "h.png", {"physics": r})
+    hybrid_plots.pit_histograms(tmp_path / "p.png", {"gaussian": Gaussian(np.zeros((200, 3)), np.ones((200, 3)))}, r)
+    for fig in saved:
+        for ax in fig.axes:
+            assert ax.get_xlabel() and ax.get_ylabel()
