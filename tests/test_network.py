@@ -1,12 +1,15 @@
 """Residual network: DropConnect on weights, training, early stopping, NaN handling, vmap, MC inference."""
 
+import dataclasses
+
 import numpy as np
 import jax
 import jax.numpy as jnp
 import pytest
 
-from bayesmag import ConfigError
+import bayesmag as bm
 from bayesmag._src import network as N
+from bayesmag._src.config import config_error, config_from_dict
 
 # Statistical tolerances, stated once.
 MASK_SIGMAS = 5.0            # fraction of dropped weights within 5 binomial sds of the rate
@@ -160,7 +163,7 @@ def test_vmap_over_axes_equals_one_axis_alone():
 @pytest.mark.parametrize("likelihood,df", [("gaussian", 4.0), ("student_t", None)])
 def test_mc_inference_matches_a_loop_over_passes(likelihood, df):
     x, r, _ = _hetero_problem(600, 3)
-    spec = small_spec(likelihood=likelihood, df=df, dropconnect=0.2)
+    spec = small_spec(likelihood=likelihood, student_t_df=df, dropconnect=0.2)
     # inference does not care whether the weights were trained: two random networks
     params = jax.vmap(lambda k: N.init(k, 4, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width))(
         jax.random.split(jax.random.key(0), 2))
@@ -195,18 +198,56 @@ def test_mc_inference_matches_a_loop_over_passes(likelihood, df):
 # --------------------------------------------------------------------------- bad input
 
 
-def test_bad_network_settings_are_config_errors():
+def test_bad_network_settings_are_value_errors_naming_the_setting():
+    """The library names its own parameters (plain ValueError, no config keys)."""
     x, r, _ = _hetero_problem(300, 4)
-    with pytest.raises(ConfigError, match=r"network\.width.*network\.hidden_layers|network\.hidden_layers"):
+    with pytest.raises(ValueError, match=r"'width' or 'hidden_layers'") as e:
         N.fit_residual_network(x, r, N.NetworkSpec(hidden_layers=4, width=64), seed=0)
-    with pytest.raises(ConfigError, match=r"network\.validation_fraction"):
+    assert "network." not in str(e.value) and not isinstance(e.value, bm.ConfigError)
+    with pytest.raises(ValueError, match=r"^validation_fraction = 0.05 leaves"):
         N.fit_residual_network(x, r, small_spec(), validation_fraction=0.05, seed=0)
-    with pytest.raises(ConfigError, match=r"gaussian.*laplace.*student_t"):
+    with pytest.raises(ValueError, match=r"gaussian.*laplace.*student_t"):
         N.NetworkSpec(likelihood="cauchy")
-    with pytest.raises(ConfigError, match=r"network\.dropconnect"):
+    with pytest.raises(ValueError, match=r"^dropconnect = 1.0 must be in \[0, 1\)"):
         N.NetworkSpec(dropconnect=1.0)
-    with pytest.raises(ConfigError, match=r"network\.student_t_df"):
-        N.NetworkSpec(likelihood="student_t", df=2.0)
+    with pytest.raises(ValueError, match=r"^student_t_df = 2.0 must be a number > 2"):
+        N.NetworkSpec(likelihood="student_t", student_t_df=2.0)
+    with pytest.raises(ValueError, match=r"^passes = 1 must be at least 2"):
+        N.mc_predict(None, x, passes=1)
+
+
+def test_config_reports_library_errors_with_the_key_path():
+    raw = {"data": {"source": "simulated"}, "network": {"dropconnect": 1.0}}
+    with pytest.raises(bm.ConfigError, match=r"^Config key 'network.dropconnect' = 1.0 must be in \[0, 1\)"):
+        config_from_dict(raw)
+    raw["network"] = {"student_t_df": "guess", "likelihoods": ["student_t"]}
+    with pytest.raises(bm.ConfigError, match=r"^Config key 'network.student_t_df' = 'guess'"):
+        config_from_dict(raw)
+    raw["network"] = {"likelihood": "laplace"}                    # a spec field the job sets, not the table
+    with pytest.raises(bm.ConfigError, match=r"Unknown config key 'network.likelihood'"):
+        config_from_dict(raw)
+    try:
+        N.check_network_size(N.NetworkSpec(), 100)
+    except ValueError as e:
+        msg = str(config_error(e, "network", ("width", "hidden_layers")))
+    assert "'network.width' or 'network.hidden_layers'" in msg
+
+
+def test_one_settings_type_for_the_table_and_the_library():
+    """[network] is NetworkSpec plus the job's switches: every spec setting is a table key with the
+    same default, and the spec of a likelihood carries the table's values."""
+    from bayesmag._src.config import NetworkConfig
+    spec_fields = {f.name: f.default for f in dataclasses.fields(N.NetworkSpec)}
+    cfg_fields = {f.name: f.default for f in dataclasses.fields(NetworkConfig)}
+    assert issubclass(NetworkConfig, N.NetworkSpec)
+    assert {k: cfg_fields[k] for k in spec_fields} == spec_fields
+    cfg = config_from_dict({"data": {"source": "simulated"},
+                            "network": {"width": 8, "student_t_df": "learn", "likelihoods": ["student_t"]}})
+    spec = cfg.network.spec("student_t")
+    assert type(spec) is N.NetworkSpec and spec.width == 8 and spec.df is None and spec.fixed_shape == {}
+    assert "likelihood" not in cfg.to_dict()["network"] and cfg.to_dict()["network"]["student_t_df"] == "learn"
+    assert N.NetworkSpec.from_dict({**N.NetworkSpec().to_dict(), "df": None, "student_t_df": None}).df is None
+    assert N.NetworkSpec.from_dict({"likelihood": "student_t", "df": 5.0}).fixed_shape == {"df": 5.0}
 
 
 # --------------------------------------------------------------------------- Fourier input features
@@ -250,10 +291,10 @@ def test_fourier_features_fit_structure_a_plain_mlp_smooths_over():
     assert err[16] < 0.5 * err[0]
 
 
-def test_bad_fourier_settings_are_config_errors():
-    with pytest.raises(ConfigError, match=r"network\.fourier_features"):
+def test_bad_fourier_settings_are_value_errors():
+    with pytest.raises(ValueError, match=r"^fourier_features = -1"):
         N.NetworkSpec(fourier_features=-1)
-    with pytest.raises(ConfigError, match=r"network\.fourier_scale"):
+    with pytest.raises(ValueError, match=r"^fourier_scale = 0.0"):
         N.NetworkSpec(fourier_scale=0.0)
 
 
@@ -267,7 +308,7 @@ def test_time_block_validation_rows_are_one_block_per_run():
     for g, n in [(1, 400), (2, 250), (5, 350)]:
         rows = val[groups[val] == g]
         assert rows.size == round(0.1 * n) and np.all(np.diff(rows) == 1)     # contiguous, 10 % of the run
-    with pytest.raises(ConfigError, match=r"network\.validation.*random.*time_blocks"):
+    with pytest.raises(ValueError, match=r"^validation = 'blocks'.*random.*time_blocks"):
         N.validation_rows(1000, 0.1, seed=0, kind="blocks")
 
 

@@ -56,7 +56,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import metrics as M
-from .config import Config, ConfigError, NetworkConfig
+from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
 from .likelihoods import LIKELIHOODS, Gaussian, Likelihood, moment_match
 from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
@@ -89,27 +89,9 @@ class HybridPrediction(NamedTuple):
 def check_network_config(cfg: Config) -> list[NetworkSpec]:
     """Validate the ``[network]`` table; return one :class:`NetworkSpec` per likelihood.
 
-    Raises :class:`ConfigError` for an unknown or repeated likelihood name (naming the valid
-    set), an unknown fusion, fewer than 2 MC passes, or a bad network setting. Cheap: call
-    it before any fitting.
+    The settings were validated when the config was loaded (``NetworkConfig``).
     """
-    net = cfg.network
-    names = list(net.likelihoods)
-    if not names:
-        raise ConfigError(f"Config key 'network.likelihoods' is empty; name at least one of {sorted(LIKELIHOODS)}.")
-    unknown = [n for n in names if not isinstance(n, str) or n not in LIKELIHOODS]
-    if unknown:
-        raise ConfigError(f"Config key 'network.likelihoods' = {names} names unknown likelihood(s) {unknown}; "
-                          f"each must be one of {sorted(LIKELIHOODS)}.")
-    if len(set(names)) != len(names):
-        raise ConfigError(f"Config key 'network.likelihoods' = {names} repeats a name.")
-    if net.fusion not in FUSIONS:
-        raise ConfigError(f"Config key 'network.fusion' = {net.fusion!r} is not valid; "
-                          f"it must be one of {list(FUSIONS)}.")
-    if net.mc_passes < 2:
-        raise ConfigError(f"Config key 'network.mc_passes' = {net.mc_passes} must be at least 2 (the epistemic "
-                          "variance is a sample variance over passes).")
-    return [NetworkSpec.from_config(net, name) for name in names]
+    return [cfg.network.spec(name) for name in cfg.network.likelihoods]   # validated at load (config.py)
 
 
 def network_inputs(data: CalibrationData) -> np.ndarray:
@@ -118,13 +100,13 @@ def network_inputs(data: CalibrationData) -> np.ndarray:
 
 
 def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig,
-                  groups: np.ndarray | None = None) -> ResidualNetwork:
+                  groups: np.ndarray | None = None, progress: bool = False) -> ResidualNetwork:
     """Train the axis networks as ``[network]`` says: validation rows, then optional recalibration.
 
     ``groups``: the run of every row (time order within a run), used by ``validation = "time_blocks"``.
     """
     net = fit_residual_network(x, r, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
-                               validation=net_cfg.validation, groups=groups)
+                               validation=net_cfg.validation, groups=groups, progress=progress)
     if net_cfg.recalibrate:
         net = recalibrate(net, x[net.val_rows], r[net.val_rows], passes=net_cfg.mc_passes, seed=net_cfg.seed)
     return net
@@ -143,10 +125,7 @@ def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str
         var = var + physics.aleatoric**2
         dist = Gaussian(mean, np.sqrt(var))
     else:
-        shape = {}
-        if spec.likelihood == "student_t":
-            shape["df"] = nn.shape["df"] if spec.df is None else spec.df
-        dist = moment_match(spec.likelihood, mean, var, **shape)
+        dist = moment_match(spec.likelihood, mean, var, **spec.shape_for(nn.shape))
     return HybridPrediction(mean, dist, np.sqrt(var), nn.aleatoric, nn.epistemic, np.asarray(physics.aleatoric),
                             np.asarray(physics.epistemic), fusion)
 
@@ -225,9 +204,12 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
     specs = check_network_config(cfg)
     net_cfg = cfg.network
     # Size checks for every likelihood before any training.
-    fit_rows, _ = validation_rows(train.n, net_cfg.validation_fraction, seed=net_cfg.seed)
-    for spec in specs:
-        check_network_size(spec, fit_rows.size)
+    try:
+        fit_rows, _ = validation_rows(train.n, net_cfg.validation_fraction, seed=net_cfg.seed)
+        for spec in specs:
+            check_network_size(spec, fit_rows.size)
+    except ValueError as e:
+        raise config_error(e, "network", net_cfg.table()) from None
 
     fit, uq = result["fit"], result["uq"]
     level = cfg.uq.level
@@ -256,7 +238,7 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
             if bar is not None:
                 bar.set_postfix_str(f"training {name}")
             t = time.perf_counter()
-            net = train_network(x_train, r_train, spec, net_cfg, groups=train.run)
+            net = train_network(x_train, r_train, spec, net_cfg, groups=train.run, progress=progress)
             train_s = time.perf_counter() - t
             timings["network_train"] += train_s
             nan_messages += _warn_nan(name, net)
@@ -327,6 +309,8 @@ def run_hybrid_stage(cfg: Config, result: dict, train: CalibrationData, test: Ca
         def write_figures(out: Path) -> None:
             from .hybrid_plots import hybrid_figures
             hybrid_figures(Path(out), cols, temperature, dists, level=level)
+            from .network_plots import loss_curves
+            loss_curves(Path(out) / "network_loss.png", networks)
 
         writers.append(write_figures)
     return columns
