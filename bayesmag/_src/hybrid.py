@@ -58,7 +58,7 @@ import numpy as np
 from . import metrics as M
 from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
-from .likelihoods import LIKELIHOODS, Gaussian, Likelihood, moment_match
+from .likelihoods import Gaussian, Likelihood, moment_match
 from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
                       mc_predict, recalibrate, validation_rows)
 from .physics import inputs_from_data

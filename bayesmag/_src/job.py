@@ -222,7 +222,7 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         result["network_artifact"] = network_to_artifact(result["networks"][primary], passes=cfg.network.mc_passes,
                                                          seed=cfg.network.seed, fusion=cfg.network.fusion)
     if cfg.nuts.enabled:
-        from .nuts import run_nuts_stage
+        from .nuts_stage import run_nuts_stage
         run_nuts_stage(cfg, result, train, timings, progress=progress)
 
     with staging_dir(Path(out)) as tmp:

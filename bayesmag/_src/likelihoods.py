@@ -437,6 +437,10 @@ class Gaussian(Likelihood):
     def from_moments(cls, mean, variance):
         return cls(loc=mean, scale=jnp.sqrt(variance))
 
+    @classmethod
+    def scale_from_residuals(cls, r, sd):
+        return float(sd)
+
     def to_numpyro(self):
         import numpyro.distributions as nd
         return nd.Normal(self.loc, self.scale)
