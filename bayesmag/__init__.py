@@ -2,12 +2,58 @@
 
 The public API is re-exported here explicitly; the implementation lives in ``bayesmag._src``.
 Submodules ``bayesmag.likelihoods``, ``bayesmag.metrics`` and ``bayesmag.simulate`` are public too.
+
+.. warning:: **float64.** ``import bayesmag`` switches JAX to 64-bit floats for the whole
+   process (``jax_enable_x64``), because the physics fit, its uncertainty and NUTS are
+   float64 computations (the residual network casts to float32 itself). To keep your own
+   JAX code in float32, set the environment variable ``BAYESMAG_ENABLE_X64=0`` before the
+   import: your JAX state is then left alone, and you scope float64 to bayesmag calls with
+   ``with bayesmag.enable_x64(): ...``. Run without float64, the entry points
+   (``fit_physics``, ``physics_uncertainty``, ``run_nuts``, ``run_job``, ...) warn with
+   :class:`Float64Warning`: they compute, but in float32 (docs/architecture.md shows what
+   that changes).
 """
+
+import functools as _functools
+import os as _os
+import warnings as _warnings
 
 import jax as _jax
 
-# The physics fit and its uncertainty need float64; the residual network casts to float32 itself.
-_jax.config.update("jax_enable_x64", True)
+#: Whether ``import bayesmag`` switched JAX to float64 (``BAYESMAG_ENABLE_X64`` not "0").
+X64_AT_IMPORT = _os.environ.get("BAYESMAG_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no", "off")
+if X64_AT_IMPORT:
+    _jax.config.update("jax_enable_x64", True)
+
+
+class Float64Warning(UserWarning):
+    """A bayesmag computation that needs float64 ran with JAX in float32."""
+
+
+def x64_enabled() -> bool:
+    """Whether JAX computes in float64 now (globally or inside :func:`enable_x64`)."""
+    return bool(_jax.config.jax_enable_x64)
+
+
+def enable_x64():
+    """Context manager: float64 inside the block only, the caller's JAX setting restored after.
+
+    Example:
+        >>> with enable_x64():  # doctest: +SKIP
+        ...     fit = fit_physics(train)
+    """
+    return _jax.enable_x64(True)
+
+
+def _needs_x64(fn):
+    @_functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if not x64_enabled():
+            _warnings.warn(f"bayesmag.{fn.__name__} runs with JAX in float32 (BAYESMAG_ENABLE_X64=0 and no "
+                           f"`with bayesmag.enable_x64():`); its results are float32 approximations.",
+                           Float64Warning, stacklevel=2)
+        return fn(*args, **kwargs)
+    return wrapper
 
 from ._src.config import Config as Config, ConfigError as ConfigError, load_config as load_config
 from ._src.data import (
@@ -40,7 +86,7 @@ from ._src.network import (
     fit_residual_network as fit_residual_network,
     mc_predict as mc_predict,
 )
-from ._src.nuts import (
+from ._src.nuts import (  # the package bayesmag._src.nuts
     NutsResult as NutsResult,
     compare_models as compare_models,
     crosscheck as crosscheck,
@@ -77,10 +123,18 @@ from ._src.physics_uq import (
 
 from . import likelihoods as likelihoods, metrics as metrics, simulate as simulate
 
+# float64 entry points warn when called in float32 (see the module docstring)
+fit_physics = _needs_x64(fit_physics)
+physics_uncertainty = _needs_x64(physics_uncertainty)
+run_nuts = _needs_x64(run_nuts)
+run_job = _needs_x64(run_job)
+discover = _needs_x64(discover)
+levenberg_marquardt = _needs_x64(levenberg_marquardt)
+
 __version__ = "0.1.0"
 
 __all__ = [
-    "likelihoods", "metrics", "simulate",
+    "likelihoods", "metrics", "simulate", "enable_x64", "x64_enabled", "Float64Warning", "X64_AT_IMPORT",
     "HybridPrediction", "fuse", "MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict",
     "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift",
     "TimingOffset",
