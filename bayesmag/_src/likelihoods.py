@@ -69,7 +69,7 @@ import numpy as np
 from jax.scipy.special import betainc, betaln, gammaln, ndtr, ndtri
 
 __all__ = ["Likelihood", "ShapeParam", "Gaussian", "Laplace", "StudentT", "LIKELIHOODS", "get_likelihood",
-           "moment_match", "sample_by_inversion"]
+           "moment_match", "sample_by_inversion", "unregister"]
 
 ArrayLike = jax.typing.ArrayLike
 
@@ -120,6 +120,13 @@ class ShapeParam:
                 or not value > self.lower):
             raise ValueError(f"{name} = {value!r} must be a number > {self.lower:g} for likelihood {family!r}"
                              + (' or "learn"' if self.head is not None else "") + ".")
+
+
+def unregister(name: str) -> type["Likelihood"]:
+    """Remove a family from :data:`LIKELIHOODS` (e.g. a family a test registered); returns its class."""
+    if name not in _REGISTRY:
+        raise ValueError(f"likelihood {name!r} is not registered; registered: {sorted(_REGISTRY)}")
+    return _REGISTRY.pop(name)
 
 
 def _is_concrete(x: Any) -> bool:
