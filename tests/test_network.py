@@ -1,6 +1,8 @@
 """Residual network: DropConnect on weights, training, early stopping, NaN handling, vmap, MC inference."""
 
 import dataclasses
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import jax
@@ -155,6 +157,41 @@ def test_vmap_over_axes_equals_one_axis_alone():
         for l3, l1 in zip(jax.tree.leaves(p3), jax.tree.leaves(p1)):
             np.testing.assert_allclose(l3[a], l1[0], rtol=2e-4, atol=2e-6)
         np.testing.assert_allclose(info3.val_loss[a], info1.val_loss[0], rtol=1e-4)
+
+
+def test_chunked_training_is_the_one_loop_and_reports_progress():
+    """Training in compiled chunks (for progress) runs the same epochs as one while_loop: identical
+    weights and losses for any chunk size; progress hears every chunk with the epochs and val loss."""
+    x, r1, _ = _hetero_problem(600, 2)
+    r = np.column_stack([r1[:, 0], np.cos(3 * x[:, 2])])
+    spec = small_spec(max_epochs=40, patience=6)
+    fit_rows, val_rows = N.validation_rows(600, 0.1, seed=0)
+    st = N.Standardizer.fit(x[fit_rows], r[fit_rows])
+    keys = jax.vmap(lambda a: jax.random.fold_in(jax.random.key(3), a))(jnp.arange(2))
+    args = (st.x(x[fit_rows]), st.r(r[fit_rows]), st.x(x[val_rows]), st.r(r[val_rows]))
+
+    def one_loop(key, r_f, r_v):                     # the un-chunked reference: build_trainer's single loop
+        k_init, k_train = jax.random.split(key)
+        p0 = N.init(k_init, spec.n_features, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width)
+        return N.build_trainer(spec)(p0, k_train, args[0], r_f, args[2], r_v)
+
+    p_ref, info_ref = jax.jit(jax.vmap(one_loop, in_axes=(0, 1, 1)))(keys, args[1], args[3])
+    seen = []
+    for chunk in (1, 7, 1000):
+        p, info = N._train_axes(spec, keys, *args, chunk=chunk, progress=seen.append if chunk == 7 else None)
+        for a, b in zip(jax.tree.leaves(p), jax.tree.leaves(p_ref)):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(info.val_loss, info_ref.val_loss)
+        np.testing.assert_array_equal(info.epochs_run, info_ref.epochs_run)
+    assert len(seen) >= 2 and seen[-1].done.all() and np.array_equal(seen[-1].epochs, np.asarray(info_ref.epochs_run))
+    assert all(np.all(b.epochs >= a.epochs) for a, b in zip(seen, seen[1:]))
+    first = seen[0]
+    np.testing.assert_array_equal(first.val_loss, np.asarray(info_ref.val_loss)[:, 6])   # epoch 7's loss
+    # the job saves the curves as a figure
+    from bayesmag._src.network_plots import loss_curves
+    net = N.ResidualNetwork(spec, p, st, jax.device_get(info), 0, 0)
+    path = loss_curves(Path(tempfile.mkdtemp()) / "loss.png", {"gaussian": net}, axes=("a", "b"))
+    assert path.stat().st_size > 0
 
 
 # --------------------------------------------------------------------------- MC inference
