@@ -516,7 +516,8 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
         perm = jax.random.permutation(k_perm, n)
         idx = jnp.concatenate([perm, perm[:pad]]).reshape(n_batches, bs)
         step_keys = jax.random.split(k_steps, n_batches)
-        (params, opt_state), losses = jax.lax.scan(step, (s.params, s.opt_state), (idx, weight, step_keys))
+        (params, opt_state), losses = jax.lax.scan(step, (s.params, s.opt_state), (idx, weight, step_keys),
+                                                   unroll=SCAN_UNROLL)
         train_loss = jnp.sum(losses) / n
         val = regularized_nll(spec, apply(params, x_val, activation=spec.activation), r_val)
         finite = jnp.isfinite(train_loss) & jnp.isfinite(val)
@@ -569,6 +570,8 @@ def build_trainer(spec: NetworkSpec) -> Callable[..., tuple[Params, TrainInfo]]:
 #: reports progress (epochs run, best validation loss per axis). The chunks run the same
 #: epochs in the same order, so the trained weights do not depend on it.
 TRAIN_CHUNK_EPOCHS = 25
+#: Minibatch steps per iteration of the compiled step loop (``jax.lax.scan(unroll=...)``).
+SCAN_UNROLL = 1
 
 
 class TrainProgress(NamedTuple):
