@@ -88,7 +88,7 @@ class NetworkConfig(NetworkSpec):
         super().__post_init__()
         names = self.likelihoods
         if not names:
-            raise ValueError(f"likelihoods is empty; name at least one of {sorted(LIKELIHOODS)}.")
+            raise ValueError(f"likelihoods = [] is empty; name at least one of {sorted(LIKELIHOODS)}.")
         unknown = [n for n in names if not isinstance(n, str) or n not in LIKELIHOODS]
         if unknown:
             raise ValueError(f"likelihoods = {list(names)} names unknown likelihood(s) {unknown}; each must be one "
@@ -202,6 +202,9 @@ def config_error(e: Exception, section: str, keys=()) -> ConfigError:
         return ConfigError(f"Config key '{section}.{m.group(1)}' = {msg[m.end():]}")
     if m and not keys:
         return ConfigError(f"Config key '{section}.{m.group(1)}' = {msg[m.end():]}")
+    first = re.match(r"(\w+)\b", msg)
+    if first and first.group(1) in keys:
+        return ConfigError(f"Config key '{section}.{first.group(1)}'{msg[first.end():]}")
     return ConfigError(f"[{section}] {msg}")
 
 
