@@ -5,14 +5,60 @@ Submodules ``bayesmag.likelihoods``, ``bayesmag.metrics`` and ``bayesmag.simulat
 
 Names are imported on first use (PEP 562), so ``import bayesmag`` and the command line start
 without loading NumPyro, ArviZ or the discovery machinery a job may not need.
+
+.. warning:: **float64.** ``import bayesmag`` switches JAX to 64-bit floats for the whole
+   process (``jax_enable_x64``), because the physics fit, its uncertainty and NUTS are
+   float64 computations (the residual network casts to float32 itself). To keep your own
+   JAX code in float32, set the environment variable ``BAYESMAG_ENABLE_X64=0`` before the
+   import: your JAX state is then left alone, and you scope float64 to bayesmag calls with
+   ``with bayesmag.enable_x64(): ...``. Run without float64, the entry points
+   (``fit_physics``, ``physics_uncertainty``, ``run_nuts``, ``run_job``, ...) warn with
+   :class:`Float64Warning`: they compute, but in float32 (docs/architecture.md shows what
+   that changes).
 """
 
+import functools as _functools
 import importlib as _importlib
+import os as _os
+import warnings as _warnings
 
 import jax as _jax
 
-# The physics fit and its uncertainty need float64; the residual network casts to float32 itself.
-_jax.config.update("jax_enable_x64", True)
+#: Whether ``import bayesmag`` switched JAX to float64 (``BAYESMAG_ENABLE_X64`` not "0").
+X64_AT_IMPORT = _os.environ.get("BAYESMAG_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no", "off")
+if X64_AT_IMPORT:
+    _jax.config.update("jax_enable_x64", True)
+
+
+class Float64Warning(UserWarning):
+    """A bayesmag computation that needs float64 ran with JAX in float32."""
+
+
+def x64_enabled() -> bool:
+    """Whether JAX computes in float64 now (globally or inside :func:`enable_x64`)."""
+    return bool(_jax.config.jax_enable_x64)
+
+
+def enable_x64():
+    """Context manager: float64 inside the block only, the caller's JAX setting restored after.
+
+    Example:
+        >>> with enable_x64():  # doctest: +SKIP
+        ...     fit = fit_physics(train)
+    """
+    return _jax.enable_x64(True)
+
+
+def _needs_x64(fn):
+    @_functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if not x64_enabled():
+            _warnings.warn(f"bayesmag.{fn.__name__} runs with JAX in float32 (BAYESMAG_ENABLE_X64=0 and no "
+                           f"`with bayesmag.enable_x64():`); its results are float32 approximations.",
+                           Float64Warning, stacklevel=2)
+        return fn(*args, **kwargs)
+    return wrapper
+
 
 from ._src.cache import configure_compile_cache as configure_compile_cache  # noqa: E402
 
@@ -50,6 +96,7 @@ _EXPORTS = {
 }
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
 _SUBMODULES = ("likelihoods", "metrics", "simulate")
+_NEEDS_X64 = ("fit_physics", "physics_uncertainty", "run_nuts", "run_job", "discover", "levenberg_marquardt")
 
 
 def __getattr__(name):
@@ -61,6 +108,8 @@ def __getattr__(name):
     if name in ("EXTRA_TERMS", "CATALOGUE"):
         _importlib.import_module("._src.catalogue", __name__)      # registers the catalogue's terms
     value = getattr(_importlib.import_module(f"._src.{mod}", __name__), name)
+    if name in _NEEDS_X64:                                      # float64 entry points warn in float32
+        value = _needs_x64(value)
     globals()[name] = value
     return value
 
@@ -70,7 +119,8 @@ def __dir__():
 
 
 __all__ = [  # noqa: F822 (resolved lazily by __getattr__)
-    "likelihoods", "metrics", "simulate", "configure_compile_cache", "Calibrator", "ExportError", "export_run",
+    "likelihoods", "metrics", "simulate", "enable_x64", "x64_enabled", "Float64Warning", "X64_AT_IMPORT",
+    "configure_compile_cache", "Calibrator", "ExportError", "export_run",
     "from_frame", "prediction_frame", "read_parquet", "to_frame", "HybridPrediction", "fuse", "MCPrediction",
     "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict", "CATALOGUE", "AxisQuadratic",
     "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "TimingOffset", "NutsResult",

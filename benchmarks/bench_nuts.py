@@ -30,15 +30,18 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 
 def main(argv=None) -> int:
+    from bayesmag._src.nuts import CHAIN_METHODS, PARAMETRISATIONS
+    from bayesmag.likelihoods import LIKELIHOODS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--chains", type=int, default=4)
     p.add_argument("--warmup", type=int, default=1000)
     p.add_argument("--draws", type=int, default=1000)
     p.add_argument("--target-accept", type=float, default=0.8)
-    p.add_argument("--chain-method", default="vectorized", choices=["vectorized", "sequential", "parallel"])
-    p.add_argument("--parametrisation", default="whitened", choices=["whitened", "scaled"])
+    p.add_argument("--chain-method", default="vectorized", choices=list(CHAIN_METHODS))
+    p.add_argument("--parametrisation", default="whitened", choices=list(PARAMETRISATIONS))
     p.add_argument("--dense-mass", action="store_true")
-    p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "laplace", "student_t"])
+    p.add_argument("--likelihood", default="gaussian", choices=sorted(LIKELIHOODS))
     p.add_argument("--t0", default="0", help='reference temperature: a number or "mean"')
     p.add_argument("--train-split", action="store_true",
                    help="the paper's random 90/10 split (seed 0): train rows only")

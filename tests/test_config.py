@@ -56,3 +56,44 @@ def test_shipped_configs_validate():
     from pathlib import Path
     for p in sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.toml")):
         load_config(p)
+
+
+def test_choice_lists_come_from_the_library():
+    """config.py holds no copy of the library's choice lists: a name the library registers is valid."""
+    from bayesmag._src import network
+    from bayesmag._src.nuts import CHAIN_METHODS
+    with pytest.raises(ConfigError, match=r"'nuts.chain_method' = 'pmap'.*" + str(list(CHAIN_METHODS)).replace("[", r"\[")):
+        config_from_dict({**BASE, "nuts": {"chain_method": "pmap"}})
+    with pytest.raises(ConfigError, match=r"'network.activation' = 'swish' is not valid"):
+        config_from_dict({**BASE, "network": {"activation": "swish"}})
+    network.ACTIVATIONS["swish"] = network.ACTIVATIONS["silu"]
+    try:
+        assert config_from_dict({**BASE, "network": {"activation": "swish"}}).network.activation == "swish"
+    finally:
+        del network.ACTIVATIONS["swish"]
+
+
+def test_float64_opt_out_leaves_the_callers_jax_state_alone():
+    """BAYESMAG_ENABLE_X64=0: importing bayesmag keeps JAX in float32; enable_x64() scopes float64 and
+    restores the caller's setting; a float64 entry point run in float32 warns."""
+    import os
+    import subprocess
+    import sys
+    code = """
+import warnings, jax, numpy as np
+import bayesmag as bm
+assert not jax.config.jax_enable_x64 and not bm.X64_AT_IMPORT
+with bm.enable_x64():
+    assert bm.x64_enabled() and jax.numpy.zeros(1).dtype == np.float64
+assert not jax.config.jax_enable_x64
+from bayesmag._src.simulate import simulate_from_config
+d = simulate_from_config({"n": 200, "seed": 0})
+with warnings.catch_warnings(record=True) as w:
+    warnings.simplefilter("always")
+    bm.fit_physics(d)
+assert any(issubclass(x.category, bm.Float64Warning) for x in w)
+print("ok")
+"""
+    env = {**os.environ, "BAYESMAG_ENABLE_X64": "0", "JAX_PLATFORMS": "cpu"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]

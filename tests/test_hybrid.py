@@ -51,7 +51,7 @@ def _parts(seed=0, n=50):
                                            ("student_t", None)])
 def test_moment_match_fusion_gives_the_family_mean_and_variance(likelihood, df):
     phys, nn = _parts()
-    pred = fuse(phys, nn, NetworkSpec(likelihood=likelihood, df=df), fusion="moment_match")
+    pred = fuse(phys, nn, NetworkSpec(likelihood=likelihood, student_t_df=df), fusion="moment_match")
     var = nn.aleatoric**2 + nn.epistemic**2 + phys.epistemic**2          # physics aleatoric not added
     assert type(pred.dist).name == likelihood
     np.testing.assert_allclose(pred.mean, phys.mean + nn.mean, rtol=1e-14)

@@ -1,12 +1,17 @@
 """Residual network: DropConnect on weights, training, early stopping, NaN handling, vmap, MC inference."""
 
+import dataclasses
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import jax
 import jax.numpy as jnp
 import pytest
 
-from bayesmag import ConfigError
+import bayesmag as bm
 from bayesmag._src import network as N
+from bayesmag._src.config import config_error, config_from_dict
 
 # Statistical tolerances, stated once.
 MASK_SIGMAS = 5.0            # fraction of dropped weights within 5 binomial sds of the rate
@@ -154,13 +159,48 @@ def test_vmap_over_axes_equals_one_axis_alone():
         np.testing.assert_allclose(info3.val_loss[a], info1.val_loss[0], rtol=1e-4)
 
 
+def test_chunked_training_is_the_one_loop_and_reports_progress():
+    """Training in compiled chunks (for progress) runs the same epochs as one while_loop: identical
+    weights and losses for any chunk size; progress hears every chunk with the epochs and val loss."""
+    x, r1, _ = _hetero_problem(600, 2)
+    r = np.column_stack([r1[:, 0], np.cos(3 * x[:, 2])])
+    spec = small_spec(max_epochs=40, patience=6)
+    fit_rows, val_rows = N.validation_rows(600, 0.1, seed=0)
+    st = N.Standardizer.fit(x[fit_rows], r[fit_rows])
+    keys = jax.vmap(lambda a: jax.random.fold_in(jax.random.key(3), a))(jnp.arange(2))
+    args = (st.x(x[fit_rows]), st.r(r[fit_rows]), st.x(x[val_rows]), st.r(r[val_rows]))
+
+    def one_loop(key, r_f, r_v):                     # the un-chunked reference: build_trainer's single loop
+        k_init, k_train = jax.random.split(key)
+        p0 = N.init(k_init, spec.n_features, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width)
+        return N.build_trainer(spec)(p0, k_train, args[0], r_f, args[2], r_v)
+
+    p_ref, info_ref = jax.jit(jax.vmap(one_loop, in_axes=(0, 1, 1)))(keys, args[1], args[3])
+    seen = []
+    for chunk in (1, 7, 1000):
+        p, info = N._train_axes(spec, keys, *args, chunk=chunk, progress=seen.append if chunk == 7 else None)
+        for a, b in zip(jax.tree.leaves(p), jax.tree.leaves(p_ref)):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(info.val_loss, info_ref.val_loss)
+        np.testing.assert_array_equal(info.epochs_run, info_ref.epochs_run)
+    assert len(seen) >= 2 and seen[-1].done.all() and np.array_equal(seen[-1].epochs, np.asarray(info_ref.epochs_run))
+    assert all(np.all(b.epochs >= a.epochs) for a, b in zip(seen, seen[1:]))
+    first = seen[0]
+    np.testing.assert_array_equal(first.val_loss, np.asarray(info_ref.val_loss)[:, 6])   # epoch 7's loss
+    # the job saves the curves as a figure
+    from bayesmag._src.network_plots import loss_curves
+    net = N.ResidualNetwork(spec, p, st, jax.device_get(info), 0, 0)
+    path = loss_curves(Path(tempfile.mkdtemp()) / "loss.png", {"gaussian": net}, axes=("a", "b"))
+    assert path.stat().st_size > 0
+
+
 # --------------------------------------------------------------------------- MC inference
 
 
 @pytest.mark.parametrize("likelihood,df", [("gaussian", 4.0), ("student_t", None)])
 def test_mc_inference_matches_a_loop_over_passes(likelihood, df):
     x, r, _ = _hetero_problem(600, 3)
-    spec = small_spec(likelihood=likelihood, df=df, dropconnect=0.2)
+    spec = small_spec(likelihood=likelihood, student_t_df=df, dropconnect=0.2)
     # inference does not care whether the weights were trained: two random networks
     params = jax.vmap(lambda k: N.init(k, 4, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width))(
         jax.random.split(jax.random.key(0), 2))
@@ -195,18 +235,56 @@ def test_mc_inference_matches_a_loop_over_passes(likelihood, df):
 # --------------------------------------------------------------------------- bad input
 
 
-def test_bad_network_settings_are_config_errors():
+def test_bad_network_settings_are_value_errors_naming_the_setting():
+    """The library names its own parameters (plain ValueError, no config keys)."""
     x, r, _ = _hetero_problem(300, 4)
-    with pytest.raises(ConfigError, match=r"network\.width.*network\.hidden_layers|network\.hidden_layers"):
+    with pytest.raises(ValueError, match=r"'width' or 'hidden_layers'") as e:
         N.fit_residual_network(x, r, N.NetworkSpec(hidden_layers=4, width=64), seed=0)
-    with pytest.raises(ConfigError, match=r"network\.validation_fraction"):
+    assert "network." not in str(e.value) and not isinstance(e.value, bm.ConfigError)
+    with pytest.raises(ValueError, match=r"^validation_fraction = 0.05 leaves"):
         N.fit_residual_network(x, r, small_spec(), validation_fraction=0.05, seed=0)
-    with pytest.raises(ConfigError, match=r"gaussian.*laplace.*student_t"):
+    with pytest.raises(ValueError, match=r"gaussian.*laplace.*student_t"):
         N.NetworkSpec(likelihood="cauchy")
-    with pytest.raises(ConfigError, match=r"network\.dropconnect"):
+    with pytest.raises(ValueError, match=r"^dropconnect = 1.0 must be in \[0, 1\)"):
         N.NetworkSpec(dropconnect=1.0)
-    with pytest.raises(ConfigError, match=r"network\.student_t_df"):
-        N.NetworkSpec(likelihood="student_t", df=2.0)
+    with pytest.raises(ValueError, match=r"^student_t_df = 2.0 must be a number > 2"):
+        N.NetworkSpec(likelihood="student_t", student_t_df=2.0)
+    with pytest.raises(ValueError, match=r"^passes = 1 must be at least 2"):
+        N.mc_predict(None, x, passes=1)
+
+
+def test_config_reports_library_errors_with_the_key_path():
+    raw = {"data": {"source": "simulated"}, "network": {"dropconnect": 1.0}}
+    with pytest.raises(bm.ConfigError, match=r"^Config key 'network.dropconnect' = 1.0 must be in \[0, 1\)"):
+        config_from_dict(raw)
+    raw["network"] = {"student_t_df": "guess", "likelihoods": ["student_t"]}
+    with pytest.raises(bm.ConfigError, match=r"^Config key 'network.student_t_df' = 'guess'"):
+        config_from_dict(raw)
+    raw["network"] = {"likelihood": "laplace"}                    # a spec field the job sets, not the table
+    with pytest.raises(bm.ConfigError, match=r"Unknown config key 'network.likelihood'"):
+        config_from_dict(raw)
+    try:
+        N.check_network_size(N.NetworkSpec(), 100)
+    except ValueError as e:
+        msg = str(config_error(e, "network", ("width", "hidden_layers")))
+    assert "'network.width' or 'network.hidden_layers'" in msg
+
+
+def test_one_settings_type_for_the_table_and_the_library():
+    """[network] is NetworkSpec plus the job's switches: every spec setting is a table key with the
+    same default, and the spec of a likelihood carries the table's values."""
+    from bayesmag._src.config import NetworkConfig
+    spec_fields = {f.name: f.default for f in dataclasses.fields(N.NetworkSpec)}
+    cfg_fields = {f.name: f.default for f in dataclasses.fields(NetworkConfig)}
+    assert issubclass(NetworkConfig, N.NetworkSpec)
+    assert {k: cfg_fields[k] for k in spec_fields} == spec_fields
+    cfg = config_from_dict({"data": {"source": "simulated"},
+                            "network": {"width": 8, "student_t_df": "learn", "likelihoods": ["student_t"]}})
+    spec = cfg.network.spec("student_t")
+    assert type(spec) is N.NetworkSpec and spec.width == 8 and spec.df is None and spec.fixed_shape == {}
+    assert "likelihood" not in cfg.to_dict()["network"] and cfg.to_dict()["network"]["student_t_df"] == "learn"
+    assert N.NetworkSpec.from_dict({**N.NetworkSpec().to_dict(), "df": None, "student_t_df": None}).df is None
+    assert N.NetworkSpec.from_dict({"likelihood": "student_t", "df": 5.0}).fixed_shape == {"df": 5.0}
 
 
 # --------------------------------------------------------------------------- Fourier input features
@@ -250,10 +328,10 @@ def test_fourier_features_fit_structure_a_plain_mlp_smooths_over():
     assert err[16] < 0.5 * err[0]
 
 
-def test_bad_fourier_settings_are_config_errors():
-    with pytest.raises(ConfigError, match=r"network\.fourier_features"):
+def test_bad_fourier_settings_are_value_errors():
+    with pytest.raises(ValueError, match=r"^fourier_features = -1"):
         N.NetworkSpec(fourier_features=-1)
-    with pytest.raises(ConfigError, match=r"network\.fourier_scale"):
+    with pytest.raises(ValueError, match=r"^fourier_scale = 0.0"):
         N.NetworkSpec(fourier_scale=0.0)
 
 
@@ -267,7 +345,7 @@ def test_time_block_validation_rows_are_one_block_per_run():
     for g, n in [(1, 400), (2, 250), (5, 350)]:
         rows = val[groups[val] == g]
         assert rows.size == round(0.1 * n) and np.all(np.diff(rows) == 1)     # contiguous, 10 % of the run
-    with pytest.raises(ConfigError, match=r"network\.validation.*random.*time_blocks"):
+    with pytest.raises(ValueError, match=r"^validation = 'blocks'.*random.*time_blocks"):
         N.validation_rows(1000, 0.1, seed=0, kind="blocks")
 
 

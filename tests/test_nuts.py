@@ -73,9 +73,22 @@ def test_parse_priors_accepts_documented_forms():
     ("scale=10", "must be a table"),
 ])
 def test_parse_priors_names_the_bad_key_or_value(priors, needle):
-    with pytest.raises(ConfigError) as e:
+    """The library raises plain ValueErrors naming its own parameter (priors.<key>), not config keys."""
+    with pytest.raises(ValueError) as e:
         parse_priors(priors, NAMES)
-    assert needle in str(e.value)
+    assert needle in str(e.value) and "[nuts]" not in str(e.value) and not isinstance(e.value, ConfigError)
+
+
+def test_bad_priors_in_a_config_are_config_errors_with_the_key_path(tmp_path):
+    d = _simulate(60, 0)
+    csv = tmp_path / "sim.csv"
+    bm.write_csv(d, csv)
+    cfg = config_from_dict({"data": {"path": str(csv)}, "uq": {"n_params": 4, "n_qmc": 4},
+                            "nuts": {"enabled": True, "priors": {"scale": -1.0}}, "output": {"figures": False}})
+    with pytest.raises(ConfigError, match=r"nuts.*priors\.scale = -1\.0"):
+        bm.run_job(cfg, tmp_path / "out")
+    with pytest.raises(ConfigError, match=r"'nuts.likelihood' = 'cauchy'.*gaussian.*laplace.*student_t"):
+        config_from_dict({"data": {"path": str(csv)}, "nuts": {"likelihood": "cauchy"}})
 
 
 def test_check_settings_rule_and_errors():
@@ -91,7 +104,7 @@ def test_check_settings_rule_and_errors():
 
 def test_bad_prior_fails_before_sampling():
     d = _simulate(60, 0)
-    with pytest.raises(ConfigError, match="Ks_q"):
+    with pytest.raises(ValueError, match="Ks_q"):
         run_nuts(d, fit_physics(d), priors={"Ks_q": 1.0}, chains=2, warmup=10, draws=10)
 
 
@@ -120,9 +133,9 @@ def _fake_idata(theta_draws, lm_theta, lm_cov, diverging=0):
                       coords={"chain": np.arange(C), "draw": np.arange(D), "axis": ["x"], "parameter": names})
     div = np.zeros((C, D, 1), dtype=bool)
     div[0, :diverging, 0] = True
-    stats = xr.Dataset({"diverging": (("chain", "draw", "axis"), div),
-                        "energy": (("chain", "draw", "axis"), rng.standard_normal((C, D, 1))),
-                        "tree_depth": (("chain", "draw", "axis"), np.full((C, D, 1), 3))},
+    stats = xr.Dataset({"diverging_axis": (("chain", "draw", "axis"), div),
+                        "energy_axis": (("chain", "draw", "axis"), rng.standard_normal((C, D, 1))),
+                        "tree_depth_axis": (("chain", "draw", "axis"), np.full((C, D, 1), 3))},
                        coords={"chain": np.arange(C), "draw": np.arange(D), "axis": ["x"]})
     const = xr.Dataset({"lm_theta": (("axis", "parameter"), lm_theta[None]),
                         "lm_cov": (("axis", "parameter", "parameter_bis"), lm_cov[None])},
@@ -247,6 +260,21 @@ def test_job_stage_writes_outputs_and_loo_compares_models(tmp_path):
     groups = {"posterior", "sample_stats", "log_likelihood", "posterior_predictive", "observed_data"}
     assert groups <= set(back.groups())
     assert back.posterior.theta.dims == ("chain", "draw", "axis", "parameter")
+    # ArviZ's own diagnostics work on the file (issue #14 item 6): sample_stats in (chain, draw) layout for
+    # the joint sampler, log_likelihood and posterior_predictive on the same draws
+    assert back.sample_stats.energy.dims == ("chain", "draw")
+    np.testing.assert_allclose(back.sample_stats.energy.values, back.sample_stats.energy_axis.values.sum(-1))
+    ebfmi = az.bfmi(back)
+    assert ebfmi.shape == (2,) and np.all(np.isfinite(ebfmi)) and np.all(ebfmi > 0)
+    assert np.array_equal(back.log_likelihood.draw.values, back.posterior_predictive.draw.values)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    az.plot_energy(back)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        az.plot_loo_pit(back.sel(axis="x"), y="b_ref")
+    plt.close("all")
     assert "Laplace approximation" in (out / "nuts_summary.md").read_text()
 
     # LOO: the paper model misses the Ko2 curvature; the extended model must win on the same rows

@@ -394,8 +394,7 @@ def _check_network(meta, arrays: dict, where: str) -> dict:
 
 def network_to_artifact(net, *, passes: int, seed: int, fusion: str) -> dict:
     """A trained :class:`~bayesmag._src.network.ResidualNetwork` as JSON metadata + named arrays."""
-    spec = {f.name: getattr(net.spec, f.name) for f in dataclasses.fields(net.spec)}
-    spec["log_scale_clip"] = list(spec["log_scale_clip"])
+    spec = net.spec.to_dict()
     arrays = {f"standardizer/{k}": np.asarray(v) for k, v in net.standardizer._asdict().items()}
     for i, layer in enumerate(net.params):
         arrays[f"layer{i}/w"] = np.asarray(layer.w)
@@ -416,14 +415,11 @@ def network_from_artifact(network: dict):
     from .network import Dense, NetworkSpec, ResidualNetwork, Standardizer
 
     meta, arr = network["meta"], network["arrays"]
-    spec_d = dict(meta["spec"])
-    spec_d["log_scale_clip"] = tuple(spec_d["log_scale_clip"])
-    known = {f.name for f in dataclasses.fields(NetworkSpec)}
-    unknown = set(spec_d) - known
-    if unknown:
-        raise ArtifactError(f"the saved network has settings {sorted(unknown)} this bayesmag does not know; "
-                            f"install the version that wrote it ({known=}).")
-    spec = NetworkSpec(**spec_d)
+    try:
+        spec = NetworkSpec.from_dict(meta["spec"])
+    except KeyError as e:
+        raise ArtifactError(f"the saved network has {e.args[0]} this bayesmag does not know; "
+                            f"install the version that wrote it.") from None
     try:
         params = tuple(Dense(jnp.asarray(arr[f"layer{i}/w"]), jnp.asarray(arr[f"layer{i}/b"]))
                        for i in range(meta["n_layers"]))

@@ -12,14 +12,19 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import re
 import tomllib
 import types
 import typing
 from pathlib import Path
-from typing import Any, Union
+from typing import Any, ClassVar, Union
+
+from .likelihoods import LIKELIHOODS
+from .network import ACTIVATIONS, VALIDATION_KINDS, NetworkSpec
 
 __all__ = ["Config", "ConfigError", "load_config", "config_from_dict", "apply_overrides", "to_toml",
-           "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig", "NutsConfig"]
+           "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig", "NutsConfig",
+           "config_error"]
 
 
 class ConfigError(ValueError):
@@ -69,36 +74,39 @@ class UQConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class NetworkConfig:
-    """Residual network (hybrid stage); ``enabled = false`` runs the physics stage only."""
+class NetworkConfig(NetworkSpec):
+    """``[network]``: the library's :class:`~bayesmag.NetworkSpec` settings (names, defaults and
+    checks written once, there) plus the job's switches. ``enabled = false`` runs the physics
+    stage only; ``likelihoods`` trains one network per family; ``fusion`` combines it with physics."""
+
+    #: spec fields set per network by the job, not by the table
+    internal: ClassVar[tuple[str, ...]] = ("likelihood", "n_in")
 
     enabled: bool = False
     likelihoods: list = dataclasses.field(default_factory=lambda: ["gaussian"])
-    hidden_layers: int = 4
-    width: int = 64
-    activation: str = "relu"
-    dropconnect: float = 0.01
-    learning_rate: float = 5e-4
-    batch_size: int = 16
-    max_epochs: int = 1000
-    patience: int = 50
-    min_delta: float = 1e-6
-    validation_fraction: float = 0.1
-    log_scale_clip: list = dataclasses.field(default_factory=lambda: [-10.0, 3.0])
-    log_scale_l2: float = 1e-4
-    epsilon: float = 1e-6
-    student_t_df: Union[float, str] = 4.0   # a number, or "learn"
-    mc_passes: int = 100
-    lr_plateau_factor: float = 1.0      # < 1: multiply the learning rate after lr_plateau_patience flat epochs
-    lr_plateau_patience: int = 20
-    lr_min_factor: float = 1e-3         # floor of the learning rate, as a fraction of learning_rate
-    fourier_features: int = 0           # m > 0: add m random Fourier features of the inputs (not in the paper)
-    fourier_scale: float = 1.0          # sd of their frequencies, per standardised input unit
-    validation: str = "time_blocks"     # validation rows: "random" (paper) | "time_blocks" (one block per run)
-    interval_calibration: str = "conformal"  # "conformal": scale the intervals to cover uq.level of the validation rows
-    recalibrate: bool = False           # fit a variance factor per axis on the validation rows (NLL)
+    validation: str = "time_blocks"     # the job's default; the library's NetworkSpec keeps the paper's "random"
+    interval_calibration: str = "conformal"  # "conformal": scale the intervals to cover uq.level of held-out blocks
     fusion: str = "moment_match"
-    seed: int = 0
+
+    def __post_init__(self):
+        super().__post_init__()
+        names = self.likelihoods
+        if not names:
+            raise ValueError(f"likelihoods = [] is empty; name at least one of {sorted(LIKELIHOODS)}.")
+        unknown = [n for n in names if not isinstance(n, str) or n not in LIKELIHOODS]
+        if unknown:
+            raise ValueError(f"likelihoods = {list(names)} names unknown likelihood(s) {unknown}; each must be one "
+                             f"of {sorted(LIKELIHOODS)}.")
+        if len(set(names)) != len(names):
+            raise ValueError(f"likelihoods = {list(names)} repeats a name.")
+
+    def spec(self, likelihood: str) -> NetworkSpec:
+        """The library settings of the network for one ``likelihood``."""
+        return NetworkSpec.from_config(self, likelihood)
+
+    def table(self) -> dict:
+        """The ``[network]`` table (no internal fields)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in self.internal}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,7 +119,7 @@ class NutsConfig:
     draws: int = 1000
     target_accept: float = 0.8
     chain_method: str = "vectorized"    # vectorized | parallel | sequential
-    likelihood: str = "gaussian"        # observation model: gaussian | laplace | student_t
+    likelihood: str = "gaussian"        # observation model: a family of bayesmag.likelihoods
     priors: dict = dataclasses.field(default_factory=dict)
     seed: int = 0
 
@@ -148,7 +156,11 @@ class Config:
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        d["network"] = dataclasses.asdict(self.network)
+        for k in NetworkConfig.internal:
+            d["network"].pop(k)
+        return d
 
 
 _CHOICES = {
@@ -156,14 +168,51 @@ _CHOICES = {
     "physics.covariance": ("white", "ar1", "newey_west"),
     "uq.method": ("psqmc", "mc", "analytic"),
     "data.temperature_unit": ("C", "K"),
-    "network.activation": ("relu", "tanh", "gelu", "silu", "elu"),
-    "network.fusion": ("moment_match", "paper"),
-    "network.validation": ("random", "time_blocks"),
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "off"),
-    "nuts.chain_method": ("vectorized", "parallel", "sequential"),
-    "nuts.likelihood": ("gaussian", "laplace", "student_t"),
 }
+
+
+def _choices(path: str) -> tuple | None:
+    """The valid values of a key: the library's own lists (registries are read when asked, so a
+    family or activation registered after import is valid too)."""
+    if path in _CHOICES:
+        return _CHOICES[path]
+    if path == "network.activation":
+        return tuple(ACTIVATIONS)
+    if path == "network.validation":
+        return VALIDATION_KINDS
+    if path == "network.fusion":
+        from .hybrid import FUSIONS
+        return FUSIONS
+    if path == "nuts.chain_method":
+        from .nuts import CHAIN_METHODS
+        return CHAIN_METHODS
+    if path == "nuts.likelihood":
+        return tuple(LIKELIHOODS)
+    return None
+
+
+def config_error(e: Exception, section: str, keys=()) -> ConfigError:
+    """A library ``ValueError`` as a :class:`ConfigError` naming the key path in ``[section]``.
+
+    The library names its own parameters (``width = 0 must be at least 1``, ``Lower 'width'``);
+    a message that starts with a known key becomes ``Config key 'section.key' = ...`` and
+    quoted keys become ``'section.key'``; anything else is prefixed with ``[section]``.
+    """
+    msg = str(e)
+    keys = sorted(set(keys), key=len, reverse=True)
+    for k in keys:
+        msg = msg.replace(f"'{k}'", f"'{section}.{k}'")
+    m = re.match(r"([A-Za-z_][\w.\[\]'\"]*) = ", msg)
+    if m and m.group(1).split(".")[0].split("[")[0] in keys:
+        return ConfigError(f"Config key '{section}.{m.group(1)}' = {msg[m.end():]}")
+    if m and not keys:
+        return ConfigError(f"Config key '{section}.{m.group(1)}' = {msg[m.end():]}")
+    first = re.match(r"(\w+)\b", msg)
+    if first and first.group(1) in keys:
+        return ConfigError(f"Config key '{section}.{first.group(1)}'{msg[first.end():]}")
+    return ConfigError(f"[{section}] {msg}")
 
 
 def _type_ok(value: Any, tp: Any) -> bool:
@@ -192,7 +241,7 @@ def _build(cls, raw: dict, prefix: str):
     if not isinstance(raw, dict):
         raise ConfigError(f"[{prefix}] must be a table; got {raw!r}.")
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name not in getattr(cls, "internal", ())}
     kwargs = {}
     for key, value in raw.items():
         path = f"{prefix}.{key}" if prefix else key
@@ -205,10 +254,16 @@ def _build(cls, raw: dict, prefix: str):
             continue
         if not _type_ok(value, tp):
             raise ConfigError(f"Config key '{path}' = {value!r} has the wrong type: expected {_type_name(tp)}.")
-        if path in _CHOICES and value not in _CHOICES[path]:
-            raise ConfigError(f"Config key '{path}' = {value!r} is not valid; it must be one of {list(_CHOICES[path])}.")
+        choices = _choices(path)
+        if choices is not None and value not in choices:
+            raise ConfigError(f"Config key '{path}' = {value!r} is not valid; it must be one of {list(choices)}.")
         kwargs[key] = float(value) if tp is float else value
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except ValueError as e:            # the library's own check, e.g. NetworkSpec: name the key path
+        raise config_error(e, prefix, fields) from None
 
 
 #: Smallest valid value of integer keys (a seed is a non-negative integer; counts and sizes are positive).
@@ -268,9 +323,6 @@ def _check_semantics(cfg: Config) -> None:
     if not (isinstance(r, (int, float)) and r >= 0 or isinstance(r, list) and len(r) == 3
             and all(isinstance(v, (int, float)) and v >= 0 for v in r)):
         raise ConfigError(f"Config key 'uq.reference_sd' = {r!r} must be a standard uncertainty >= 0 in uT, or 3 of them.")
-    lo_hi = cfg.network.log_scale_clip
-    if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
-        raise ConfigError(f"Config key 'network.log_scale_clip' = {lo_hi} must be [low, high] with low < high.")
 
 
 def config_from_dict(raw: dict) -> Config:

@@ -56,9 +56,8 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
-from .config import Config, ConfigError, NetworkConfig
+from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
-from .likelihoods import LIKELIHOODS
 from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
                       recalibrate, validation_rows)
 from .physics import inputs_from_data
@@ -107,37 +106,19 @@ class HybridStage:
 def check_network_config(cfg: Config) -> list[NetworkSpec]:
     """Validate the ``[network]`` table; return one :class:`NetworkSpec` per likelihood.
 
-    Raises :class:`ConfigError` for an unknown or repeated likelihood name (naming the valid
-    set), an unknown fusion, fewer than 2 MC passes, or a bad network setting. Cheap: call
-    it before any fitting.
+    The settings were validated when the config was loaded (``NetworkConfig``).
     """
-    net = cfg.network
-    names = list(net.likelihoods)
-    if not names:
-        raise ConfigError(f"Config key 'network.likelihoods' is empty; name at least one of {sorted(LIKELIHOODS)}.")
-    unknown = [n for n in names if not isinstance(n, str) or n not in LIKELIHOODS]
-    if unknown:
-        raise ConfigError(f"Config key 'network.likelihoods' = {names} names unknown likelihood(s) {unknown}; "
-                          f"each must be one of {sorted(LIKELIHOODS)}.")
-    if len(set(names)) != len(names):
-        raise ConfigError(f"Config key 'network.likelihoods' = {names} repeats a name.")
-    if net.fusion not in FUSIONS:
-        raise ConfigError(f"Config key 'network.fusion' = {net.fusion!r} is not valid; "
-                          f"it must be one of {list(FUSIONS)}.")
-    if net.mc_passes < 2:
-        raise ConfigError(f"Config key 'network.mc_passes' = {net.mc_passes} must be at least 2 (the epistemic "
-                          "variance is a sample variance over passes).")
-    return [NetworkSpec.from_config(net, name) for name in names]
+    return [cfg.network.spec(name) for name in cfg.network.likelihoods]   # validated at load (config.py)
 
 
 def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig,
-                  groups: np.ndarray | None = None) -> ResidualNetwork:
+                  groups: np.ndarray | None = None, progress: bool = False) -> ResidualNetwork:
     """Train the axis networks as ``[network]`` says: validation rows, then optional recalibration.
 
     ``groups``: the run of every row (time order within a run), used by ``validation = "time_blocks"``.
     """
     net = fit_residual_network(x, r, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
-                               validation=net_cfg.validation, groups=groups)
+                               validation=net_cfg.validation, groups=groups, progress=progress)
     if net_cfg.recalibrate:
         net = recalibrate(net, x[net.val_rows], r[net.val_rows], passes=net_cfg.mc_passes, seed=net_cfg.seed)
     return net
@@ -149,7 +130,7 @@ def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str
     See the module docstring for the two rules (:func:`~bayesmag._src.predictor.compose`).
     ``physics`` and ``nn`` are for the same rows.
     """
-    return compose(physics, nn, fusion=fusion, family=spec.likelihood, df=spec.df)
+    return compose(physics, nn, fusion=fusion, family=spec.likelihood, fixed_shape=spec.fixed_shape)
 
 
 def score(y: np.ndarray, pred: Prediction, level: float) -> tuple[dict, np.ndarray, np.ndarray]:
@@ -222,9 +203,12 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
                                seed=net_cfg.seed + 1)
         fit_idx, cal_idx = sp.train, sp.test
     # Size checks for every likelihood before any training.
-    fit_rows, _ = validation_rows(fit_idx.size, net_cfg.validation_fraction, seed=net_cfg.seed)
-    for spec in specs:
-        check_network_size(spec, fit_rows.size)
+    try:
+        fit_rows, _ = validation_rows(fit_idx.size, net_cfg.validation_fraction, seed=net_cfg.seed)
+        for spec in specs:
+            check_network_size(spec, fit_rows.size)
+    except ValueError as e:
+        raise config_error(e, "network", net_cfg.table()) from None
 
     fit = physics.fit
     x_train = network_inputs(train)
@@ -245,7 +229,8 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
             if bar is not None:
                 bar.set_postfix_str(f"training {name}")
             t = time.perf_counter()
-            net = train_network(x_train[fit_idx], r_train[fit_idx], spec, net_cfg, groups=train.run[fit_idx])
+            net = train_network(x_train[fit_idx], r_train[fit_idx], spec, net_cfg, groups=train.run[fit_idx],
+                                progress=progress)
             train_s = time.perf_counter() - t
             timings["network_train"] += train_s
             nan_messages += _warn_nan(name, net)
@@ -339,6 +324,8 @@ def hybrid_writers(cfg: Config, hs: HybridStage, columns: dict, test: Calibratio
         def write_figures(out: Path) -> None:
             from .hybrid_plots import hybrid_figures
             hybrid_figures(Path(out), cols, temperature, dists, level=level)
+            from .network_plots import loss_curves
+            loss_curves(Path(out) / "network_loss.png", hs.networks)
 
         writers.append(write_figures)
     return writers

@@ -263,7 +263,7 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         writers += hybrid_writers(cfg, hs, columns, test, level)
     result["writers"] = writers
     if cfg.nuts.enabled:
-        from .nuts import run_nuts_stage
+        from .nuts_stage import run_nuts_stage
         run_nuts_stage(cfg, result, train, timings, progress=progress)
 
     with staging_dir(Path(out)) as tmp:

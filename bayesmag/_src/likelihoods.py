@@ -3,7 +3,9 @@ r"""Predictive distributions behind one interface: log-likelihood, CRPS, quantil
 Every family is a location-scale distribution with location ``loc`` and scale ``scale``
 (any broadcastable shapes), plus its own shape fields. A family is one frozen dataclass,
 registered as a JAX pytree and in :data:`LIKELIHOODS` by ``__init_subclass__`` under its
-``name``; adding a family needs that one class and nothing else::
+``name``. It is the one registry of observation models: the residual network, hybrid
+fusion, saved calibrations and NUTS all look a family up here, so adding a family needs
+that one class and nothing else (worked example: ``docs/extending.md``)::
 
     @dataclasses.dataclass(frozen=True)
     class Logistic(Likelihood):
@@ -18,7 +20,11 @@ registered as a JAX pytree and in :data:`LIKELIHOODS` by ``__init_subclass__`` u
         @property
         def variance(self): ...
         @classmethod
-        def from_moments(cls, mean, variance): ...
+        def from_moments(cls, mean, variance): ...          # moment matching (hybrid fusion)
+        def to_numpyro(self): ...                           # the numpyro distribution (NUTS)
+
+A family with shape fields declares each in ``shape_params`` (:class:`ShapeParam`: how a
+network head learns it, its default, its valid range and its NUTS prior).
 
 Shapes follow numpyro: ``batch_shape`` is the broadcast of the parameter shapes,
 ``sample(key, sample_shape)`` has shape ``sample_shape + batch_shape``, and the per-element
@@ -62,8 +68,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import betainc, betaln, gammaln, ndtr, ndtri
 
-__all__ = ["Likelihood", "Gaussian", "Laplace", "StudentT", "LIKELIHOODS", "get_likelihood",
-           "moment_match", "sample_by_inversion"]
+__all__ = ["Likelihood", "ShapeParam", "Gaussian", "Laplace", "StudentT", "LIKELIHOODS", "get_likelihood",
+           "moment_match", "sample_by_inversion", "unregister"]
 
 ArrayLike = jax.typing.ArrayLike
 
@@ -84,6 +90,43 @@ def get_likelihood(name: str | type["Likelihood"]) -> type["Likelihood"]:
     if name not in _REGISTRY:
         raise ValueError(f"likelihood {name!r} is not known; it must be one of {sorted(_REGISTRY)}")
     return _REGISTRY[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class ShapeParam:
+    """One shape field of a family (Student-t ``df``): everything the library needs to know about it.
+
+    Attributes:
+        default: the value used when the field is held fixed and no value is given, and the
+            initial value of NUTS when it is learned.
+        lower: values must be ``> lower`` (Student-t: 2, a finite variance); ``-inf`` for none.
+        head: ``raw -> value`` map from an unconstrained network output (``None``: a head
+            cannot learn it, it must be fixed).
+        prior: ``() -> numpyro distribution`` on the value, used by NUTS when it is learned
+            (``None``: NUTS keeps it fixed at ``default``).
+        setting: name of the ``NetworkSpec`` / ``[network]`` setting that fixes it (a number)
+            or asks for it to be learned (``"learn"``); ``None``: learned whenever ``head`` is set.
+    """
+
+    default: float
+    lower: float = -math.inf
+    head: Callable[[jax.Array], jax.Array] | None = None
+    prior: Callable[[], Any] | None = None
+    setting: str | None = None
+
+    def check(self, name: str, value: Any, family: str) -> None:
+        """``ValueError`` naming ``name`` unless ``value`` is a number ``> lower``."""
+        if (isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer))
+                or not value > self.lower):
+            raise ValueError(f"{name} = {value!r} must be a number > {self.lower:g} for likelihood {family!r}"
+                             + (' or "learn"' if self.head is not None else "") + ".")
+
+
+def unregister(name: str) -> type["Likelihood"]:
+    """Remove a family from :data:`LIKELIHOODS` (e.g. a family a test registered); returns its class."""
+    if name not in _REGISTRY:
+        raise ValueError(f"likelihood {name!r} is not registered; registered: {sorted(_REGISTRY)}")
+    return _REGISTRY.pop(name)
 
 
 def _is_concrete(x: Any) -> bool:
@@ -114,11 +157,19 @@ class Likelihood(abc.ABC):
     scale: ArrayLike
 
     name: ClassVar[str]
-    #: ``(field, transform)`` pairs mapping an unconstrained head output to each shape field.
+    #: ``{field: ShapeParam}`` for every shape field (fields beyond ``loc`` and ``scale``).
+    shape_params: ClassVar[dict[str, ShapeParam]] = {}
+    #: ``(field, transform)`` pairs mapping an unconstrained head output to each shape field
+    #: (derived from ``shape_params``; a family may still set it directly).
     head_transforms: ClassVar[tuple[tuple[str, Callable[[jax.Array], jax.Array]], ...]] = ()
+    #: Fisher information of :math:`\log s` per observation (Gaussian 2, Laplace 1): NUTS
+    #: whitens the noise scale with the step :math:`1/\sqrt{I n}`.
+    log_scale_information: ClassVar[float] = 1.0
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        if "shape_params" in cls.__dict__ and "head_transforms" not in cls.__dict__:
+            cls.head_transforms = tuple((f, p.head) for f, p in cls.shape_params.items() if p.head is not None)
         jax.tree_util.register_pytree_with_keys(cls, _flatten_with_keys, _make_unflatten(cls),
                                                 _flatten)
         name = cls.__dict__.get("name")
@@ -172,6 +223,17 @@ class Likelihood(abc.ABC):
     def from_moments(cls, mean: ArrayLike, variance: ArrayLike, **shape) -> "Likelihood":
         """The member of the family with this mean and variance (shape fields as keywords)."""
 
+    def to_numpyro(self):
+        """The same distribution as a ``numpyro.distributions.Distribution`` (used by NUTS)."""
+        raise NotImplementedError(f"likelihood {self.name!r} has no numpyro distribution; implement to_numpyro "
+                                  f"to use it in NUTS")
+
+    @classmethod
+    def scale_from_residuals(cls, r: np.ndarray, sd: float, **shape: Any) -> float:
+        """A point estimate of ``scale`` from residuals ``r`` with sd ``sd`` (NUTS centres its
+        noise-scale coordinate there); default: moment matching."""
+        return float(cls.from_moments(0.0, sd**2, **shape).scale)
+
     # -- shared, final -----------------------------------------------------------------------
 
     @property
@@ -207,6 +269,11 @@ class Likelihood(abc.ABC):
         return jax.tree.map(lambda p: jnp.broadcast_to(jnp.asarray(p, dtype), shape), self)
 
     # -- network head ------------------------------------------------------------------------
+
+    @classmethod
+    def shape_names(cls) -> tuple[str, ...]:
+        """The shape fields, in field order (``()`` for a pure location-scale family)."""
+        return tuple(f.name for f in dataclasses.fields(cls) if f.name not in _BASE_FIELDS)
 
     @classmethod
     def _learned_fields(cls, fixed: dict[str, Any]) -> tuple[tuple[str, Callable], ...]:
@@ -341,6 +408,7 @@ class Gaussian(Likelihood):
     """
 
     name = "gaussian"
+    log_scale_information = 2.0
 
     def _z(self, y):
         return (jnp.asarray(y) - self.loc) / self.scale
@@ -375,6 +443,14 @@ class Gaussian(Likelihood):
     @classmethod
     def from_moments(cls, mean, variance):
         return cls(loc=mean, scale=jnp.sqrt(variance))
+
+    @classmethod
+    def scale_from_residuals(cls, r, sd):
+        return float(sd)
+
+    def to_numpyro(self):
+        import numpyro.distributions as nd
+        return nd.Normal(self.loc, self.scale)
 
 
 # -- Laplace ---------------------------------------------------------------------------------
@@ -426,6 +502,15 @@ class Laplace(Likelihood):
     @classmethod
     def from_moments(cls, mean, variance):
         return cls(loc=mean, scale=jnp.sqrt(0.5 * jnp.asarray(variance)))
+
+    @classmethod
+    def scale_from_residuals(cls, r, sd):
+        """The maximum-likelihood scale, the mean absolute residual."""
+        return float(np.mean(np.abs(r)))
+
+    def to_numpyro(self):
+        import numpyro.distributions as nd
+        return nd.Laplace(self.loc, self.scale)
 
 
 # -- Student-t -------------------------------------------------------------------------------
@@ -568,6 +653,15 @@ def _df_from_raw(raw: jax.Array) -> jax.Array:
     return 2.0 + jax.nn.softplus(raw)
 
 
+#: Gamma(shape, rate) prior of NUTS on the Student-t degrees of freedom (Juárez & Steel 2010).
+DF_PRIOR = (2.0, 0.1)
+
+
+def _df_prior():
+    import numpyro.distributions as nd
+    return nd.Gamma(*DF_PRIOR)
+
+
 @dataclasses.dataclass(frozen=True)
 class StudentT(Likelihood):
     r"""Location-scale Student-t with ``df`` :math:`\nu` degrees of freedom.
@@ -588,7 +682,8 @@ class StudentT(Likelihood):
     df: ArrayLike
 
     name = "student_t"
-    head_transforms = (("df", _df_from_raw),)
+    shape_params = {"df": ShapeParam(default=4.0, lower=2.0, head=_df_from_raw, prior=_df_prior,
+                                     setting="student_t_df")}
 
     def _z(self, y):
         return (jnp.asarray(y) - self.loc) / self.scale
@@ -637,3 +732,12 @@ class StudentT(Likelihood):
         nu_s = jnp.where(ok, nu, 3.0)
         scale = jnp.where(ok, jnp.sqrt(variance * (nu_s - 2.0) / nu_s), jnp.nan)
         return cls(loc=mean, scale=scale, df=df)
+
+    @classmethod
+    def scale_from_residuals(cls, r, sd, *, df):
+        """Moment matching, with ``df`` floored at 2.5 so that a heavy fixed ``df`` keeps a positive scale."""
+        return float(sd * np.sqrt(max(df - 2.0, 0.5) / df))
+
+    def to_numpyro(self):
+        import numpyro.distributions as nd
+        return nd.StudentT(self.df, self.loc, self.scale)

@@ -59,7 +59,7 @@ pass ``t`` (Student-t: :math:`s^2\nu/(\nu-2)`; Laplace: :math:`2b^2`), mapped ba
 
 Size rule: a network whose parameter count per axis exceeds ``MAX_PARAMS_PER_ROW`` (10)
 times the number of fitting rows (training rows minus the validation rows) is refused with
-a :class:`~bayesmag.ConfigError` naming ``network.width`` / ``network.hidden_layers``: the
+a ``ValueError`` naming ``width`` / ``hidden_layers`` (the job reports it as a config error): the
 paper's 4 x 64 network (12.9k weights) needs at least 1.3k fitting rows. Fewer than
 ``MIN_VALIDATION_ROWS`` (20) validation rows make early stopping a coin toss and are refused
 naming ``network.validation_fraction``.
@@ -79,20 +79,19 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple, Union
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .config import ConfigError
-from .likelihoods import LIKELIHOODS, Likelihood, get_likelihood
+from .likelihoods import LIKELIHOODS, Likelihood, ShapeParam, get_likelihood
 
 __all__ = ["Dense", "NetworkSpec", "Standardizer", "TrainInfo", "ResidualNetwork", "MCPrediction",
            "ACTIVATIONS", "MAX_PARAMS_PER_ROW", "MIN_VALIDATION_ROWS", "init", "apply", "drop_connect", "keep_masks",
            "count_params", "fourier_frequencies", "embed", "head_distribution", "regularized_nll", "build_trainer",
-           "validation_rows",
+           "validation_rows", "TrainProgress", "TRAIN_CHUNK_EPOCHS", "progress_bar", "LEARN", "shape_settings",
            "check_network_size", "fit_residual_network", "mc_predict", "recalibrate", "VALIDATION_KINDS"]
 
 DTYPE = jnp.float32
@@ -109,6 +108,12 @@ FOURIER_STREAM = 0x46465431
 ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
     "relu": jax.nn.relu, "tanh": jnp.tanh, "gelu": jax.nn.gelu, "silu": jax.nn.silu, "elu": jax.nn.elu,
 }
+
+
+def shape_settings() -> dict[str, tuple[str, ShapeParam, str]]:
+    """``{setting: (setting, ShapeParam, family)}`` for every family shape field fixed by a spec setting."""
+    return {p.setting: (p.setting, p, cls.name) for cls in LIKELIHOODS.values()
+            for p in cls.shape_params.values() if p.setting is not None}
 
 
 class Dense(NamedTuple):
@@ -212,16 +217,32 @@ def apply(params: Params, x: jax.Array, key: jax.Array | None = None, *, dropcon
 # --------------------------------------------------------------------------- spec and loss
 
 
+#: ``student_t_df``-style settings take a number (fixed) or this word (learned by the head).
+LEARN = "learn"
+
+
 @dataclasses.dataclass(frozen=True)
 class NetworkSpec:
-    """Static settings of a residual network and its training (hashable: a jit static argument).
+    """All settings of a residual network, its training and its MC inference: the one settings type.
 
-    ``df`` is the Student-t degrees of freedom: a number (fixed) or ``None`` (learned by the
-    head). ``lr_plateau_factor < 1`` multiplies the learning rate by that factor after
-    ``lr_plateau_patience`` epochs without a validation improvement (floor
-    ``lr_min_factor * learning_rate``); the default 1 keeps the paper's constant rate (on the
-    real data a factor 0.5 every 20 epochs changed the test RMSE by less than the spread over
-    seeds). Build a spec from a job config with :meth:`from_config`.
+    The job's ``[network]`` table is this type plus the job's own switches
+    (:class:`bayesmag._src.config.NetworkConfig`), so names and defaults are written once, here.
+    Frozen and hashable: the compiled training takes it as a static argument (with the fields
+    that do not change the compiled program -- ``seed``, ``validation*``, ``recalibrate``,
+    ``mc_passes`` -- normalised away, so new seeds do not recompile).
+
+    ``likelihood`` names a family of :data:`bayesmag.likelihoods.LIKELIHOODS`. A family shape
+    field with a ``setting`` (Student-t ``df``: ``student_t_df``) is fixed at that number or
+    learned by the head with ``"learn"`` (``None`` is read as ``"learn"``). ``lr_plateau_factor
+    < 1`` multiplies the learning rate by that factor after ``lr_plateau_patience`` epochs
+    without a validation improvement (floor ``lr_min_factor * learning_rate``); the default 1
+    keeps the paper's constant rate (on the real data a factor 0.5 every 20 epochs changed the
+    test RMSE by less than the spread over seeds). ``validation_fraction`` / ``validation``
+    choose the early-stopping rows (:func:`validation_rows`), ``recalibrate`` fits a variance
+    factor on them (:func:`recalibrate`), ``mc_passes`` is the number of MC-DropConnect passes.
+
+    Raises:
+        ValueError: a setting outside its valid set, naming the setting, the value and the set.
     """
 
     likelihood: str = "gaussian"
@@ -234,24 +255,36 @@ class NetworkSpec:
     max_epochs: int = 1000
     patience: int = 50
     min_delta: float = 1e-6
-    log_scale_clip: tuple[float, float] = (-10.0, 3.0)
+    validation_fraction: float = 0.1
+    log_scale_clip: tuple = (-10.0, 3.0)   # on the log of the squared scale of the standardised residual
     log_scale_l2: float = 1e-4
     epsilon: float = 1e-6
-    df: float | None = 4.0
+    student_t_df: Union[float, str] = 4.0   # a number > 2, or "learn"
+    mc_passes: int = 100
     lr_plateau_factor: float = 1.0
     lr_plateau_patience: int = 20
     lr_min_factor: float = 1e-3
-    fourier_features: int = 0
-    fourier_scale: float = 1.0
+    fourier_features: int = 0             # m > 0: add m random Fourier features of the inputs (not in the paper)
+    fourier_scale: float = 1.0            # sd of their frequencies, per standardised input unit
+    validation: str = "random"            # "random" (paper) | "time_blocks" (one block per run)
+    recalibrate: bool = False             # fit a variance factor per axis on the validation rows (NLL)
+    seed: int = 0
     n_in: int = 4
 
     def __post_init__(self):
+        if self.student_t_df is None:
+            object.__setattr__(self, "student_t_df", LEARN)
+        clip = self.log_scale_clip
+        if not isinstance(clip, (list, tuple)) or len(clip) != 2:
+            raise ValueError(f"log_scale_clip = {clip!r} must be [low, high] with low < high.")
+        object.__setattr__(self, "log_scale_clip", tuple(float(v) for v in clip))
         if self.likelihood not in LIKELIHOODS:
-            raise ConfigError(f"Config key 'network.likelihoods' names {self.likelihood!r}, which is not known; "
-                              f"it must be one of {sorted(LIKELIHOODS)}.")
+            raise ValueError(f"likelihood {self.likelihood!r} is not known; it must be one of {sorted(LIKELIHOODS)}.")
         if self.activation not in ACTIVATIONS:
-            raise ConfigError(f"Config key 'network.activation' = {self.activation!r} is not valid; "
-                              f"it must be one of {sorted(ACTIVATIONS)}.")
+            raise ValueError(f"activation = {self.activation!r} is not valid; it must be one of {sorted(ACTIVATIONS)}.")
+        if self.validation not in VALIDATION_KINDS:
+            raise ValueError(f"validation = {self.validation!r} is not valid; it must be one of "
+                             f"{list(VALIDATION_KINDS)}.")
         checks = [
             ("hidden_layers", self.hidden_layers >= 1, "at least 1"),
             ("width", self.width >= 1, "at least 1"),
@@ -261,8 +294,11 @@ class NetworkSpec:
             ("max_epochs", self.max_epochs >= 1, "at least 1"),
             ("patience", self.patience >= 1, "at least 1"),
             ("min_delta", self.min_delta >= 0, "non-negative"),
+            ("validation_fraction", 0.0 < self.validation_fraction < 1.0, "in (0, 1)"),
             ("log_scale_l2", self.log_scale_l2 >= 0, "non-negative"),
             ("epsilon", self.epsilon >= 0, "non-negative"),
+            ("mc_passes", self.mc_passes >= 2, "at least 2 (the epistemic variance is a sample variance "
+                                               "over passes)"),
             ("lr_plateau_factor", 0.0 < self.lr_plateau_factor <= 1.0, "in (0, 1]"),
             ("lr_plateau_patience", self.lr_plateau_patience >= 1, "at least 1"),
             ("lr_min_factor", 0.0 < self.lr_min_factor <= 1.0, "in (0, 1]"),
@@ -271,28 +307,43 @@ class NetworkSpec:
         ]
         for key, ok, what in checks:
             if not ok:
-                raise ConfigError(f"Config key 'network.{key}' = {getattr(self, key)!r} must be {what}.")
+                raise ValueError(f"{key} = {getattr(self, key)!r} must be {what}.")
         lo, hi = self.log_scale_clip
         if not lo < hi:
-            raise ConfigError(f"Config key 'network.log_scale_clip' = {list(self.log_scale_clip)} must be "
-                              "[low, high] with low < high.")
-        if self.likelihood == "student_t" and self.df is not None and not self.df > 2:
-            raise ConfigError(f"Config key 'network.student_t_df' = {self.df} must be > 2 (finite variance) "
-                              "or \"learn\".")
+            raise ValueError(f"log_scale_clip = {list(self.log_scale_clip)} must be [low, high] with low < high.")
+        for field, param in shape_settings().items():
+            value = getattr(self, param[0])
+            if value != LEARN:
+                param[1].check(param[0], value, param[2])
 
     @classmethod
     def from_config(cls, net: Any, likelihood: str) -> "NetworkSpec":
-        """The spec for one likelihood of a :class:`~bayesmag.Config`'s ``network`` table."""
-        df = net.student_t_df
-        if isinstance(df, str):
-            if df != "learn":
-                raise ConfigError(f"Config key 'network.student_t_df' = {df!r} must be a number > 2 or \"learn\".")
-            df = None
-        # every setting the spec shares with [network] by name is taken from it (one list, no drift)
-        shared = {f.name for f in dataclasses.fields(cls)} & {f.name for f in dataclasses.fields(net)}
-        kw = {k: getattr(net, k) for k in shared}
-        kw["log_scale_clip"] = tuple(float(v) for v in kw["log_scale_clip"])
-        return cls(likelihood=likelihood, df=None if df is None else float(df), **kw)
+        """The spec of one likelihood from settings sharing its field names (``[network]``)."""
+        kw = {f.name: getattr(net, f.name) for f in dataclasses.fields(cls)
+              if f.name not in ("likelihood", "n_in") and hasattr(net, f.name)}
+        return cls(likelihood=likelihood, **kw)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "NetworkSpec":
+        """The spec saved as a plain dict (``to_dict``); reads the pre-0.2 name ``df`` (``None``: learned).
+
+        Raises:
+            KeyError: a setting this version does not know (names them).
+        """
+        d = dict(d)
+        if "df" in d:
+            df = d.pop("df")
+            d.setdefault("student_t_df", LEARN if df is None else df)
+        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise KeyError(f"unknown network settings {sorted(unknown)}")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        """Plain-JSON settings (``log_scale_clip`` as a list)."""
+        d = dataclasses.asdict(self)
+        d["log_scale_clip"] = list(d["log_scale_clip"])
+        return d
 
     @property
     def family(self) -> type[Likelihood]:
@@ -300,8 +351,32 @@ class NetworkSpec:
 
     @property
     def fixed_shape(self) -> dict[str, float]:
-        """Shape fields held fixed (Student-t ``df`` unless learned); passed to ``from_head``."""
-        return {"df": self.df} if self.likelihood == "student_t" and self.df is not None else {}
+        """The family's shape fields held fixed by a setting (Student-t ``df`` unless ``"learn"``)."""
+        out = {}
+        for field, param in self.family.shape_params.items():
+            if param.setting is None:
+                if param.head is None:
+                    out[field] = float(param.default)
+                continue
+            value = getattr(self, param.setting)
+            if value != LEARN:
+                out[field] = float(value)
+        return out
+
+    @property
+    def df(self) -> float | None:
+        """The fixed Student-t degrees of freedom, ``None`` when learned (``student_t_df``)."""
+        return None if self.student_t_df == LEARN else float(self.student_t_df)
+
+    def shape_for(self, learned: Mapping[str, Any]) -> dict[str, Any]:
+        """Shape fields for moment matching: the fixed ones, else the per-row ``learned`` values."""
+        fixed = self.fixed_shape
+        return {f: fixed[f] if f in fixed else learned[f] for f in self.family.shape_names()}
+
+    def compiled_key(self) -> "NetworkSpec":
+        """This spec with the settings that do not enter the compiled training reset (a jit key)."""
+        return dataclasses.replace(self, validation_fraction=0.1, validation="random", recalibrate=False,
+                                   mc_passes=100, seed=0)
 
     @property
     def n_out(self) -> int:
@@ -398,14 +473,15 @@ class TrainState(NamedTuple):
     val_loss: jax.Array
 
 
-def build_trainer(spec: NetworkSpec) -> Callable[..., tuple[Params, TrainInfo]]:
-    """``train(params, key, x_fit, r_fit, x_val, r_val) -> (best_params, TrainInfo)`` for one axis.
+class _Trainer(NamedTuple):
+    init_state: Callable      # (params, key) -> TrainState
+    epoch: Callable           # (state, x_fit, r_fit, x_val, r_val) -> state after one epoch
+    running: Callable         # state -> bool: not stopped (max_epochs, patience, non-finite loss)
+    info: Callable            # state -> TrainInfo
 
-    Pure and traceable (wrap in ``jax.jit`` / ``jax.vmap``): Adam on
-    :func:`regularized_nll` with one DropConnect mask per minibatch, reshuffled minibatches
-    every epoch, early stopping with best-weight restore, stop at the first non-finite loss.
-    Inputs are float32 and already standardised.
-    """
+
+def _trainer(spec: NetworkSpec) -> _Trainer:
+    """The pieces of the training loop of one axis (pure, traceable; see :func:`build_trainer`)."""
     opt = optax.inject_hyperparams(optax.adam)(learning_rate=spec.learning_rate)
     bs = spec.batch_size
     lr_min = spec.learning_rate * spec.lr_min_factor
@@ -416,14 +492,18 @@ def build_trainer(spec: NetworkSpec) -> Callable[..., tuple[Params, TrainInfo]]:
 
     grad_fn = jax.value_and_grad(loss_fn)
 
-    def train(params, key, x_fit, r_fit, x_val, r_val):
+    def init_state(params, key):
+        nan_hist = jnp.full((spec.max_epochs,), jnp.nan, DTYPE)
+        return TrainState(params=params, opt_state=opt.init(params), key=key, epoch=jnp.asarray(0),
+                          best_params=params, best_loss=jnp.asarray(jnp.inf, DTYPE), best_epoch=jnp.asarray(-1),
+                          wait=jnp.asarray(0), plateau=jnp.asarray(0), nan_epoch=jnp.asarray(-1),
+                          train_loss=nan_hist, val_loss=nan_hist)
+
+    def epoch(s: TrainState, x_fit, r_fit, x_val, r_val) -> TrainState:
         n = x_fit.shape[0]
         n_batches = -(-n // bs)
         pad = n_batches * bs - n
         weight = jnp.concatenate([jnp.ones((n,), DTYPE), jnp.zeros((pad,), DTYPE)]).reshape(n_batches, bs)
-
-        def val_loss_of(p):
-            return regularized_nll(spec, apply(p, x_val, activation=spec.activation), r_val)
 
         def step(carry, batch):
             params, opt_state = carry
@@ -432,60 +512,135 @@ def build_trainer(spec: NetworkSpec) -> Callable[..., tuple[Params, TrainInfo]]:
             updates, opt_state = opt.update(g, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), loss * jnp.sum(w)
 
-        def epoch_body(s: TrainState) -> TrainState:
-            key, k_perm, k_steps = jax.random.split(s.key, 3)
-            perm = jax.random.permutation(k_perm, n)
-            idx = jnp.concatenate([perm, perm[:pad]]).reshape(n_batches, bs)
-            step_keys = jax.random.split(k_steps, n_batches)
-            (params, opt_state), losses = jax.lax.scan(step, (s.params, s.opt_state), (idx, weight, step_keys))
-            train_loss = jnp.sum(losses) / n
-            val = val_loss_of(params)
-            finite = jnp.isfinite(train_loss) & jnp.isfinite(val)
-            improved = finite & (val < s.best_loss - spec.min_delta)
-            best_params = jax.tree.map(lambda new, old: jnp.where(improved, new, old), params, s.best_params)
-            plateau = jnp.where(improved, 0, s.plateau + 1)
-            reduce = plateau >= spec.lr_plateau_patience
-            lr = opt_state.hyperparams["learning_rate"]
-            lr = jnp.where(reduce, jnp.maximum(lr * spec.lr_plateau_factor, lr_min), lr).astype(lr.dtype)
-            opt_state = opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
-            return TrainState(
-                params=params, opt_state=opt_state, key=key, epoch=s.epoch + 1, plateau=jnp.where(reduce, 0, plateau),
-                best_params=best_params,
-                best_loss=jnp.where(improved, val, s.best_loss),
-                best_epoch=jnp.where(improved, s.epoch, s.best_epoch),
-                wait=jnp.where(improved, 0, s.wait + 1),
-                nan_epoch=jnp.where(finite, s.nan_epoch, s.epoch),
-                train_loss=s.train_loss.at[s.epoch].set(train_loss),
-                val_loss=s.val_loss.at[s.epoch].set(val),
-            )
+        key, k_perm, k_steps = jax.random.split(s.key, 3)
+        perm = jax.random.permutation(k_perm, n)
+        idx = jnp.concatenate([perm, perm[:pad]]).reshape(n_batches, bs)
+        step_keys = jax.random.split(k_steps, n_batches)
+        (params, opt_state), losses = jax.lax.scan(step, (s.params, s.opt_state), (idx, weight, step_keys),
+                                                   unroll=SCAN_UNROLL)
+        train_loss = jnp.sum(losses) / n
+        val = regularized_nll(spec, apply(params, x_val, activation=spec.activation), r_val)
+        finite = jnp.isfinite(train_loss) & jnp.isfinite(val)
+        improved = finite & (val < s.best_loss - spec.min_delta)
+        best_params = jax.tree.map(lambda new, old: jnp.where(improved, new, old), params, s.best_params)
+        plateau = jnp.where(improved, 0, s.plateau + 1)
+        reduce = plateau >= spec.lr_plateau_patience
+        lr = opt_state.hyperparams["learning_rate"]
+        lr = jnp.where(reduce, jnp.maximum(lr * spec.lr_plateau_factor, lr_min), lr).astype(lr.dtype)
+        opt_state = opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
+        return TrainState(
+            params=params, opt_state=opt_state, key=key, epoch=s.epoch + 1, plateau=jnp.where(reduce, 0, plateau),
+            best_params=best_params,
+            best_loss=jnp.where(improved, val, s.best_loss),
+            best_epoch=jnp.where(improved, s.epoch, s.best_epoch),
+            wait=jnp.where(improved, 0, s.wait + 1),
+            nan_epoch=jnp.where(finite, s.nan_epoch, s.epoch),
+            train_loss=s.train_loss.at[s.epoch].set(train_loss),
+            val_loss=s.val_loss.at[s.epoch].set(val),
+        )
 
-        def cond(s: TrainState):
-            return (s.epoch < spec.max_epochs) & (s.wait < spec.patience) & (s.nan_epoch < 0)
+    def running(s: TrainState):
+        return (s.epoch < spec.max_epochs) & (s.wait < spec.patience) & (s.nan_epoch < 0)
 
-        nan_hist = jnp.full((spec.max_epochs,), jnp.nan, DTYPE)
-        s0 = TrainState(params=params, opt_state=opt.init(params), key=key, epoch=jnp.asarray(0),
-                        best_params=params, best_loss=jnp.asarray(jnp.inf, DTYPE), best_epoch=jnp.asarray(-1),
-                        wait=jnp.asarray(0), plateau=jnp.asarray(0), nan_epoch=jnp.asarray(-1),
-                        train_loss=nan_hist, val_loss=nan_hist)
-        s = jax.lax.while_loop(cond, epoch_body, s0)
-        info = TrainInfo(epochs_run=s.epoch, best_epoch=s.best_epoch, best_val_loss=s.best_loss,
+    def info(s: TrainState) -> TrainInfo:
+        return TrainInfo(epochs_run=s.epoch, best_epoch=s.best_epoch, best_val_loss=s.best_loss,
                          nan_epoch=s.nan_epoch, train_loss=s.train_loss, val_loss=s.val_loss)
-        return s.best_params, info
+
+    return _Trainer(init_state, epoch, running, info)
+
+
+def build_trainer(spec: NetworkSpec) -> Callable[..., tuple[Params, TrainInfo]]:
+    """``train(params, key, x_fit, r_fit, x_val, r_val) -> (best_params, TrainInfo)`` for one axis.
+
+    Pure and traceable (wrap in ``jax.jit`` / ``jax.vmap``): Adam on
+    :func:`regularized_nll` with one DropConnect mask per minibatch, reshuffled minibatches
+    every epoch, early stopping with best-weight restore, stop at the first non-finite loss.
+    Inputs are float32 and already standardised.
+    """
+    t = _trainer(spec)
+
+    def train(params, key, x_fit, r_fit, x_val, r_val):
+        s = jax.lax.while_loop(t.running, lambda s: t.epoch(s, x_fit, r_fit, x_val, r_val), t.init_state(params, key))
+        return s.best_params, t.info(s)
 
     return train
 
 
-@functools.partial(jax.jit, static_argnames=("spec",))
-def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val):
-    """Init + train one network per column of ``r_fit`` (vmapped, one compiled call)."""
-    train = build_trainer(spec)
+#: Epochs per compiled call of the training loop: between calls :func:`fit_residual_network`
+#: reports progress (epochs run, best validation loss per axis). The chunks run the same
+#: epochs in the same order, so the trained weights do not depend on it.
+TRAIN_CHUNK_EPOCHS = 25
+#: Minibatch steps per iteration of the compiled step loop (``jax.lax.scan(unroll=...)``).
+SCAN_UNROLL = 1
 
-    def one(key, r_f, r_v):
+
+class TrainProgress(NamedTuple):
+    """Where training stands after a chunk of epochs, per axis: ``epochs``, ``best_val_loss``,
+    ``val_loss`` (of the last epoch run), ``done`` (stopped), and ``max_epochs``."""
+
+    epochs: np.ndarray
+    best_val_loss: np.ndarray
+    val_loss: np.ndarray
+    done: np.ndarray
+    max_epochs: int
+
+
+@functools.partial(jax.jit, static_argnames=("spec",))
+def _init_axes(spec: NetworkSpec, keys):
+    t = _trainer(spec)
+
+    def one(key):
         k_init, k_train = jax.random.split(key)
         params = init(k_init, spec.n_features, spec.n_out, hidden_layers=spec.hidden_layers, width=spec.width)
-        return train(params, k_train, x_fit, r_f, x_val, r_v)
+        return t.init_state(params, k_train)
 
-    return jax.vmap(one, in_axes=(0, 1, 1))(keys, r_fit, r_val)
+    return jax.vmap(one)(keys)
+
+
+@functools.partial(jax.jit, static_argnames=("spec",))
+def _train_chunk(spec: NetworkSpec, state: TrainState, stop, x_fit, r_fit, x_val, r_val):
+    """Run every axis's training loop until it stops or reaches epoch ``stop`` (vmapped)."""
+    t = _trainer(spec)
+
+    def one(s, r_f, r_v):
+        return jax.lax.while_loop(lambda s: t.running(s) & (s.epoch < stop),
+                                  lambda s: t.epoch(s, x_fit, r_f, x_val, r_v), s)
+
+    s = jax.vmap(one, in_axes=(0, 1, 1))(state, r_fit, r_val)
+    return s, jax.vmap(t.running)(s)
+
+
+def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
+                progress: Callable[[TrainProgress], None] | None = None, chunk: int = TRAIN_CHUNK_EPOCHS):
+    """Init + train one network per column of ``r_fit`` (vmapped), ``chunk`` epochs per compiled call."""
+    spec = spec.compiled_key()
+    s = _init_axes(spec, keys)
+    stop = 0
+    while stop < spec.max_epochs:
+        stop = min(stop + chunk, spec.max_epochs)
+        s, running = _train_chunk(spec, s, stop, x_fit, r_fit, x_val, r_val)
+        running = np.asarray(running)
+        if progress is not None:
+            ep = np.asarray(s.epoch)
+            last = np.asarray(s.val_loss)[np.arange(ep.size), np.maximum(ep - 1, 0)]
+            progress(TrainProgress(ep, np.asarray(s.best_loss), last, ~running, spec.max_epochs))
+        if not running.any():
+            break
+    t = _trainer(spec)
+    return s.best_params, jax.vmap(t.info)(s)
+
+
+def progress_bar(total_epochs: int, *, desc: str = "network training") -> tuple[Callable[[TrainProgress], None], Any]:
+    """A ``tqdm`` bar fed by :class:`TrainProgress` (epochs of the slowest axis; val loss per axis)."""
+    from tqdm.auto import tqdm
+    bar = tqdm(total=total_epochs, desc=desc, unit="epoch", leave=False)
+
+    def update(p: TrainProgress) -> None:
+        done_to = int(p.max_epochs if p.done.all() else p.epochs[~p.done].max())
+        bar.update(max(0, done_to - bar.n))
+        bar.set_postfix_str("best val loss " + " ".join(f"{v:.4g}" for v in p.best_val_loss))
+
+    return update, bar
 
 
 # --------------------------------------------------------------------------- fitted network
@@ -537,7 +692,7 @@ class ResidualNetwork(NamedTuple):
 
 def validation_rows(n: int, fraction: float, *, seed: int, kind: str = "random",
                     groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Seeded ``(fit_rows, val_rows)`` of ``range(n)``; ``ConfigError`` if val < ``MIN_VALIDATION_ROWS``.
+    """Seeded ``(fit_rows, val_rows)`` of ``range(n)``; ``ValueError`` if val < ``MIN_VALIDATION_ROWS``.
 
     ``kind = "random"``: rows drawn at random (the paper). ``kind = "time_blocks"``: one
     contiguous block of ``fraction`` of the rows inside every group of ``groups`` (the run of
@@ -545,12 +700,12 @@ def validation_rows(n: int, fraction: float, *, seed: int, kind: str = "random",
     neighbours were not fitted.
     """
     if kind not in VALIDATION_KINDS:
-        raise ConfigError(f"Config key 'network.validation' = {kind!r} is not valid; it must be one of "
+        raise ValueError(f"validation = {kind!r} is not valid; it must be one of "
                           f"{list(VALIDATION_KINDS)}.")
     n_val = int(round(fraction * n))
     if not 0.0 < fraction < 1.0 or n_val < MIN_VALIDATION_ROWS or n - n_val < 1:
-        raise ConfigError(
-            f"Config key 'network.validation_fraction' = {fraction} leaves {n_val} of {n} training rows for "
+        raise ValueError(
+            f"validation_fraction = {fraction} leaves {n_val} of {n} training rows for "
             f"validation; early stopping needs at least {MIN_VALIDATION_ROWS} (and some rows left to fit). "
             f"Raise it to at least {math.ceil(MIN_VALIDATION_ROWS / max(n, 1) * 1000) / 1000:g} or use more data.")
     if kind == "time_blocks":
@@ -566,28 +721,35 @@ def validation_rows(n: int, fraction: float, *, seed: int, kind: str = "random",
 
 
 def check_network_size(spec: NetworkSpec, n_fit: int) -> None:
-    """``ConfigError`` if the network has more than ``MAX_PARAMS_PER_ROW`` parameters per fitting row."""
+    """``ValueError`` if the network has more than ``MAX_PARAMS_PER_ROW`` parameters per fitting row."""
     if spec.n_params > MAX_PARAMS_PER_ROW * n_fit:
-        raise ConfigError(
+        raise ValueError(
             f"The residual network ({spec.hidden_layers} hidden layers x {spec.width} units, {spec.n_params} "
             f"parameters per axis) is too large for {n_fit} fitting rows: at most {MAX_PARAMS_PER_ROW} parameters "
-            f"per row ({MAX_PARAMS_PER_ROW * n_fit}). Lower 'network.width' or 'network.hidden_layers', "
+            f"per row ({MAX_PARAMS_PER_ROW * n_fit}). Lower 'width' or 'hidden_layers', "
             "or use more data.")
     if spec.batch_size > n_fit:
-        raise ConfigError(f"Config key 'network.batch_size' = {spec.batch_size} exceeds the {n_fit} fitting rows.")
+        raise ValueError(f"batch_size = {spec.batch_size} exceeds the {n_fit} fitting rows.")
 
 
-def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *, validation_fraction: float = 0.1,
-                         seed: int = 0, validation: str = "random",
-                         groups: np.ndarray | None = None) -> ResidualNetwork:
+def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
+                         validation_fraction: float | None = None, seed: int | None = None,
+                         validation: str | None = None, groups: np.ndarray | None = None,
+                         progress: bool | Callable[[TrainProgress], None] = False) -> ResidualNetwork:
     """Train one network per column of the residuals ``r`` ``(n, A)`` on inputs ``x`` ``(n, n_in)``.
 
     A seeded ``validation_fraction`` of the rows is held out for early stopping (chosen as
     :func:`validation_rows` ``kind = validation`` with the rows' run ``groups``); inputs and
     residuals are standardised by the fitting rows' mean and sd. Axis ``a`` uses the key
-    ``fold_in(key(seed), a)``, so a column trains exactly as it would alone. The whole
-    training is one jit-compiled, vmapped call.
+    ``fold_in(key(seed), a)``, so a column trains exactly as it would alone. The axes train
+    together (vmapped) in compiled chunks of :data:`TRAIN_CHUNK_EPOCHS` epochs;
+    ``progress`` (``True`` for a progress bar, or a callable taking :class:`TrainProgress`)
+    hears after every chunk. ``validation_fraction``, ``seed`` and ``validation`` default to
+    the spec's.
     """
+    validation_fraction = spec.validation_fraction if validation_fraction is None else validation_fraction
+    seed = spec.seed if seed is None else seed
+    validation = spec.validation if validation is None else validation
     x = np.asarray(x, np.float64)
     r = np.asarray(r, np.float64)
     if x.ndim != 2 or x.shape[1] != spec.n_in:
@@ -602,8 +764,15 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *, val
     base = jax.random.key(seed)
     keys = jax.vmap(lambda a: jax.random.fold_in(base, a))(jnp.arange(r.shape[1]))
     freqs = fourier_frequencies(spec, seed) if spec.fourier_features else None
-    params, info = _train_axes(spec, keys, embed(st.x(x[fit_rows]), freqs), st.r(r[fit_rows]),
-                               embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]))
+    bar = None
+    if progress is True:
+        progress, bar = progress_bar(spec.max_epochs, desc=f"network training ({spec.likelihood}, {r.shape[1]} axes)")
+    try:
+        params, info = _train_axes(spec, keys, embed(st.x(x[fit_rows]), freqs), st.r(r[fit_rows]),
+                                   embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]), progress=progress or None)
+    finally:
+        if bar is not None:
+            bar.close()
     return ResidualNetwork(spec, params, st, jax.device_get(info), int(fit_rows.size), int(val_rows.size), freqs,
                            None, val_rows)
 
@@ -654,10 +823,10 @@ def mc_predict(net: ResidualNetwork, x: np.ndarray, *, passes: int, seed: int = 
     Pass ``t`` of axis ``a`` uses one weight mask for all rows. Returns means and sds in uT.
     """
     if passes < 2:
-        raise ConfigError(f"Config key 'network.mc_passes' = {passes} must be at least 2 (the epistemic "
+        raise ValueError(f"passes = {passes} must be at least 2 (the epistemic "
                           "variance is a sample variance over passes).")
     st = net.standardizer
-    mean, alea, epi, shape = jax.device_get(_mc_axes(net.spec, net.params, embed(st.x(x), net.frequencies),
+    mean, alea, epi, shape = jax.device_get(_mc_axes(net.spec.compiled_key(), net.params, embed(st.x(x), net.frequencies),
                                                          jax.random.key(seed), passes))
     rs = st.r_scale
     if net.variance_scale is not None:
@@ -697,9 +866,7 @@ def recalibrate(net: ResidualNetwork, x_val: np.ndarray, r_val: np.ndarray, *, p
     base = mc_predict(net._replace(variance_scale=None), x_val, passes=passes, seed=seed)
     var = base.aleatoric**2 + base.epistemic**2
     r_val = np.asarray(r_val, np.float64)
-    shape = {}
-    if net.spec.likelihood == "student_t":
-        shape["df"] = base.shape["df"] if net.spec.df is None else net.spec.df
+    shape = net.spec.shape_for(base.shape)
     c = RECALIBRATION_GRID[:, None, None]
     dist = moment_match(net.spec.likelihood, base.mean[None], c * var[None],
                         **{k: np.asarray(v)[None] if np.ndim(v) else v for k, v in shape.items()})

@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .likelihoods import Gaussian, Likelihood, moment_match
+from .likelihoods import Gaussian, Likelihood, get_likelihood, moment_match
 
 __all__ = ["FUSIONS", "UQOptions", "Components", "Prediction", "Predictor", "TransferEstimate", "compose",
            "conformal_scale", "estimate_transfer", "network_inputs"]
@@ -107,13 +107,14 @@ class Prediction:
 
 
 def compose(physics, nn=None, *, residual_sd=None, fusion: str = "moment_match", family: str = "gaussian",
-            df: float | None = None, transfer_sd=None, scale=None, new_session=True) -> Prediction:
+            fixed_shape=None, transfer_sd=None, scale=None, new_session=True) -> Prediction:
     """The predictive distribution from its computed parts (rules in the module docstring).
 
     ``physics``: a :class:`~bayesmag.PhysicsUQ`; ``nn``: an MC-DropConnect
     :class:`~bayesmag._src.network.MCPrediction` or None; ``residual_sd``, ``transfer_sd``:
-    ``(3,)`` or ``(n, 3)`` sds or None; ``df``: fixed Student-t degrees of freedom (None: the
-    network's learned per-row df); ``scale``: ``(3,)`` interval factor or None; ``new_session``:
+    ``(3,)`` or ``(n, 3)`` sds or None; ``fixed_shape``: the family's shape fields held fixed
+    (:attr:`NetworkSpec.fixed_shape`, e.g. Student-t ``df``); the others come from the network's
+    learned per-row values; ``scale``: ``(3,)`` interval factor or None; ``new_session``:
     bool or ``(n,)`` mask of the rows the transfer part enters.
     """
     if fusion not in FUSIONS:
@@ -151,9 +152,8 @@ def compose(physics, nn=None, *, residual_sd=None, fusion: str = "moment_match",
         if fusion == "paper":
             dist_fam, dist = "gaussian", Gaussian(mean, np.sqrt(var))
         else:
-            shape = {}
-            if family == "student_t":
-                shape["df"] = nn.shape["df"] if df is None else df
+            fixed = dict(fixed_shape or {})
+            shape = {f: fixed[f] if f in fixed else nn.shape[f] for f in get_likelihood(family).shape_names()}
             dist_fam, dist = family, moment_match(family, mean, var, **shape)
     if tau is not None:
         parts["transfer"] = tau
@@ -228,7 +228,7 @@ class Predictor:
         ``new_session``: bool or (n,) mask of rows from sessions the calibration was not fitted on)."""
         spec = None if self.network is None else self.network.spec
         return compose(c.physics, c.nn, residual_sd=self.residual_sd, fusion=fusion or self.fusion,
-                       family=self.family, df=None if spec is None else spec.df, transfer_sd=self.transfer_sd,
+                       family=self.family, fixed_shape=None if spec is None else spec.fixed_shape, transfer_sd=self.transfer_sd,
                        scale=self.scale, new_session=new_session)
 
     def predict(self, data, *, new_session=True, progress: bool = False) -> Prediction:

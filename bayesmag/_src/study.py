@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
-from .config import Config, ConfigError
+from .config import Config, ConfigError, config_error
 from .data import AXES, make_split
 from .fit import fit_physics
 from .job import build_model, uq_options
@@ -62,7 +62,6 @@ def _peak_rss_gb() -> float:
 def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     """Simulate ``size`` rows, calibrate and score; returns the per-size record."""
     from .hybrid import train_network
-    from .network import NetworkSpec
     from .simulate import simulate_from_config
 
     t = {}
@@ -86,13 +85,16 @@ def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     t0 = time.perf_counter()
     likelihood = cfg.network.likelihoods[0]
     over = dict(cfg.study.per_size.get(str(size), {}))
-    valid = {f.name for f in dataclasses.fields(cfg.network)}
+    valid = set(cfg.network.table())
     bad = sorted(set(over) - valid)
     if bad:
         raise ConfigError(f"Config key 'study.per_size.{size}' names unknown network setting(s) {bad}; "
                           f"valid: {sorted(valid)}.")
-    net_cfg = dataclasses.replace(cfg.network, **over)
-    spec = NetworkSpec.from_config(net_cfg, likelihood)
+    try:
+        net_cfg = dataclasses.replace(cfg.network, **over)
+    except ValueError as e:
+        raise config_error(e, f"study.per_size.{size}", valid) from None
+    spec = net_cfg.spec(likelihood)
     r_train = train.b_ref - fit.predict(inputs_from_data(train))
     net = train_network(network_inputs(train), r_train, spec, net_cfg, groups=train.run)
     t["network_train"] = time.perf_counter() - t0
