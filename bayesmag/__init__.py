@@ -64,6 +64,7 @@ from ._src.catalogue import (  # the discovery catalogue: model extensions, regi
     CubicNonlinearity as CubicNonlinearity,
     Hysteresis as Hysteresis,
     OffsetDrift as OffsetDrift,
+    RunOffset as RunOffset,
     TemperatureQuadratic as TemperatureQuadratic,
     ThermalLag as ThermalLag,
     TimingOffset as TimingOffset,
@@ -82,7 +83,7 @@ __version__ = "0.1.0"
 __all__ = [
     "likelihoods", "metrics", "simulate",
     "HybridPrediction", "fuse", "MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict",
-    "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift",
+    "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "RunOffset",
     "TimingOffset",
     "NutsResult", "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts",
     "ArtifactError", "Calibration", "load", "DiscoverOptions", "DiscoveryResult", "discover",
