@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .artifact import load
-from .data import AXES, DataError, check_field_unit, check_values, load_csv
+from .data import AXES, DataError, check_field_unit, check_values
 
 __all__ = ["apply_calibration", "check_units", "check_apply_paths"]
 

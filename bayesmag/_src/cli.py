@@ -20,7 +20,6 @@ folder bayesmag did not write, lock, two-phase swap).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -102,7 +101,6 @@ def _cmd_data(args) -> int:
 
 
 def _cmd_apply(args) -> int:
-    import numpy as np
 
     from .apply import apply_calibration
 

@@ -108,7 +108,7 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
         ("reference magnetometer (`[uq] reference_sd`)", ref, "B", math.inf,
          "stated by the user (certificate of the reference)" if any(ref.values()) else "not given (0)"),
     ]
-    lines = [f"## Uncertainty budget (standard uncertainties, mean over test rows, uT)", "",
+    lines = ["## Uncertainty budget (standard uncertainties, mean over test rows, uT)", "",
              "| component | type | dof | x | y | z | evaluation |", "|---|---|---|---|---|---|---|"]
     dof = lambda v: "inf" if not math.isfinite(v) else f"{v:.0f}"  # noqa: E731
     for label, vals, typ, nu, how in comps:
@@ -148,7 +148,7 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
               "(JCGM 100:2008, 4.2-4.3). The reference's uncertainty enters the budget only: the job's intervals "
               "and coverage figures do not include it.",
               "Dominant physics part per axis: " + ", ".join(f"{a}: {dom[a]}" for a in AXES) + ".",
-              f"Input noise sd (Bx, By, Bz in uT, T in C): "
+              "Input noise sd (Bx, By, Bz in uT, T in C): "
               + ", ".join(f"{k_} {v:.3g}" for k_, v in u["sigma_in_sd"].items()) + f" ({u['sigma_in_source']}).", ""]
     return lines
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import sys
 import time
 from pathlib import Path
@@ -69,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.data:
             data = load_csv(args.data)
             opts = DiscoverOptions()
-            if "time" not in Path(args.data).read_text().splitlines()[0].split(","):
+            header = Path(args.data).read_text(encoding="utf-8-sig").splitlines()[0]   # BOM-safe, any delimiter
+            if "time" not in [c.strip().strip('"') for c in re.split(r"[,;\t]", header)]:
                 opts = dataclasses.replace(opts, time_available=False)
             name = Path(args.data).stem
         elif args.config:

@@ -28,7 +28,7 @@ from ..fit import covariance
 from ..physics import InputTransform
 from .diagnostics import block_z
 from .frame import Extension, lstsq
-from .options import T_IDENT, Z_DISTINCT
+from .options import T_IDENT
 from .search import cv_residuals, row_loss, compare
 
 __all__ = ["drop_one", "identified", "implausible", "ZeroPhaseSmoothing", "lag_or_smoothing"]

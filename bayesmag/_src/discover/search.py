@@ -168,7 +168,6 @@ def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int,
 
 def _refine(designs, current, ext, folds3, rounds: int = 2):
     """The whole-sensor extension with its nonlinear value refined by in-sample SSE on finer grids."""
-    comp = type(ext.component)
     is_log = ext.name == "thermal_lag"
     step = 0.35 if is_log else 0.25 * max(abs(ext.setting.nl), 1e-3)
     for _ in range(rounds):
