@@ -81,6 +81,8 @@ class NetworkConfig(NetworkSpec):
 
     #: spec fields set per network by the job, not by the table
     internal: ClassVar[tuple[str, ...]] = ("likelihood", "n_in")
+    #: spec settings whose job default differs from the library's (honest by default, issue #13)
+    job_defaults: ClassVar[tuple[str, ...]] = ("validation",)
 
     enabled: bool = False
     likelihoods: list = dataclasses.field(default_factory=lambda: ["gaussian"])
