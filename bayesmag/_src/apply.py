@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import os
 import time
 from pathlib import Path
@@ -11,6 +10,7 @@ import numpy as np
 
 from .artifact import load
 from .data import AXES, DataError, check_field_unit, check_values
+from .domain import REASON_CODES
 
 __all__ = ["apply_calibration", "check_units", "check_apply_paths"]
 
@@ -95,22 +95,22 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
         warnings.append(f"{n_out} of {data.n} rows lie outside the calibration's training domain (in_domain=false): "
                         f"their values are extrapolation and their intervals may be far too narrow.")
     cols = [c for c in OUTPUT_COLUMNS if c in pred]
-    header = ["time", "run"] + [f"{a}_{c}" for a in AXES for c in cols] + ["in_domain", "valid", "in_domain_reason"]
+    header = ["time", "run"] + [f"{a}_{c}" for a in AXES for c in cols] + ["in_domain_reason", "in_domain", "valid"]
     mats = [data.time[:, None], data.run[:, None].astype(np.float64)]
     for a in range(3):
         mats += [pred[c][:, a:a + 1] for c in cols]
-    mats += [pred["in_domain"][:, None].astype(np.float64), pred["valid"][:, None].astype(np.float64)]
+    # the reason as a bit code (the file stays all-numeric): sum of REASON_CODES, 0 inside or invalid
+    code = np.array([sum(REASON_CODES[k] for k in w.split(";") if k in REASON_CODES) for w in pred["in_domain_reason"]])
+    mats += [code[:, None].astype(np.float64), pred["in_domain"][:, None].astype(np.float64),
+             pred["valid"][:, None].astype(np.float64)]
     mat = np.concatenate(mats, axis=1)
-    fmt = ["%.6f", "%d"] + ["%.8g"] * (mat.shape[1] - 4) + ["%d", "%d"]
+    fmt = ["%.6f", "%d"] + ["%.8g"] * (mat.shape[1] - 5) + ["%d", "%d", "%d"]
     tmp = out_path.with_name(f".{out_path.name}.partial-{os.getpid()}")
     try:
         with open(tmp, "w") as f:
             f.write(",".join(header) + "\n")
             for lo in range(0, data.n, 200_000):
-                buf = io.StringIO()
-                np.savetxt(buf, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
-                reasons = pred["in_domain_reason"][lo:lo + 200_000]
-                f.writelines(f"{line},{why}\n" for line, why in zip(buf.getvalue().splitlines(), reasons))
+                np.savetxt(f, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
         tmp.replace(out_path)
     finally:
         tmp.unlink(missing_ok=True)

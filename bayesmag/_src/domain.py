@@ -18,12 +18,14 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["Domain", "rates", "REASONS"]
+__all__ = ["Domain", "rates", "REASONS", "REASON_CODES"]
 
 _NAMES = ("bx_meas", "by_meas", "bz_meas", "temperature")
 _RATE_NAMES = ("dbx_dt", "dby_dt", "dbz_dt", "dT_dt")
 #: Reason of every column of :meth:`Domain.outside`.
 REASONS = ("field_range",) * 3 + ("temperature",) + ("field_rate",) * 3 + ("temperature_rate",)
+#: Bit of every reason in the numeric ``in_domain_reason`` column of ``bayesmag apply`` output.
+REASON_CODES = {"field_range": 1, "temperature": 2, "field_rate": 4, "temperature_rate": 8}
 #: Floor of the margin on the rate limits: 0.5 uT/s for the field, 0.05 C/s for temperature.
 RATE_FLOOR = (0.5, 0.5, 0.5, 0.05)
 
