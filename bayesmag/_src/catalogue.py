@@ -25,7 +25,13 @@ thermal_lag              transform   log_tau (tau in s)                         
 timing_offset            transform   delta (s)                                      timing_offset
 hysteresis               linear      h (uT)                                         hysteresis
 offset_drift             linear      drift_rate (uT/s) [+ run_step (uT/run)]        offset_drift
+run_offset               linear      o_<run> per run after the first (uT)           (none)
 =======================  ==========  =============================================  =====================
+
+Every class also carries its discovery registry entry (:class:`Entry`): requirements, scope
+(one channel, or the whole sensor), search grid, plain-words description, the variable it is
+drawn against and a plausibility check of its nonlinear parameter. Adding a term is one class
+(plus its tests); discovery iterates :data:`CATALOGUE` and has no per-name branches.
 """
 
 from __future__ import annotations
@@ -41,7 +47,8 @@ from . import physics as _physics
 from .physics import EXTRA_TERMS, InputTransform, Inputs, Term
 
 __all__ = ["CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "TemperatureQuadratic",
-           "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "SIMULATOR_NAMES", "explanation"]
+           "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "RunOffset", "SIMULATOR_NAMES", "explanation",
+           "Entry", "Setting", "SearchContext"]
 
 _AXES = ("x", "y", "z")
 
@@ -75,6 +82,73 @@ def _run_first_last(run: jax.Array) -> tuple[jax.Array, jax.Array]:
     return first, last
 
 
+# --------------------------------------------------------------------------- registry interface
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchContext:
+    """What a catalogue entry needs to lay out its search grid on one recording.
+
+    ``t0`` reference temperature (C); ``dt`` median sampling step (s); ``time_ref`` first time
+    stamp; ``runs`` the run ids in order; ``run_span`` median run duration (s); ``reach`` 98th
+    percentile of |measured field| per channel; ``step_noise`` sd of the row-to-row change of
+    the measured field per channel (noise scale)."""
+
+    t0: float = 0.0
+    dt: float = 1.0
+    time_ref: float = 0.0
+    runs: tuple = (0,)
+    run_span: float = 1.0
+    reach: tuple = (1.0, 1.0, 1.0)
+    step_noise: tuple = (0.1, 0.1, 0.1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """One concrete point of an entry's search grid: the component, the columns of its
+    features that are used (None: all) and, for a transform, its fixed nonlinear value."""
+
+    component: object
+    cols: tuple | None = None
+    nl: float | None = None
+
+
+class Entry:
+    """Registry interface every catalogue class carries (so adding a term is one class).
+
+    * ``requires``: what the recording must have: ``"time"``, ``"temperature"``, ``"runs"``
+      (two or more runs);
+    * ``scope``: ``"channel"`` (a distortion of one sensor reading, or of one calibrated
+      output) or ``"sensor"`` (a transform of the whole input series);
+    * ``simulator_name``: the :mod:`bayesmag.simulate` effect it represents (its twin), or None;
+    * :meth:`grid` the settings tried on channel ``c`` (None for sensor-scope entries);
+    * :meth:`describe` a plain-words phrase for the used columns;
+    * :meth:`depends_on` the variable the effect is drawn against;
+    * :meth:`implausible` a reason why a fitted nonlinear value is not this physics (or None).
+    """
+
+    requires: ClassVar[tuple] = ()
+    scope: ClassVar[str] = "channel"
+    simulator_name: ClassVar[str | None] = None
+
+    @classmethod
+    def grid(cls, ctx: SearchContext, c: int | None) -> list:
+        return [Setting(cls())]
+
+    def describe(self, cols) -> str:
+        return self.name.replace("_", " ")
+
+    def depends_on(self, cols) -> str:
+        return "time"
+
+    def implausible(self, value: float, ctx: SearchContext) -> str | None:
+        return None
+
+
+def _cols_names(names, cols):
+    return [names[i] for i in (cols if cols is not None else range(len(names)))]
+
+
 # --------------------------------------------------------------------------- linear terms
 
 
@@ -98,7 +172,7 @@ _THERMAL_DOC = """
 
 
 @dataclasses.dataclass(frozen=True)
-class AxisQuadratic(Term):
+class AxisQuadratic(Term, Entry):
     r"""Squares of the measured field: :math:`\sum_j q_{jj} B_j^2` (``q`` in 1/uT)."""
 
     t0: float = 0.0
@@ -118,9 +192,21 @@ class AxisQuadratic(Term):
     def features(self, inputs):
         return _with_thermal(self, inputs.b * inputs.b, inputs)
 
+    simulator_name: ClassVar[str] = "axis_quadratic"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls())]
+
+    def describe(self, cols):
+        return "reading gains " + " + ".join(f"B{n[2]}^2" for n in _cols_names(("q_xx", "q_yy", "q_zz"), cols)) + " terms"
+
+    def depends_on(self, cols):
+        return "B" + "xyz"[(cols or (0,))[0]]
+
 
 @dataclasses.dataclass(frozen=True)
-class CrossAxisQuadratic(Term):
+class CrossAxisQuadratic(Term, Entry):
     r"""Products of two measured field components: :math:`q_{xy} B_x B_y + q_{xz} B_x B_z + q_{yz} B_y B_z`."""
 
     t0: float = 0.0
@@ -142,9 +228,18 @@ class CrossAxisQuadratic(Term):
         X = jnp.stack([b[..., 0] * b[..., 1], b[..., 0] * b[..., 2], b[..., 1] * b[..., 2]], axis=-1)
         return _with_thermal(self, X, inputs)
 
+    simulator_name: ClassVar[str] = "cross_axis_quadratic"
+
+    def describe(self, cols):
+        pairs = {"q_xy": "Bx*By", "q_xz": "Bx*Bz", "q_yz": "By*Bz"}
+        return "reading gains " + " + ".join(pairs[n] for n in _cols_names(tuple(pairs), cols)) + " terms"
+
+    def depends_on(self, cols):
+        return ("Bx", "Bx", "By")[(cols or (0,))[0]]
+
 
 @dataclasses.dataclass(frozen=True)
-class CubicNonlinearity(Term):
+class CubicNonlinearity(Term, Entry):
     r"""Cubes of the measured field: :math:`\sum_j c_j B_j^3` (``c`` in 1/uT^2; saturation flattens the response)."""
 
     t0: float = 0.0
@@ -164,9 +259,17 @@ class CubicNonlinearity(Term):
     def features(self, inputs):
         return _with_thermal(self, inputs.b ** 3, inputs)
 
+    simulator_name: ClassVar[str] = "cubic"
+
+    def describe(self, cols):
+        return "reading gains " + " + ".join(f"B{n[2]}^3" for n in _cols_names(("c_x", "c_y", "c_z"), cols)) + " terms"
+
+    def depends_on(self, cols):
+        return "B" + "xyz"[(cols or (0,))[0]]
+
 
 @dataclasses.dataclass(frozen=True)
-class TemperatureQuadratic(Term):
+class TemperatureQuadratic(Term, Entry):
     r"""Second-order thermal terms: :math:`K_{o2} T_c^2` and, with ``scale=True``, :math:`\sum_j K_{s2,j} T_c^2 B_j`.
 
     ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2. With ``cubic=True`` a
@@ -198,15 +301,33 @@ class TemperatureQuadratic(Term):
             cols.append(tc2 * inputs.b)
         return jnp.concatenate(cols, axis=-1) if len(cols) > 1 else tc2
 
+    requires: ClassVar[tuple] = ("temperature",)
+    simulator_name: ClassVar[str] = "temperature_quadratic"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        # the channel's offset curving with T, or its gain (T^2 times its own reading)
+        return [Setting(cls(t0=ctx.t0)), Setting(cls(t0=ctx.t0, scale=True), cols=(1 + c,))]
+
+    def describe(self, cols):
+        if cols is not None and self.scale and min(cols) >= 1:
+            return f"gain varies with (T-T0)^2 (T0 = {self.t0:.3g} C)"
+        return f"offset varies with (T-T0)^2 (T0 = {self.t0:.3g} C)"
+
+    def depends_on(self, cols):
+        return "T"
+
 
 @dataclasses.dataclass(frozen=True)
-class Hysteresis(Term):
+class Hysteresis(Term, Entry):
     r"""Offset :math:`h\,s(t)` with :math:`s \in \{-1, 0, +1\}` set by the history of measured field ``axis``.
 
     ``mode="excursion"``: ``s`` is the sign of the last excursion of the measured component
     beyond ``+-threshold`` uT. ``mode="direction"``: ``s`` is the sign of the last change
     ``B(t) - B(t - lag samples)`` larger than ``min_step`` uT (direction of travel; the lag
-    averages down the sensor noise). ``s = 0`` before the first event of each run.
+    averages down the sensor noise). ``s = 0`` before the first event of each run; with
+    ``across_runs=True`` the state is held across the gaps between runs (remanence survives
+    a power cycle), ``s = 0`` only before the first event of the recording.
     Parameter ``h`` in uT. Thresholds are in *measured* uT (before calibration), unless
     ``cal`` is given: the 8 (or 4, without temperature terms) thermo-affine coefficients
     ``S_x S_y S_z Ks_x Ks_y Ks_z O Ko`` (``S_x S_y S_z O``) of the output ``axis``, about
@@ -223,6 +344,7 @@ class Hysteresis(Term):
     t0: float = 0.0
     thermal: bool = False
     cal: tuple = ()
+    across_runs: bool = False
     name: ClassVar[str] = "hysteresis"
     degree: ClassVar[None] = None
     explanation: ClassVar[str] = ("The permalloy film keeps a remanent magnetisation whose sign follows the last "
@@ -246,7 +368,8 @@ class Hysteresis(Term):
     def state(self, inputs: Inputs) -> jax.Array:
         """(n,) magnetisation sign in {-1, 0, +1}."""
         level = self.threshold if self.mode == "excursion" else self.min_step
-        return hysteresis_state(self.drive(inputs), inputs.run, level, mode=self.mode, lag=int(self.lag))
+        run = jnp.zeros_like(inputs.run) if self.across_runs else inputs.run
+        return hysteresis_state(self.drive(inputs), run, level, mode=self.mode, lag=int(self.lag))
 
     def drive(self, inputs: Inputs) -> jax.Array:
         """(n,) the field whose history sets the state: measured ``axis``, or calibrated with ``cal``."""
@@ -262,9 +385,35 @@ class Hysteresis(Term):
     def features(self, inputs):
         return _with_thermal(self, self.state(inputs)[:, None], inputs)
 
+    simulator_name: ClassVar[str] = "hysteresis"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        out = []
+        for k, ax in enumerate(_AXES):
+            m = float(ctx.reach[k])
+            if m <= 0:
+                continue
+            for across in (False, True):
+                for frac in (0.3, 0.5, 0.7):
+                    out.append(Setting(cls(axis=ax, mode="excursion", threshold=round(frac * m, 4),
+                                           across_runs=across)))
+                out.append(Setting(cls(axis=ax, mode="direction", min_step=round(6.0 * float(ctx.step_noise[k]), 4),
+                                       lag=4, across_runs=across)))
+        return out
+
+    def describe(self, cols):
+        how = (f"the last excursion of B{self.axis} beyond +-{self.threshold:.3g}" if self.mode == "excursion"
+               else f"the direction of travel of B{self.axis}")
+        return (f"offset switches with {how} (remanent state"
+                + (", held across the gaps between runs)" if self.across_runs else ", reset at each run)"))
+
+    def depends_on(self, cols):
+        return f"dir{self.axis}" if self.mode == "direction" else f"B{self.axis}"
+
 
 @dataclasses.dataclass(frozen=True)
-class OffsetDrift(Term):
+class OffsetDrift(Term, Entry):
     r"""Offset changing with time: ``drift_rate (time - time_ref)`` and, with ``steps=True``, ``run_step (run - run_ref)``.
 
     ``drift_rate`` in uT/s, ``run_step`` in uT per unit of run id (runs numbered
@@ -296,6 +445,53 @@ class OffsetDrift(Term):
             cols.append((inputs.run - self.run_ref).astype(inputs.time.dtype))
         return jnp.stack(cols, axis=-1)
 
+    requires: ClassVar[tuple] = ("time",)
+    simulator_name: ClassVar[str] = "offset_drift"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls(time_ref=ctx.time_ref, run_ref=int(ctx.runs[0]), rate=True, steps=False))]
+
+    def describe(self, cols):
+        return "offset drifts linearly in time"
+
+
+@dataclasses.dataclass(frozen=True)
+class RunOffset(Term, Entry):
+    r"""A separate offset for each run after the first: ``sum_k o_k [run == runs[k]]``, k >= 1 (uT).
+
+    Power cycling and set/reset pulses re-seat the bridge offset between runs; ``runs`` lists
+    the run ids (the first is the reference). Parameters ``o_<run>``.
+    """
+
+    runs: tuple = (0, 1)
+    name: ClassVar[str] = "run_offset"
+    degree: ClassVar[None] = None
+    requires: ClassVar[tuple] = ("runs",)
+    explanation: ClassVar[str] = ("Power cycling and set/reset pulses re-seat the bridge offset, so the offset steps "
+                                  "between runs.")
+
+    def __post_init__(self):
+        object.__setattr__(self, "runs", tuple(int(r) for r in self.runs))
+        if len(self.runs) < 2 or len(set(self.runs)) != len(self.runs):
+            raise ValueError(f"run_offset runs is {self.runs!r}; it must list two or more distinct run ids.")
+
+    def param_names(self):
+        return tuple(f"o_{r}" for r in self.runs[1:])
+
+    def features(self, inputs):
+        return (inputs.run[:, None] == jnp.asarray(self.runs[1:])[None, :]).astype(inputs.t.dtype)
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls(runs=tuple(ctx.runs)))]
+
+    def describe(self, cols):
+        return "offset steps between runs"
+
+    def depends_on(self, cols):
+        return "run"
+
 
 def hysteresis_state(f: jax.Array, run: jax.Array, level, *, mode: str, lag: int = 4) -> jax.Array:
     """Sign of the last excursion of ``f`` beyond +-``level`` (``mode="excursion"``) or of the
@@ -314,7 +510,7 @@ def hysteresis_state(f: jax.Array, run: jax.Array, level, *, mode: str, lag: int
 
 
 @dataclasses.dataclass(frozen=True)
-class ThermalLag(_physics.ThermalLag):
+class ThermalLag(_physics.ThermalLag, Entry):
     r"""Sensor temperature as a first-order lag of the logged temperature (time constant tau, s).
 
     See :class:`bayesmag._src.physics.ThermalLag`; parameter ``log_tau``; ``tau0`` is the
@@ -323,10 +519,36 @@ class ThermalLag(_physics.ThermalLag):
 
     explanation: ClassVar[str] = ("The sensor die heats and cools more slowly than the thermometer that logs the "
                                   "temperature, so it sees a lagged temperature.")
+    requires: ClassVar[tuple] = ("time", "temperature")
+    scope: ClassVar[str] = "sensor"
+    simulator_name: ClassVar[str] = "thermal_lag"
+    #: A lag shorter than this many samples is smoothing of the temperature log, not heat flow.
+    MIN_SAMPLES: ClassVar[float] = 10.0
+
+    @classmethod
+    def grid(cls, ctx, c):
+        lo = max(cls.MIN_SAMPLES * ctx.dt, 5.0)
+        hi = max(2 * lo, ctx.run_span / 2)
+        return [Setting(cls(tau0=float(t)), nl=float(np.log(t))) for t in np.geomspace(lo, hi, 10)]
+
+    def describe(self, cols):
+        return "temperature the sensor sees lags the logged temperature"
+
+    def depends_on(self, cols):
+        return "dT/dt"
+
+    def implausible(self, value, ctx):
+        tau = float(np.exp(value))
+        if tau < self.MIN_SAMPLES * ctx.dt:
+            return (f"tau = {tau:.3g} s is under {self.MIN_SAMPLES:g} samples ({self.MIN_SAMPLES * ctx.dt:.3g} s): "
+                    f"that smooths the noise of the temperature log; it is not heat flow")
+        if tau > 2 * ctx.run_span:
+            return f"tau = {tau:.3g} s is longer than twice a run ({ctx.run_span:.3g} s): not identified"
+        return None
 
 
 @dataclasses.dataclass(frozen=True)
-class TimingOffset(InputTransform):
+class TimingOffset(InputTransform, Entry):
     r"""The sensor stream is delayed by ``delta`` s against the reference.
 
     The row logged at time :math:`t` saw the field of time :math:`t - \delta`, so the
@@ -339,6 +561,25 @@ class TimingOffset(InputTransform):
     name: ClassVar[str] = "timing_offset"
     explanation: ClassVar[str] = ("The sensor and the reference are sampled by different clocks, so each sensor row "
                                   "is logged a fixed latency after the field it saw.")
+
+    requires: ClassVar[tuple] = ("time", "increasing_time")
+    scope: ClassVar[str] = "sensor"
+    simulator_name: ClassVar[str] = "timing_offset"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls(delta0=float(d)), nl=float(d)) for d in np.arange(-8, 9) * ctx.dt / 2 if d != 0]
+
+    def describe(self, cols):
+        return "sensor stream is delayed against the reference"
+
+    def depends_on(self, cols):
+        return "dBx/dt"
+
+    def implausible(self, value, ctx):
+        if abs(value) > 10 * ctx.dt:
+            return f"delta = {value:.3g} s is more than 10 samples: not a clock latency"
+        return None
 
     def param_names(self):
         return ("delta",)
@@ -363,19 +604,14 @@ class TimingOffset(InputTransform):
 for _cls in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, Hysteresis):
     _cls.__doc__ = (_cls.__doc__ or "") + _THERMAL_DOC
 
-#: The discovery catalogue: name -> class.
+#: The discovery catalogue: name -> class (each class carries its own grid, label, requirements, twin).
 CATALOGUE: dict[str, type] = {
     c.name: c for c in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, TemperatureQuadratic, ThermalLag,
-                        TimingOffset, Hysteresis, OffsetDrift)
+                        TimingOffset, Hysteresis, OffsetDrift, RunOffset)
 }
 
 #: Simulator effect name (:mod:`bayesmag.simulate`) -> catalogue name that represents it.
-SIMULATOR_NAMES: dict[str, str] = {
-    "axis_quadratic": "axis_quadratic", "cross_axis_quadratic": "cross_axis_quadratic",
-    "cubic": "cubic_nonlinearity", "temperature_quadratic": "temperature_quadratic",
-    "thermal_lag": "thermal_lag", "timing_offset": "timing_offset", "hysteresis": "hysteresis",
-    "offset_drift": "offset_drift",
-}
+SIMULATOR_NAMES: dict[str, str] = {c.simulator_name: n for n, c in CATALOGUE.items() if c.simulator_name}
 
 
 def explanation(name: str) -> str:
