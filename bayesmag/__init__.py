@@ -44,7 +44,7 @@ _EXPORTS = {
     ),
     "catalogue": (
         "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift",
-        "TemperatureQuadratic", "ThermalLag", "TimingOffset",
+        "TemperatureQuadratic", "ThermalLag", "TimingOffset", "RunOffset",
     ),
     "physics_uq": ("PhysicsUQ", "estimate_input_noise", "physics_uncertainty", "sobol_normal"),
 }
@@ -73,7 +73,7 @@ __all__ = [  # noqa: F822 (resolved lazily by __getattr__)
     "likelihoods", "metrics", "simulate", "configure_compile_cache", "Calibrator", "ExportError", "export_run",
     "from_frame", "prediction_frame", "read_parquet", "to_frame", "HybridPrediction", "fuse", "MCPrediction",
     "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict", "CATALOGUE", "AxisQuadratic",
-    "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "TimingOffset", "NutsResult",
+    "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "RunOffset", "TimingOffset", "NutsResult",
     "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts", "ArtifactError", "Calibration", "load",
     "DiscoverOptions", "DiscoveryResult", "discover", "CalibrationData", "Config", "ConfigError", "DataError",
     "EXTRA_TERMS", "Inputs", "InputTransform", "JobError", "LMSolution", "PhysicsFit", "PhysicsModel",

@@ -310,6 +310,33 @@ def correlation_time(r: np.ndarray, dt: float) -> float:
     return float((below[0] if below.size else acf.size) * dt)
 
 
+def spectrum_peak(r: np.ndarray, time: np.ndarray, run: np.ndarray, dt: float) -> tuple[float, float] | None:
+    """(period s, share of the variance) of the strongest sinusoid in ``r`` on the real time axis
+    (least squares per trial period, so gaps between runs do not smear the line), or None when no
+    period of at most the longest run holds >= 30 % of the variance and 5x the median share."""
+    r = np.asarray(r, dtype=np.float64)
+    r = r - r.mean()
+    spans = [np.ptp(time[run == k]) for k in np.unique(run)]
+    hi = float(np.max(spans))
+    lo = 4 * dt
+    if hi <= 2 * lo:
+        return None
+    periods = np.geomspace(lo, hi, 600)
+    ss = float(r @ r) + 1e-300
+    share = np.empty(periods.size)
+    for i, P in enumerate(periods):
+        ph = 2 * np.pi * time / P
+        X = np.stack([np.sin(ph), np.cos(ph)], 1)
+        X = X - X.mean(0)
+        b = np.linalg.lstsq(X, r, rcond=None)[0]
+        f = X @ b
+        share[i] = float(f @ f) / ss
+    k = int(np.argmax(share))
+    if share[k] < 0.3 or share[k] < 5 * np.median(share):
+        return None
+    return float(periods[k]), float(share[k])
+
+
 def structure(data: CalibrationData, resid: np.ndarray, located: list, *, dt: float, labels=AXES) -> list[dict]:
     """Structure left in residuals ``resid`` (n, 3), one entry per column that holds some.
 
@@ -330,9 +357,9 @@ def structure(data: CalibrationData, resid: np.ndarray, located: list, *, dt: fl
         slow = rho >= RHO_STRUCTURE and ratio >= FLOOR_RATIO
         if not (slow or big):
             continue
-        per = next((l for l in mine if l["variable"] == "periodic"), None)
-        if per is not None and per.get("period_s"):
-            scale, basis = float(per["period_s"]), "spectrum peak"
+        peak = spectrum_peak(r, data.time, data.run, dt)
+        if peak is not None:
+            scale, basis = peak[0], "spectrum peak"
         else:
             scale, basis = correlation_time(r, dt), "correlation time"
         best = max(big or mine, key=lambda l: l["fraction"]) if (big or mine) else None
