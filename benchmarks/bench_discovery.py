@@ -1,22 +1,27 @@
-"""Hit rate, false-discovery rate and parameter recovery of `discover` on concealed simulated effects.
+"""Discovery on concealed effects from two generators: hit rate, clean rate, unexplained rate, extras, time.
 
-Each case hides one catalogue effect (random axis, magnitude a few times the noise after
-calibration), a non-catalogue effect (periodic), two effects at once, or nothing, in a
-5000-row Helmholtz campaign, then runs discovery blind.
+* ``simulate``: :mod:`bayesmag.simulate`'s Helmholtz campaign, one catalogue effect sized at
+  about 3x the calibrated noise (``draw_effect``), a periodic (out of catalogue), or nothing;
+* ``independent``: ``tests/independent_campaigns.py``, written apart from simulate (own run
+  designs, effects on one sensor channel sized in sensor units, periodic interference and gain
+  drift in time out of catalogue, per-run offsets, hysteresis held across run gaps).
 
-    python benchmarks/bench_discovery.py --seeds 5 [--effects cubic,hysteresis] [--out bench_discovery.json]
+    python benchmarks/bench_discovery.py --generator simulate,independent --seeds 20 [--kinds cubic,clean]
 
-Scoring (declared before running):
-* hit: the right catalogue effect named on the right output axis (axis-free effects
-  thermal_lag / timing_offset: on any axis);
-* false discovery: a finding whose effect is not among the concealed ones (secondary-axis
-  findings of a concealed effect leak through S's off-diagonal terms and are not false);
-* recovery: |estimate - truth| <= 2 reported SE, truth = the parameter fitted with the same
-  structure on the noise-free recording (pseudo-true; tau and delta: the simulated value);
-* clean: no finding and nothing unexplained.
+Scoring (declared before running; ``score``):
+* hit: the planted catalogue effect named on its sensor channel ('all' for thermal lag and
+  timing offset, which act on the whole sensor);
+* extra: any finding besides that one (campaigns with extra findings are counted);
+* clean: no finding and nothing unexplained;
+* out of catalogue: reported as unexplained on the planted channel;
+* seconds: wall time of ``discover`` on the 5000-row campaign.
 """
 
 from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")      # small solves; threads only contend on a shared CPU
 
 import argparse
 import json
@@ -115,84 +120,6 @@ def draw_effect(name: str, rng: np.random.Generator, clean) -> tuple:
         period = float(rng.uniform(8, 60))
         return sized(name, clean, k, peak / 2, amplitude=1.0, axis=ax, period=period), ax
     raise ValueError(name)
-
-
-def pseudo_truth(finding, data_clean_effects, options):
-    """The finding's parameters fitted (same structure) on the noise-free recording."""
-    f = finding
-    if f["effect"] == "thermal_lag" or f["effect"] == "timing_offset":
-        return None
-    res = D.discover(data_clean_effects, dataclasses_replace(options, candidates=(f["effect"],)))
-    for g in res.findings:
-        if g["axis"] == f["axis"] and g["effect"] == f["effect"]:
-            return {k: v["value"] for k, v in g["parameters"].items()}
-    return None
-
-
-def dataclasses_replace(o, **kw):
-    import dataclasses
-    return dataclasses.replace(o, **kw)
-
-
-def run_case(kind: str, seed: int) -> dict:
-    rng = np.random.default_rng([seed, 7])
-    clean = simulate(N_ROWS, design="campaign", seed=seed, noise_sd=NOISE)
-    truth = []
-    if kind == "clean":
-        effects = []
-    elif kind == "two":
-        names = rng.choice(["axis_quadratic", "cubic", "thermal_lag", "hysteresis", "offset_drift",
-                            "cross_axis_quadratic"], size=2, replace=False)
-        effects = []
-        for n in names:
-            e, ax = draw_effect(str(n), rng, clean)
-            effects.append(e)
-            truth.append((SIMULATOR_NAMES[str(n)], ax, e))
-        effects.sort(key=lambda e: e.name not in AXIS_FREE)     # re-measuring effects first
-    else:
-        e, ax = draw_effect(kind, rng, clean)
-        effects = [e]
-        truth.append((SIMULATOR_NAMES.get(kind, kind), ax, e))
-    data = simulate(N_ROWS, design="campaign", seed=seed, noise_sd=NOISE, effects=effects)
-    t = time.perf_counter()
-    opts = D.DiscoverOptions(figures=False, seed=seed)
-    res = D.discover(data, opts)
-    secs = time.perf_counter() - t
-    named = {(f["effect"], f["axis"]) for f in res.findings}
-    true_names = {n for n, _, _ in truth}
-    hits, recov = [], []
-    for n, ax, e in truth:
-        if n == "periodic":
-            continue
-        ok = any(fe == n and (ax is None or fa == ax) for fe, fa in named)
-        hits.append(ok)
-        # recovery on the main axis
-        for f in res.findings:
-            if f["effect"] != n or (ax is not None and f["axis"] != ax):
-                continue
-            if n == "thermal_lag":
-                p = f["parameters"]["tau"]
-                recov.append(abs(p["value"] - e.tau) <= 2 * p["se"])
-            elif n == "timing_offset":
-                p = f["parameters"]["delta"]
-                recov.append(abs(p["value"] - e.delta) <= 2 * p["se"])
-            else:
-                noiseless = simulate(N_ROWS, design="campaign", seed=seed, noise_sd=0.0, effects=effects)
-                ref = D.discover(noiseless, dataclasses_replace(opts, candidates=(n,), max_terms=1))
-                g = next((g for g in ref.findings if g["axis"] == f["axis"] and g["effect"] == n
-                          and g["setting"] == f["setting"]), None)
-                if g is not None:
-                    big = max(f["parameters"], key=lambda k: abs(f["parameters"][k]["value"]) / max(f["parameters"][k]["se"], 1e-300))
-                    recov.append(abs(f["parameters"][big]["value"] - g["parameters"][big]["value"])
-                                 <= 2 * f["parameters"][big]["se"])
-            break
-    false = [f"{fe}@{fa}" for fe, fa in named if fe not in true_names]
-    periodic_reported = any("periodic" in u["where"] for u in res.unexplained)
-    return {"kind": kind, "seed": seed, "truth": [(n, ax, e.describe()) for n, ax, e in truth],
-            "findings": sorted(f"{fe}@{fa}" for fe, fa in named), "hits": hits, "recovered": recov,
-            "false": false, "unexplained": [f"{u['axis']}: {u['where']}" for u in res.unexplained],
-            "periodic_reported": periodic_reported, "no_missing_physics": res.no_missing_physics,
-            "seconds": secs}
 
 
 def sim_case(kind: str, seed: int):

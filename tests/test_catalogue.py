@@ -113,3 +113,45 @@ def test_thermal_slopes_and_calibrated_hysteresis(campaign):
     with pytest.raises(ValueError, match="cal has 3 values"):
         C.Hysteresis(cal=(1.0, 0.0, 0.0))
     assert make_extra({"name": "hysteresis", "axis": "y", "cal": list(ident), "thermal": True}, t0=24.0).thermal
+
+
+def test_registry_entry_carries_grid_requirements_and_description():
+    """Adding a term is one class: discovery reads everything from the entry itself."""
+    ctx = C.SearchContext(t0=25.0, dt=0.25, runs=(0, 1, 2), run_span=600.0, reach=(40.0, 40.0, 40.0))
+    for name, cls in C.CATALOGUE.items():
+        assert set(cls.requires) <= {"time", "temperature", "runs", "increasing_time"}, name
+        assert cls.scope in ("channel", "sensor"), name
+        grid = cls.grid(ctx, None if cls.scope == "sensor" else 1)
+        assert grid and all(isinstance(s.component, cls) for s in grid), name
+        assert all((s.nl is not None) == (cls.scope == "sensor") for s in grid), name
+        assert isinstance(grid[0].component.describe(grid[0].cols), str)
+    assert C.SIMULATOR_NAMES["cubic"] == "cubic_nonlinearity" and "run_offset" not in C.SIMULATOR_NAMES.values()
+
+
+def test_run_offset_features_and_validation():
+    d = simulate(300, design="campaign", seed=2, n_runs=3)
+    t = C.RunOffset(runs=tuple(np.unique(d.run)))
+    X = np.asarray(t.features(bayesmag.inputs_from_data(d)))
+    runs = np.unique(d.run)
+    np.testing.assert_array_equal(X, (d.run[:, None] == runs[None, 1:]).astype(float))
+    assert t.param_names() == tuple(f"o_{r}" for r in runs[1:])
+    with pytest.raises(ValueError, match="two or more distinct"):
+        C.RunOffset(runs=(1,))
+
+
+def test_hysteresis_state_held_across_runs():
+    b = np.zeros((6, 3))
+    b[1, 0] = 30.0                                  # excursion in run 0, none in run 1
+    inputs = bayesmag.Inputs(jnp.asarray(b), jnp.zeros(6), jnp.arange(6.0), jnp.array([0, 0, 0, 1, 1, 1]))
+    reset = np.asarray(C.Hysteresis(axis="x", threshold=10.0).state(inputs))
+    held = np.asarray(C.Hysteresis(axis="x", threshold=10.0, across_runs=True).state(inputs))
+    np.testing.assert_array_equal(reset, [0, 1, 1, 0, 0, 0])
+    np.testing.assert_array_equal(held, [0, 1, 1, 1, 1, 1])
+
+
+def test_thermal_lag_of_a_few_samples_is_not_heat_flow():
+    ctx = C.SearchContext(dt=0.25, run_span=600.0)
+    lag = C.ThermalLag()
+    assert "smooths the noise" in lag.implausible(np.log(1.0), ctx)       # 4 samples
+    assert lag.implausible(np.log(60.0), ctx) is None
+    assert min(np.exp(s.nl) for s in C.ThermalLag.grid(ctx, None)) >= 10 * ctx.dt

@@ -253,7 +253,7 @@ def _periodic(r: np.ndarray, data: CalibrationData, ax: str) -> dict:
         if freq <= 0:
             continue
         X = np.stack([np.sin(2 * np.pi * freq * tt), np.cos(2 * np.pi * freq * tt)], 1)
-        beta = np.linalg.lstsq(X, r, rcond=None)[0]
+        beta = np.linalg.solve(X.T @ X + 1e-12 * np.eye(2), X.T @ r)
         fit = X @ beta
         frac = float(fit @ fit / (r @ r + 1e-300))
         if frac > best[0]:
@@ -328,9 +328,8 @@ def spectrum_peak(r: np.ndarray, time: np.ndarray, run: np.ndarray, dt: float) -
         ph = 2 * np.pi * time / P
         X = np.stack([np.sin(ph), np.cos(ph)], 1)
         X = X - X.mean(0)
-        b = np.linalg.lstsq(X, r, rcond=None)[0]
-        f = X @ b
-        share[i] = float(f @ f) / ss
+        c = X.T @ r
+        share[i] = float(c @ np.linalg.solve(X.T @ X + 1e-12 * np.eye(2), c)) / ss
     k = int(np.argmax(share))
     if share[k] < 0.3 or share[k] < 5 * np.median(share):
         return None
@@ -366,7 +365,7 @@ def structure(data: CalibrationData, resid: np.ndarray, located: list, *, dt: fl
         text = (f"residual lag-1 autocorrelation {rho:.2f}, variance {ratio:.1f} x the high-frequency noise floor "
                 f"({floor:.3g}); time scale {scale:.3g} s ({basis})")
         if best is not None:
-            text += "; " + describe(best)
+            text += "; " + describe(best).rstrip(".")
         out.append({"channel": lab, "axis": lab, "rho1": float(rho), "floor_ratio": ratio, "noise_floor": floor,
                     "time_scale_s": scale, "basis": basis,
                     "variable": best["variable"] if best else "time",

@@ -137,10 +137,11 @@ def gain_matrix(base: ThermoAffine, W: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def solve_sym(G: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Minimum-norm solution of G b = c for a symmetric PSD G (tiny eigenvalues dropped)."""
-    w, V = np.linalg.eigh(G)
-    keep = w > 1e-11 * max(w.max(), 1e-300)
-    return V[:, keep] @ ((V[:, keep].T @ c) / w[keep])
+    """Solution of G b = c for a symmetric PSD, column-scaled G, with a ridge of 1e-10 of its mean
+    eigenvalue: for c in the range of G (c = X'y) the null directions stay ~0 (near minimum norm).
+    An LU solve, not an eigendecomposition: ~100x faster on these small systems."""
+    lam = 1e-10 * max(float(np.trace(G)) / max(G.shape[0], 1), 1e-300)
+    return np.linalg.solve(G + lam * np.eye(G.shape[0]), c)
 
 
 def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -151,7 +152,6 @@ def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
     return solve_sym(Xs.T @ Xs, Xs.T @ y) / s
 
 
-_features_jit = jax.jit(lambda comp, inp: comp.features(inp), static_argnums=0)
 _transform_jit = jax.jit(lambda comp, p, inp: comp(p, inp), static_argnums=0)
 
 
@@ -181,8 +181,9 @@ class Designs:
         key = (comp, tuple(e.setting for e in transforms))
         if key not in self._feat:
             inp = self.transformed(transforms)
-            # eager for small terms (a jit per grid point would compile each threshold anew)
-            f = comp.features(inp) if getattr(comp, "degree", 1) is None else _features_jit(comp, inp)
+            # eager: features are a few elementwise ops, and a jit keyed on the component would
+            # compile anew for every grid point and every recording (t0, thresholds, time_ref)
+            f = comp.features(inp)
             self._feat[key] = np.asarray(f)
         return self._feat[key]
 
