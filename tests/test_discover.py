@@ -44,6 +44,7 @@ def test_one_channel_distortion_is_one_finding_on_its_channel():
         assert abs(v["value"]) >= T_IDENT * v["se"], (k, v)
 
 
+@pytest.mark.slow
 def test_cubic_coefficient_recovered_in_sensor_units():
     """The generator plants d_c = size * u0_c^3 / max|u0_c^3|: the coefficient is known in sensor units."""
     d, p, r = _indep("cubic", seed=2)
@@ -72,6 +73,7 @@ def test_per_run_offset_is_named():
     assert [(f["effect"], f["channel"]) for f in r.findings] == [("run_offset", p.channel)], r.findings
 
 
+@pytest.mark.slow
 def test_thermal_lag_is_whole_sensor_and_plausible():
     d, p, r = _indep("thermal_lag", seed=0, n=4000)
     f = [f for f in r.findings if f["effect"] == "thermal_lag"]
