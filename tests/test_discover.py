@@ -154,3 +154,17 @@ def test_belsten_reports_only_identified_coefficients_and_admits_structure(belst
         assert f["channel"] in ("x", "y", "z", "all", None)
     # the residual is strongly autocorrelated (lag-1 ~0.8): never "no missing physics"
     assert not r.no_missing_physics
+
+
+def test_noisy_temperature_log_is_not_called_a_thermal_lag():
+    """Heavy noise on the logged temperature: a lag of a few samples would smooth it; that is
+    said in a note, never reported as the thermal_lag effect."""
+    d, p = campaign("clean", 4, n=N)
+    rng = np.random.default_rng(0)
+    noisy = bayesmag.CalibrationData(d.b_meas, d.temperature + 1.5 * rng.standard_normal(d.n), d.b_ref, d.time,
+                                     d.run, "noisy temperature log")
+    r = discover(noisy, figures=False)
+    assert not any(f["effect"] == "thermal_lag" for f in r.findings), r.findings
+    for f in r.findings:
+        if "tau" in f["parameters"]:
+            assert f["parameters"]["tau"]["value"] >= 10 * p.params["dt"]

@@ -8,20 +8,30 @@
 * :func:`identified`: inside a term, coefficients with |value| < T_IDENT standard errors
   (Newey-West, on the stacked linear fit) are removed one at a time, weakest first; they are
   reported as not identified by these data, never as findings.
+* :func:`lag_or_smoothing`: a thermal lag must fit better than a *zero-phase* smoothing of
+  the temperature log with the same time constant (block z >= Z_DISTINCT). Heat flow delays
+  the temperature the die sees; smoothing the log's noise does not delay anything, so when
+  the symmetric filter explains as much, the gain is noise reduction, not a lag.
 * :func:`implausible`: a fitted nonlinear parameter outside the entry's physical range
   (:meth:`~bayesmag._src.catalogue.Entry.implausible`) removes the named effect.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from typing import ClassVar
+
 import numpy as np
 
+from ..catalogue import Setting, ThermalLag
 from ..fit import covariance
+from ..physics import InputTransform
+from .diagnostics import block_z
 from .frame import Extension, lstsq
-from .options import T_IDENT
-from .search import compare, cv_residuals
+from .options import T_IDENT, Z_DISTINCT
+from .search import cv_residuals, row_loss, compare
 
-__all__ = ["drop_one", "identified", "implausible"]
+__all__ = ["drop_one", "identified", "implausible", "ZeroPhaseSmoothing", "lag_or_smoothing"]
 
 
 def drop_one(designs, selected: tuple, folds3, blocks, n_eff_fn, progress=None):
@@ -83,3 +93,36 @@ def identified(designs, selected: tuple, run: np.ndarray):
 def implausible(ext: Extension, value: float, ctx) -> str | None:
     """Why the fitted nonlinear ``value`` of a whole-sensor extension is not its physics (or None)."""
     return ext.component.implausible(value, ctx)
+
+
+@dataclasses.dataclass(frozen=True)
+class ZeroPhaseSmoothing(InputTransform):
+    """The logged temperature smoothed forward and backward by a first-order filter (time
+    constant exp(log_tau) s, restarted at run boundaries): same smoothing as a thermal lag, no delay."""
+
+    tau0: float = 30.0
+    name: ClassVar[str] = "temperature_smoothing"
+
+    def param_names(self):
+        return ("log_tau",)
+
+    def init_params(self, axis):
+        return np.array([np.log(self.tau0)])
+
+    def __call__(self, params, inputs):
+        fwd = ThermalLag()(params, inputs)
+        rev = inputs._replace(t=fwd.t[::-1], time=-inputs.time[::-1], run=inputs.run[::-1], b=inputs.b[::-1])
+        back = ThermalLag()(params, rev)
+        return inputs._replace(t=back.t[::-1])
+
+
+def lag_or_smoothing(designs, kept: tuple, lag: Extension, folds3, blocks) -> tuple[float, float]:
+    """(block z that the lag beats zero-phase smoothing out of sample, tau of the best smoothing)."""
+    others = tuple(e for e in kept if e != lag)
+    taus = np.exp(lag.setting.nl) * np.array([0.25, 0.5, 1.0, 2.0, 4.0])
+    opts = [Extension(Setting(ZeroPhaseSmoothing(tau0=float(t)), nl=float(np.log(t))), "whole") for t in taus]
+    e_lag, _, _, _ = cv_residuals(designs, kept, [None], folds3)
+    e_sm, _, chosen, _ = cv_residuals(designs, others, opts, folds3)
+    z = block_z(row_loss(e_sm, designs.n) - row_loss(e_lag, designs.n), blocks)
+    return z, float(np.exp(chosen.setting.nl))
+

@@ -29,12 +29,12 @@ from .. import catalogue as C
 from ..data import AXES, CalibrationData
 from ..fit import lag1_autocorrelation
 from ..physics import ThermoAffine, inputs_from_data
-from .checks import drop_one, identified
+from .checks import drop_one, identified, lag_or_smoothing
 from .diagnostics import block_ids, block_length, locate, make_variables, noise_floor, run_starts, structure
-from .frame import Designs, JointModel, gain_matrix, lstsq, refit
-from .options import DELTA_SYS_FRACTION, ROWS_PER_PARAM, DiscoverOptions
+from .frame import Designs, Extension, JointModel, gain_matrix, lstsq, refit
+from .options import DELTA_SYS_FRACTION, ROWS_PER_PARAM, Z_DISTINCT, DiscoverOptions
 from .result import DiscoveryResult
-from .search import compare, cv_residuals, forward, groups
+from .search import compare, cv_residuals, forward, groups, score_group
 
 __all__ = ["discover"]
 
@@ -222,6 +222,26 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
                          "reason": f"does not survive the drop-one check: given the other findings its out-of-sample "
                                    f"gain is {s.gain:.1%} (block z = {s.z:.1f}, BIC_eff change {s.dbic:.1f})"})
     kept, not_ident = identified(designs, kept, run)
+    for lag in [e for e in kept if e.name == "thermal_lag"]:
+        z_lag, tau_sm = lag_or_smoothing(designs, kept, lag, folds3, blocks)
+        if z_lag < Z_DISTINCT:
+            kept = tuple(e for e in kept if e != lag)
+            rejected.append({"effect": "thermal_lag", "where": _label(lag),
+                             "reason": f"a zero-phase smoothing of the temperature log (tau {tau_sm:.3g} s, no delay) "
+                                       f"fits as well out of sample (lag better by block z = {z_lag:.1f} < "
+                                       f"{Z_DISTINCT}): the gain is smoothing of the log's noise, not heat flow"})
+            notes.append(f"Smoothing the logged temperature (tau ~{tau_sm:.3g} s) improves the fit, but a delay does "
+                         f"not: the temperature log is noisy; no thermal lag is reported.")
+    if "thermal_lag" in {k[0] for k in cands} and not any(e.name == "thermal_lag" for e in kept):
+        # a lag of a few samples is outside the grid (not heat flow); say so if it would help
+        few = [Extension(C.Setting(C.ThermalLag(tau0=m * dt), nl=float(np.log(m * dt))), "whole") for m in (2, 4)]
+        e_k, r_k, _, k_k = cv_residuals(designs, kept, [None], folds3)
+        sm = score_group(designs, kept, ("thermal_lag", "whole", None), few, folds3, blocks, (e_k, r_k, k_k),
+                         n_eff_fn(r_k))
+        if sm.accepted:
+            notes.append(f"Smoothing the logged temperature over a few samples (a first-order lag of "
+                         f"{math.exp(sm.ext.setting.nl):.3g} s) improves the fit out of sample (block z = {sm.z:.1f}): "
+                         f"the temperature log is noisy. That is not heat flow, so no thermal lag is reported.")
 
     # ---- exact joint refit, plausibility of nonlinear values
     while True:

@@ -154,8 +154,26 @@ def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int,
         alts = [s for s in ok if s is not best and s.key[0] != best.key[0]
                 and block_z(row_loss(s.e_oos, designs.n) - row_loss(best.e_oos, designs.n), blocks) < Z_DISTINCT]
         steps.append({"score": best, "alternatives": alts, "e_before": ref[0]})
-        current = current + (best.ext,)
+        chosen = best.ext
+        if chosen.frame == "whole":
+            # refine the nonlinear value around the grid point (in sample), so later steps do not
+            # pick up the misfit of a coarse grid (e.g. per-run offsets after a lag of the wrong tau)
+            chosen = _refine(designs, current, chosen, folds3)
+        current = current + (chosen,)
         used.add(best.key)
         e, r, _, k = cv_residuals(designs, current, [None], folds3)
         ref = (e, r, k)
     return current, steps, ref
+
+
+def _refine(designs, current, ext, folds3, rounds: int = 2):
+    """The whole-sensor extension with its nonlinear value refined by in-sample SSE on finer grids."""
+    comp = type(ext.component)
+    is_log = ext.name == "thermal_lag"
+    step = 0.35 if is_log else 0.25 * max(abs(ext.setting.nl), 1e-3)
+    for _ in range(rounds):
+        vals = ext.setting.nl + step * np.linspace(-1, 1, 9)
+        opts = [Extension(dataclasses.replace(ext.setting, nl=float(v)), "whole") for v in vals]
+        _, _, ext, _ = cv_residuals(designs, current, opts, folds3)
+        step /= 4
+    return ext
