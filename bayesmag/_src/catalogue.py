@@ -92,7 +92,9 @@ class SearchContext:
     ``t0`` reference temperature (C); ``dt`` median sampling step (s); ``time_ref`` first time
     stamp; ``runs`` the run ids in order; ``run_span`` median run duration (s); ``reach`` 98th
     percentile of |measured field| per channel; ``step_noise`` sd of the row-to-row change of
-    the measured field per channel (noise scale)."""
+    the measured field per channel (noise scale); ``cal`` the baseline thermo-affine
+    coefficients of each output (``S_x S_y S_z Ks_x Ks_y Ks_z O Ko``) and ``ref_reach`` the 98th
+    percentile of |reference field| per axis (for entries driven by the calibrated field)."""
 
     t0: float = 0.0
     dt: float = 1.0
@@ -101,6 +103,8 @@ class SearchContext:
     run_span: float = 1.0
     reach: tuple = (1.0, 1.0, 1.0)
     step_noise: tuple = (0.1, 0.1, 0.1)
+    cal: tuple = ()
+    ref_reach: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -400,6 +404,13 @@ class Hysteresis(Term, Entry):
                                            across_runs=across)))
                 out.append(Setting(cls(axis=ax, mode="direction", min_step=round(6.0 * float(ctx.step_noise[k]), 4),
                                        lag=4, across_runs=across)))
+            if ctx.cal and ctx.ref_reach:
+                # excursions of the calibrated field: a fixed field threshold even where the
+                # channel's gain changes with temperature
+                coef = tuple(round(float(v), 10) for v in ctx.cal[k])
+                for frac in (0.3, 0.5, 0.7):
+                    out.append(Setting(cls(axis=ax, mode="excursion", threshold=round(frac * float(ctx.ref_reach[k]), 4),
+                                           t0=ctx.t0, cal=coef)))
         return out
 
     def describe(self, cols):

@@ -60,7 +60,7 @@ def _folds(data, options, notes, corr_rows):
                            f"(~{block_rows} rows each, {nb} blocks)")
 
 
-def _context(data, t0, dt) -> C.SearchContext:
+def _context(data, t0, dt, W0=None) -> C.SearchContext:
     runs = tuple(int(r) for r in dict.fromkeys(data.run.tolist()))
     spans = [float(np.ptp(data.time[data.run == r])) for r in runs]
     b = data.b_meas
@@ -69,7 +69,10 @@ def _context(data, t0, dt) -> C.SearchContext:
     return C.SearchContext(t0=t0, dt=dt, time_ref=float(data.time[0]), runs=runs,
                            run_span=float(np.median(spans)) if spans else 1.0,
                            reach=tuple(float(np.quantile(np.abs(b[:, k]), 0.98)) for k in range(3)),
-                           step_noise=tuple(steps))
+                           step_noise=tuple(steps),
+                           cal=tuple(tuple(float(v) for v in w) for w in W0) if W0 is not None and W0.shape[1] in (4, 8)
+                           else (),
+                           ref_reach=tuple(float(np.quantile(np.abs(data.b_ref[:, k]), 0.98)) for k in range(3)))
 
 
 def _label(ext) -> str:
@@ -175,7 +178,7 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
     same = ~run_starts(run)[1:]
     dt = float(np.median(np.diff(data.time)[same])) if same.any() else 1.0
     designs = Designs(base, inputs, y, w, gain_matrix(base, W0, np.asarray(data.temperature)))
-    ctx = _context(data, t0, dt)
+    ctx = _context(data, t0, dt, W0)
     say(f"baseline thermo-affine fit on {data.n} rows; {cv_desc}")
 
     # ---- candidate groups from the registry
