@@ -276,16 +276,19 @@ class CubicNonlinearity(Term, Entry):
 class TemperatureQuadratic(Term, Entry):
     r"""Second-order thermal terms: :math:`K_{o2} T_c^2` and, with ``scale=True``, :math:`\sum_j K_{s2,j} T_c^2 B_j`.
 
-    ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2. With ``cubic=True`` a
+    ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2. With ``linear=True`` the
+    first-order columns ``Ko1 T_c`` [and ``Ks1_j T_c B_j``] follow (for a distortion of the
+    reading, which reaches the output through ``S + Ks T_c``). With ``cubic=True`` a
     further :math:`K_{o3} T_c^3` (uT/C^3): an offset curvature of the sensor's own reading
     reaches the calibrated output multiplied by the temperature-dependent gain
     :math:`S + K_s T`, i.e. as a cubic in T (strongly so on an axis whose gain changes a lot
-    with temperature, such as y of the paper's sensor). Column order: Ko2, [Ko3], [Ks2_j].
+    with temperature, such as y of the paper's sensor). Column order: Ko2, [Ko3], [Ks2_j], [Ko1, [Ks1_j]].
     """
 
     t0: float = 0.0
     scale: bool = False
     cubic: bool = False
+    linear: bool = False
     name: ClassVar[str] = "temperature_quadratic"
     degree: ClassVar[int] = 2           # T^2 and T^2 B_j: no input beyond the second power
     explanation: ClassVar[str] = ("The bridge offset (and sensitivity) drifts nonlinearly with temperature, beyond "
@@ -293,7 +296,8 @@ class TemperatureQuadratic(Term, Entry):
 
     def param_names(self):
         return (("Ko2",) + (("Ko3",) if self.cubic else ())
-                + (("Ks2_x", "Ks2_y", "Ks2_z") if self.scale else ()))
+                + (("Ks2_x", "Ks2_y", "Ks2_z") if self.scale else ())
+                + ((("Ko1",) + (("Ks1_x", "Ks1_y", "Ks1_z") if self.scale else ())) if self.linear else ()))
 
     def features(self, inputs):
         tc = inputs.t - self.t0
@@ -303,6 +307,10 @@ class TemperatureQuadratic(Term, Entry):
             cols.append(tc2 * tc[..., None])
         if self.scale:
             cols.append(tc2 * inputs.b)
+        if self.linear:
+            cols.append(tc[..., None])
+            if self.scale:
+                cols.append(tc[..., None] * inputs.b)
         return jnp.concatenate(cols, axis=-1) if len(cols) > 1 else tc2
 
     requires: ClassVar[tuple] = ("temperature",)
@@ -311,10 +319,13 @@ class TemperatureQuadratic(Term, Entry):
     @classmethod
     def grid(cls, ctx, c):
         # the channel's offset curving with T, or its gain (T^2 times its own reading)
-        return [Setting(cls(t0=ctx.t0)), Setting(cls(t0=ctx.t0, scale=True), cols=(1 + c,))]
+        # with the first-order column too: a curvature about another temperature, (T - Tr)^2 =
+        # Tc^2 + 2 (T0 - Tr) Tc + const, is not absorbed by Ko once it passes through S + Ks Tc
+        return [Setting(cls(t0=ctx.t0, linear=True), cols=(0, 1)),
+                Setting(cls(t0=ctx.t0, scale=True, linear=True), cols=(1 + c, 5 + c))]
 
     def describe(self, cols):
-        if cols is not None and self.scale and min(cols) >= 1:
+        if cols is not None and self.scale and all(1 <= i <= 3 or 5 <= i <= 7 for i in cols):
             return f"gain varies with (T-T0)^2 (T0 = {self.t0:.3g} C)"
         return f"offset varies with (T-T0)^2 (T0 = {self.t0:.3g} C)"
 
