@@ -16,7 +16,7 @@ from .pipeline import discover
 from .result import DiscoveryResult, report_markdown
 
 __all__ = ["discover", "DiscoverOptions", "DiscoveryResult", "locate", "report_markdown", "main",
-           "load_discover_config"]
+           "build_parser", "load_discover_config"]
 
 
 def main(argv=None) -> int:
@@ -29,3 +29,9 @@ def load_discover_config(path, overrides=()):
     """(Config, DiscoverOptions) from a TOML file (see :mod:`.app`)."""
     from .app import load_discover_config as _load
     return _load(path, overrides)
+
+
+def build_parser():
+    """The ``bayesmag discover`` argument parser (see :mod:`.app`)."""
+    from .app import build_parser as _build
+    return _build()
