@@ -265,13 +265,14 @@ class PhysicsModel:
 
 
 #: Named model extensions usable as ``[physics] extra_terms = ["name", {name = "...", ...}]``;
-#: filled by :mod:`bayesmag._src.catalogue` (the discovery catalogue), which ``import bayesmag`` imports
-#: (physics does not import the catalogue: no import cycle).
+#: filled by :mod:`bayesmag._src.catalogue` (the discovery catalogue) when it is imported.
 EXTRA_TERMS: dict[str, type] = {}
 
 
 def make_extra(spec, *, t0: float = 0.0):
     """Build an extra term/transform from a name or a ``{name = ..., field = value}`` table."""
+    from . import catalogue  # noqa: F401  (registers the discovery catalogue's terms in EXTRA_TERMS)
+
     if isinstance(spec, str):
         spec = {"name": spec}
     spec = dict(spec)
