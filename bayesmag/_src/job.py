@@ -82,8 +82,9 @@ def _residual_variance(cfg: Config, fit: PhysicsFit, train: CalibrationData, sig
 class JobResult(dict):
     """What a job computed (metrics, fit, uq, predictor, ...) beside the files it wrote.
 
-    Assembled by :func:`run_job` from the typed stage results (:class:`PhysicsStage`,
-    :class:`~bayesmag._src.hybrid.HybridStage`); a dict so later stages and callers can index it.
+    Assembled by :func:`run_job` alone from the typed stage results (:class:`PhysicsStage`,
+    :class:`~bayesmag._src.hybrid.HybridStage`, :class:`~bayesmag.NutsResult`); no stage writes into it.
+    A dict so that callers index it by name.
     """
 
 
@@ -261,10 +262,18 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         result.update(networks=hs.networks, hybrid=hs.predictions, primary_likelihood=hs.primary,
                       predictor=hs.predictors[hs.primary])
         writers += hybrid_writers(cfg, hs, columns, test, level)
-    result["writers"] = writers
     if cfg.nuts.enabled:
+        from .nuts import write_nuts_outputs
         from .nuts_stage import run_nuts_stage
-        run_nuts_stage(cfg, result, train, timings, progress=progress)
+        t = time.perf_counter()
+        res = run_nuts_stage(cfg, fit, train, progress=progress)
+        timings["nuts"] = time.perf_counter() - t
+        result["nuts"] = res
+        metrics["nuts"] = res.metrics()
+        metrics["warnings"].extend(res.warnings)
+        figures = cfg.output.figures
+        writers.append(lambda staging: write_nuts_outputs(res, staging, figures=figures))
+    result["writers"] = writers
 
     with staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
