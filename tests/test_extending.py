@@ -111,6 +111,20 @@ def test_registered_everywhere():
     assert type(make_extra("toy_abs_field")) is AbsField
     with pytest.raises(ValueError, match="already registered"):
         C.register(AbsField)
+    with pytest.raises(TypeError, match="dataclass subclassing Entry"):
+        C.register(PhysicsModel)
+    with pytest.raises(ValueError, match="not registered"):
+        C.unregister("no_such_term")
+
+
+def test_unregister_removes_the_term_everywhere():
+    assert C.unregister("toy_abs_field") is AbsField
+    try:
+        assert "toy_abs_field" not in C.CATALOGUE and "toy_abs_field" not in EXTRA_TERMS
+        with pytest.raises(ValueError, match="not known"):
+            make_extra("toy_abs_field")
+    finally:
+        C.register(AbsField)
 
 
 #: Planted toy coefficient; the fit must recover it within 5 standard errors (SE ~1e-4 here).
