@@ -31,7 +31,8 @@ run_offset               linear      o_<run> per run after the first (uT)       
 Every class also carries its discovery registry entry (:class:`Entry`): requirements, scope
 (one channel, or the whole sensor), search grid, plain-words description, the variable it is
 drawn against and a plausibility check of its nonlinear parameter. Adding a term is one class
-(plus its tests); discovery iterates :data:`CATALOGUE` and has no per-name branches.
+(plus its tests); discovery iterates :data:`CATALOGUE` and has no per-name branches. A class
+defined outside this module joins every registry with :func:`register` (``docs/extending.md``).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from .physics import EXTRA_TERMS, InputTransform, Inputs, Term
 
 __all__ = ["CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "TemperatureQuadratic",
            "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "RunOffset", "SIMULATOR_NAMES", "explanation",
-           "Entry", "Setting", "SearchContext"]
+           "Entry", "Setting", "SearchContext", "register", "unregister"]
 
 _AXES = ("x", "y", "z")
 
@@ -644,3 +645,35 @@ def explanation(name: str) -> str:
 
 
 EXTRA_TERMS.update(CATALOGUE)
+
+
+def register(cls: type) -> type:
+    """Add catalogue class ``cls`` to :data:`CATALOGUE`, :data:`~bayesmag._src.physics.EXTRA_TERMS`
+    and :data:`SIMULATOR_NAMES` (so fit, discover, NUTS and saved calibrations know it); returns
+    ``cls``, so it can decorate the class. Undo with :func:`unregister`."""
+    if not (isinstance(cls, type) and issubclass(cls, Entry) and issubclass(cls, (Term, InputTransform))
+            and dataclasses.is_dataclass(cls)):
+        raise TypeError(f"a catalogue entry must be a dataclass subclassing Entry and Term or InputTransform; "
+                        f"got {cls!r}.")
+    name = getattr(cls, "name", None)
+    if not isinstance(name, str) or not isinstance(getattr(cls, "explanation", None), str):
+        raise TypeError(f"catalogue entry {cls.__name__} must set a string 'name' and a one-sentence 'explanation'.")
+    if name in EXTRA_TERMS or name == "thermo_affine":
+        raise ValueError(f"a physics term named {name!r} is already registered; registered: {sorted(EXTRA_TERMS)}.")
+    if cls.scope not in ("channel", "sensor"):
+        raise ValueError(f"catalogue entry {name!r} has scope {cls.scope!r}; it must be one of ['channel', 'sensor'].")
+    CATALOGUE[name] = EXTRA_TERMS[name] = cls
+    if cls.simulator_name:
+        SIMULATOR_NAMES[cls.simulator_name] = name
+    return cls
+
+
+def unregister(name: str) -> type:
+    """Remove catalogue entry ``name`` (e.g. one a test registered) from every registry; returns its class."""
+    if name not in CATALOGUE:
+        raise ValueError(f"catalogue entry {name!r} is not registered; registered: {sorted(CATALOGUE)}.")
+    cls = CATALOGUE.pop(name)
+    EXTRA_TERMS.pop(name, None)
+    if SIMULATOR_NAMES.get(cls.simulator_name) == name:
+        del SIMULATOR_NAMES[cls.simulator_name]
+    return cls
