@@ -45,7 +45,7 @@ def _session(seed: int, n_runs: int, rows: int = 200, first_run: int = 1, kind: 
 def _calibrate(train: CalibrationData) -> Predictor:
     model = bayesmag.PhysicsModel.paper(t0=float(np.mean(train.temperature)))
     fit = bayesmag.fit_physics(train, model)
-    tr = estimate_transfer(train, fit, lambda d: bayesmag.fit_physics(d, model))
+    tr = estimate_transfer(train, fit)        # the job's path: all folds in one compiled fit (fit_folds)
     assert tr.method == "leave_one_run_out" and tr.warning is None
 
     class _Cfg:      # the settings _residual_variance reads
@@ -144,3 +144,21 @@ def test_fast_rows_are_flagged_with_their_reason():
     hot = CalibrationData(new.b_meas, new.temperature + np.linspace(0, 5, new.n) * (new.time > 0),
                           None, new.time, new.run)
     assert any("temperature" in w for w in dom.reasons(dom.outside(hot)))
+
+
+@pytest.mark.parametrize("n_runs", [4])
+def test_fold_fits_equal_separate_fits(n_runs):
+    """fit_folds (weight-0 rows, one compile) gives each fold's own LM solution and the same transfer sd
+    as refitting every fold separately with fit_physics (to 1e-8 relative)."""
+    from bayesmag._src.fit import fit_folds
+    d = _session(7, n_runs, rows=150)
+    model = bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature)))
+    keep = np.stack([d.run != r for r in np.unique(d.run)])
+    theta, ok = fit_folds(d, model, keep)
+    assert ok.all()
+    for k in range(keep.shape[0]):
+        sep = bayesmag.fit_physics(d.subset(np.flatnonzero(keep[k])), model)
+        np.testing.assert_allclose(theta[k], sep.theta, rtol=1e-8, atol=1e-10)
+    fit = bayesmag.fit_physics(d, model)
+    np.testing.assert_allclose(estimate_transfer(d, fit).sd,
+                               estimate_transfer(d, fit, lambda x: bayesmag.fit_physics(x, model)).sd, rtol=1e-8)

@@ -22,6 +22,7 @@ Covariance of the estimate (Seber & Wild 2003, sec. 2.1):
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -361,6 +362,41 @@ class _Problem:
 
 
 _solve_jit = jax.jit(lambda prob, th0, inputs, y: prob.solve(th0, inputs, y), static_argnums=0)
+
+@functools.partial(jax.jit, static_argnums=0)
+def _solve_folds_jit(model, th0, inputs, y, weights):
+    """LM per fold and axis: rows of weight 0 leave the fit (same shapes for every fold: one compile)."""
+    def one(th, yy, w):
+        return levenberg_marquardt(lambda t: w * (yy - model.predict(t, inputs)), th)
+
+    per_axis = jax.vmap(one, in_axes=(0, 1, None))
+    return jax.vmap(per_axis, in_axes=(None, None, 0))(th0, y, weights)
+
+
+def fit_folds(data, model: PhysicsModel, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Refit ``model`` on subsets of ``data``'s rows, all folds in one compiled, vmapped LM.
+
+    ``keep``: (F, n) bool, the rows each fold fits. Rows left out get weight 0, so every fold
+    has the full data's shapes (no recompilation per fold; time-series transforms still see the
+    whole record). Returns ``theta`` (F, 3, p) and ``ok`` (F,): converged on every axis and the
+    kept rows inform every parameter (:func:`unidentifiable`); use ``theta[f]`` only where
+    ``ok[f]``.
+    """
+    from .physics import inputs_from_data
+
+    inputs = inputs_from_data(data)
+    keep = np.asarray(keep, bool)
+    th0 = jnp.asarray(model.init_params_all(), dtype=jnp.float64)
+    sol = _solve_folds_jit(model, th0, inputs, jnp.asarray(data.b_ref), jnp.asarray(keep, jnp.float64))
+    theta = np.asarray(sol.theta)
+    conv = np.asarray(sol.result) == RESULTS.index("converged")
+    J = np.asarray(jax.vmap(lambda th: _Problem(model).jacobian(th, inputs))(jnp.asarray(theta)))   # (F, 3, n, p)
+    ok = conv.all(axis=1)
+    for f in range(keep.shape[0]):
+        if ok[f]:
+            ok[f] = not any(unidentifiable(J[f, a][keep[f]], model.param_names)[0] for a in range(3))
+    return theta, ok
+
 _jac_jit = jax.jit(lambda prob, th, inputs: prob.jacobian(th, inputs), static_argnums=0)
 
 

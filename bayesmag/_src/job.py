@@ -154,7 +154,7 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
 
     t = time.perf_counter()
     if cfg.uq.transfer == "loro":
-        tr = estimate_transfer(train, fit, lambda d: fit_physics(d, model, covariance_method=cfg.physics.covariance))
+        tr = estimate_transfer(train, fit)       # leave-one-run-out folds in one compiled fit
     else:
         tr = TransferEstimate(np.zeros(3), "off", {})
     predictor = dataclasses.replace(predictor, transfer_sd=tr.sd)
@@ -196,15 +196,10 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
     if cfg.physics.temperature_terms and np.ptp(train.temperature) < 1e-6:
         raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
                         "Set [physics] temperature_terms = false or use a split that keeps temperature variation.")
-    if cfg.nuts.enabled:                    # check NUTS settings and priors now, not after the fit
-        from .nuts import check_settings, parse_priors
-        n = cfg.nuts
-        try:
-            check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
-                           chain_method=n.chain_method)
-            parse_priors(n.priors, model.param_names, likelihood=n.likelihood)
-        except ValueError as e:
-            raise ConfigError(str(e) if str(e).startswith("[nuts]") else f"[nuts]: {e}") from None
+    nuts_priors = None
+    if cfg.nuts.enabled:                    # check NUTS settings and priors now (once), not after the fit
+        from .nuts_stage import check_nuts_config
+        nuts_priors = check_nuts_config(cfg, model.param_names)
     timings["load"] = time.perf_counter() - t
 
     from .domain import Domain
@@ -266,7 +261,7 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         from .nuts import write_nuts_outputs
         from .nuts_stage import run_nuts_stage
         t = time.perf_counter()
-        res = run_nuts_stage(cfg, fit, train, progress=progress)
+        res = run_nuts_stage(cfg, fit, train, nuts_priors, progress=progress)
         timings["nuts"] = time.perf_counter() - t
         result["nuts"] = res
         metrics["nuts"] = res.metrics()

@@ -7,25 +7,30 @@ import dataclasses
 from .config import config_error
 from .nuts import NutsResult, check_settings, parse_priors, run_nuts
 
-__all__ = ["run_nuts_stage"]
+__all__ = ["check_nuts_config", "run_nuts_stage"]
 
 
-def run_nuts_stage(cfg, fit, train, *, progress: bool = False) -> NutsResult:
-    """The job's NUTS stage (``[nuts] enabled = true``): priors and settings from ``[nuts]``, then sample.
+def check_nuts_config(cfg, param_names) -> dict:
+    """Validate ``[nuts]`` once, before any fitting: settings and priors; returns the parsed priors.
+
+    Raises :class:`~bayesmag.ConfigError` naming the ``nuts.*`` key.
+    """
+    n = cfg.nuts
+    keys = [f.name for f in dataclasses.fields(n)]
+    try:       # impossible settings are config errors; too-small ones become warnings in run_nuts
+        check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
+                       chain_method=n.chain_method)
+        return parse_priors(n.priors, tuple(param_names), likelihood=n.likelihood)
+    except ValueError as e:
+        raise config_error(e, "nuts", keys) from None
+
+
+def run_nuts_stage(cfg, fit, train, priors, *, progress: bool = False) -> NutsResult:
+    """The job's NUTS stage (``[nuts] enabled = true``): sample with the priors :func:`check_nuts_config` parsed.
 
     Returns the :class:`NutsResult`; :func:`~bayesmag._src.job.run_job` adds its metrics and files.
     """
     n = cfg.nuts
-    keys = [f.name for f in dataclasses.fields(n)]
-    try:
-        priors = parse_priors(n.priors, fit.param_names, likelihood=n.likelihood)
-    except ValueError as e:
-        raise config_error(e, "nuts", keys) from None
-    try:       # impossible settings are config errors; too-small ones become warnings in run_nuts
-        check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
-                       chain_method=n.chain_method)
-    except ValueError as e:
-        raise config_error(e, "nuts", keys) from None
     return run_nuts(train, fit, chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
                     chain_method=n.chain_method, likelihood=n.likelihood, priors=priors, seed=n.seed,
                     progress=progress)

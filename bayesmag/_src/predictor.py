@@ -284,10 +284,10 @@ def _weighted_quantile(v: np.ndarray, w: np.ndarray, q: float) -> float:
     return float(v[order][min(np.searchsorted(cum, q - 1e-12), v.size - 1)])
 
 
-def estimate_transfer(train, fit, fit_fn, *, level: float = 0.95, min_runs: int = 3) -> TransferEstimate:
+def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs: int = 3) -> TransferEstimate:
     r"""Between-session (transfer) sd from the training runs: leave-one-run-out, conformal over runs.
 
-    For every training run ``r``: refit with ``fit_fn(train without r)`` and predict run ``r``'s
+    For every training run ``r``: refit without ``r`` and predict run ``r``'s
     rows that lie inside the other runs' value domain (rows outside it are extrapolation, flagged
     by the domain check, not transfer). Row ``i`` of a left-out run is covered by a central
     ``level`` Gaussian interval of variance :math:`s^2 + 	au^2` (:math:`s^2`: the pooled fit's
@@ -311,22 +311,32 @@ def estimate_transfer(train, fit, fit_fn, *, level: float = 0.95, min_runs: int 
     s2 = np.asarray(fit.s2, np.float64)
     z = scipy.stats.norm.ppf(0.5 + level / 2)
     if len(runs) >= min_runs:
-        for r in runs:
-            held, rest = train.run == r, train.run != r
+        held_all = np.stack([train.run == r for r in runs])
+        if fit_fn is None:          # every fold in one compiled, vmapped fit (fit.fit_folds)
+            from .fit import fit_folds
+            thetas, oks = fit_folds(train, fit.model, ~held_all)
+        for k, r in enumerate(runs):
+            held, rest = held_all[k], ~held_all[k]
             other, left = train.subset(np.flatnonzero(rest)), train.subset(np.flatnonzero(held))
             inside = ~Domain.from_data(other, rates=False).outside(left).any(axis=1)
             per_run[str(r)] = {"n_in_domain": int(inside.sum()), "rmse": None}
             if inside.sum() < 2:
                 continue
-            try:
-                f = fit_fn(other)
-                ok = bool(getattr(f, "converged", True))
-            except Exception:            # an unidentifiable fold (e.g. no temperature variation) is skipped
-                ok = False
-            if not ok:
-                continue
             rows = left.subset(np.flatnonzero(inside))
-            e = rows.b_ref - np.asarray(f.predict(inputs_from_data(rows)))
+            if fit_fn is None:
+                if not oks[k]:      # an unidentifiable fold (e.g. no temperature variation) is skipped
+                    continue
+                pred = fit.model.predict_all(thetas[k], inputs_from_data(rows))
+            else:
+                try:
+                    f = fit_fn(other)
+                    ok = bool(getattr(f, "converged", True))
+                except Exception:    # an unidentifiable fold (e.g. no temperature variation) is skipped
+                    ok = False
+                if not ok:
+                    continue
+                pred = f.predict(inputs_from_data(rows))
+            e = rows.b_ref - np.asarray(pred)
             need.append((e / z) ** 2 - s2)
             weight.append(np.full(rows.n, 1.0 / rows.n))
             per_run[str(r)]["rmse"] = {ax: float(v) for ax, v in zip("xyz", np.sqrt(np.mean(e**2, axis=0)))}
