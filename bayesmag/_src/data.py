@@ -394,6 +394,27 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
     return header, np.asarray(rows, dtype=np.float64)
 
 
+def column_mapping(columns: Mapping[str, str] | None, *, field_unit: str = "uT", temperature_unit: str = "C",
+                   what: str = "columns") -> dict[str, str]:
+    """Check the units and return the canonical -> source column mapping (unmapped names map to themselves).
+
+    Raises :class:`DataError` naming an unknown unit or canonical name (``what``: how the caller
+    calls the mapping, e.g. ``[data.columns]``) and the valid set.
+    """
+    if temperature_unit not in ("C", "K"):
+        raise DataError(f"temperature_unit is {temperature_unit!r}; it must be one of ['C', 'K'].")
+    if field_unit not in FIELD_UNITS:
+        raise DataError(f"field_unit is {field_unit!r}; it must be one of {list(FIELD_UNITS)}.")
+    mapping = {c: c for c in CANONICAL_COLUMNS}
+    if columns:
+        unknown = set(columns) - set(CANONICAL_COLUMNS)
+        if unknown:
+            raise DataError(f"{what} names unknown canonical column(s) {sorted(unknown)}; "
+                            f"valid: {list(CANONICAL_COLUMNS)}.")
+        mapping.update(columns)
+    return mapping
+
+
 def load_csv(
     path: str | Path,
     *,
@@ -417,19 +438,11 @@ def load_csv(
     path = Path(path)
     if not path.exists():
         raise DataError(f"Data file {path} does not exist.")
-    if temperature_unit not in ("C", "K"):
-        raise DataError(f"temperature_unit is {temperature_unit!r}; it must be one of ['C', 'K'].")
-    if field_unit not in FIELD_UNITS:
-        raise DataError(f"field_unit is {field_unit!r}; it must be one of {list(FIELD_UNITS)}.")
+    mapping = column_mapping(columns, field_unit=field_unit, temperature_unit=temperature_unit,
+                             what="[data.columns]")
     if path.is_dir():
         raise DataError(f"Data file {path} is a folder; expected a CSV file.")
     header, arr = _read_table(path)
-    mapping = {c: c for c in CANONICAL_COLUMNS}
-    if columns:
-        unknown = set(columns) - set(CANONICAL_COLUMNS)
-        if unknown:
-            raise DataError(f"[data.columns] names unknown canonical column(s) {sorted(unknown)}; valid: {list(CANONICAL_COLUMNS)}.")
-        mapping.update(columns)
     idx = {h: i for i, h in enumerate(header)}
 
     def col(name: str, required: bool) -> np.ndarray | None:

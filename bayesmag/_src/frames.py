@@ -13,7 +13,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .data import AXES, CANONICAL_COLUMNS, FIELD_UNITS, CalibrationData, DataError
+from .data import AXES, CANONICAL_COLUMNS, FIELD_UNITS, CalibrationData, DataError, column_mapping
 
 __all__ = ["FIELD_UNITS", "frame_io", "load_table", "from_frame", "to_frame", "prediction_frame", "read_parquet", "as_data",
            "is_frame"]
@@ -37,16 +37,7 @@ def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit
     """
     if not is_frame(df):
         raise DataError(f"expected a pandas DataFrame; got {type(df).__name__}.")
-    if temperature_unit not in ("C", "K"):
-        raise DataError(f"temperature_unit is {temperature_unit!r}; it must be one of ['C', 'K'].")
-    if field_unit not in FIELD_UNITS:
-        raise DataError(f"field_unit is {field_unit!r}; it must be one of {list(FIELD_UNITS)}.")
-    mapping = {c: c for c in CANONICAL_COLUMNS}
-    if columns:
-        unknown = set(columns) - set(CANONICAL_COLUMNS)
-        if unknown:
-            raise DataError(f"columns maps unknown canonical name(s) {sorted(unknown)}; valid: {list(CANONICAL_COLUMNS)}.")
-        mapping.update(columns)
+    mapping = column_mapping(columns, field_unit=field_unit, temperature_unit=temperature_unit)
 
     def col(name, required):
         src = mapping[name]
