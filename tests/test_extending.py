@@ -17,9 +17,10 @@ from bayesmag._src import catalogue as C
 from bayesmag._src import likelihoods as _lik
 from bayesmag._src.catalogue import Entry, Setting
 from bayesmag._src.config import config_from_dict
-from bayesmag._src.physics import EXTRA_TERMS, PhysicsModel, Term, make_extra
+from bayesmag._src.catalogue import make_extra
+from bayesmag._src.physics import EXTRA_TERMS, PhysicsModel, Term
 from bayesmag.likelihoods import Likelihood, sample_by_inversion
-from tests.helpers import affine_data
+from helpers import affine_data
 
 
 # ---------------------------------------------------------------- the toy term (docs/extending.md)

@@ -47,7 +47,7 @@ import numpy as np
 from . import physics as _physics
 from .physics import EXTRA_TERMS, InputTransform, Inputs, Term
 
-__all__ = ["CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "TemperatureQuadratic",
+__all__ = ["CATALOGUE", "make_extra", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "TemperatureQuadratic",
            "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "RunOffset", "SIMULATOR_NAMES", "explanation",
            "Entry", "Setting", "SearchContext", "register", "unregister"]
 
@@ -677,3 +677,21 @@ def unregister(name: str) -> type:
     if SIMULATOR_NAMES.get(cls.simulator_name) == name:
         del SIMULATOR_NAMES[cls.simulator_name]
     return cls
+
+
+def make_extra(spec, *, t0: float = 0.0):
+    """Build an extra term/transform from a name or a ``{name = ..., field = value}`` table."""
+    if isinstance(spec, str):
+        spec = {"name": spec}
+    spec = dict(spec)
+    name = spec.pop("name", None)
+    if name not in EXTRA_TERMS:
+        raise ValueError(f"physics extra term {name!r} is not known; it must be one of {sorted(EXTRA_TERMS)}.")
+    cls = EXTRA_TERMS[name]
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(spec) - fields
+    if unknown:
+        raise ValueError(f"physics extra term {name!r} has no parameter(s) {sorted(unknown)}; valid: {sorted(fields)}.")
+    if "t0" in fields and "t0" not in spec:
+        spec["t0"] = t0
+    return cls(**spec)

@@ -19,7 +19,8 @@ from .config import Config, ConfigError, to_toml
 from .data import AXES, CalibrationData, DataError, load_csv, make_split, validate
 from .datasets import load_dataset
 from .fit import PhysicsFit, fit_physics
-from .physics import PhysicsModel, inputs_from_data, make_extra
+from .catalogue import make_extra
+from .physics import PhysicsModel, inputs_from_data
 from .outdir import staging_dir
 from .physics_uq import PhysicsUQ, estimate_input_noise, physics_uncertainty
 from .predictor import Components, Prediction, Predictor, TransferEstimate, UQOptions, estimate_transfer

@@ -265,25 +265,6 @@ class PhysicsModel:
 
 
 #: Named model extensions usable as ``[physics] extra_terms = ["name", {name = "...", ...}]``;
-#: filled by :mod:`bayesmag._src.catalogue` (the discovery catalogue) when it is imported.
+#: filled by :mod:`bayesmag._src.catalogue` (the discovery catalogue, which builds them by name
+#: with :func:`~bayesmag._src.catalogue.make_extra`). physics does not import the catalogue: no cycle.
 EXTRA_TERMS: dict[str, type] = {}
-
-
-def make_extra(spec, *, t0: float = 0.0):
-    """Build an extra term/transform from a name or a ``{name = ..., field = value}`` table."""
-    from . import catalogue  # noqa: F401  (registers the discovery catalogue's terms in EXTRA_TERMS)
-
-    if isinstance(spec, str):
-        spec = {"name": spec}
-    spec = dict(spec)
-    name = spec.pop("name", None)
-    if name not in EXTRA_TERMS:
-        raise ValueError(f"physics extra term {name!r} is not known; it must be one of {sorted(EXTRA_TERMS)}.")
-    cls = EXTRA_TERMS[name]
-    fields = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(spec) - fields
-    if unknown:
-        raise ValueError(f"physics extra term {name!r} has no parameter(s) {sorted(unknown)}; valid: {sorted(fields)}.")
-    if "t0" in fields and "t0" not in spec:
-        spec["t0"] = t0
-    return cls(**spec)
