@@ -130,7 +130,7 @@ def test_cli_writes_folder_atomically(tmp_path):
     assert not list(tmp_path.glob(".disc.partial*"))
     # the extended model is usable by `bayesmag run`
     extra = bayesmag.PhysicsModel.paper(extra=tuple(
-        __import__("bayesmag._src.physics", fromlist=["make_extra"]).make_extra(s) for s in j["extra_terms"]))
+        __import__("bayesmag._src.catalogue", fromlist=["make_extra"]).make_extra(s) for s in j["extra_terms"]))
     assert "h" in extra.param_names
 
 

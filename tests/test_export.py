@@ -176,7 +176,7 @@ def test_a_rotated_sensor_loses_accuracy_in_symmetric_targets_and_says_so():
 
 
 def test_extra_terms_are_named_as_dropped():
-    from bayesmag._src.physics import make_extra
+    from bayesmag._src.catalogue import make_extra
     term = make_extra("axis_quadratic", t0=T0)
     cal = _cal(np.column_stack([TRUE_THETA, np.full((3, len(term.param_names())), 1e-3)]), extra=(term,))
     ex = E.build_export(cal, None)
