@@ -7,10 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from bayesmag import ConfigError, PhysicsUQ, run_job
+from bayesmag import ConfigError, run_job
 from bayesmag._src.config import config_from_dict
 from bayesmag._src.hybrid import check_network_config, fuse
-from bayesmag._src.network import MCPrediction, NetworkSpec
+from bayesmag._src.network import NetworkSpec
+from helpers import uq_parts
 
 LEVEL = 0.95
 # 338 test rows: a 95 % interval's coverage has binomial sd 1.2 %; 3 sd either side.
@@ -37,20 +38,12 @@ def _config(base=SIMULATED, **network):
 # --------------------------------------------------------------------------- fusion
 
 
-def _parts(seed=0, n=50):
-    rng = np.random.default_rng(seed)
-    phys = PhysicsUQ(mean=rng.normal(size=(n, 3)), aleatoric=rng.uniform(0.01, 0.02, (n, 3)),
-                     epistemic=rng.uniform(0.001, 0.003, (n, 3)), epistemic_mc=np.zeros((n, 3)),
-                     epistemic_jac=np.zeros((n, 3)))
-    nn = MCPrediction(mean=rng.normal(0, 0.02, (n, 3)), aleatoric=rng.uniform(0.01, 0.03, (n, 3)),
-                      epistemic=rng.uniform(0.001, 0.005, (n, 3)), shape={"df": rng.uniform(3, 9, (n, 3))})
-    return phys, nn
 
 
 @pytest.mark.parametrize("likelihood,df", [("gaussian", 4.0), ("laplace", 4.0), ("student_t", 5.0),
                                            ("student_t", None)])
 def test_moment_match_fusion_gives_the_family_mean_and_variance(likelihood, df):
-    phys, nn = _parts()
+    phys, nn = uq_parts()
     pred = fuse(phys, nn, NetworkSpec(likelihood=likelihood, student_t_df=df), fusion="moment_match")
     var = nn.aleatoric**2 + nn.epistemic**2 + phys.epistemic**2          # physics aleatoric not added
     assert type(pred.dist).name == likelihood
@@ -64,7 +57,7 @@ def test_moment_match_fusion_gives_the_family_mean_and_variance(likelihood, df):
 
 
 def test_paper_fusion_adds_the_physics_aleatoric_part_and_is_gaussian():
-    phys, nn = _parts(1)
+    phys, nn = uq_parts(1)
     pred = fuse(phys, nn, NetworkSpec(likelihood="laplace"), fusion="paper")
     var = phys.aleatoric**2 + nn.aleatoric**2 + phys.epistemic**2 + nn.epistemic**2
     assert type(pred.dist).name == "gaussian"

@@ -9,24 +9,15 @@ import scipy.stats
 import bayesmag
 from bayesmag import PhysicsUQ, metrics
 from bayesmag._src.likelihoods import Gaussian
-from bayesmag._src.network import MCPrediction
 from bayesmag._src.predictor import Components, Predictor, UQOptions, compose, conformal_scale
+from helpers import uq_parts
 
 Z95 = scipy.stats.norm.ppf(0.975)
 
 
-def _parts(seed=0, n=40):
-    rng = np.random.default_rng(seed)
-    phys = PhysicsUQ(mean=rng.normal(size=(n, 3)), aleatoric=rng.uniform(0.01, 0.02, (n, 3)),
-                     epistemic=rng.uniform(0.001, 0.003, (n, 3)), epistemic_mc=np.zeros((n, 3)),
-                     epistemic_jac=np.zeros((n, 3)))
-    nn = MCPrediction(mean=rng.normal(0, 0.02, (n, 3)), aleatoric=rng.uniform(0.01, 0.03, (n, 3)),
-                      epistemic=rng.uniform(0.001, 0.005, (n, 3)), shape={"df": rng.uniform(3, 9, (n, 3))})
-    return phys, nn
-
 
 def test_physics_only_adds_residual_scale_and_transfer_for_new_sessions_only():
-    phys, _ = _parts()
+    phys, _ = uq_parts(n=40)
     r, tau, k = np.array([0.01, 0.02, 0.03]), np.array([0.1, 0.2, 0.3]), np.array([1.5, 1.0, 2.0])
     new = np.arange(40) % 2 == 0
     p = compose(phys, residual_sd=r, transfer_sd=tau, scale=k, new_session=new)
@@ -46,7 +37,7 @@ def test_physics_only_adds_residual_scale_and_transfer_for_new_sessions_only():
 
 @pytest.mark.parametrize("fusion", ["moment_match", "paper"])
 def test_hybrid_transfer_enters_in_quadrature(fusion):
-    phys, nn = _parts(1)
+    phys, nn = uq_parts(1, n=40)
     tau = np.array([0.05, 0.0, 0.4])
     p = compose(phys, nn, residual_sd=np.ones(3), fusion=fusion, family="laplace", transfer_sd=tau)
     var = nn.aleatoric**2 + nn.epistemic**2 + phys.epistemic**2 + (phys.aleatoric**2 if fusion == "paper" else 0)
