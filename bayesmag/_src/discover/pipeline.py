@@ -274,7 +274,7 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
     final_scores = _scores(y, pred, e_fin, w, run)
     variables = make_variables(data, time_ok)
     findings, extra_terms, effects = [], [], []
-    step_of = {st["score"].ext.setting.component: st for st in steps}
+    step_of = {(st["score"].ext.setting.component, st["score"].ext.frame, st["score"].ext.slot): st for st in steps}
     for e in kept:
         others = tuple(x for x in kept if x != e)
         e_wo, r_wo, _, k_wo = cv_residuals(designs, others, [None], folds3)
@@ -297,7 +297,7 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
             sys_se = DELTA_SYS_FRACTION * dt
             p.update({"se": math.hypot(p["se"], sys_se), "se_statistical": p["se"], "se_interpolation": sys_se,
                       "unit": "s"})
-        st = step_of.get(e.setting.component)
+        st = step_of.get((e.setting.component, e.frame, e.slot))
         e_before = (e_wo.reshape(3, -1).T / w)
         channel = AXES[e.slot] if e.frame == "sensor" else ("all" if e.frame == "whole" else None)
         findings.append({

@@ -166,13 +166,23 @@ def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int,
     return current, steps, ref
 
 
-def _refine(designs, current, ext, folds3, rounds: int = 2):
-    """The whole-sensor extension with its nonlinear value refined by in-sample SSE on finer grids."""
+def _refine(designs, current, ext, folds3, rounds: int = 2, max_moves: int = 8):
+    """The whole-sensor extension with its nonlinear value refined by in-sample SSE on finer grids.
+
+    Each round scans 9 values across +-step around the current value; while the best lies on
+    the edge of that window the window is moved (at most ``max_moves`` times), so a value beyond
+    the coarse grid (e.g. a thermal lag longer than the grid's top) is bracketed before the step
+    shrinks. A value left at a window edge leaves a misfit (for a lag: proportional to dT/dt,
+    whose mean differs between runs) that later steps would otherwise take up as per-run offsets."""
     is_log = ext.name == "thermal_lag"
     step = 0.35 if is_log else 0.25 * max(abs(ext.setting.nl), 1e-3)
     for _ in range(rounds):
-        vals = ext.setting.nl + step * np.linspace(-1, 1, 9)
-        opts = [Extension(dataclasses.replace(ext.setting, nl=float(v)), "whole") for v in vals]
-        _, _, ext, _ = cv_residuals(designs, current, opts, folds3)
+        for _ in range(max_moves):
+            centre = ext.setting.nl
+            vals = centre + step * np.linspace(-1, 1, 9)
+            opts = [Extension(dataclasses.replace(ext.setting, nl=float(v)), "whole") for v in vals]
+            _, _, ext, _ = cv_residuals(designs, current, opts, folds3)
+            if vals[0] < ext.setting.nl < vals[-1]:
+                break
         step /= 4
     return ext
