@@ -129,11 +129,14 @@ class Entry:
     * :meth:`grid` the settings tried on channel ``c`` (None for sensor-scope entries);
     * :meth:`describe` a plain-words phrase for the used columns;
     * :meth:`depends_on` the variable the effect is drawn against;
-    * :meth:`implausible` a reason why a fitted nonlinear value is not this physics (or None).
+    * :meth:`implausible` a reason why a fitted nonlinear value is not this physics (or None);
+    * ``localised``: ``"run"`` for an effect that is constant within each run and may sit in
+      one run only (discovery then also scores it by run, not only by time block), else None.
     """
 
     requires: ClassVar[tuple] = ()
     scope: ClassVar[str] = "channel"
+    localised: ClassVar[str | None] = None
     simulator_name: ClassVar[str | None] = None
 
     @classmethod
@@ -491,6 +494,7 @@ class RunOffset(Term, Entry):
     name: ClassVar[str] = "run_offset"
     degree: ClassVar[None] = None
     requires: ClassVar[tuple] = ("runs",)
+    localised: ClassVar[str | None] = "run"
     explanation: ClassVar[str] = ("Power cycling and set/reset pulses re-seat the bridge offset, so the offset steps "
                                   "between runs.")
 
@@ -510,7 +514,10 @@ class RunOffset(Term, Entry):
         return [Setting(cls(runs=tuple(ctx.runs)))]
 
     def describe(self, cols):
-        return "offset steps between runs"
+        if cols is None or len(cols) == len(self.runs) - 1:
+            return "offset steps between runs"
+        which = ", ".join(str(self.runs[1:][c]) for c in cols)
+        return f"offset of run{'s' if len(cols) > 1 else ''} {which} differs from the other runs'"
 
     def depends_on(self, cols):
         return "run"

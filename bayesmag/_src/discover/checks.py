@@ -46,7 +46,7 @@ def drop_one(designs, selected: tuple, folds3, blocks, n_eff_fn, progress=None):
             others = tuple(x for x in current if x != ext)
             e_wo, r_wo, _, k_wo = cv_residuals(designs, others, [None], folds3)
             s = compare((ext.name, ext.frame, ext.slot), ext, e_full, r_full, k_full, e_wo, r_wo, k_wo, blocks,
-                        n_eff, designs.n, 1)
+                        n_eff, designs.n, 1, designs)
             if not s.accepted and (worst is None or s.z < worst[1].z):
                 worst = (ext, s)
         if worst is None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from scipy import stats as _stats
+
 from .. import catalogue as C
 
 __all__ = ["DiscoverOptions"]
@@ -14,6 +16,15 @@ __all__ = ["DiscoverOptions"]
 #: One-sided block z-score of the out-of-sample gain needed to accept a candidate (about 44
 #: candidate groups per step: p = 2.3e-4 each keeps the clean-data false-finding rate ~1 % per step).
 Z_MIN = 3.5
+#: Run-localised entries (``Entry.localised == "run"``: one offset per run) are also scored by run
+#: (:func:`~bayesmag._src.discover.diagnostics.run_contrast`, an F test of the run means of the
+#: residual against the scatter of block means within runs). They are their own family of
+#: RUN_PLACES tests per step (the entry on 3 sensor channels and 3 outputs), given the same 1 %
+#: false-finding budget per step as the block test's family: p <= RUN_FAMILY_ERROR / RUN_PLACES
+#: (Bonferroni), i.e. z >= Z_RUN = 2.94. The out-of-sample gain and BIC criteria still apply.
+RUN_FAMILY_ERROR = 0.01
+RUN_PLACES = 6
+Z_RUN = float(_stats.norm.isf(RUN_FAMILY_ERROR / RUN_PLACES))
 #: Smallest out-of-sample gain (fraction of the residual mean square of the output axis it
 #: helps most) worth reporting.
 MIN_GAIN = 0.01

@@ -278,7 +278,8 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
     for e in kept:
         others = tuple(x for x in kept if x != e)
         e_wo, r_wo, _, k_wo = cv_residuals(designs, others, [None], folds3)
-        s = compare((e.name, e.frame, e.slot), e, e_fin, r_fin, k_fin, e_wo, r_wo, k_wo, blocks, n_eff, data.n, 1)
+        s = compare((e.name, e.frame, e.slot), e, e_fin, r_fin, k_fin, e_wo, r_wo, k_wo, blocks, n_eff, data.n, 1,
+                    designs)
         if e.frame == "whole":
             m_wo = JointModel(base, others)
             th_wo = np.delete(theta, sl[e])
@@ -311,7 +312,10 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
             "evidence": {"oos_gain": s.gain, "z": float(st["score"].z) if st else s.z,
                          "p_value": float(stats.norm.sf(st["score"].z if st else s.z)),
                          "delta_bic_eff": float(st["score"].dbic) if st else s.dbic,
-                         "drop_one_z": s.z, "drop_one_gain": s.gain, "cv": cv_desc},
+                         "drop_one_z": s.z, "drop_one_gain": s.gain, "cv": cv_desc,
+                         **({"z_run": float(st["score"].z_run) if st else s.z_run, "drop_one_z_run": s.z_run,
+                             "run_standing_out": s.run}
+                            if getattr(e.component, "localised", None) == "run" else {})},
             "explanation": e.component.explanation,
             "indistinguishable_from": [{"effect": a.ext.name, "where": _label(a.ext), "oos_gain": a.gain}
                                        for a in (st["alternatives"] if st else [])],

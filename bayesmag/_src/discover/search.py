@@ -7,7 +7,10 @@ with the least *training* error is used, so the choice is part of what is cross-
 A group is accepted if, against the current model, it
 
 * lowers the out-of-sample loss (sum over the three outputs, each weighted by 1 / its noise
-  floor) with a one-sided block z >= Z_MIN (:func:`~.diagnostics.block_z`),
+  floor) with a one-sided block z >= Z_MIN (:func:`~.diagnostics.block_z`), or, for a
+  run-localised entry (one offset per run), the current residual in its place (the sensor
+  channel, or the output) has run means that differ by z_run >= Z_RUN
+  (:func:`~.diagnostics.run_contrast`, block means within runs as the yardstick),
 * removes at least MIN_GAIN of the out-of-sample mean square of the output it helps most, and
 * lowers the BIC computed with the effective sample size by at least DBIC_MIN.
 """
@@ -20,9 +23,9 @@ import math
 import numpy as np
 
 from .. import catalogue as C
-from .diagnostics import block_z
+from .diagnostics import block_z, run_contrast
 from .frame import Designs, Extension, solve_sym
-from .options import DBIC_MIN, MIN_GAIN, Z_DISTINCT, Z_MIN
+from .options import DBIC_MIN, MIN_GAIN, Z_DISTINCT, Z_MIN, Z_RUN
 
 __all__ = ["Score", "groups", "cv_residuals", "score_group", "forward", "bic"]
 
@@ -39,10 +42,12 @@ class Score:
     z: float
     dbic: float
     n_params: int
+    z_run: float = 0.0           # run-localised entries: by-run evidence (diagnostics.run_contrast)
+    run: int | None = None       # ... and the run whose mean stands out most
 
     @property
     def accepted(self) -> bool:
-        return self.z >= Z_MIN and self.gain >= MIN_GAIN and self.dbic <= -DBIC_MIN
+        return (self.z >= Z_MIN or self.z_run >= Z_RUN) and self.gain >= MIN_GAIN and self.dbic <= -DBIC_MIN
 
 
 def groups(ctx: C.SearchContext, names, has: set) -> dict:
@@ -108,21 +113,62 @@ def row_loss(e: np.ndarray, n: int) -> np.ndarray:
     return (e.reshape(3, n) ** 2).sum(0)
 
 
-def compare(key, ext, e_new, r_new, k_new, e_ref, r_ref, k_ref, blocks, n_eff, n, n_options) -> Score:
+def place_residual(designs: Designs, ext: Extension, r: np.ndarray) -> np.ndarray:
+    """(n,) weighted stacked residual ``r`` (3n) in ``ext``'s place, in uT: the output's own, or
+    the sensor channel's (solve (S + Ks Tc) r_ch = r per row, at the linearisation gain)."""
+    out = r.reshape(3, designs.n).T / designs.w
+    if ext.frame == "output":
+        return out[:, ext.slot]
+    return np.linalg.solve(designs.gain, out[..., None])[:, ext.slot, 0]
+
+
+def compare(key, ext, e_new, r_new, k_new, e_ref, r_ref, k_ref, blocks, n_eff, n, n_options,
+            designs: Designs | None = None) -> Score:
+    """Score of ``ext`` (model residuals e_new out of sample, r_new in sample, k_new columns)
+    against a reference model (e_ref, r_ref, k_ref); ``designs`` is needed for the by-run score
+    of a run-localised entry."""
     d = row_loss(e_ref, n) - row_loss(e_new, n)
+    z_run, run = 0.0, None
+    if designs is not None and _localised(ext):
+        z_run, _, run = run_contrast(place_residual(designs, ext, r_ref), blocks, np.asarray(designs.inputs.run))
     per_ref = (e_ref.reshape(3, n) ** 2).sum(1)
     per_gain = (per_ref - (e_new.reshape(3, n) ** 2).sum(1)) / np.maximum(per_ref, 1e-300)
     extra = (1 if ext.frame == "whole" else 0) + (1 if n_options > 1 else 0)
     k_eff = k_new + extra
     dbic = bic(float(r_new @ r_new), n_eff, k_eff) - bic(float(r_ref @ r_ref), n_eff, k_ref)
     return Score(key, ext, e_new, float(per_gain.max()), float(d.sum() / per_ref.sum()), block_z(d, blocks), dbic,
-                 k_eff - k_ref)
+                 k_eff - k_ref, z_run, run)
+
+
+def _localised(ext: Extension) -> bool:
+    return ext.frame != "whole" and getattr(ext.component, "localised", None) == "run"
+
+
+def _one_run(options: list) -> list:
+    """Each option of a run-localised group restricted to one of its columns (one run's offset)."""
+    out = []
+    for o in options:
+        cols = o.setting.cols if o.setting.cols is not None else tuple(range(len(o.component.param_names())))
+        out += [o.with_cols((c,)) for c in cols]
+    return out
 
 
 def score_group(designs, current, key, options, folds3, blocks, ref, n_eff) -> Score:
-    """Score of adding group ``key`` (its ``options``) to ``current``; ``ref`` = (e, r, k) of ``current``."""
+    """Score of adding group ``key`` (its ``options``) to ``current``; ``ref`` = (e, r, k) of ``current``.
+
+    A run-localised group (one offset per run) is also tried with the offset of ONE run (per
+    fold, the run whose offset lowers the training error most, so the choice is cross-validated):
+    a step confined to one run is then not charged with the out-of-sample noise of offsets fitted
+    to the other runs. Its evidence is the by-run z (:func:`compare`); the one-run form is used
+    when the all-runs form is not accepted and it is."""
     e, r, chosen, k = cv_residuals(designs, current, options, folds3)
-    return compare(key, chosen, e, r, k, *ref, blocks, n_eff, designs.n, len(options))
+    s = compare(key, chosen, e, r, k, *ref, blocks, n_eff, designs.n, len(options), designs)
+    if s.accepted or not _localised(chosen):
+        return s
+    one = _one_run(options)
+    e1, r1, c1, k1 = cv_residuals(designs, current, one, folds3)
+    s1 = compare(key, c1, e1, r1, k1, *ref, blocks, n_eff, designs.n, len(one), designs)
+    return s1 if s1.accepted else s
 
 
 def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int, progress=None):
