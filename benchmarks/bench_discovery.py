@@ -7,6 +7,15 @@
   drift in time out of catalogue, per-run offsets, hysteresis held across run gaps).
 
     python benchmarks/bench_discovery.py --generator simulate,independent --seeds 20 [--kinds cubic,clean]
+        [--jobs 2] [--out bench_discovery.json] [--resume] [--table]
+
+``--jobs N`` runs campaigns in N worker processes, each single-threaded (XLA and OpenBLAS
+threads off, set before jax is imported), with the same results as ``--jobs 1`` (discovery is
+deterministic given the campaign and its seed). Every finished campaign is appended to
+``OUT.rows.jsonl`` at once; ``--resume`` keeps the rows already there (and in OUT) and runs only
+the missing (generator, kind, seed) campaigns, so an interrupted run continues where it stopped
+and runs over different seeds merge into one summary. ``--table`` prints the per-kind markdown
+tables of docs/discovery.md.
 
 Scoring (declared before running; ``score``):
 * hit: the planted catalogue effect named on its sensor channel ('all' for thermal lag and
@@ -14,14 +23,21 @@ Scoring (declared before running; ``score``):
 * extra: any finding besides that one (campaigns with extra findings are counted);
 * clean: no finding and nothing unexplained;
 * out of catalogue: reported as unexplained on the planted channel;
-* seconds: wall time of ``discover`` on the 5000-row campaign.
+* seconds: wall time of ``discover`` on the 5000-row campaign;
+* magnitude (independent generator; thermal_lag and run_offset, where the truth is in the
+  units discovery reports): |recovered - true| / se for tau (s) and for each run's offset in
+  sensor units on the planted channel (a run offset found in the sensor frame on that
+  channel); ``magnitude_ok`` when the largest is <= 3.
 """
 
 from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")      # small solves; threads only contend on a shared CPU
+# single-threaded numerics (set before jax and numpy load): small solves gain nothing from
+# threads, and worker processes of --jobs must not contend; --jobs 1 runs with the same settings
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 
 import argparse
 import json
@@ -138,7 +154,31 @@ def sim_case(kind: str, seed: int):
 def indep_case(kind: str, seed: int):
     """(data, truth) from the independent generator tests/independent_campaigns.py."""
     data, p = IC.campaign(kind, seed, n=N_ROWS)
-    return data, {"name": p.name, "channel": p.channel, "out_of_catalogue": kind in IC.OUT_OF_CATALOGUE}
+    truth = {"name": p.name, "channel": p.channel, "out_of_catalogue": kind in IC.OUT_OF_CATALOGUE}
+    if kind == "thermal_lag":
+        truth["tau"] = p.params["tau"]
+    if kind == "run_offset":
+        truth["run_steps"] = {str(r): v for r, v in enumerate(p.params["steps"])}
+    return data, truth
+
+
+def magnitude(res, truth) -> dict | None:
+    """Largest |recovered - true| / se over the planted effect's parameters that have a truth in
+    the reported units (tau of a thermal lag, s; each run's offset of a sensor-frame run_offset on
+    the planted channel, sensor units: the model's d = o_run is the planted d); None otherwise."""
+    zs = {}
+    for f in res.findings:
+        if "tau" in truth and f["effect"] == "thermal_lag":
+            p = f["parameters"]["tau"]
+            zs["tau"] = abs(p["value"] - truth["tau"]) / p["se"]
+        if "run_steps" in truth and f["effect"] == "run_offset" and f["frame"] == "sensor" \
+                and f["channel"] == truth["channel"]:
+            for name, p in f["parameters"].items():
+                zs[name] = abs(p["value"] - truth["run_steps"][name[2:]]) / p["se"]
+    if not zs:
+        return None
+    worst = max(zs, key=zs.get)
+    return {"worst_parameter": worst, "worst_abs_z": float(zs[worst]), "magnitude_ok": bool(zs[worst] <= 3.0)}
 
 
 SIM_KINDS = ("axis_quadratic", "cross_axis_quadratic", "cubic", "temperature_quadratic", "thermal_lag",
@@ -158,6 +198,7 @@ def score(res, truth) -> dict:
     extra = len(fs) - n_true
     unexpl = [u.get("channel", u["axis"]) for u in res.unexplained]
     return {"findings": [f"{fe}@{fc}" for fe, fc in fs], "unexplained": unexpl, "hit": hit,
+            "magnitude": magnitude(res, truth) if hit else None,
             "extra_findings": extra,
             "clean_ok": (not fs and not unexpl) if truth["name"] is None and not truth["out_of_catalogue"] else None,
             "unexplained_ok": (truth["channel"] in unexpl) if truth["out_of_catalogue"] else None}
@@ -195,6 +236,63 @@ def summarise(rows: list) -> dict:
     return out
 
 
+def _key(r) -> tuple:
+    return (r["generator"], r["kind"], int(r["seed"]))
+
+
+def _load_rows(out: str) -> dict:
+    """Rows already stored for ``out`` (its JSON and its .rows.jsonl; later lines win), by key."""
+    rows = {}
+    if os.path.exists(out):
+        with open(out) as f:
+            for r in json.load(f).get("rows", []):
+                rows[_key(r)] = r
+    if os.path.exists(out + ".rows.jsonl"):
+        with open(out + ".rows.jsonl") as f:
+            for line in f:
+                line = line.strip()
+                if line:
+                    try:
+                        r = json.loads(line)
+                    except json.JSONDecodeError:        # a line cut by an interrupt
+                        continue
+                    rows[_key(r)] = r
+    return rows
+
+
+def _run_key(key):
+    return run_one(*key)
+
+
+def table(rows: list) -> str:
+    """Per-kind markdown tables (the ones in docs/discovery.md) and the list of misses and extras."""
+    out = []
+    for g in dict.fromkeys(r["generator"] for r in rows):
+        rg = [r for r in rows if r["generator"] == g]
+        seeds = sorted({r["seed"] for r in rg})
+        out.append(f"**{g}** ({len(rg)} campaigns, seeds {seeds[0]}-{seeds[-1]})\n")
+        out.append("| planted | campaigns | right effect and channel | campaigns with extra findings | "
+                   "clean (no finding) / unexplained on its channel | magnitude within 3 se | median s | max s |")
+        out.append("|---|---|---|---|---|---|---|---|")
+        for k in dict.fromkeys(r["kind"] for r in rg):
+            rk = [r for r in rg if r["kind"] == k]
+            hits = [r["hit"] for r in rk if r["hit"] is not None]
+            cl = [r["clean_ok"] for r in rk if r["clean_ok"] is not None]
+            un = [r["unexplained_ok"] for r in rk if r["unexplained_ok"] is not None]
+            mg = [r["magnitude"]["magnitude_ok"] for r in rk if r.get("magnitude")]
+            frac = lambda v: f"{sum(v)}/{len(v)}" if v else "–"      # noqa: E731
+            ce = frac(cl) if cl else frac(un)
+            out.append(f"| {k} | {len(rk)} | {frac(hits)} | {sum(r['extra_findings'] > 0 for r in rk)}/{len(rk)} | "
+                       f"{ce} | {frac(mg)} | {np.median([r['seconds'] for r in rk]):.0f} | "
+                       f"{np.max([r['seconds'] for r in rk]):.0f} |")
+        out.append("")
+        for r in rg:
+            if r["hit"] is False or r["extra_findings"] > 0 or r["clean_ok"] is False or r["unexplained_ok"] is False:
+                out.append(f"- {r['kind']} seed {r['seed']}: findings {r['findings']}, unexplained {r['unexplained']}")
+        out.append("")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--seeds", type=int, default=20)
@@ -202,20 +300,53 @@ def main(argv=None) -> int:
     p.add_argument("--generator", default="simulate,independent", help="simulate, independent or both (comma)")
     p.add_argument("--kinds", default=None, help="comma list (default: all kinds of each generator)")
     p.add_argument("--out", default="bench_discovery.json")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes, each single-threaded")
+    p.add_argument("--resume", action="store_true", help="keep stored rows of OUT and run only missing campaigns")
+    p.add_argument("--table", action="store_true", help="print the per-kind markdown tables at the end")
     a = p.parse_args(argv)
-    rows = []
+    if a.jobs < 1:
+        p.error(f"--jobs is {a.jobs}; it must be >= 1.")
+    todo = []
     for g in a.generator.split(","):
+        if g not in GENERATORS:
+            p.error(f"--generator {g!r} is not one of {sorted(GENERATORS)}.")
         kinds = a.kinds.split(",") if a.kinds else GENERATORS[g][1]
         for kind in kinds:
-            for seed in range(a.first_seed, a.first_seed + a.seeds):
-                r = run_one(g, kind, seed)
-                rows.append(r)
-                print(json.dumps({k: r[k] for k in ("generator", "kind", "seed", "findings", "unexplained", "hit",
-                                                    "extra_findings", "seconds")}), flush=True)
-    summary = summarise(rows)
+            todo += [(g, kind, seed) for seed in range(a.first_seed, a.first_seed + a.seeds)]
+    stored = _load_rows(a.out) if a.resume else {}
+    if not a.resume and os.path.exists(a.out + ".rows.jsonl"):
+        os.remove(a.out + ".rows.jsonl")
+    todo = [k for k in todo if k not in stored]
+    if stored:
+        print(f"resuming: {len(stored)} campaigns stored, {len(todo)} to run", file=sys.stderr)
+    rows = dict(stored)
+    keys = ("generator", "kind", "seed", "findings", "unexplained", "hit", "extra_findings", "magnitude", "seconds")
+    with open(a.out + ".rows.jsonl", "a") as sink:
+        def done(r):
+            rows[_key(r)] = r
+            sink.write(json.dumps(r, default=str) + "\n")
+            sink.flush()
+            print(json.dumps({k: r[k] for k in keys}), flush=True)
+        if a.jobs == 1:
+            for key in todo:
+                done(run_one(*key))
+        else:
+            import concurrent.futures as cf
+            import multiprocessing as mp
+            # spawn: fresh interpreters import this module, so the thread settings above apply before jax loads
+            with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
+                for fut in cf.as_completed([ex.submit(_run_key, k) for k in todo]):
+                    done(fut.result())
+    order = sorted(rows.values(), key=lambda r: (r["generator"], list(GENERATORS[r["generator"]][1]).index(r["kind"])
+                                                 if r["kind"] in GENERATORS[r["generator"]][1] else 99, r["seed"]))
+    summary = summarise(order)
     print(json.dumps(summary, indent=1))
-    with open(a.out, "w") as f:
-        json.dump({"summary": summary, "rows": rows}, f, indent=1, default=str)
+    if a.table:
+        print(table(order))
+    tmp = a.out + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump({"summary": summary, "rows": order}, f, indent=1, default=str)
+    os.replace(tmp, a.out)
     return 0
 
 

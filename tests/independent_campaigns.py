@@ -195,6 +195,7 @@ def campaign(kind: str = "clean", seed: int = 0, n: int = 5000) -> tuple[Calibra
         steps = rng.choice([-1, 1], n_runs) * rng.uniform(0.5, 1.0, n_runs) * size
         steps[0] = 0.0
         d = steps[run]
+        planted.params.update(steps=steps.tolist())
     elif kind == "periodic":
         period = float(rng.uniform(45, 65))
         d = 0.8 * size * np.sin(2 * np.pi * time / period + rng.uniform(0, 6))
