@@ -13,7 +13,7 @@ import pytest
 
 import bayesmag
 from bayesmag._src.discover import DiscoverOptions, discover, main
-from bayesmag._src.discover.options import T_IDENT
+from bayesmag._src.discover.options import T_IDENT, Z_MIN, Z_RUN
 from bayesmag.simulate import get_effect, simulate
 from independent_campaigns import campaign
 
@@ -71,6 +71,56 @@ def test_periodic_interference_is_unexplained_on_its_channel_with_time_scale():
 def test_per_run_offset_is_named():
     d, p, r = _indep("run_offset", seed=0)
     assert [(f["effect"], f["channel"]) for f in r.findings] == [("run_offset", p.channel)], r.findings
+
+
+def _step_in_one_run(seed, run_k=2, factor=8.0):
+    """A clean independent campaign whose channel-0 reading steps by ``factor`` x its noise sd
+    in run ``run_k`` only (a Belsten-like step): (data, channel, step in sensor units)."""
+    d, p = campaign("clean", seed, n=4000)
+    ch = 0
+    step = factor * p.params["noise_sd_sensor_units"][ch]
+    u = np.array(d.b_meas)
+    u[:, ch] += step * (np.asarray(d.run) == run_k)
+    return bayesmag.CalibrationData(u, d.temperature, d.b_ref, d.time, d.run, "step in one run"), "xyz"[ch], step
+
+
+def test_run_contrast_sees_a_step_in_one_run_and_not_noise():
+    """The by-run F test: block means within runs are the yardstick; a step in one run of six
+    (5 of 30 blocks) is seen, white or AR(1) noise is not."""
+    rng = np.random.default_rng(0)
+    run = np.repeat(np.arange(6), 500)
+    from bayesmag._src.discover.diagnostics import run_contrast
+    blocks = np.arange(run.size) // 100
+    zs = []
+    for _ in range(200):
+        e = rng.standard_normal(run.size)
+        for k in range(1, e.size):
+            e[k] = 0.6 * e[k - 1] + 0.8 * e[k]
+        zs.append(run_contrast(e, blocks, run)[0])
+    assert np.mean(np.array(zs) >= Z_RUN) <= 0.02, np.mean(np.array(zs) >= Z_RUN)
+    e = rng.standard_normal(run.size) + 0.25 * (run == 3)
+    z, p, k = run_contrast(e, blocks, run)
+    assert z >= Z_RUN and k == 3, (z, p, k)
+
+
+@pytest.mark.slow
+def test_step_confined_to_one_run_is_named_on_its_channel():
+    """One run's offset steps (the Belsten z case, made with a known truth): named as run_offset
+    on the channel, on that run, value within N_SE of the step."""
+    d, ch, step = _step_in_one_run(1)
+    r = discover(d, figures=False)
+    assert [(f["effect"], f["channel"]) for f in r.findings] == [("run_offset", ch)], r.findings
+    (name, par), = r.findings[0]["parameters"].items()
+    assert name == "o_2" and abs(par["value"] - step) <= N_SE * par["se"], (par, step)
+
+
+def test_thermal_lag_longer_than_the_grid_brings_no_run_offsets():
+    """Seed 2: tau 110 s beyond the grid's top (runs of ~100 s): the refinement brackets it, so
+    no per-run offsets take up a misfit of the lag (they did before: 3 run_offset findings)."""
+    d, p, r = _indep("thermal_lag", seed=2, n=5000)
+    assert [(f["effect"], f["channel"]) for f in r.findings] == [("thermal_lag", "all")], r.findings
+    tau = r.findings[0]["parameters"]["tau"]
+    assert abs(tau["value"] - p.params["tau"]) <= N_SE * tau["se"], (tau, p.params)
 
 
 @pytest.mark.slow
@@ -154,6 +204,14 @@ def test_belsten_reports_only_identified_coefficients_and_admits_structure(belst
         assert f["channel"] in ("x", "y", "z", "all", None)
     # the residual is strongly autocorrelated (lag-1 ~0.8): never "no missing physics"
     assert not r.no_missing_physics
+    where = {(f["effect"], f["axis"]) for f in r.findings}
+    # the x channel's quadratic, and the z offset step that is confined to runs (issue #15): the
+    # by-run test names it (z_run >= Z_RUN) where the block test alone could not (block z < 1.5)
+    assert ("axis_quadratic", "x") in where, r.findings
+    z = [f for f in r.findings if f["effect"] == "run_offset" and f["axis"] == "z"]
+    assert len(z) == 1, r.findings
+    assert z[0]["evidence"]["z_run"] >= Z_RUN and z[0]["evidence"]["z"] < Z_MIN, z[0]["evidence"]
+    assert z[0]["rmse_after"]["z"] < z[0]["rmse_before"]["z"], z[0]
 
 
 def test_noisy_temperature_log_is_not_called_a_thermal_lag():

@@ -314,7 +314,7 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
                          "delta_bic_eff": float(st["score"].dbic) if st else s.dbic,
                          "drop_one_z": s.z, "drop_one_gain": s.gain, "cv": cv_desc,
                          **({"z_run": float(st["score"].z_run) if st else s.z_run, "drop_one_z_run": s.z_run,
-                             "run_standing_out": s.run}
+                             "run_mean_furthest_from_the_others": s.run}
                             if getattr(e.component, "localised", None) == "run" else {})},
             "explanation": e.component.explanation,
             "indistinguishable_from": [{"effect": a.ext.name, "where": _label(a.ext), "oos_gain": a.gain}
