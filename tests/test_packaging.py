@@ -130,3 +130,18 @@ def test_import_is_lazy_and_every_public_name_resolves():
                        env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split() == ["[]", "True"]
+
+
+@pytest.mark.parametrize("argv0,preset,expected", [
+    ("bayesmag", None, "1"),             # the console script: one BLAS thread (small matrices only)
+    ("bayesmag", "4", "4"),              # the user's own setting is never overridden
+    ("notebook.py", None, "unset"),      # a library import leaves the process alone
+])
+def test_command_sets_one_blas_thread_only_for_itself(argv0, preset, expected):
+    code = ("import sys; sys.argv[0] = %r; import bayesmag, os, numpy; "
+            "print(os.environ.get('OPENBLAS_NUM_THREADS', 'unset'))" % argv0)
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == expected

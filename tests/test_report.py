@@ -151,3 +151,36 @@ def test_histogram_and_pit_panels_are_labelled(tmp_path, monkeypatch):
     for fig in saved:
         for ax in fig.axes:
             assert ax.get_xlabel() and ax.get_ylabel()
+
+
+def test_figure_worker_draws_in_background_and_surfaces_errors(tmp_path):
+    """FigureWorker: queued figures land in the output folder at finish(), on one background thread;
+    a drawing error is raised by finish() (never a silently missing figure); close() removes its folder."""
+    import threading
+
+    from bayesmag._src.plots import FigureWorker
+
+    threads = []
+
+    def draw(folder, name):
+        threads.append(threading.current_thread().name)
+        (folder / name).write_text(name)
+
+    with FigureWorker() as figs:
+        figs.submit(draw, "a.png")
+        figs.submit(draw, "b.png")
+        private = figs._tmp
+        assert figs.finish(tmp_path) == ["a.png", "b.png"]
+    assert (tmp_path / "a.png").read_text() == "a.png" and not private.exists()
+    assert len(set(threads)) == 1 and threads[0] != threading.current_thread().name
+
+    def broken(folder):
+        raise RuntimeError("bad figure")
+
+    with FigureWorker() as figs:
+        figs.submit(broken)
+        with pytest.raises(RuntimeError, match="bad figure"):
+            figs.finish(tmp_path / "never")
+    with FigureWorker(enabled=False) as figs:       # [output] figures = false: nothing drawn, nothing moved
+        figs.submit(draw, "c.png")
+        assert figs.finish(tmp_path) == [] and not (tmp_path / "c.png").exists()

@@ -490,6 +490,23 @@ def test_nearly_collinear_but_identifiable_fit_is_kept():
     assert names == [] and RANK_RTOL < ratio < 1e-3
 
 
+def test_batched_rank_check_agrees_with_unidentifiable_and_ignores_zeroed_rows():
+    """fit_folds zeroes left-out rows and checks all folds with one batched SVD (rank_deficient): the
+    verdict equals unidentifiable() on the kept rows alone, for a full-rank, a barely varying, a constant
+    and a zero column."""
+    from bayesmag._src.fit import rank_deficient
+    d = _recording(200)
+    rng = np.random.default_rng(3)
+    keep = rng.random(d.n) < 0.7
+    cases = []
+    for col1 in (d.b_meas[:, 1], 7.5 + 1e-3 * rng.standard_normal(d.n), np.full(d.n, 7.5), np.zeros(d.n)):
+        J = np.column_stack([d.b_meas[:, 0], col1, d.b_meas[:, 2], d.temperature, np.ones(d.n)])
+        cases.append(J)
+    batched = rank_deficient(np.stack([J * keep[:, None] for J in cases]))
+    single = [bool(unidentifiable(J[keep], ("a", "b", "c", "T", "1"))[0]) for J in cases]
+    assert batched.tolist() == single == [False, False, True, True]
+
+
 @pytest.mark.realdata
 def test_belsten_is_collinear_but_not_rank_deficient(belsten):
     from bayesmag import PhysicsModel, inputs_from_data

@@ -390,12 +390,26 @@ def fit_folds(data, model: PhysicsModel, keep: np.ndarray) -> tuple[np.ndarray, 
     sol = _solve_folds_jit(model, th0, inputs, jnp.asarray(data.b_ref), jnp.asarray(keep, jnp.float64))
     theta = np.asarray(sol.theta)
     conv = np.asarray(sol.result) == RESULTS.index("converged")
-    J = np.asarray(jax.vmap(lambda th: _Problem(model).jacobian(th, inputs))(jnp.asarray(theta)))   # (F, 3, n, p)
-    ok = conv.all(axis=1)
-    for f in range(keep.shape[0]):
-        if ok[f]:
-            ok[f] = not any(unidentifiable(J[f, a][keep[f]], model.param_names)[0] for a in range(3))
+    # rows left out are zeroed, not removed: zero rows change neither the column norms nor the singular
+    # vectors, so every fold and axis is one (n, p) matrix and the rank checks are one batched SVD
+    J = np.asarray(_fold_jac_jit(_Problem(model), jnp.asarray(theta), inputs, jnp.asarray(keep, jnp.float64)))
+    ok = conv.all(axis=1) & ~rank_deficient(J).any(axis=1)
     return theta, ok
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _fold_jac_jit(prob, theta, inputs, weights):
+    """Jacobians (F, 3, n, p) of every fold and axis, the left-out rows zeroed."""
+    return jax.vmap(lambda th, w: prob.jacobian(th, inputs) * w[None, :, None])(theta, weights)
+
+
+def rank_deficient(J: np.ndarray, *, rtol: float = RANK_RTOL) -> np.ndarray:
+    """:func:`unidentifiable` as a yes/no over a stack of Jacobians ``(..., n, p)``, one batched SVD."""
+    J = np.asarray(J, dtype=np.float64)
+    norm = np.linalg.norm(J, axis=-2, keepdims=True)
+    zero = (norm <= np.finfo(np.float64).tiny).any(axis=(-2, -1))
+    sv = np.linalg.svd(J / np.where(norm > 0, norm, 1.0), compute_uv=False)
+    return zero | (sv.min(axis=-1) < rtol * sv.max(axis=-1))
 
 _jac_jit = jax.jit(lambda prob, th, inputs: prob.jacobian(th, inputs), static_argnums=0)
 

@@ -168,13 +168,19 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
 
 
 def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
-    """Run the calibration job described by ``cfg`` and write its outputs into ``out``."""
+    """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
+
+    The physics stage's figures are drawn in a background thread while the network trains
+    (:class:`~bayesmag._src.plots.FigureWorker`); the output folder is swapped in only after they are.
+    """
     from .outdir import reserve
+    from .plots import FigureWorker
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
-        return _run_job(cfg, out, progress=progress)
+        with FigureWorker(enabled=cfg.output.figures) as figs:
+            return _run_job(cfg, out, figs, progress=progress)
 
 
-def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
+def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None) -> JobResult:
     progress = cfg.output.progress if progress is None else progress
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
@@ -247,6 +253,10 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         "in_domain_reason": np.broadcast_to(domain.reasons(outside)[:, None], y.shape),
     }
 
+    if cfg.output.figures:
+        from .plots import physics_figures
+        figs.submit(physics_figures, test, {k: columns[k] for k in ("measured", "predicted", "reference", "total")})
+
     writers: list = []              # (name, writer(staging_dir)) for stage files, called in the staging folder
     hs = None
     if cfg.network.enabled:
@@ -280,7 +290,8 @@ def _run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> J
         save_calibration(tmp, result["predictor"], config=cfg.to_dict(), level=cfg.uq.level)
         if cfg.output.figures:
             from . import plots
-            plots.job_figures(tmp, result, columns)
+            figs.finish(tmp)                        # before any drawing here: pyplot on one thread at a time
+            plots.residual_histogram_figure(tmp, result, columns)
         timings["write"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}

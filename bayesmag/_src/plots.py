@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import shutil
+import tempfile
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import Callable
 
 import matplotlib
 
@@ -13,7 +17,7 @@ import numpy as np  # noqa: E402
 from .data import AXES  # noqa: E402
 
 __all__ = ["calibration_scatter", "residual_histograms", "residuals_vs", "residuals_vs_time", "residual_figures",
-           "job_figures"]
+           "job_figures", "physics_figures", "FigureWorker"]
 
 
 def calibration_scatter(path: Path, measured: np.ndarray, calibrated: np.ndarray, reference: np.ndarray,
@@ -125,12 +129,71 @@ def residual_figures(out: Path, data, predicted: np.ndarray, sd: np.ndarray, *, 
     return files
 
 
-def job_figures(out: Path, result, columns: dict) -> None:
-    """The standard figures of a calibration job."""
+def physics_figures(out: Path, test, columns: dict) -> None:
+    """The physics stage's figures of a job: calibration scatter and residual diagnostics of the test rows."""
     calibration_scatter(out / "calibration.png", columns["measured"], columns["predicted"], columns["reference"])
+    residual_figures(out, test, columns["predicted"], columns["total"])
+
+
+def job_figures(out: Path, result, columns: dict) -> None:
+    """The standard figures of a calibration job (:func:`physics_figures` and the residual histograms)."""
+    physics_figures(out, result["data"].subset(result["split"].test), columns)
+    residual_histogram_figure(out, result, columns)
+
+
+def residual_histogram_figure(out: Path, result, columns: dict) -> None:
+    """Histograms of the test residuals of the physics and (when there) hybrid predictions."""
     res = {"physics": columns["reference"] - result["uq"].mean}
     if "hybrid_predicted" in columns:
         res["hybrid"] = columns["reference"] - columns["hybrid_predicted"]
     residual_histograms(out / "residual_histograms.png", res)
-    test = result["data"].subset(result["split"].test)
-    residual_figures(out, test, columns["predicted"], columns["total"])
+
+
+class FigureWorker:
+    """Draws figures in one background thread while the job computes (network training leaves the
+    second core idle); :meth:`finish` waits, re-raises the first drawing error and moves the files
+    into the output folder. Every task runs on the same thread, one at a time, so pyplot is never
+    used from two threads at once as long as the caller draws nothing itself before :meth:`finish`.
+
+    Example::
+
+        with FigureWorker() as figs:
+            figs.submit(physics_figures, test, columns)   # called as physics_figures(folder, test, columns)
+            ...                                           # the computation goes on meanwhile
+            figs.finish(staging)                          # the PNGs land in staging
+    """
+
+    def __init__(self, enabled: bool = True):
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="bayesmag-figures") if enabled else None
+        self._tmp = Path(tempfile.mkdtemp(prefix="bayesmag-figures-")) if enabled else None
+        self._futures: list[Future] = []
+
+    def submit(self, draw: Callable[..., object], *args, **kwargs) -> None:
+        """Queue ``draw(folder, *args, **kwargs)``; nothing when the worker is disabled."""
+        if self._pool is not None:
+            self._futures.append(self._pool.submit(draw, self._tmp, *args, **kwargs))
+
+    def finish(self, out: Path) -> list[str]:
+        """Wait for every queued figure, raise the first error, move the files into ``out``; their names."""
+        if self._pool is None:
+            return []
+        for f in self._futures:
+            f.result()
+        self._futures = []
+        names = sorted(p.name for p in self._tmp.iterdir())
+        for name in names:
+            shutil.move(str(self._tmp / name), str(Path(out) / name))
+        return names
+
+    def close(self) -> None:
+        """Cancel what has not started, wait for what has, remove the private folder."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._pool = None
+
+    def __enter__(self) -> "FigureWorker":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
