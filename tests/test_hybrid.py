@@ -118,7 +118,7 @@ def test_nan_loss_warns_with_the_epoch_and_the_job_finishes(tmp_path):
 
 def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     out = tmp_path / "sim"
-    result = run_job(_config(), out)
+    result = run_job(_config(conformal_folds=2), out)     # 2 cross-conformal folds: the default 5 trains 5 networks
     m = result["metrics"]
     for name in ("gaussian", "laplace"):
         h = m["hybrid"][name]
@@ -149,9 +149,27 @@ def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     pred = result["hybrid"]["gaussian"]
     k = result["predictor"].scale
     assert k.shape == (3,) and np.all(k >= 1.0) and np.all(pred.transfer == 0)
+    assert m["network"]["training"]["gaussian"]["conformal"]["folds"] == 2
+    assert "conformal_networks" in m["timings"]
     np.testing.assert_allclose(pred.total**2, k**2 * (pred.aleatoric_nn**2 + pred.epistemic_nn**2
                                                       + pred.epistemic_physics**2), rtol=1e-12)
     assert "network_train" in m["timings"] and "hybrid_inference" in m["timings"]
+
+
+def test_conformal_folds_are_one_block_per_run_in_their_own_stretch():
+    """Fold k: one contiguous block of ``fraction`` of every run, inside the k-th of K equal stretches of the run."""
+    from bayesmag._src.hybrid import conformal_folds
+    run = np.repeat([3, 1, 7], [200, 310, 95])
+    fold = conformal_folds(run, fraction=0.1, folds=5, seed=1)
+    assert set(np.unique(fold)) == {-1, 0, 1, 2, 3, 4}
+    for r in (3, 1, 7):
+        rows = np.flatnonzero(run == r)
+        f = fold[rows]
+        for k in range(5):
+            at = np.flatnonzero(f == k)
+            assert at.size == round(0.1 * rows.size) and np.all(np.diff(at) == 1)      # one contiguous block
+            assert np.all(at // (rows.size // 5) == k)                                 # in the k-th stretch
+    np.testing.assert_array_equal(fold, conformal_folds(run, fraction=0.1, folds=5, seed=1))   # seeded
 
 
 @pytest.mark.realdata

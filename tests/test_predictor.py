@@ -9,7 +9,8 @@ import scipy.stats
 import bayesmag
 from bayesmag import PhysicsUQ, metrics
 from bayesmag._src.likelihoods import Gaussian
-from bayesmag._src.predictor import Components, Predictor, UQOptions, compose, conformal_scale
+from bayesmag._src.predictor import (Components, Predictor, UQOptions, compose, conformal_quantile,
+                                     conformal_ratios, conformal_scale)
 from helpers import uq_parts
 
 Z95 = scipy.stats.norm.ppf(0.975)
@@ -75,6 +76,11 @@ def test_conformal_scale_recovers_a_known_misscale():
     assert np.all(cov >= 0.95) and np.all(cov <= 0.955)   # split conformal: at least the level, ceil((n+1)0.95)/n
     with pytest.raises(ValueError, match="at least 20"):
         conformal_scale(y[:10], compose(PhysicsUQ(*(np.ones((10, 3)),) * 5)), 0.95)
+    # cross-conformal: scores of several folds pooled, one quantile (the job's scale over its time-block folds)
+    half = PhysicsUQ(np.zeros((n // 2, 3)), np.ones((n // 2, 3)), *(np.zeros((n // 2, 3)),) * 3)
+    pooled = conformal_quantile(np.concatenate([conformal_ratios(y[:n // 2], compose(half), 0.95),
+                                                conformal_ratios(y[n // 2:], compose(half), 0.95)]), 0.95)
+    np.testing.assert_array_equal(pooled, k)
 
 
 def test_score_is_the_one_scorer():
