@@ -12,7 +12,8 @@ Composition (:func:`compose`), per row and axis, with physics aleatoric / episte
 :math:`a_p, e_p` (PS-QMC), residual sd :math:`r` (training scatter beyond the propagated input
 noise), network aleatoric / epistemic sds :math:`a, e` (MC DropConnect) and transfer sd
 :math:`\tau` (between-session variation, :func:`estimate_transfer`), and interval scale :math:`k`
-(split-conformal factor on held-out time, :func:`conformal_scale`; 1 when absent):
+(conformal factor on held-out time: :func:`conformal_scale`, or pooled over the job's cross-conformal
+time-block folds with :func:`conformal_ratios` / :func:`conformal_quantile`; 1 when absent):
 
 * physics only: :math:`N(\bar y_{phys},\; k^2 (a_p^2 + r^2 + e_p^2) + \tau^2)`;
 * network, ``fusion = "moment_match"``: mean :math:`\bar y_{phys} + \mu_{NN}`, variance
