@@ -172,6 +172,37 @@ def test_conformal_folds_are_one_block_per_run_in_their_own_stretch():
     np.testing.assert_array_equal(fold, conformal_folds(run, fraction=0.1, folds=5, seed=1))   # seeded
 
 
+def test_each_conformal_fold_is_scored_by_a_network_that_never_saw_it(tmp_path, monkeypatch):
+    """Cross-conformal in the job: K networks, network k trained without fold k's rows; no fold row is a test row."""
+    from bayesmag._src import hybrid
+    seen, real = [], hybrid.train_network
+
+    def spy(x, r, spec, net_cfg, groups=None, progress=False):
+        seen.append(x.copy())
+        return real(x, r, spec, net_cfg, groups=groups, progress=progress)
+
+    monkeypatch.setattr(hybrid, "train_network", spy)
+    raw = copy.deepcopy(SIMULATED)
+    raw["data"]["simulate"].update(n=1200, design="campaign")
+    raw["split"] = {"kind": "time_blocks", "test_fraction": 0.1, "seed": 0}
+    raw["output"]["figures"] = False
+    result = run_job(_config(raw, likelihoods=["gaussian"], max_epochs=5, mc_passes=5, conformal_folds=3,
+                                 width=16), tmp_path / "cv")
+    assert len(seen) == 3
+    data, split = result["data"], result["split"]
+    train = data.subset(split.train)
+    folds = hybrid.conformal_folds(train.run, fraction=0.1, folds=3, seed=1)
+    x = np.column_stack([train.b_meas, train.temperature])
+    test_x = {tuple(v) for v in np.column_stack([data.b_meas, data.temperature])[split.test]}
+    for k in range(3):
+        fitted = {tuple(v) for v in seen[k]}
+        fold = {tuple(v) for v in x[folds == k]}
+        assert fold and not fold & fitted and not fold & test_x          # never trained on, never a test row
+        assert {tuple(v) for v in x[(folds != k)]} == fitted             # everything else was
+    assert result["metrics"]["network"]["training"]["gaussian"]["conformal"] == {"folds": 3,
+                                                                                 "rows": int(np.sum(folds >= 0))}
+
+
 @pytest.mark.realdata
 def test_real_data_hybrid_beats_physics_on_the_random_split(belsten, tmp_path):
     raw = {
