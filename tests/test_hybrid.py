@@ -150,6 +150,8 @@ def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     k = result["predictor"].scale
     assert k.shape == (3,) and np.all(k >= 1.0) and np.all(pred.transfer == 0)
     assert m["network"]["training"]["gaussian"]["conformal"]["folds"] == 2
+    assert len(result["predictor"].network.members) == 2      # the fold networks predict as a deep ensemble
+    assert m["network"]["training"]["gaussian"]["conformal"]["ensemble_passes"] == [10, 10]
     assert "conformal_networks" in m["timings"]
     np.testing.assert_allclose(pred.total**2, k**2 * (pred.aleatoric_nn**2 + pred.epistemic_nn**2
                                                       + pred.epistemic_physics**2), rtol=1e-12)
@@ -199,8 +201,13 @@ def test_each_conformal_fold_is_scored_by_a_network_that_never_saw_it(tmp_path, 
         fold = {tuple(v) for v in x[folds == k]}
         assert fold and not fold & fitted and not fold & test_x          # never trained on, never a test row
         assert {tuple(v) for v in x[(folds != k)]} == fitted             # everything else was
-    assert result["metrics"]["network"]["training"]["gaussian"]["conformal"] == {"folds": 3,
-                                                                                 "rows": int(np.sum(folds >= 0))}
+    assert result["metrics"]["network"]["training"]["gaussian"]["conformal"] == {
+        "folds": 3, "rows": int(np.sum(folds >= 0)), "ensemble_passes": [2, 2, 2]}     # 5 passes: at least 2 each
+    # the predictor keeps the three fold networks as its ensemble, fold 0's first; metrics describe fold 0's
+    ens = result["predictor"].network
+    assert len(ens.members) == 3
+    for k, member in enumerate(ens.members):
+        assert member.n_fit + member.n_val == len(seen[k])
 
 
 @pytest.mark.realdata

@@ -58,7 +58,8 @@ import numpy as np
 from . import metrics as M
 from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
-from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
+from .network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, check_network_size, ensemble_passes,
+                      fit_residual_network,
                       recalibrate, validation_rows)
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
@@ -209,10 +210,13 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
     (and without its own early-stopping block), and the fold's rows are scored by it
     (:func:`~bayesmag._src.predictor.conformal_ratios`); the scale is the split-conformal quantile of the
     scores of all K folds pooled (:func:`~bayesmag._src.predictor.conformal_quantile`), floored at 1. The
-    network of fold 0 is the one the predictor keeps; the others only calibrate: they are trained the same
-    way on as many rows, so their held-out scores are draws of the kept network's. ``new_session``: test
-    rows that get the transfer part. Adds ``timings["network_train"]`` (the kept networks),
-    ``["conformal_networks"]`` (the K - 1 calibration networks) and ``["hybrid_inference"]`` (s).
+    predictor keeps all K fold networks as a :class:`~bayesmag._src.network.NetworkEnsemble` (deep
+    ensemble x MC DropConnect: ``mc_passes`` split over the members, moments pooled over all passes,
+    :func:`~bayesmag._src.network.mc_predict`) with that scale; ``networks[name]`` (training
+    diagnostics, metrics) stays fold 0's network. Without conformal folds the predictor keeps the one
+    network, as before. ``new_session``: test rows that get the transfer part. Adds
+    ``timings["network_train"]`` (fold 0's networks), ``["conformal_networks"]`` (the K - 1 other fold
+    networks) and ``["hybrid_inference"]`` (s).
     """
     specs = check_network_config(cfg)
     net_cfg = cfg.network
@@ -260,7 +264,7 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
             pr = dataclasses.replace(physics, network=net, passes=net_cfg.mc_passes, network_seed=net_cfg.seed,
                                      fusion=net_cfg.fusion)
             if n_folds:
-                ratios = []
+                ratios, members = [], []
                 for k in range(n_folds):
                     t = time.perf_counter()
                     if k == 0:
@@ -270,6 +274,7 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
                         nk = train_network(x_train[rows], r_train[rows], spec, net_cfg, groups=train.run[rows])
                         nan_messages += _warn_nan(f"{name}, conformal fold {k}", nk)
                         pk = dataclasses.replace(pr, network=nk)
+                    members.append(pk.network)
                     timings.setdefault("conformal_networks", 0.0)
                     timings["conformal_networks"] += time.perf_counter() - t
                     t = time.perf_counter()
@@ -278,8 +283,9 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
                                                    cfg.uq.level))
                     timings["hybrid_inference"] += time.perf_counter() - t
                 # only ever widen: a factor < 1 would trust the calibration blocks over the network's own sd
-                pr = dataclasses.replace(pr, scale=np.maximum(conformal_quantile(np.concatenate(ratios), cfg.uq.level),
-                                                              1.0))
+                # the K fold networks predict together (deep ensemble), with the scale their held-out folds gave
+                pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(members)),
+                                         scale=np.maximum(conformal_quantile(np.concatenate(ratios), cfg.uq.level), 1.0))
             t = time.perf_counter()
             comp = Components(uq, pr.network_part(test))
             pred = pr.compose(comp, new_session=new_session)
@@ -289,7 +295,8 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
             alts[name] = pr.compose(comp, fusion=other, new_session=new_session)
             training[name] = {**net.info_dict(), "train_seconds": round(train_s, 3)}
             if pr.scale is not None:
-                training[name]["conformal"] = {"folds": n_folds, "rows": int(np.sum(folds >= 0))}
+                training[name]["conformal"] = {"folds": n_folds, "rows": int(np.sum(folds >= 0)),
+                                               "ensemble_passes": list(ensemble_passes(net_cfg.mc_passes, n_folds))}
                 for a, ax in enumerate(AXES):
                     training[name][ax]["interval_scale"] = float(pr.scale[a])
             if net.variance_scale is not None:

@@ -167,8 +167,9 @@ class Predictor:
 
     ``fit``: the physics posterior (a :class:`~bayesmag.PhysicsFit` or the view a saved
     calibration gives); ``sigma_in``: (4, 4) input-noise covariance; ``residual_sd``: (3,)
-    residual term; ``network``: trained :class:`~bayesmag._src.network.ResidualNetwork` or None,
-    predicted with ``passes`` MC passes from ``network_seed``; ``fusion``: one of
+    residual term; ``network``: trained :class:`~bayesmag._src.network.ResidualNetwork`, a
+    :class:`~bayesmag._src.network.NetworkEnsemble` of them (``passes`` split over the members, moments
+    pooled over all passes) or None, predicted with ``passes`` MC passes from ``network_seed``; ``fusion``: one of
     :data:`FUSIONS`; ``transfer_sd``: (3,) between-session sd or None; ``scale``: (3,) interval
     factor (:func:`conformal_scale`) or None; ``domain``: the
     training :class:`~bayesmag._src.domain.Domain` or None; ``uq``: physics UQ settings.
