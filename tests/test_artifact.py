@@ -142,8 +142,11 @@ def test_hybrid_calibration_round_trip(tmp_path, likelihood, fourier, extra):
     res, out = _run(tmp_path, network=net)
     cal = load(out)
     assert cal.network is not None and cal.likelihood == likelihood
-    assert ("fourier/frequencies" in cal.network["arrays"]) == (fourier > 0)
-    assert ("recalibration/variance_scale" in cal.network["arrays"]) == bool(extra)
+    # the conformal fold networks (default 5) are kept as a deep ensemble: every member saved
+    assert cal.network["meta"]["members"] == 5 and json.loads((out / "calibration.json").read_text())[
+        "format_version"] == 2
+    assert ("member4/fourier/frequencies" in cal.network["arrays"]) == (fourier > 0)
+    assert ("member4/recalibration/variance_scale" in cal.network["arrays"]) == bool(extra)
     test = res["data"].subset(res["split"].test)
     assert cal.interval_scale is not None                              # conformal scale (default) saved
     pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"],
@@ -178,3 +181,119 @@ def test_report_shows_network_parts_when_hybrid(tmp_path):
     _, out = _run(tmp_path, network=net)
     text = (out / "report.md").read_text()
     assert "network aleatoric" in text and "network epistemic" in text and "`moment_match`" in text
+
+
+# --------------------------------------------------------------------------- deep ensemble in the calibration
+
+ENS_NET = {"enabled": True, "likelihoods": ["gaussian"], "hidden_layers": 1, "width": 8, "batch_size": 128,
+           "max_epochs": 8, "patience": 3, "mc_passes": 9, "seed": 1, "conformal_folds": 2}
+
+
+@pytest.fixture(scope="module")
+def ensemble_run(tmp_path_factory):
+    res, out = _run(tmp_path_factory.mktemp("ens"), network=ENS_NET)
+    return res, out
+
+
+def _copy(out, tmp_path):
+    import shutil
+    shutil.copytree(out, tmp_path / "run")
+    return tmp_path / "run"
+
+
+def test_ensemble_calibration_saves_every_member_and_predicts_with_all(ensemble_run):
+    from bayesmag._src.network import NetworkEnsemble, mc_predict
+    from bayesmag._src.predictor import network_inputs
+
+    res, out = ensemble_run
+    pr = res["predictor"]
+    assert isinstance(pr.network, NetworkEnsemble) and len(pr.network.members) == 2
+    cal = load(out)
+    ens = cal.predictor().network
+    assert isinstance(ens, NetworkEnsemble) and len(ens.members) == 2
+    for saved, kept in zip(ens.members, pr.network.members):
+        for a, b in zip(saved.params, kept.params):
+            np.testing.assert_array_equal(a.w, b.w)
+    test = res["data"].subset(res["split"].test)
+    got = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"],
+                      new_session=False)
+    np.testing.assert_array_equal(got["calibrated"], res["hybrid"]["gaussian"].mean)
+    # the ensemble's epistemic part is the pooled one (passes 5 + 4 over the two members)
+    want = mc_predict(ens, network_inputs(test), passes=9, seed=1)
+    np.testing.assert_allclose(got["epistemic_nn"], want.epistemic, rtol=1e-12)
+    assert res["metrics"]["network"]["training"]["gaussian"]["conformal"]["ensemble_passes"] == [5, 4]
+
+
+def test_single_network_calibration_of_the_previous_version_still_loads(ensemble_run, tmp_path):
+    """A calibration written before ensembles (one network under network/..., format version 1) loads as
+    one network and predicts with it."""
+    from bayesmag._src.network import NetworkEnsemble, ResidualNetwork, mc_predict
+    from bayesmag._src.predictor import network_inputs
+
+    res, out = ensemble_run
+    run = _copy(out, tmp_path)
+    with np.load(run / "calibration.npz") as f:
+        a = {(k.replace("network/member0/", "network/") if k.startswith("network/member0/") else k): f[k]
+             for k in f.files if not k.startswith("network/member1/")}
+    np.savez(run / "calibration.npz", **a)
+    doc = json.loads((run / "calibration.json").read_text())
+    doc["format_version"] = 1
+    doc["network"].pop("members")
+    (run / "calibration.json").write_text(json.dumps(doc))
+    cal = load(run)
+    net = cal.predictor().network
+    assert isinstance(net, ResidualNetwork) and not isinstance(net, NetworkEnsemble)
+    test = res["data"].subset(res["split"].test)
+    got = cal.predict(test, new_session=False)
+    want = mc_predict(res["predictor"].network.members[0], network_inputs(test), passes=9, seed=1)
+    np.testing.assert_allclose(got["epistemic_nn"], want.epistemic, rtol=1e-12)
+
+
+def test_physics_and_single_network_calibrations_stay_format_1(tmp_path):
+    _, out = _run(tmp_path, network={**ENS_NET, "interval_calibration": "none"})
+    doc = json.loads((out / "calibration.json").read_text())
+    assert doc["format_version"] == 1 and "members" not in doc["network"]
+    assert "network/layer0/w" in np.load(out / "calibration.npz").files
+
+
+def _tamper(run, drop=(), arrays=None, members="keep"):
+    with np.load(run / "calibration.npz") as f:
+        a = {k: f[k] for k in f.files if k not in drop}
+    for k, v in (arrays or {}).items():
+        a[k] = v(a[k]) if callable(v) else v
+    np.savez(run / "calibration.npz", **a)
+    if members != "keep":
+        doc = json.loads((run / "calibration.json").read_text())
+        doc["network"]["members"] = members
+        (run / "calibration.json").write_text(json.dumps(doc))
+
+
+def _nan_first(w):
+    w = w.copy()
+    w.flat[0] = np.nan
+    return w
+
+
+ENSEMBLE_TAMPER = {
+    "members_more_than_saved": (dict(members=3), r"lacks network/member2/layer0/w"),
+    "members_one": (dict(members=1), r"'network.members' = 1 must be an integer of at least 2"),
+    "members_not_int": (dict(members="2"), r"'network.members' = '2' must be an integer"),
+    "member_layer_missing": (dict(drop=("network/member1/layer1/w",)), r"lacks network/member1/layer1/w"),
+    "member_nan": (dict(arrays={"network/member1/layer0/w": _nan_first}), r"'network/member1/layer0/w'.*NaN"),
+    "member_shape": (dict(arrays={"network/member1/standardizer/x_mean": np.zeros(5)}),
+                     r"member network/member1/ differs from member 0 .*standardizer/x_mean"),
+    "member_width": (dict(arrays={"network/member1/layer0/w": lambda w: w[..., :4],
+                                  "network/member1/layer0/b": lambda b: b[..., :4]}), r"member1/layer 1 .*do not chain"),
+    "stray_array": (dict(arrays={"network/layer0/w": np.ones((3, 4, 8))}), r"outside the 2 ensemble members"),
+    "members_lost": (dict(members=None), r"describes a network but|lacks network/layer0/w"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ENSEMBLE_TAMPER))
+def test_tampered_ensemble_is_refused_naming_the_field(ensemble_run, tmp_path, case):
+    _, out = ensemble_run
+    run = _copy(out, tmp_path)
+    kw, match = ENSEMBLE_TAMPER[case]
+    _tamper(run, **kw)
+    with pytest.raises(ArtifactError, match=match):
+        load(run)

@@ -27,6 +27,8 @@ def test_defaults_and_round_trip():
     ({"data": {"source": "simulated"}, "uq": {"sigma_in": [1, 2]}}, r"sigma_in"),
     ({"data": {"source": "simulated"}, "physics": {"t0": "median"}}, r"physics.t0"),
     ({"data": {"source": "simulated"}, "uq": "x"}, r"\[uq\] must be a table"),
+    ({"data": {"source": "simulated"}, "network": {"conformal_folds": 1}}, r"'network.conformal_folds' = 1 is not valid"),
+    ({"data": {"source": "simulated"}, "network": {"conformal_folds": 10}}, r"folds x fraction < 1"),
 ])
 def test_bad_configs_name_the_key(raw, match):
     with pytest.raises(ConfigError, match=match):

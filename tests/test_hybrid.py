@@ -118,7 +118,7 @@ def test_nan_loss_warns_with_the_epoch_and_the_job_finishes(tmp_path):
 
 def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     out = tmp_path / "sim"
-    result = run_job(_config(), out)
+    result = run_job(_config(conformal_folds=2), out)     # 2 cross-conformal folds: the default 5 trains 5 networks
     m = result["metrics"]
     for name in ("gaussian", "laplace"):
         h = m["hybrid"][name]
@@ -149,9 +149,65 @@ def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     pred = result["hybrid"]["gaussian"]
     k = result["predictor"].scale
     assert k.shape == (3,) and np.all(k >= 1.0) and np.all(pred.transfer == 0)
+    assert m["network"]["training"]["gaussian"]["conformal"]["folds"] == 2
+    assert len(result["predictor"].network.members) == 2      # the fold networks predict as a deep ensemble
+    assert m["network"]["training"]["gaussian"]["conformal"]["ensemble_passes"] == [10, 10]
+    assert "conformal_networks" in m["timings"]
     np.testing.assert_allclose(pred.total**2, k**2 * (pred.aleatoric_nn**2 + pred.epistemic_nn**2
                                                       + pred.epistemic_physics**2), rtol=1e-12)
     assert "network_train" in m["timings"] and "hybrid_inference" in m["timings"]
+
+
+def test_conformal_folds_are_one_block_per_run_in_their_own_stretch():
+    """Fold k: one contiguous block of ``fraction`` of every run, inside the k-th of K equal stretches of the run."""
+    from bayesmag._src.hybrid import conformal_folds
+    run = np.repeat([3, 1, 7], [200, 310, 95])
+    fold = conformal_folds(run, fraction=0.1, folds=5, seed=1)
+    assert set(np.unique(fold)) == {-1, 0, 1, 2, 3, 4}
+    for r in (3, 1, 7):
+        rows = np.flatnonzero(run == r)
+        f = fold[rows]
+        for k in range(5):
+            at = np.flatnonzero(f == k)
+            assert at.size == round(0.1 * rows.size) and np.all(np.diff(at) == 1)      # one contiguous block
+            assert np.all(at // (rows.size // 5) == k)                                 # in the k-th stretch
+    np.testing.assert_array_equal(fold, conformal_folds(run, fraction=0.1, folds=5, seed=1))   # seeded
+
+
+def test_each_conformal_fold_is_scored_by_a_network_that_never_saw_it(tmp_path, monkeypatch):
+    """Cross-conformal in the job: K networks, network k trained without fold k's rows; no fold row is a test row."""
+    from bayesmag._src import hybrid
+    seen, real = [], hybrid.train_network
+
+    def spy(x, r, spec, net_cfg, groups=None, progress=False):
+        seen.append(x.copy())
+        return real(x, r, spec, net_cfg, groups=groups, progress=progress)
+
+    monkeypatch.setattr(hybrid, "train_network", spy)
+    raw = copy.deepcopy(SIMULATED)
+    raw["data"]["simulate"].update(n=1200, design="campaign")
+    raw["split"] = {"kind": "time_blocks", "test_fraction": 0.1, "seed": 0}
+    raw["output"]["figures"] = False
+    result = run_job(_config(raw, likelihoods=["gaussian"], max_epochs=5, mc_passes=5, conformal_folds=3,
+                                 width=16), tmp_path / "cv")
+    assert len(seen) == 3
+    data, split = result["data"], result["split"]
+    train = data.subset(split.train)
+    folds = hybrid.conformal_folds(train.run, fraction=0.1, folds=3, seed=1)
+    x = np.column_stack([train.b_meas, train.temperature])
+    test_x = {tuple(v) for v in np.column_stack([data.b_meas, data.temperature])[split.test]}
+    for k in range(3):
+        fitted = {tuple(v) for v in seen[k]}
+        fold = {tuple(v) for v in x[folds == k]}
+        assert fold and not fold & fitted and not fold & test_x          # never trained on, never a test row
+        assert {tuple(v) for v in x[(folds != k)]} == fitted             # everything else was
+    assert result["metrics"]["network"]["training"]["gaussian"]["conformal"] == {
+        "folds": 3, "rows": int(np.sum(folds >= 0)), "ensemble_passes": [2, 2, 2]}     # 5 passes: at least 2 each
+    # the predictor keeps the three fold networks as its ensemble, fold 0's first; metrics describe fold 0's
+    ens = result["predictor"].network
+    assert len(ens.members) == 3
+    for k, member in enumerate(ens.members):
+        assert member.n_fit + member.n_val == len(seen[k])
 
 
 @pytest.mark.realdata

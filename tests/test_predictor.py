@@ -9,7 +9,8 @@ import scipy.stats
 import bayesmag
 from bayesmag import PhysicsUQ, metrics
 from bayesmag._src.likelihoods import Gaussian
-from bayesmag._src.predictor import Components, Predictor, UQOptions, compose, conformal_scale
+from bayesmag._src.predictor import (Components, Predictor, UQOptions, compose, conformal_quantile,
+                                     conformal_ratios, conformal_scale)
 from helpers import uq_parts
 
 Z95 = scipy.stats.norm.ppf(0.975)
@@ -75,6 +76,11 @@ def test_conformal_scale_recovers_a_known_misscale():
     assert np.all(cov >= 0.95) and np.all(cov <= 0.955)   # split conformal: at least the level, ceil((n+1)0.95)/n
     with pytest.raises(ValueError, match="at least 20"):
         conformal_scale(y[:10], compose(PhysicsUQ(*(np.ones((10, 3)),) * 5)), 0.95)
+    # cross-conformal: scores of several folds pooled, one quantile (the job's scale over its time-block folds)
+    half = PhysicsUQ(np.zeros((n // 2, 3)), np.ones((n // 2, 3)), *(np.zeros((n // 2, 3)),) * 3)
+    pooled = conformal_quantile(np.concatenate([conformal_ratios(y[:n // 2], compose(half), 0.95),
+                                                conformal_ratios(y[n // 2:], compose(half), 0.95)]), 0.95)
+    np.testing.assert_array_equal(pooled, k)
 
 
 def test_score_is_the_one_scorer():
@@ -92,3 +98,75 @@ def test_score_is_the_one_scorer():
     summ = metrics.summarize(y, d, 0.9)
     for a in "xyz":
         assert per["mean_width"][a] == summ[a]["width"] and per["nll"][a] == summ[a]["nll"]
+
+
+def _small_nets(k: int, likelihood: str = "gaussian"):
+    """``k`` small trained residual networks on one synthetic problem, differing in rows and seed (fold networks)."""
+    from bayesmag._src.network import NetworkSpec, fit_residual_network
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(300, 4))
+    r = np.column_stack([np.sin(x[:, 0]), 0.5 * x[:, 1] * x[:, 3], np.cos(x[:, 2])]) + 0.1 * rng.normal(size=(300, 3))
+    spec = NetworkSpec(hidden_layers=1, width=8, batch_size=64, max_epochs=3, patience=2, dropconnect=0.2,
+                       likelihood=likelihood)
+    return [fit_residual_network(np.delete(x, np.s_[30 * j:30 * j + 30], 0), np.delete(r, np.s_[30 * j:30 * j + 30], 0),
+                                 spec, seed=j) for j in range(k)], x[:50]
+
+
+@pytest.mark.parametrize("passes", [9, 12])
+def test_ensemble_pools_every_pass_exactly(passes):
+    """Deep ensemble x MC DropConnect: the pooled moments are those of all raw passes of all members together."""
+    from bayesmag._src.network import NetworkEnsemble, ensemble_passes, mc_predict, mc_samples
+
+    nets, x = _small_nets(3)
+    counts = ensemble_passes(passes, 3)
+    assert sum(counts) == passes and counts == ((3, 3, 3) if passes == 9 else (4, 4, 4))
+    assert ensemble_passes(101, 5) == (21, 20, 20, 20, 20) and ensemble_passes(100, 5) == (20,) * 5
+    assert ensemble_passes(5, 3) == (2, 2, 2)                  # at least 2 each (a sample variance needs 2)
+    raw = [mc_samples(n, x, passes=c, seed=7 + k) for k, (n, c) in enumerate(zip(nets, counts))]
+    # mc_samples are mc_predict's passes: its moments from them, member by member
+    for n, c, (mu, var), k in zip(nets, counts, raw, range(3)):
+        one = mc_predict(n, x, passes=c, seed=7 + k)
+        np.testing.assert_allclose(one.mean, mu.mean(0), rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(one.epistemic, mu.std(0, ddof=1), rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(one.aleatoric, np.sqrt(var.mean(0)), rtol=1e-5)
+    means, variances = np.concatenate([m for m, _ in raw]), np.concatenate([v for _, v in raw])   # (M, n, 3)
+    pooled = mc_predict(NetworkEnsemble(tuple(nets)), x, passes=passes, seed=7)
+    np.testing.assert_allclose(pooled.mean, means.mean(0), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(pooled.aleatoric**2, variances.mean(0), rtol=1e-5)
+    np.testing.assert_allclose(pooled.epistemic**2, means.var(0, ddof=1), rtol=1e-4, atol=1e-10)
+    # the between-member spread counts: larger than the mean within-member variance alone
+    within = np.mean([m.var(0, ddof=1) for m, _ in raw], axis=0)
+    assert np.mean(pooled.epistemic**2) > np.mean(within)
+    # one member is the network itself
+    single = mc_predict(NetworkEnsemble((nets[0],)), x, passes=passes, seed=7)
+    plain = mc_predict(nets[0], x, passes=passes, seed=7)
+    for f in ("mean", "aleatoric", "epistemic"):
+        np.testing.assert_allclose(getattr(single, f), getattr(plain, f), rtol=1e-12)
+
+
+def test_ensemble_predictor_pools_student_t_shape_and_chunks():
+    """A Predictor with an ensemble: family and shape from the members, chunked rows as one call."""
+    from bayesmag._src import predictor as P
+    from bayesmag._src.network import NetworkEnsemble, mc_predict
+
+    nets, x = _small_nets(2, "student_t")
+    ens = NetworkEnsemble(tuple(nets))
+    pooled = mc_predict(ens, x, passes=10, seed=1)
+    parts = [mc_predict(n, x, passes=5, seed=1 + k) for k, n in enumerate(nets)]
+    np.testing.assert_allclose(pooled.shape["df"], 0.5 * (parts[0].shape["df"] + parts[1].shape["df"]), rtol=1e-12)
+    phys, _ = uq_parts(n=50)
+    pr = Predictor(fit=None, sigma_in=np.zeros((4, 4)), residual_sd=np.zeros(3), network=ens, passes=10, network_seed=1)
+    assert pr.family == "student_t"
+    data = bayesmag.CalibrationData(x[:, :3], x[:, 3], None, np.arange(50.0), np.zeros(50, int))
+    whole = pr.network_part(data)
+    old = P.NN_CHUNK
+    try:
+        P.NN_CHUNK = 16
+        chunked = pr.network_part(data)
+    finally:
+        P.NN_CHUNK = old
+    np.testing.assert_allclose(chunked.mean, whole.mean, rtol=1e-6)
+    np.testing.assert_allclose(chunked.epistemic, whole.epistemic, rtol=1e-5)
+    p = pr.compose(Components(phys, whole))
+    assert p.family == "student_t" and np.all(np.isfinite(p.total))

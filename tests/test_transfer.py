@@ -89,7 +89,9 @@ def test_session_shift_is_covered_or_flagged():
           f"{(covered | ~in_dom[:, None]).mean(axis=0)}")                      # docs/uncertainty.md (pytest -s)
     assert np.all((cov_in >= 0.90) & (cov_in <= 0.98)), cov_in
     # The issue asks >= 95 % covered or flagged; with 95 % intervals and in-domain shifts (which no input
-    # flag can see) that is a coin flip on 40 sessions. Measured 96 / 94 / 95 %: the declared floor is 93 %.
+    # flag can see) that is a coin flip on 40 sessions. Measured 96.4 / 94.4 / 94.6 %: the declared floor is 93 %.
+    # Not raised to 95: over 6 training draws x 200 new sessions (benchmarks/bench_transfer.py) y and z fall
+    # under 95 % in 4 and 5 of 6 draws (88-97 %): the transfer sd from 30 runs is that noisy (docs/uncertainty.md).
     assert np.all((covered | ~in_dom[:, None]).mean(axis=0) >= 0.93)
     # without the transfer part the within-session intervals under-cover new sessions
     bare_in = np.concatenate(bare_covered)[in_dom].mean(axis=0)

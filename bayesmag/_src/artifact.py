@@ -9,7 +9,9 @@ A run folder holds the calibration as two files:
 * ``calibration.npz`` -- numeric arrays (``theta`` (3, p), ``cov`` (3, p, p), ``transfer_sd`` (3,)
   the between-session sd, ``interval_scale`` (3,) the conformal interval factor when the hybrid
   stage set one, and, when the hybrid stage ran, the network weights and standardisation under
-  ``network/...`` keys), written with ``numpy.savez`` (loaded with ``allow_pickle=False``).
+  ``network/...`` keys; a deep ensemble of K networks (the job's cross-conformal fold networks)
+  under ``network/member<k>/...`` with ``network.members = K`` in the JSON and format version 2),
+  written with ``numpy.savez`` (loaded with ``allow_pickle=False``).
 
 Together they describe one :class:`~bayesmag._src.predictor.Predictor`: :func:`save_calibration`
 writes it, :meth:`Calibration.predictor` rebuilds it, and :meth:`Calibration.predict` only chunks
@@ -40,8 +42,11 @@ __all__ = ["Calibration", "save_calibration", "load", "validate_artifact", "Arti
 
 FORMAT = "bayesmag.calibration"
 FORMAT_VERSION = 1
+#: Format version of a calibration whose network is a deep ensemble (``network/member<k>/...``): older
+#: bayesmag versions then refuse it by version instead of missing weights. Everything else stays version 1.
+ENSEMBLE_FORMAT_VERSION = 2
 #: Versions this code reads (older ones listed here once a converter exists).
-READABLE_VERSIONS = (1,)
+READABLE_VERSIONS = (1, 2)
 
 
 class ArtifactError(ValueError):
@@ -183,15 +188,17 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
         arrays["transfer_sd"] = np.asarray(predictor.transfer_sd, np.float64)
     if predictor.scale is not None:
         arrays["interval_scale"] = np.asarray(predictor.scale, np.float64)
-    meta_net = None
+    meta_net, version = None, FORMAT_VERSION
     if predictor.network is not None:
         network = network_to_artifact(predictor.network, passes=predictor.passes, seed=predictor.network_seed,
                                       fusion=predictor.fusion)
         meta_net = network["meta"]
+        if "members" in meta_net:
+            version = ENSEMBLE_FORMAT_VERSION
         for k, v in network["arrays"].items():
             arrays[f"network/{k}"] = np.asarray(v)
     doc = {
-        "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
+        "format": FORMAT, "format_version": version, "package_version": __version__,
         "model": model_to_json(fit.model), "param_names": list(fit.model.param_names),
         "axes": list(AXES), "likelihood": predictor.family, "level": level,
         "domain": dataclasses.asdict(predictor.domain), "config": config, "network": meta_net,
@@ -375,15 +382,37 @@ def _check_network(meta, arrays: dict, where: str) -> dict:
                             f"weights; the files are inconsistent.")
     for k, v in arrays.items():
         _field(f"network/{k}", v, where)
-    width = None
-    for i in range(n_layers):
-        w, b = arrays.get(f"layer{i}/w"), arrays.get(f"layer{i}/b")
-        if w is None or b is None:
-            raise ArtifactError(f"{where}: calibration.npz lacks network/layer{i}/w or /b; the file is damaged.")
-        if w.ndim < 2 or b.shape != w.shape[:-2] + w.shape[-1:] or (width is not None and w.shape[-2] != width):
-            raise ArtifactError(f"{where}: network layer {i} has shapes w {w.shape}, b {b.shape} that do not chain; "
-                                f"the file is damaged.")
-        width = w.shape[-1]
+    members = meta.get("members")
+    prefixes = [""]
+    if members is not None:
+        if isinstance(members, bool) or not isinstance(members, int) or members < 2:
+            raise ArtifactError(f"{where}: field 'network.members' = {members!r} must be an integer of at least 2 "
+                                f"(the networks of a deep ensemble).")
+        prefixes = [f"member{k}/" for k in range(members)]
+        stray = sorted(k for k in arrays if not k.startswith(tuple(prefixes)))
+        if stray:
+            raise ArtifactError(f"{where}: calibration.npz holds network arrays {['network/' + k for k in stray][:3]} "
+                                f"outside the {members} ensemble members 'network/member0..{members - 1}/'; the files "
+                                f"are inconsistent.")
+    shapes = None
+    for pre in prefixes:
+        width = None
+        for i in range(n_layers):
+            w, b = arrays.get(f"{pre}layer{i}/w"), arrays.get(f"{pre}layer{i}/b")
+            if w is None or b is None:
+                raise ArtifactError(f"{where}: calibration.npz lacks network/{pre}layer{i}/w or /b; the file is "
+                                    f"damaged.")
+            if w.ndim < 2 or b.shape != w.shape[:-2] + w.shape[-1:] or (width is not None and w.shape[-2] != width):
+                raise ArtifactError(f"{where}: network {pre}layer {i} has shapes w {w.shape}, b {b.shape} that do not "
+                                    f"chain; the file is damaged.")
+            width = w.shape[-1]
+        mine = {k[len(pre):]: v.shape for k, v in arrays.items() if k.startswith(pre)}
+        if shapes is not None and mine != shapes:
+            diff = sorted(k for k in set(mine) | set(shapes) if mine.get(k) != shapes.get(k))
+            raise ArtifactError(f"{where}: ensemble member network/{pre} differs from member 0 in arrays {diff[:3]} "
+                                f"(shapes {[mine.get(k) for k in diff[:3]]} against {[shapes.get(k) for k in diff[:3]]}); "
+                                f"every member has the same network. The file is damaged.")
+        shapes = mine
     network = {"meta": meta, "arrays": arrays}
     network_from_artifact(network)          # every remaining key and setting present and known
     return network
@@ -393,7 +422,15 @@ def _check_network(meta, arrays: dict, where: str) -> dict:
 
 
 def network_to_artifact(net, *, passes: int, seed: int, fusion: str) -> dict:
-    """A trained :class:`~bayesmag._src.network.ResidualNetwork` as JSON metadata + named arrays."""
+    """A trained :class:`~bayesmag._src.network.ResidualNetwork` as JSON metadata + named arrays; a
+    :class:`~bayesmag._src.network.NetworkEnsemble` as every member's arrays under ``member<k>/`` and
+    ``meta["members"] = K`` (the rest of ``meta``, ``n_fit`` / ``n_val`` included, from member 0)."""
+    from .network import NetworkEnsemble
+
+    if isinstance(net, NetworkEnsemble):
+        parts = [network_to_artifact(m, passes=passes, seed=seed, fusion=fusion) for m in net.members]
+        arrays = {f"member{k}/{name}": v for k, p in enumerate(parts) for name, v in p["arrays"].items()}
+        return {"meta": {**parts[0]["meta"], "members": len(parts)}, "arrays": arrays}
     spec = net.spec.to_dict()
     arrays = {f"standardizer/{k}": np.asarray(v) for k, v in net.standardizer._asdict().items()}
     for i, layer in enumerate(net.params):
@@ -409,12 +446,19 @@ def network_to_artifact(net, *, passes: int, seed: int, fusion: str) -> dict:
 
 
 def network_from_artifact(network: dict):
-    """Rebuild the :class:`~bayesmag._src.network.ResidualNetwork` saved by :func:`network_to_artifact`."""
+    """Rebuild the :class:`~bayesmag._src.network.ResidualNetwork` (or, with ``meta["members"]``, the
+    :class:`~bayesmag._src.network.NetworkEnsemble`) saved by :func:`network_to_artifact`."""
     import jax.numpy as jnp
 
-    from .network import Dense, NetworkSpec, ResidualNetwork, Standardizer
+    from .network import Dense, NetworkEnsemble, NetworkSpec, ResidualNetwork, Standardizer
 
     meta, arr = network["meta"], network["arrays"]
+    if meta.get("members") is not None:
+        single = {k: v for k, v in meta.items() if k != "members"}
+        return NetworkEnsemble(tuple(
+            network_from_artifact({"meta": single, "arrays": {n[len(f"member{k}/"):]: v for n, v in arr.items()
+                                                              if n.startswith(f"member{k}/")}})
+            for k in range(meta["members"])))
     try:
         spec = NetworkSpec.from_dict(meta["spec"])
     except KeyError as e:

@@ -88,6 +88,7 @@ class NetworkConfig(NetworkSpec):
     likelihoods: list = dataclasses.field(default_factory=lambda: ["gaussian"])
     validation: str = "time_blocks"     # the job's default; the library's NetworkSpec keeps the paper's "random"
     interval_calibration: str = "conformal"  # "conformal": scale the intervals to cover uq.level of held-out blocks
+    conformal_folds: int = 5            # cross-conformal: time-block folds (one network each) pooled for that scale
     fusion: str = "moment_match"
 
     def __post_init__(self):
@@ -101,6 +102,10 @@ class NetworkConfig(NetworkSpec):
                              f"of {sorted(LIKELIHOODS)}.")
         if len(set(names)) != len(names):
             raise ValueError(f"likelihoods = {list(names)} repeats a name.")
+        if self.conformal_folds < 2 or self.conformal_folds * self.validation_fraction >= 1.0:
+            raise ValueError(f"conformal_folds = {self.conformal_folds} is not valid with validation_fraction = "
+                             f"{self.validation_fraction}: it must be at least 2, and the folds (each one block of "
+                             f"validation_fraction of every run) must fit in a run together (folds x fraction < 1).")
 
     def spec(self, likelihood: str) -> NetworkSpec:
         """The library settings of the network for one ``likelihood``."""

@@ -58,21 +58,38 @@ import numpy as np
 from . import metrics as M
 from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
-from .network import (MCPrediction, NetworkSpec, ResidualNetwork, check_network_size, fit_residual_network,
+from .network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, check_network_size, ensemble_passes,
+                      fit_residual_network,
                       recalibrate, validation_rows)
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
-from .predictor import FUSIONS, Components, Prediction, Predictor, compose, conformal_scale, network_inputs
+from .predictor import (FUSIONS, Components, Prediction, Predictor, compose, conformal_quantile, conformal_ratios,
+                        network_inputs)
 
-__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "check_network_config", "network_inputs", "train_network",
+__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "check_network_config", "conformal_folds", "network_inputs",
+           "train_network",
            "fuse", "score", "run_hybrid_stage", "hybrid_metrics", "hybrid_columns", "hybrid_writers",
            "comparison_markdown", "comparison_records"]
 
 
-#: Time blocks per run held out for the conformal interval scale. One block of 10 % per run: three
-#: shorter blocks (easier, nearer to interpolation) gave a smaller scale and 89 / 93 / 90 % mean coverage on
-#: honest_hybrid (5 seeds) against 97 / 93 / 91 % for one block (docs/uncertainty.md).
-CONFORMAL_BLOCKS = 1
+def conformal_folds(run: np.ndarray, *, fraction: float, folds: int, seed: int) -> np.ndarray:
+    """Cross-conformal folds ``(n,)``: fold ``k`` is one contiguous time block of ``fraction`` of every run,
+    placed at a seeded position inside the k-th of ``folds`` equal stretches of the run (rows in time order);
+    rows in no fold are -1. Stratified positions: the folds together sample the whole length of every run,
+    so the scale does not hang on where one block per run happened to fall.
+    """
+    from .data import split_time_blocks
+
+    sp = split_time_blocks(run, test_fraction=folds * fraction, n_blocks=folds, seed=seed)
+    held = np.zeros(run.size, bool)
+    held[sp.test] = True
+    fold = np.full(run.size, -1)
+    for r in np.unique(run):
+        rows = np.flatnonzero(run == r)
+        slot = np.minimum(np.arange(rows.size) // max(rows.size // folds, 1), folds - 1)   # split_time_blocks' slots
+        fold[rows[held[rows]]] = slot[held[rows]]
+    return fold
+
 
 #: The fused hybrid prediction: a :class:`~bayesmag._src.predictor.Prediction` (mean, dist, total,
 #: and the named parts ``aleatoric_nn, epistemic_nn, aleatoric_physics, epistemic_physics``).
@@ -187,21 +204,30 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
                      progress: bool = False) -> HybridStage:
     """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them.
 
-    With ``network.interval_calibration = "conformal"`` :data:`CONFORMAL_BLOCKS` time blocks per run
-    (``validation_fraction`` of the rows in all) are held out of the network's training and early stopping, and the predictor's
-    interval scale is the split-conformal factor on it (:func:`~bayesmag._src.predictor.conformal_scale`). ``new_session``: test rows
-    that get the transfer part. Adds ``timings["network_train"]`` / ``["hybrid_inference"]`` (s).
+    With ``network.interval_calibration = "conformal"`` the interval scale is cross-conformal over
+    ``network.conformal_folds`` = K time-block folds (:func:`conformal_folds`; each one block of
+    ``validation_fraction`` of every run): for every fold a network is trained without that fold's rows
+    (and without its own early-stopping block), and the fold's rows are scored by it
+    (:func:`~bayesmag._src.predictor.conformal_ratios`); the scale is the split-conformal quantile of the
+    scores of all K folds pooled (:func:`~bayesmag._src.predictor.conformal_quantile`), floored at 1. The
+    predictor keeps all K fold networks as a :class:`~bayesmag._src.network.NetworkEnsemble` (deep
+    ensemble x MC DropConnect: ``mc_passes`` split over the members, moments pooled over all passes,
+    :func:`~bayesmag._src.network.mc_predict`) with that scale; ``networks[name]`` (training
+    diagnostics, metrics) stays fold 0's network. Without conformal folds the predictor keeps the one
+    network, as before. ``new_session``: test rows that get the transfer part. Adds
+    ``timings["network_train"]`` (fold 0's networks), ``["conformal_networks"]`` (the K - 1 other fold
+    networks) and ``["hybrid_inference"]`` (s).
     """
     specs = check_network_config(cfg)
     net_cfg = cfg.network
-    # Conformal rows: CONFORMAL_BLOCKS more held-out time blocks per run, seen neither by the network's training nor by
-    # its early stopping (scores on the early-stopping rows are optimistic: their coverage overstates).
-    fit_idx, cal_idx = np.arange(train.n), None
+    # Conformal rows: K folds of held-out time blocks, each seen neither by its network's training nor by its early
+    # stopping (scores on the early-stopping rows are optimistic: their coverage overstates).
+    folds = np.zeros(train.n, int) - 1
+    n_folds = 0
     if net_cfg.interval_calibration == "conformal":
-        from .data import split_time_blocks
-        sp = split_time_blocks(train.run, test_fraction=net_cfg.validation_fraction, n_blocks=CONFORMAL_BLOCKS,
-                               seed=net_cfg.seed + 1)
-        fit_idx, cal_idx = sp.train, sp.test
+        n_folds = net_cfg.conformal_folds
+        folds = conformal_folds(train.run, fraction=net_cfg.validation_fraction, folds=n_folds, seed=net_cfg.seed + 1)
+    fit_idx = np.flatnonzero(folds != 0)
     # Size checks for every likelihood before any training.
     try:
         fit_rows, _ = validation_rows(fit_idx.size, net_cfg.validation_fraction, seed=net_cfg.seed)
@@ -235,14 +261,32 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
             timings["network_train"] += train_s
             nan_messages += _warn_nan(name, net)
 
-            t = time.perf_counter()
             pr = dataclasses.replace(physics, network=net, passes=net_cfg.mc_passes, network_seed=net_cfg.seed,
                                      fusion=net_cfg.fusion)
-            if cal_idx is not None:
-                val = train.subset(cal_idx)
-                pv = pr.compose(pr.components(val), new_session=False)
-                # only ever widen: a factor < 1 from one block per run would trust a few easy stretches of time
-                pr = dataclasses.replace(pr, scale=np.maximum(conformal_scale(val.b_ref, pv, cfg.uq.level), 1.0))
+            if n_folds:
+                ratios, members = [], []
+                for k in range(n_folds):
+                    t = time.perf_counter()
+                    if k == 0:
+                        pk = pr
+                    else:
+                        rows = np.flatnonzero(folds != k)
+                        nk = train_network(x_train[rows], r_train[rows], spec, net_cfg, groups=train.run[rows])
+                        nan_messages += _warn_nan(f"{name}, conformal fold {k}", nk)
+                        pk = dataclasses.replace(pr, network=nk)
+                    members.append(pk.network)
+                    timings.setdefault("conformal_networks", 0.0)
+                    timings["conformal_networks"] += time.perf_counter() - t
+                    t = time.perf_counter()
+                    val = train.subset(np.flatnonzero(folds == k))
+                    ratios.append(conformal_ratios(val.b_ref, pk.compose(pk.components(val), new_session=False),
+                                                   cfg.uq.level))
+                    timings["hybrid_inference"] += time.perf_counter() - t
+                # only ever widen: a factor < 1 would trust the calibration blocks over the network's own sd
+                # the K fold networks predict together (deep ensemble), with the scale their held-out folds gave
+                pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(members)),
+                                         scale=np.maximum(conformal_quantile(np.concatenate(ratios), cfg.uq.level), 1.0))
+            t = time.perf_counter()
             comp = Components(uq, pr.network_part(test))
             pred = pr.compose(comp, new_session=new_session)
             timings["hybrid_inference"] += time.perf_counter() - t
@@ -251,6 +295,8 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
             alts[name] = pr.compose(comp, fusion=other, new_session=new_session)
             training[name] = {**net.info_dict(), "train_seconds": round(train_s, 3)}
             if pr.scale is not None:
+                training[name]["conformal"] = {"folds": n_folds, "rows": int(np.sum(folds >= 0)),
+                                               "ensemble_passes": list(ensemble_passes(net_cfg.mc_passes, n_folds))}
                 for a, ax in enumerate(AXES):
                     training[name][ax]["interval_scale"] = float(pr.scale[a])
             if net.variance_scale is not None:

@@ -57,6 +57,13 @@ independent masks, per row,
 where :math:`\mu^{(t)}` and :math:`\mathrm{Var}^{(t)}` are the family mean and variance of
 pass ``t`` (Student-t: :math:`s^2\nu/(\nu-2)`; Laplace: :math:`2b^2`), mapped back to uT.
 
+Deep ensemble x MC DropConnect (:class:`NetworkEnsemble`, e.g. the job's K cross-conformal fold
+networks): the ``M`` passes are split over the ``K`` members (:func:`ensemble_passes`: ``M // K``
+each, the first ``M mod K`` members one more, at least 2 each; member ``k`` draws its masks from
+``seed + k``), so inference costs about one network's. The moments above are then taken over all ``M`` passes of
+all members, exactly (:func:`pool_mc`): the epistemic variance is the sample variance of all
+pass means, i.e. the within-member spread plus the spread between the members' means.
+
 Size rule: a network whose parameter count per axis exceeds ``MAX_PARAMS_PER_ROW`` (10)
 times the number of fitting rows (training rows minus the validation rows) is refused with
 a ``ValueError`` naming ``width`` / ``hidden_layers`` (the job reports it as a config error): the
@@ -93,7 +100,8 @@ __all__ = ["Dense", "NetworkSpec", "Standardizer", "TrainInfo", "ResidualNetwork
            "ACTIVATIONS", "MAX_PARAMS_PER_ROW", "MIN_VALIDATION_ROWS", "init", "apply", "drop_connect", "keep_masks", "max_drops",
            "count_params", "fourier_frequencies", "embed", "head_distribution", "regularized_nll", "build_trainer",
            "validation_rows", "TrainProgress", "TRAIN_CHUNK_EPOCHS", "progress_bar", "LEARN", "shape_settings",
-           "check_network_size", "fit_residual_network", "mc_predict", "recalibrate", "VALIDATION_KINDS"]
+           "check_network_size", "fit_residual_network", "mc_predict", "mc_samples", "recalibrate", "VALIDATION_KINDS",
+           "NetworkEnsemble", "ensemble_passes", "pool_mc"]
 
 DTYPE = jnp.float32
 
@@ -823,8 +831,8 @@ class MCPrediction(NamedTuple):
         return np.sqrt(self.aleatoric**2 + self.epistemic**2)
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "passes"))
-def _mc_axes(spec: NetworkSpec, params, x, key, passes: int):
+def _mc_raw(spec: NetworkSpec, params, x, key, passes: int):
+    """Per-pass family means, variances and shape fields, each ``(M, n, A)`` (standardised units)."""
     n_axes = jax.tree.leaves(params)[0].shape[0]
     keys = jax.random.split(key, (passes, n_axes))
 
@@ -835,18 +843,69 @@ def _mc_axes(spec: NetworkSpec, params, x, key, passes: int):
         return dist.mean, dist.variance, shape
 
     per_axis = jax.vmap(one_pass_one_axis, in_axes=(0, 0), out_axes=-1)            # over axes -> (n, A)
-    means, variances, shapes = jax.vmap(per_axis, in_axes=(None, 0))(params, keys)  # over passes -> (M, n, A)
+    return jax.vmap(per_axis, in_axes=(None, 0))(params, keys)                      # over passes -> (M, n, A)
+
+
+_mc_passes = functools.partial(jax.jit, static_argnames=("spec", "passes"))(_mc_raw)
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "passes"))
+def _mc_axes(spec: NetworkSpec, params, x, key, passes: int):
+    means, variances, shapes = _mc_raw(spec, params, x, key, passes)
     mean = jnp.mean(means, axis=0)
     epi = jnp.sum(jnp.square(means - mean), axis=0) / (passes - 1)
     alea = jnp.mean(variances, axis=0)
     return mean, alea, epi, {k: jnp.mean(v, axis=0) for k, v in shapes.items()}
 
 
-def mc_predict(net: ResidualNetwork, x: np.ndarray, *, passes: int, seed: int = 0) -> MCPrediction:
+class NetworkEnsemble(NamedTuple):
+    """Deep ensemble of ``K`` trained :class:`ResidualNetwork` of one spec (e.g. the job's cross-conformal
+    fold networks), predicted together by :func:`mc_predict` with the passes split over the members."""
+
+    members: tuple
+
+    @property
+    def spec(self) -> NetworkSpec:
+        return self.members[0].spec
+
+
+def ensemble_passes(passes: int, members: int) -> tuple[int, ...]:
+    """MC passes per member: ``passes // members`` each, the first ``passes % members`` members one more
+    (100 over 5: 20 each; 101 over 5: 21, 20, 20, 20, 20), and never fewer than 2 (a member's sample
+    variance needs 2): below ``2 * members`` passes every member runs 2, ``2 * members`` in all."""
+    if members < 1 or passes < 2:
+        raise ValueError(f"an ensemble needs at least 1 member and 2 passes, got {members} and {passes}.")
+    return tuple(max(2, passes // members + (k < passes % members)) for k in range(members))
+
+
+def pool_mc(parts: list[MCPrediction], counts) -> MCPrediction:
+    """The :class:`MCPrediction` of all passes together, from each member's (``parts[k]`` over ``counts[k]``
+    passes), exactly: mean of all pass means; aleatoric variance the mean over all passes of the family
+    variance; epistemic variance the sample variance (ddof 1) of all pass means, i.e.
+    ``(sum_k (m_k - 1) e_k^2 + sum_k m_k (mu_k - mu)^2) / (M - 1)``; shape fields averaged over all passes.
+    A member's recalibration factor (:func:`recalibrate`) scales its own variances (as :func:`mc_predict`
+    does); the spread between member means is not scaled."""
+    m = np.asarray(counts, np.float64)[:, None, None]
+    total = float(m.sum())
+    mu = np.stack([p.mean for p in parts])
+    mean = np.sum(m * mu, axis=0) / total
+    alea = np.sum(m * np.stack([p.aleatoric for p in parts]) ** 2, axis=0) / total
+    ss = np.sum((m - 1) * np.stack([p.epistemic for p in parts]) ** 2 + m * np.square(mu - mean), axis=0)
+    shape = {k: np.sum(m * np.stack([p.shape[k] for p in parts]), axis=0) / total for k in parts[0].shape}
+    return MCPrediction(mean, np.sqrt(alea), np.sqrt(ss / (total - 1)), shape)
+
+
+def mc_predict(net: ResidualNetwork | NetworkEnsemble, x: np.ndarray, *, passes: int, seed: int = 0) -> MCPrediction:
     """``passes`` DropConnect forward passes of every axis network on inputs ``x`` ``(n, n_in)``.
 
     Pass ``t`` of axis ``a`` uses one weight mask for all rows. Returns means and sds in uT.
+    A :class:`NetworkEnsemble` splits the passes over its members (:func:`ensemble_passes`; member ``k``
+    from ``seed + k``) and pools all of them (:func:`pool_mc`).
     """
+    if isinstance(net, NetworkEnsemble):
+        counts = ensemble_passes(passes, len(net.members))
+        return pool_mc([mc_predict(m, x, passes=c, seed=seed + k) for k, (m, c) in enumerate(zip(net.members, counts))],
+                       counts)
     if passes < 2:
         raise ValueError(f"passes = {passes} must be at least 2 (the epistemic "
                           "variance is a sample variance over passes).")
@@ -862,6 +921,16 @@ def mc_predict(net: ResidualNetwork, x: np.ndarray, *, passes: int, seed: int = 
     alea = np.sqrt(np.asarray(alea, np.float64)) * rs_var
     epi = np.sqrt(np.asarray(epi, np.float64)) * rs_var
     return MCPrediction(mean, alea, epi, {k: np.asarray(v, np.float64) for k, v in shape.items()})
+
+
+def mc_samples(net: ResidualNetwork, x: np.ndarray, *, passes: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The raw passes of :func:`mc_predict` (same masks): family means and variances ``(M, n, A)`` in uT
+    (without a recalibration factor). For checks and plots; :func:`mc_predict` reduces them on device."""
+    st = net.standardizer
+    means, variances, _ = jax.device_get(_mc_passes(net.spec.compiled_key(), net.params,
+                                                    embed(st.x(x), net.frequencies), jax.random.key(seed), passes))
+    return (np.asarray(means, np.float64) * st.r_scale + st.r_mean,
+            np.asarray(variances, np.float64) * st.r_scale**2)
 
 
 # --------------------------------------------------------------------------- recalibration
