@@ -626,6 +626,25 @@ def _train_chunk(spec: NetworkSpec, state: TrainState, stop, x_fit, r_fit, x_val
     return s, jax.vmap(t.running)(s)
 
 
+@jax.jit
+def _take_rows(tree, rows):
+    """Leading-axis ``rows`` of every leaf (one compiled program, not one eager op per leaf)."""
+    return jax.tree.map(lambda a: a[rows], tree)
+
+
+@jax.jit
+def _put_rows(tree, rows, part):
+    """``tree`` with the leading-axis ``rows`` of every leaf replaced by ``part``'s."""
+    return jax.tree.map(lambda f, a: f.at[rows].set(a), tree, part)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _axis_keys(seed, n: int):
+    """The training key of each axis: ``fold_in(key(seed), a)`` for ``a < n``."""
+    base = jax.random.key(seed)
+    return jax.vmap(lambda a: jax.random.fold_in(base, a))(jnp.arange(n))
+
+
 def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
                 progress: Callable[[TrainProgress], None] | None = None, chunk: int = TRAIN_CHUNK_EPOCHS):
     """Init + train one network per column of ``r_fit`` (vmapped), ``chunk`` epochs per compiled call.
@@ -645,7 +664,9 @@ def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
         stop = min(stop + chunk, spec.max_epochs)
         sub, running = _train_chunk(spec, sub, stop, x_fit, r_f, x_val, r_v)
         running = np.asarray(running)
-        s = sub if active.size == r_fit.shape[1] else jax.tree.map(lambda f, a: f.at[active].set(a), s, sub)
+        # bookkeeping in one compiled call each: eager per-leaf ops would each be traced and lowered
+        # once per process, which a second run pays again even with the persistent compilation cache
+        s = sub if active.size == r_fit.shape[1] else _put_rows(s, active, sub)
         if progress is not None:
             ep = np.asarray(s.epoch)
             last = np.asarray(s.val_loss)[np.arange(ep.size), np.maximum(ep - 1, 0)]
@@ -657,8 +678,8 @@ def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
         if running.sum() == 1 and active.size > 1:
             keep = np.flatnonzero(running)
             active = active[keep]
-            sub = jax.tree.map(lambda a: a[keep], sub)
-            r_f, r_v = r_fit[:, active], r_val[:, active]
+            sub = _take_rows(sub, keep)
+            r_f, r_v = np.asarray(r_fit)[:, active], np.asarray(r_val)[:, active]
     t = _trainer(spec)
     return s.best_params, jax.vmap(t.info)(s)
 
@@ -794,8 +815,7 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
     fit_rows, val_rows = validation_rows(x.shape[0], validation_fraction, seed=seed, kind=validation, groups=groups)
     check_network_size(spec, fit_rows.size)
     st = Standardizer.fit(x[fit_rows], r[fit_rows])
-    base = jax.random.key(seed)
-    keys = jax.vmap(lambda a: jax.random.fold_in(base, a))(jnp.arange(r.shape[1]))
+    keys = _axis_keys(seed, r.shape[1])
     freqs = fourier_frequencies(spec, seed) if spec.fourier_features else None
     bar = None
     if progress is True:
