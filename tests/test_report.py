@@ -1,6 +1,7 @@
 """The calibration certificate: units, fit statistics, Type A/B budget with nu_eff, k and U = k u_c."""
 
 import math
+import os
 import re
 
 import numpy as np
@@ -153,34 +154,31 @@ def test_histogram_and_pit_panels_are_labelled(tmp_path, monkeypatch):
             assert ax.get_xlabel() and ax.get_ylabel()
 
 
-def test_figure_worker_draws_in_background_and_surfaces_errors(tmp_path):
-    """FigureWorker: queued figures land in the output folder at finish(), on one background thread;
-    a drawing error is raised by finish() (never a silently missing figure); close() removes its folder."""
-    import threading
+def _draw_named(folder, name):
+    (folder / name).write_text(f"{name} {os.getpid()}")
 
+
+def _draw_broken(folder):
+    raise RuntimeError("bad figure")
+
+
+def test_figure_worker_draws_in_background_and_surfaces_errors(tmp_path):
+    """FigureWorker: queued figures land in the output folder at finish(), drawn in one other process;
+    a drawing error is raised by finish() (never a silently missing figure); close() removes its folder."""
     from bayesmag._src.plots import FigureWorker
 
-    threads = []
-
-    def draw(folder, name):
-        threads.append(threading.current_thread().name)
-        (folder / name).write_text(name)
-
     with FigureWorker() as figs:
-        figs.submit(draw, "a.png")
-        figs.submit(draw, "b.png")
+        figs.submit(_draw_named, "a.png")
+        figs.submit(_draw_named, "b.png")
         private = figs._tmp
         assert figs.finish(tmp_path) == ["a.png", "b.png"]
-    assert (tmp_path / "a.png").read_text() == "a.png" and not private.exists()
-    assert len(set(threads)) == 1 and threads[0] != threading.current_thread().name
-
-    def broken(folder):
-        raise RuntimeError("bad figure")
+    pids = {(tmp_path / n).read_text().split()[1] for n in ("a.png", "b.png")}
+    assert not private.exists() and len(pids) == 1 and pids != {str(os.getpid())}
 
     with FigureWorker() as figs:
-        figs.submit(broken)
+        figs.submit(_draw_broken)
         with pytest.raises(RuntimeError, match="bad figure"):
             figs.finish(tmp_path / "never")
     with FigureWorker(enabled=False) as figs:       # [output] figures = false: nothing drawn, nothing moved
-        figs.submit(draw, "c.png")
+        figs.submit(_draw_named, "c.png")
         assert figs.finish(tmp_path) == [] and not (tmp_path / "c.png").exists()
