@@ -12,10 +12,11 @@ raw head of a predictive family (:mod:`bayesmag.likelihoods`) for the physics re
   and one per forward pass at inference, shared by all rows of that pass (a pass is one
   draw of the weights from the approximate posterior; Mobiny et al. 2021).
   ``key=None`` gives the deterministic network with the expected weights;
-* training (:func:`fit_residual_network`) is one jit-compiled call: the three axes are
-  trained together by :func:`jax.vmap`, the epoch loop is a :func:`jax.lax.while_loop`
-  and the minibatch loop inside it a :func:`jax.lax.scan`. Minibatches are reshuffled
-  every epoch from a seeded key; a final short batch is padded with zero-weight rows.
+* training (:func:`fit_residual_network`) is one jit-compiled program per axis, run in
+  chunks of epochs (progress between them): the epoch loop is a :func:`jax.lax.while_loop`
+  and the minibatch loop inside it a :func:`jax.lax.scan`; the axes run on threads over the
+  cores there are (the same numbers for any count). Minibatches are reshuffled every epoch
+  from a seeded key; a final short batch is padded with zero-weight rows.
 
 Optional random Fourier input features (``fourier_features = m > 0``; not in the paper): the
 standardised inputs ``z`` are extended to :math:`[z, \sin(2\pi zB), \cos(2\pi zB)]` with a fixed
@@ -849,8 +850,9 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
     A seeded ``validation_fraction`` of the rows is held out for early stopping (chosen as
     :func:`validation_rows` ``kind = validation`` with the rows' run ``groups``); inputs and
     residuals are standardised by the fitting rows' mean and sd. Axis ``a`` uses the key
-    ``fold_in(key(seed), a)``, so a column trains as it would alone (up to float32 rounding). The axes train
-    together (vmapped) in compiled chunks of :data:`TRAIN_CHUNK_EPOCHS` epochs;
+    ``fold_in(key(seed), a)``, and each column trains alone (:func:`_train_parallel`: one compiled program
+    for every axis, the axes on threads; the results do not depend on the thread count), in compiled chunks
+    of :data:`TRAIN_CHUNK_EPOCHS` epochs;
     ``progress`` (``True`` for a progress bar, or a callable taking :class:`TrainProgress`)
     hears after every chunk. ``validation_fraction``, ``seed`` and ``validation`` default to
     the spec's.
