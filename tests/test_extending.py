@@ -3,11 +3,9 @@ else, run through fit, discover, NUTS and a saved calibration (docs/extending.md
 
 import csv
 import dataclasses
-import math
 import warnings
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -19,8 +17,7 @@ from bayesmag._src.catalogue import Entry, Setting
 from bayesmag._src.config import config_from_dict
 from bayesmag._src.catalogue import make_extra
 from bayesmag._src.physics import EXTRA_TERMS, PhysicsModel, Term
-from bayesmag.likelihoods import Likelihood, sample_by_inversion
-from helpers import affine_data
+from helpers import Logistic, affine_data
 
 
 # ---------------------------------------------------------------- the toy term (docs/extending.md)
@@ -51,46 +48,10 @@ class AbsField(Term, Entry):
 
 # ---------------------------------------------------------------- the toy family (logistic)
 @dataclasses.dataclass(frozen=True)
-class ToyLogistic(Likelihood):
-    """Logistic(loc, scale), under a test-only name."""
+class ToyLogistic(Logistic):
+    """Logistic(loc, scale) (tests/helpers.py), under a test-only name."""
 
     name = "toy_logistic"
-
-    def _z(self, y):
-        return (jnp.asarray(y) - self.loc) / self.scale
-
-    def log_prob(self, y):
-        z = self._z(y)
-        return -z - 2.0 * jax.nn.softplus(-z) - jnp.log(self.scale)
-
-    def cdf(self, y):
-        return jax.nn.sigmoid(self._z(y))
-
-    def icdf(self, q):
-        return self.loc + self.scale * (jnp.log(q) - jnp.log1p(-q))
-
-    def crps(self, y):
-        z = self._z(y)
-        return self.scale * (z + 2.0 * jax.nn.softplus(-z) - 1.0)
-
-    def sample(self, key, sample_shape=()):
-        return sample_by_inversion(self, key, sample_shape)
-
-    @property
-    def mean(self):
-        return jnp.broadcast_to(self.loc, self.batch_shape)
-
-    @property
-    def variance(self):
-        return jnp.broadcast_to(jnp.square(self.scale) * math.pi ** 2 / 3.0, self.batch_shape)
-
-    @classmethod
-    def from_moments(cls, mean, variance):
-        return cls(loc=mean, scale=jnp.sqrt(3.0 * jnp.asarray(variance)) / math.pi)
-
-    def to_numpyro(self):
-        import numpyro.distributions as nd
-        return nd.Logistic(self.loc, self.scale)
 
 
 # defining the family registered it at collection time; hold it only while these tests run

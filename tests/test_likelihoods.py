@@ -12,8 +12,8 @@ import scipy.stats
 
 import bayesmag  # noqa: F401  (enables float64)
 from bayesmag import metrics
-from bayesmag.likelihoods import (LIKELIHOODS, Gaussian, Laplace, Likelihood, StudentT,
-                                  get_likelihood, moment_match, sample_by_inversion)
+from bayesmag.likelihoods import LIKELIHOODS, Gaussian, Laplace, StudentT, get_likelihood, moment_match
+from helpers import Logistic
 
 FAMILIES = ["gaussian", "laplace", "student_t"]
 SHAPES = [(), (4, 3)]
@@ -65,57 +65,9 @@ def _crps_integral(sdist, y):
     return lo + hi
 
 
-# A fourth family, defined here and nowhere else: registration is automatic. It is the worked
-# example of docs/extending.md; test_a_registered_family_runs_the_network_nuts_and_apply runs it
-# through the network, fusion, NUTS and apply.
-@dataclasses.dataclass(frozen=True)
-class Logistic(Likelihood):
-    r"""Logistic(loc, scale); CRPS = s (z - 2 log F(z) - 1) (Jordan et al. 2019, crps_logis)."""
-
-    name = "logistic"
-
-    def _z(self, y):
-        return (jnp.asarray(y) - self.loc) / self.scale
-
-    def log_prob(self, y):
-        z = self._z(y)
-        return -z - 2.0 * jax.nn.softplus(-z) - jnp.log(self.scale)
-
-    def cdf(self, y):
-        return jax.nn.sigmoid(self._z(y))
-
-    def icdf(self, q):
-        return self.loc + self.scale * (jnp.log(q) - jnp.log1p(-q))
-
-    def crps(self, y):
-        z = self._z(y)
-        return self.scale * (z + 2.0 * jax.nn.softplus(-z) - 1.0)  # -log F(z) = softplus(-z)
-
-    def sample(self, key, sample_shape=()):
-        return sample_by_inversion(self, key, sample_shape)
-
-    @property
-    def mean(self):
-        return jnp.broadcast_to(self.loc, self.batch_shape)
-
-    @property
-    def variance(self):
-        return jnp.broadcast_to(jnp.square(self.scale) * math.pi ** 2 / 3.0, self.batch_shape)
-
-    @classmethod
-    def from_moments(cls, mean, variance):
-        return cls(loc=mean, scale=jnp.sqrt(3.0 * jnp.asarray(variance)) / math.pi)
-
-    def to_numpyro(self):                          # for NUTS
-        import numpyro.distributions as nd
-        return nd.Logistic(self.loc, self.scale)
-
-
-# Registered only while this module's tests run: defining the class registers it at collection
-# time, which would otherwise leak "logistic" into every other test module's valid-name lists.
+# The fourth family (tests/helpers.py): the worked example of docs/extending.md.
+# Registered only while this module's tests run (helpers unregisters it at import).
 from bayesmag._src import likelihoods as _likelihoods_src  # noqa: E402
-
-_likelihoods_src._REGISTRY.pop("logistic", None)
 
 
 @pytest.fixture(autouse=True, scope="module")
