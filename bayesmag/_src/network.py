@@ -630,18 +630,6 @@ def _train_chunk(spec: NetworkSpec, state: TrainState, stop, x_fit, r_fit, x_val
     return s, jax.vmap(t.running)(s)
 
 
-@jax.jit
-def _take_rows(tree, rows):
-    """Leading-axis ``rows`` of every leaf (one compiled program, not one eager op per leaf)."""
-    return jax.tree.map(lambda a: a[rows], tree)
-
-
-@jax.jit
-def _put_rows(tree, rows, part):
-    """``tree`` with the leading-axis ``rows`` of every leaf replaced by ``part``'s."""
-    return jax.tree.map(lambda f, a: f.at[rows].set(a), tree, part)
-
-
 @functools.partial(jax.jit, static_argnums=1)
 def _axis_keys(seed, n: int):
     """The training key of each axis: ``fold_in(key(seed), a)`` for ``a < n``."""
@@ -653,37 +641,21 @@ def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
                 progress: Callable[[TrainProgress], None] | None = None, chunk: int = TRAIN_CHUNK_EPOCHS):
     """Init + train one network per column of ``r_fit`` (vmapped), ``chunk`` epochs per compiled call.
 
-    When one axis is left training, it continues alone (a vmapped while loop would keep computing
-    the stopped axes, masked, until the last one stops): on the paper's data the last axis often
-    runs twice as long as the others, and one axis costs about 60 % of three per epoch. This costs
-    one more compilation (kept in the persistent cache); smaller batches than the full one and one
-    are not compiled.
+    :func:`fit_residual_network` calls it with one column per thread (:func:`_train_parallel`).
     """
     spec = spec.compiled_key()
     s = _init_axes(spec, keys)
-    active = np.arange(r_fit.shape[1])
-    sub, r_f, r_v = s, r_fit, r_val
     stop = 0
     while stop < spec.max_epochs:
         stop = min(stop + chunk, spec.max_epochs)
-        sub, running = _train_chunk(spec, sub, stop, x_fit, r_f, x_val, r_v)
+        s, running = _train_chunk(spec, s, stop, x_fit, r_fit, x_val, r_val)
         running = np.asarray(running)
-        # bookkeeping in one compiled call each: eager per-leaf ops would each be traced and lowered
-        # once per process, which a second run pays again even with the persistent compilation cache
-        s = sub if active.size == r_fit.shape[1] else _put_rows(s, active, sub)
         if progress is not None:
             ep = np.asarray(s.epoch)
             last = np.asarray(s.val_loss)[np.arange(ep.size), np.maximum(ep - 1, 0)]
-            done = np.ones(ep.size, bool)
-            done[active[running]] = False
-            progress(TrainProgress(ep, np.asarray(s.best_loss), last, done, spec.max_epochs))
+            progress(TrainProgress(ep, np.asarray(s.best_loss), last, ~running, spec.max_epochs))
         if not running.any():
             break
-        if running.sum() == 1 and active.size > 1:
-            keep = np.flatnonzero(running)
-            active = active[keep]
-            sub = _take_rows(sub, keep)
-            r_f, r_v = np.asarray(r_fit)[:, active], np.asarray(r_val)[:, active]
     t = _trainer(spec)
     return s.best_params, jax.vmap(t.info)(s)
 
