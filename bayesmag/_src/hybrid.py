@@ -58,9 +58,9 @@ import numpy as np
 from . import metrics as M
 from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
-from .network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, check_network_size, ensemble_passes,
-                      fit_residual_network,
-                      recalibrate, validation_rows)
+from .network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, TrainProgress, check_network_size,
+                      ensemble_passes, fit_residual_network, progress_bar, recalibrate, training_threads,
+                      validation_rows)
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
 from .predictor import (FUSIONS, Components, Prediction, Predictor, compose, conformal_quantile, conformal_ratios,
@@ -129,16 +129,57 @@ def check_network_config(cfg: Config) -> list[NetworkSpec]:
 
 
 def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig,
-                  groups: np.ndarray | None = None, progress: bool = False) -> ResidualNetwork:
+                  groups: np.ndarray | None = None, progress=False, pool=None) -> ResidualNetwork:
     """Train the axis networks as ``[network]`` says: validation rows, then optional recalibration.
 
-    ``groups``: the run of every row (time order within a run), used by ``validation = "time_blocks"``.
+    ``groups``: the run of every row (time order within a run), used by ``validation = "time_blocks"``;
+    ``progress`` and ``pool``: as in :func:`~bayesmag._src.network.fit_residual_network`.
     """
     net = fit_residual_network(x, r, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
-                               validation=net_cfg.validation, groups=groups, progress=progress)
+                               validation=net_cfg.validation, groups=groups, progress=progress, pool=pool)
     if net_cfg.recalibrate:
         net = recalibrate(net, x[net.val_rows], r[net.val_rows], passes=net_cfg.mc_passes, seed=net_cfg.seed)
     return net
+
+
+def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig, groups: np.ndarray,
+                        folds: np.ndarray, n_folds: int, progress: bool = False) -> list[ResidualNetwork]:
+    """The ``n_folds`` cross-conformal networks, network ``k`` trained without the rows of fold ``k``
+    (``folds == k``), all at once: every fold's axes share one pool of
+    :func:`~bayesmag._src.network.training_threads` threads, so the K x 3 trainings keep the cores
+    busy however unequal their early stops (trained one fold after the other, the two cores of the
+    paper's machine often waited on one fold's last axis). Each network is the one
+    :func:`train_network` gives alone (the axes do not depend on the threads).
+    """
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    latest: list = [None] * n_folds
+    lock = threading.Lock()
+    update, bar = (None, None)
+    if progress:
+        update, bar = progress_bar(spec.max_epochs, desc=f"network training ({spec.likelihood}, {n_folds} fold "
+                                                         f"networks x {r.shape[1]} axes)")
+
+    def report(k: int, p: TrainProgress) -> None:     # the slowest axis of all folds drives the bar
+        with lock:
+            latest[k] = p
+            if all(q is not None for q in latest):
+                update(TrainProgress(*(np.concatenate([getattr(q, f) for q in latest])
+                                       for f in ("epochs", "best_val_loss", "val_loss", "done")), p.max_epochs))
+
+    def one(k: int, pool) -> ResidualNetwork:
+        rows = np.flatnonzero(folds != k)
+        return train_network(x[rows], r[rows], spec, net_cfg, groups=groups[rows], pool=pool,
+                             progress=(lambda p: report(k, p)) if progress else False)
+
+    try:
+        with ThreadPoolExecutor(training_threads(), thread_name_prefix="bayesmag-train") as pool, \
+                ThreadPoolExecutor(n_folds, thread_name_prefix="bayesmag-fold") as fold_threads:
+            return [f.result() for f in [fold_threads.submit(one, k, pool) for k in range(n_folds)]]
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str = "moment_match") -> Prediction:
@@ -213,10 +254,10 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
     predictor keeps all K fold networks as a :class:`~bayesmag._src.network.NetworkEnsemble` (deep
     ensemble x MC DropConnect: ``mc_passes`` split over the members, moments pooled over all passes,
     :func:`~bayesmag._src.network.mc_predict`) with that scale; ``networks[name]`` (training
-    diagnostics, metrics) stays fold 0's network. Without conformal folds the predictor keeps the one
-    network, as before. ``new_session``: test rows that get the transfer part. Adds
-    ``timings["network_train"]`` (fold 0's networks), ``["conformal_networks"]`` (the K - 1 other fold
-    networks) and ``["hybrid_inference"]`` (s).
+    diagnostics, metrics) stays fold 0's network. The K fold networks train at once
+    (:func:`train_fold_networks`). Without conformal folds the predictor keeps the one network, as
+    before. ``new_session``: test rows that get the transfer part. Adds ``timings["network_train"]``
+    (all networks) and ``["hybrid_inference"]`` (s).
     """
     specs = check_network_config(cfg)
     net_cfg = cfg.network
@@ -255,36 +296,32 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
             if bar is not None:
                 bar.set_postfix_str(f"training {name}")
             t = time.perf_counter()
-            net = train_network(x_train[fit_idx], r_train[fit_idx], spec, net_cfg, groups=train.run[fit_idx],
-                                progress=progress)
+            if n_folds:
+                nets = train_fold_networks(x_train, r_train, spec, net_cfg, train.run, folds, n_folds,
+                                           progress=progress)
+            else:
+                nets = [train_network(x_train[fit_idx], r_train[fit_idx], spec, net_cfg, groups=train.run[fit_idx],
+                                      progress=progress)]
+            net = nets[0]
             train_s = time.perf_counter() - t
             timings["network_train"] += train_s
-            nan_messages += _warn_nan(name, net)
+            for k, nk in enumerate(nets):
+                nan_messages += _warn_nan(name if k == 0 else f"{name}, conformal fold {k}", nk)
 
             pr = dataclasses.replace(physics, network=net, passes=net_cfg.mc_passes, network_seed=net_cfg.seed,
                                      fusion=net_cfg.fusion)
             if n_folds:
-                ratios, members = [], []
-                for k in range(n_folds):
-                    t = time.perf_counter()
-                    if k == 0:
-                        pk = pr
-                    else:
-                        rows = np.flatnonzero(folds != k)
-                        nk = train_network(x_train[rows], r_train[rows], spec, net_cfg, groups=train.run[rows])
-                        nan_messages += _warn_nan(f"{name}, conformal fold {k}", nk)
-                        pk = dataclasses.replace(pr, network=nk)
-                    members.append(pk.network)
-                    timings.setdefault("conformal_networks", 0.0)
-                    timings["conformal_networks"] += time.perf_counter() - t
-                    t = time.perf_counter()
+                t = time.perf_counter()
+                ratios = []
+                for k, nk in enumerate(nets):
+                    pk = dataclasses.replace(pr, network=nk)
                     val = train.subset(np.flatnonzero(folds == k))
                     ratios.append(conformal_ratios(val.b_ref, pk.compose(pk.components(val), new_session=False),
                                                    cfg.uq.level))
-                    timings["hybrid_inference"] += time.perf_counter() - t
+                timings["hybrid_inference"] += time.perf_counter() - t
                 # only ever widen: a factor < 1 would trust the calibration blocks over the network's own sd
                 # the K fold networks predict together (deep ensemble), with the scale their held-out folds gave
-                pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(members)),
+                pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(nets)),
                                          scale=np.maximum(conformal_quantile(np.concatenate(ratios), cfg.uq.level), 1.0))
             t = time.perf_counter()
             comp = Components(uq, pr.network_part(test))

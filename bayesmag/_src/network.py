@@ -89,7 +89,7 @@ import functools
 import math
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from typing import Any, Callable, Mapping, NamedTuple, Union
 
 import jax
@@ -671,7 +671,8 @@ def training_threads() -> int:
 
 
 def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
-                    progress: Callable[[TrainProgress], None] | None = None, threads: int | None = None):
+                    progress: Callable[[TrainProgress], None] | None = None, threads: int | None = None,
+                    pool: Executor | None = None):
     """Every axis trained alone (:func:`_train_axes` on one column), the axes on ``threads`` threads.
 
     One compiled training of a 4 x 64 network on 16-row batches keeps one core busy; the axes run
@@ -679,7 +680,9 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
     about the time of the longest). Each axis is the same compiled program with its own key and
     column, so the results are the same for any number of threads or cores, and an axis stops
     computing when it stops (a vmapped loop would compute it, masked, until the last one stops).
-    Progress from the axes is merged under a lock.
+    Progress from the axes is merged under a lock. ``pool``: run the axes on this executor instead
+    (shared by several trainings at once, e.g. the cross-conformal fold networks, so that they
+    share the cores without oversubscribing them).
     """
     n_axes = r_fit.shape[1]
     threads = training_threads() if threads is None else threads
@@ -700,7 +703,9 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
         return _train_axes(spec, keys[a:a + 1], x_fit, r_fit[:, a:a + 1], x_val, r_val[:, a:a + 1],
                            progress=lambda p: report(a, p))
 
-    if threads < 2 or n_axes < 2:
+    if pool is not None:
+        parts = [f.result() for f in [pool.submit(run, a) for a in range(n_axes)]]
+    elif threads < 2 or n_axes < 2:
         parts = [run(a) for a in range(n_axes)]
     else:
         with ThreadPoolExecutor(min(threads, n_axes), thread_name_prefix="bayesmag-train") as pool:
@@ -816,7 +821,8 @@ def check_network_size(spec: NetworkSpec, n_fit: int) -> None:
 def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
                          validation_fraction: float | None = None, seed: int | None = None,
                          validation: str | None = None, groups: np.ndarray | None = None,
-                         progress: bool | Callable[[TrainProgress], None] = False) -> ResidualNetwork:
+                         progress: bool | Callable[[TrainProgress], None] = False,
+                         pool: Executor | None = None) -> ResidualNetwork:
     """Train one network per column of the residuals ``r`` ``(n, A)`` on inputs ``x`` ``(n, n_in)``.
 
     A seeded ``validation_fraction`` of the rows is held out for early stopping (chosen as
@@ -827,7 +833,8 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
     of :data:`TRAIN_CHUNK_EPOCHS` epochs;
     ``progress`` (``True`` for a progress bar, or a callable taking :class:`TrainProgress`)
     hears after every chunk. ``validation_fraction``, ``seed`` and ``validation`` default to
-    the spec's.
+    the spec's. ``pool``: an executor the axes train on, shared with other trainings (see
+    :func:`_train_parallel`); the result does not depend on it.
     """
     validation_fraction = spec.validation_fraction if validation_fraction is None else validation_fraction
     seed = spec.seed if seed is None else seed
@@ -850,7 +857,8 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
         progress, bar = progress_bar(spec.max_epochs, desc=f"network training ({spec.likelihood}, {r.shape[1]} axes)")
     try:
         params, info = _train_parallel(spec, keys, embed(st.x(x[fit_rows]), freqs), st.r(r[fit_rows]),
-                                       embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]), progress=progress or None)
+                                       embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]), progress=progress or None,
+                                       pool=pool)
     finally:
         if bar is not None:
             bar.close()
