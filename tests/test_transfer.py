@@ -14,19 +14,23 @@ SIGMA_IN = np.diag([0.02**2] * 3 + [1e-4])
 OFFSET_SD, CROSS_SD = 0.3, 0.003          # session-to-session change: offsets (uT), off-diagonal S terms
 
 
-def _session_params(rng) -> TrueParams:
+def _shifted_params(rng, offset=lambda rng: rng.normal(0, OFFSET_SD, 3), cross_sd: float = CROSS_SD) -> TrueParams:
+    """The paper's parameters with a session's change: offsets + ``offset(rng)`` (uT), each off-diagonal
+    S term + N(0, ``cross_sd``)."""
     p = TrueParams.paper()
-    s = p.S + np.where(np.eye(3) == 1, 0.0, rng.normal(0, CROSS_SD, (3, 3)))
-    return TrueParams(s, p.Ks, p.O + rng.normal(0, OFFSET_SD, 3), p.Ko)
+    s = p.S + np.where(np.eye(3) == 1, 0.0, rng.normal(0, cross_sd, (3, 3)))
+    return TrueParams(s, p.Ks, p.O + offset(rng), p.Ko)
 
 
-def _session(seed: int, n_runs: int, rows: int = 200, first_run: int = 1, kind: int = 0) -> CalibrationData:
-    """``n_runs`` campaigns (runs), each a session with its own offsets and cross-axis terms; heated and
+def _session(seed: int, n_runs: int, rows: int = 200, first_run: int = 1, kind: int = 0,
+             session_params=_shifted_params) -> CalibrationData:
+    """``n_runs`` campaigns (runs), each a session with its own offsets and cross-axis terms
+    (``session_params(rng)``, default Gaussian offsets sd 0.3 uT and cross-axis sd 0.003); heated and
     room-temperature runs alternate, starting with heated (``kind`` even) or room (odd)."""
     rng = np.random.default_rng(seed)
     parts = []
     for k in range(n_runs):
-        d = bayesmag.simulate.simulate(rows, design="campaign", seed=seed * 100 + k, params=_session_params(rng),
+        d = bayesmag.simulate.simulate(rows, design="campaign", seed=seed * 100 + k, params=session_params(rng),
                                        noise_sd=0.02, n_runs=1, run_kinds=["thermal" if (k + kind) % 2 == 0 else "room"],
                                        field_range=40.0)
         parts.append((d, first_run + k))
