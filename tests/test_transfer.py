@@ -63,12 +63,14 @@ def _calibrate(train: CalibrationData) -> Predictor:
 def test_session_shift_is_covered_or_flagged():
     """Fit on 30 campaigns of simulated sessions, apply to 40 new sessions with shifted offsets and cross-axis terms.
 
-    Declared bands: in-domain coverage of the 95 % intervals 90-98 % per axis, pooled over the new
+    Declared bands: in-domain coverage of the 95 % intervals 90-99 % per axis, pooled over the new
     sessions (a session's shift is constant over its rows, so the sessions, not the rows, are the
-    sample: binomial sd of the pooled coverage ~3.4 % at 40 sessions), and at least 93 % of the rows
-    either covered or flagged out of domain. The transfer sd is estimated from the training runs: its
-    relative sd is about 1/sqrt(2 R) for R runs (13 % at R = 30; with 12 runs this seed's y estimate
-    came out 30 % low and covered 85 %).
+    sample: binomial sd of the pooled coverage ~3.4 % at 40 sessions), and at least 95 % of the rows
+    either covered or flagged out of domain (the issue's target). The new-session variance is an 80 %
+    upper confidence bound (x 1.29 at R = 30 runs): with an exact estimate the intervals would cover
+    ~97.4 %, so the upper band is 99 %, not the issue's 98 %. The transfer sd is estimated from the
+    training runs and is noisy: over 8 training draws x 200 new sessions (benchmarks/bench_transfer.py)
+    an axis falls under 95 % covered or flagged in 2 / 2 / 5 of 8 draws (x / y / z; docs/uncertainty.md).
     """
     pr = _calibrate(_session(0, 30, rows=100))
     tau = pr.transfer_sd
@@ -91,12 +93,9 @@ def test_session_shift_is_covered_or_flagged():
     cov_in = covered[in_dom].mean(axis=0)
     print(f"in-domain coverage {cov_in}, rows in domain {in_dom.mean():.4f}, covered or flagged "
           f"{(covered | ~in_dom[:, None]).mean(axis=0)}")                      # docs/uncertainty.md (pytest -s)
-    assert np.all((cov_in >= 0.90) & (cov_in <= 0.98)), cov_in
-    # The issue asks >= 95 % covered or flagged; with 95 % intervals and in-domain shifts (which no input
-    # flag can see) that is a coin flip on 40 sessions. Measured 96.4 / 94.4 / 94.6 %: the declared floor is 93 %.
-    # Not raised to 95: over 6 training draws x 200 new sessions (benchmarks/bench_transfer.py) y and z fall
-    # under 95 % in 4 and 5 of 6 draws (88-97 %): the transfer sd from 30 runs is that noisy (docs/uncertainty.md).
-    assert np.all((covered | ~in_dom[:, None]).mean(axis=0) >= 0.93)
+    assert np.all((cov_in >= 0.90) & (cov_in <= 0.99)), cov_in
+    # measured 98.6 / 95.2 / 96.8 % covered or flagged (this draw; the benchmark shows the spread over draws)
+    assert np.all((covered | ~in_dom[:, None]).mean(axis=0) >= 0.95)
     # without the transfer part the within-session intervals under-cover new sessions
     bare_in = np.concatenate(bare_covered)[in_dom].mean(axis=0)
     assert np.all(bare_in < cov_in - 0.02), (bare_in, cov_in)
