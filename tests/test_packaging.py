@@ -122,6 +122,29 @@ def test_config_switch_turns_the_cache_off(monkeypatch):
         jax.config.update("jax_enable_compilation_cache", before[1])
 
 
+def test_job_with_the_cache_switched_off_runs_without_it_and_restores_it(tmp_path, monkeypatch):
+    """[output] compile_cache = false from Python: off during the job, the caller's setting back after."""
+    import jax
+
+    from bayesmag._src import job
+    seen = []
+    real = job.run_physics_stage
+
+    def spy(*args, **kwargs):
+        seen.append((jax.config.values["jax_enable_compilation_cache"], jax.config.values["jax_compilation_cache_dir"]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(job, "run_physics_stage", spy)
+    before = (jax.config.values["jax_enable_compilation_cache"], jax.config.values["jax_compilation_cache_dir"])
+    overrides = ["output.compile_cache=false", "output.figures=false", "output.progress=false", "network.enabled=false",
+                 "data.simulate.n=400", "uq.n_params=20", "uq.n_qmc=32"]
+    bayesmag.run_job(bayesmag.load_config(ROOT / "configs/quickstart.toml", overrides), tmp_path / "off")
+    assert seen == [(False, None)]
+    assert (jax.config.values["jax_enable_compilation_cache"], jax.config.values["jax_compilation_cache_dir"]) == before
+    bayesmag.run_job(bayesmag.load_config(ROOT / "configs/quickstart.toml", overrides[1:]), tmp_path / "on")
+    assert seen[1] == before                                        # the default leaves the setting alone
+
+
 def test_import_is_lazy_and_every_public_name_resolves():
     code = ("import sys, bayesmag, bayesmag._src.cli; heavy = [m for m in ('numpyro', 'arviz', 'bayesmag._src.discover',"
             " 'bayesmag._src.nuts', 'optax') if m in sys.modules]; print(heavy);"

@@ -12,11 +12,12 @@ The setting must be made before the first compilation of the process: JAX opens 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from pathlib import Path
 
-__all__ = ["ENV_VAR", "default_cache_dir", "cache_dir_from_env", "configure_compile_cache"]
+__all__ = ["ENV_VAR", "default_cache_dir", "cache_dir_from_env", "configure_compile_cache", "compile_cache_off"]
 
 ENV_VAR = "BAYESMAG_COMPILE_CACHE"
 _OFF = ("0", "off", "false", "no")
@@ -69,3 +70,21 @@ def configure_compile_cache(enabled: bool = True, directory: str | Path | None =
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+_CACHE_KEYS = ("jax_enable_compilation_cache", "jax_compilation_cache_dir")
+
+
+@contextlib.contextmanager
+def compile_cache_off():
+    """The persistent compilation cache off inside the block, the process's setting restored after
+    (a job with ``[output] compile_cache = false`` run from Python leaves the caller's cache alone)."""
+    import jax
+
+    before = {k: jax.config.values[k] for k in _CACHE_KEYS}
+    configure_compile_cache(False)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            jax.config.update(k, v)

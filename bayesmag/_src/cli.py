@@ -33,9 +33,6 @@ def _cmd_run(args) -> int:
 
     cfg_path = _resolve_config(args.config)
     cfg = load_config(cfg_path, args.set or [])
-    if not cfg.output.compile_cache:        # before anything compiles (bayesmag switches it on at import)
-        from .cache import configure_compile_cache
-        configure_compile_cache(False)
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
         result = run_job(cfg, out, progress=not args.no_progress)

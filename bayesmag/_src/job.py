@@ -173,11 +173,16 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     The physics stage's figures are drawn in a background thread while the network trains
     (:class:`~bayesmag._src.plots.FigureWorker`); the output folder is swapped in only after they are.
     """
+    import contextlib
+
+    from .cache import compile_cache_off
     from .outdir import reserve
     from .plots import FigureWorker
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
-        with FigureWorker(enabled=cfg.output.figures) as figs:
-            return _run_job(cfg, out, figs, progress=progress)
+        # [output] compile_cache = false: off for this job only (bayesmag switches it on at import)
+        with compile_cache_off() if not cfg.output.compile_cache else contextlib.nullcontext():
+            with FigureWorker(enabled=cfg.output.figures) as figs:
+                return _run_job(cfg, out, figs, progress=progress)
 
 
 def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None) -> JobResult:
