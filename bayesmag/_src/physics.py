@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import functools
 from typing import ClassVar, NamedTuple
 
 import jax
@@ -253,8 +254,9 @@ class PhysicsModel:
         return jnp.concatenate([t.features(inputs) for t in self.terms], axis=-1)
 
     def predict_all(self, theta3: jax.Array, inputs: Inputs) -> jax.Array:
-        """(n, 3) calibrated field for per-axis parameters ``theta3`` (3, p)."""
-        return jax.vmap(self.predict, in_axes=(0, None), out_axes=1)(theta3, inputs)
+        """(n, 3) calibrated field for per-axis parameters ``theta3`` (3, p); one compiled program per model
+        and shape (called eagerly, the vmapped terms were a dozen small programs each)."""
+        return _predict_all(self, theta3, inputs)
 
     def describe(self) -> dict:
         return {
@@ -262,6 +264,11 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _predict_all(model: PhysicsModel, theta3, inputs: Inputs):
+    return jax.vmap(model.predict, in_axes=(0, None), out_axes=1)(theta3, inputs)
 
 
 #: Named model extensions usable as ``[physics] extra_terms = ["name", {name = "...", ...}]``;

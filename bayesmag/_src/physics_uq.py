@@ -41,6 +41,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.special
 from scipy.stats import qmc
 
 from .physics import Inputs, PhysicsModel
@@ -74,7 +75,7 @@ def sobol_normal(n: int, cov: np.ndarray, *, seed: int) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)   # n not a power of 2: balance is lost, still valid
         u = eng.random(n)
-    z = np.asarray(jax.scipy.special.ndtri(jnp.asarray(np.clip(u, 1e-16, 1 - 1e-16))))
+    z = scipy.special.ndtri(np.clip(u, 1e-16, 1 - 1e-16))
     return z @ _sqrt_psd(cov).T
 
 
