@@ -252,6 +252,22 @@ def test_axes_trained_on_threads_equal_one_vmapped_call_and_do_not_depend_on_thr
         np.testing.assert_array_equal(info3.val_loss, info2.val_loss)
 
 
+def test_merged_progress_counts_waiting_trainings_at_zero_and_stopped_ones_as_finished():
+    a = N.TrainProgress(np.array([10, 40]), np.array([0.5, 0.2]), np.array([0.6, 0.3]), np.array([False, True]), 40)
+    p = N.merge_progress([None, a], 2, 40)
+    np.testing.assert_array_equal(p.epochs, [0, 0, 10, 40])
+    np.testing.assert_array_equal(p.done, [False, False, False, True])
+    assert np.isnan(p.best_val_loss[:2]).all() and p.best_val_loss[3] == 0.2 and p.max_epochs == 40
+    update, bar = N.progress_bar(40, 4)
+    try:
+        update(p)
+        assert bar.n == 10 + 40 and bar.total == 160          # the stopped axis counts all its epochs
+        update(N.merge_progress([a, a], 2, 40))
+        assert bar.n == 100
+    finally:
+        bar.close()
+
+
 # --------------------------------------------------------------------------- MC inference
 
 

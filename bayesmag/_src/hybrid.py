@@ -59,8 +59,8 @@ from . import metrics as M
 from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
 from .network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, TrainProgress, check_network_size,
-                      ensemble_passes, fit_residual_network, progress_bar, recalibrate, training_threads,
-                      validation_rows)
+                      ensemble_passes, fit_residual_network, merge_progress, progress_bar, recalibrate,
+                      training_threads, validation_rows)
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
 from .predictor import (FUSIONS, Components, Prediction, Predictor, compose, conformal_quantile, conformal_ratios,
@@ -156,17 +156,15 @@ def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg
 
     latest: list = [None] * n_folds
     lock = threading.Lock()
-    update, bar = (None, None)
-    if progress:
-        update, bar = progress_bar(spec.max_epochs, desc=f"network training ({spec.likelihood}, {n_folds} fold "
-                                                         f"networks x {r.shape[1]} axes)")
+    n_axes = r.shape[1]
+    update, bar = progress_bar(spec.max_epochs, n_folds * n_axes, desc=f"network training ({spec.likelihood}, "
+                                                                      f"{n_folds} fold networks x {n_axes} axes)") \
+        if progress else (None, None)
 
-    def report(k: int, p: TrainProgress) -> None:     # the slowest axis of all folds drives the bar
+    def report(k: int, p: TrainProgress) -> None:       # folds still waiting for a thread count as epoch 0
         with lock:
             latest[k] = p
-            if all(q is not None for q in latest):
-                update(TrainProgress(*(np.concatenate([getattr(q, f) for q in latest])
-                                       for f in ("epochs", "best_val_loss", "val_loss", "done")), p.max_epochs))
+            update(merge_progress(latest, n_axes, p.max_epochs))
 
     def one(k: int, pool) -> ResidualNetwork:
         rows = np.flatnonzero(folds != k)

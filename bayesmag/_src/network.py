@@ -103,7 +103,7 @@ from .likelihoods import LIKELIHOODS, Likelihood, ShapeParam, get_likelihood
 __all__ = ["Dense", "NetworkSpec", "Standardizer", "TrainInfo", "ResidualNetwork", "MCPrediction",
            "ACTIVATIONS", "MAX_PARAMS_PER_ROW", "MIN_VALIDATION_ROWS", "init", "apply", "drop_connect", "keep_masks", "max_drops",
            "count_params", "fourier_frequencies", "embed", "head_distribution", "regularized_nll", "build_trainer",
-           "validation_rows", "TrainProgress", "TRAIN_CHUNK_EPOCHS", "progress_bar", "LEARN", "shape_settings",
+           "validation_rows", "TrainProgress", "TRAIN_CHUNK_EPOCHS", "progress_bar", "merge_progress", "LEARN", "shape_settings",
            "check_network_size", "fit_residual_network", "mc_predict", "mc_samples", "recalibrate", "VALIDATION_KINDS",
            "NetworkEnsemble", "ensemble_passes", "pool_mc"]
 
@@ -692,10 +692,8 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
     def report(a, p: TrainProgress) -> None:
         with lock:
             latest[a] = p
-            if progress is not None and all(q is not None for q in latest):
-                progress(TrainProgress(*(np.concatenate([getattr(q, f) for q in latest])
-                                         for f in ("epochs", "best_val_loss", "val_loss", "done")),
-                                       p.max_epochs))
+            if progress is not None:        # an axis still waiting for a thread counts as epoch 0
+                progress(merge_progress(latest, 1, p.max_epochs))
 
     r_fit, r_val = np.asarray(r_fit), np.asarray(r_val)
 
@@ -716,17 +714,34 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
     return params, info
 
 
-def progress_bar(total_epochs: int, *, desc: str = "network training") -> tuple[Callable[[TrainProgress], None], Any]:
-    """A ``tqdm`` bar fed by :class:`TrainProgress` (epochs of the slowest axis; val loss per axis)."""
+def progress_bar(max_epochs: int, n_axes: int = 1, *,
+                 desc: str = "network training") -> tuple[Callable[[TrainProgress], None], Any]:
+    """A ``tqdm`` bar over ``n_axes`` trainings of at most ``max_epochs`` epochs each, fed by
+    :class:`TrainProgress`: the epochs run, a stopped training counted as all its epochs (early
+    stopping makes the rest unknown until it happens); the best validation loss per axis (up to 3
+    axes) or how many have stopped."""
     from tqdm.auto import tqdm
-    bar = tqdm(total=total_epochs, desc=desc, unit="epoch", leave=False)
+    bar = tqdm(total=n_axes * max_epochs, desc=desc, unit="epoch", leave=False)
 
     def update(p: TrainProgress) -> None:
-        done_to = int(p.max_epochs if p.done.all() else p.epochs[~p.done].max())
-        bar.update(max(0, done_to - bar.n))
-        bar.set_postfix_str("best val loss " + " ".join(f"{v:.4g}" for v in p.best_val_loss))
+        bar.update(max(0, int(np.where(p.done, p.max_epochs, p.epochs).sum()) - bar.n))
+        if p.done.size <= 3:
+            bar.set_postfix_str("best val loss " + " ".join("-" if not np.isfinite(v) else f"{v:.4g}"
+                                                             for v in p.best_val_loss))
+        else:
+            bar.set_postfix_str(f"{int(p.done.sum())} of {p.done.size} stopped")
 
     return update, bar
+
+
+def merge_progress(parts: list, n_axes: int, max_epochs: int) -> TrainProgress:
+    """One :class:`TrainProgress` of several trainings (``parts``: each one's latest, or None when it has
+    not reported yet: counted as ``n_axes`` axes at epoch 0, not stopped)."""
+    idle = TrainProgress(np.zeros(n_axes, int), np.full(n_axes, np.nan), np.full(n_axes, np.nan),
+                         np.zeros(n_axes, bool), max_epochs)
+    parts = [idle if q is None else q for q in parts]
+    return TrainProgress(*(np.concatenate([getattr(q, f) for q in parts])
+                           for f in ("epochs", "best_val_loss", "val_loss", "done")), max_epochs)
 
 
 # --------------------------------------------------------------------------- fitted network
@@ -854,7 +869,8 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
     freqs = fourier_frequencies(spec, seed) if spec.fourier_features else None
     bar = None
     if progress is True:
-        progress, bar = progress_bar(spec.max_epochs, desc=f"network training ({spec.likelihood}, {r.shape[1]} axes)")
+        progress, bar = progress_bar(spec.max_epochs, r.shape[1],
+                                     desc=f"network training ({spec.likelihood}, {r.shape[1]} axes)")
     try:
         params, info = _train_parallel(spec, keys, embed(st.x(x[fit_rows]), freqs), st.r(r[fit_rows]),
                                        embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]), progress=progress or None,
