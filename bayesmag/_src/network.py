@@ -706,8 +706,8 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
     elif threads < 2 or n_axes < 2:
         parts = [run(a) for a in range(n_axes)]
     else:
-        with ThreadPoolExecutor(min(threads, n_axes), thread_name_prefix="bayesmag-train") as pool:
-            parts = list(pool.map(run, range(n_axes)))
+        with ThreadPoolExecutor(min(threads, n_axes), thread_name_prefix="bayesmag-train") as own:
+            parts = list(own.map(run, range(n_axes)))
     join = lambda *leaves: np.concatenate([np.asarray(leaf) for leaf in leaves])   # noqa: E731
     params = jax.tree.map(lambda *leaves: jnp.asarray(join(*leaves)), *[p for p, _ in parts])
     info = jax.tree.map(join, *[i for _, i in parts])
