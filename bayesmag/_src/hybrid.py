@@ -49,8 +49,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -151,9 +153,6 @@ def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg
     paper's machine often waited on one fold's last axis). Each network is the one
     :func:`train_network` gives alone (the axes do not depend on the threads).
     """
-    import threading
-    from concurrent.futures import ThreadPoolExecutor
-
     latest: list = [None] * n_folds
     lock = threading.Lock()
     n_axes = r.shape[1]
