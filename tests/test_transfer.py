@@ -167,3 +167,32 @@ def test_fold_fits_equal_separate_fits(n_runs):
     fit = bayesmag.fit_physics(d, model)
     np.testing.assert_allclose(estimate_transfer(d, fit).sd,
                                estimate_transfer(d, fit, lambda x: bayesmag.fit_physics(x, model)).sd, rtol=1e-8)
+
+
+def test_transfer_sd_is_the_chi_square_bound_on_the_whole_new_session_variance():
+    """estimate_transfer against the formula written out here: separate leave-one-run-out fits, the
+    in-domain rows of each left-out run, q = the 95 % quantile of (e / z)^2 - s^2 with every run
+    weighted equally (inverted CDF), and tau^2 = (s^2 + q) (R - 1) / chi2_{R-1}(0.2) - s^2 (scipy)."""
+    import scipy.stats
+    d = _session(11, 5, rows=120)
+    model = bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature)))
+    fit = bayesmag.fit_physics(d, model)
+    z, s2 = scipy.stats.norm.ppf(0.975), np.asarray(fit.s2)
+    values, weights = [], []
+    for r in np.unique(d.run):
+        other, left = d.subset(np.flatnonzero(d.run != r)), d.subset(np.flatnonzero(d.run == r))
+        rows = left.subset(np.flatnonzero(~Domain.from_data(other, rates=False).outside(left).any(axis=1)))
+        e = rows.b_ref - bayesmag.fit_physics(other, model).predict(bayesmag.inputs_from_data(rows))
+        values.append((e / z) ** 2 - s2)
+        weights.append(np.full(rows.n, 1.0 / rows.n))
+    v, w = np.concatenate(values), np.concatenate(weights)
+    q = np.empty(3)
+    for a in range(3):
+        order = np.argsort(v[:, a], kind="stable")
+        q[a] = v[order[np.cumsum(w[order]) >= 0.95 * w.sum() - 1e-12][0], a]
+    bound = (len(values) - 1) / scipy.stats.chi2.ppf(0.2, len(values) - 1)
+    want = np.sqrt(np.maximum((s2 + q) * bound - s2, 0.0))
+    tr = estimate_transfer(d, fit)
+    assert tr.method == "leave_one_run_out" and len(values) == 5
+    np.testing.assert_allclose(tr.sd, want, rtol=1e-6)
+    assert np.all(want > np.sqrt(np.maximum(q, 0.0) * bound))       # wider than the bound on q alone
