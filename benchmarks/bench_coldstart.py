@@ -27,12 +27,12 @@ ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("physics_fit", "physics_uq", "network_train", "hybrid_inference", "total")
 
 
-def one_run(config: str, out: Path, cache_value: str) -> dict:
+def one_run(config: str, out: Path, cache_value: str, sets: list[str] = ()) -> dict:
     env = {**os.environ, "BAYESMAG_COMPILE_CACHE": cache_value, "PYTHONPATH": str(ROOT)}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "run", config, "--out", str(out), "--no-progress"],
-                       env=env, capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "run", config, "--out", str(out), "--no-progress",
+                        *(a for s in sets for a in ("--set", s))], env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -48,6 +48,8 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=str(ROOT / "configs" / "paper_hybrid.toml"))
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-cache", action="store_true", help="also time runs with the cache off")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override passed to every run (e.g. output.figures=false)")
     args = ap.parse_args(argv)
     rows: dict[str, list[dict]] = {"first run (empty cache)": [], "second run (cache filled)": []}
     if args.no_cache:
@@ -60,10 +62,11 @@ def main(argv=None) -> int:
                                  ("second run (cache filled)", str(cache_dir)), ("cache off", "0")):
                 if label not in rows:
                     continue
-                res = one_run(args.config, tmp / "out", value)
+                res = one_run(args.config, tmp / "out", value, args.set)
                 rows[label].append(res)
                 print(f"repeat {i} {label}: " + ", ".join(f"{k} {v:.2f}" for k, v in res.items()), flush=True)
-    print(f"\nmedians of {args.repeats} ({Path(args.config).name}; seconds):")
+    print(f"\nmedians of {args.repeats} ({Path(args.config).name}" + "".join(f" --set {s}" for s in args.set)
+          + "; seconds):")
     print("| run | whole process (wall) | whole process (CPU, user+sys) | " + " | ".join(STAGES) + " |")
     print("|---|---|---|" + "---|" * len(STAGES))
     for label, rs in rows.items():
