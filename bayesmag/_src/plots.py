@@ -150,11 +150,15 @@ def residual_histogram_figure(out: Path, result, columns: dict) -> None:
     residual_histograms(out / "residual_histograms.png", res)
 
 
+def _ready() -> None:
+    """:meth:`FigureWorker.warm`'s task: nothing (unpickling it imports this module, matplotlib included)."""
+
+
 class FigureWorker:
-    """Draws figures in one background process while the job computes (network training leaves the
-    second core idle); :meth:`finish` waits, re-raises the first drawing error and moves the files
-    into the output folder. A process, not a thread: matplotlib is pure Python and would hold the GIL
-    against the main thread's tracing (a thread slowed the paper_hybrid training by ~2 s of ~16).
+    """Draws figures in one background process while this one goes on (a job draws the physics
+    figures there while it draws the hybrid ones itself); :meth:`finish` waits, re-raises the first
+    drawing error and moves the files into the output folder. A process, not a thread: matplotlib is
+    pure Python and would hold the GIL against the main thread's tracing.
     ``draw`` must be picklable (a module-level function) and its arguments plain data; tasks run one
     at a time in a spawned interpreter (no fork of a process that runs JAX).
 
@@ -170,6 +174,11 @@ class FigureWorker:
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) if enabled else None
         self._tmp = Path(tempfile.mkdtemp(prefix="bayesmag-figures-")) if enabled else None
         self._futures: list[Future] = []
+
+    def warm(self) -> None:
+        """Start the process now (interpreter, imports) rather than at the first figure."""
+        if self._pool is not None:
+            self._futures.append(self._pool.submit(_ready))
 
     def submit(self, draw: Callable[..., object], *args, **kwargs) -> None:
         """Queue ``draw(folder, *args, **kwargs)``; nothing when the worker is disabled."""
