@@ -170,8 +170,10 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
 def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
 
-    The physics stage's figures are drawn in a background thread while the network trains
-    (:class:`~bayesmag._src.plots.FigureWorker`); the output folder is swapped in only after they are.
+    The physics stage's figures are drawn in a background process
+    (:class:`~bayesmag._src.plots.FigureWorker`): right after the physics stage when there is no
+    network, else after the training (whose threads keep the cores busy) while this process draws
+    the hybrid stage's. The output folder is swapped in only after they are all drawn.
     """
     import contextlib
 
