@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -60,9 +59,9 @@ import numpy as np
 from . import metrics as M
 from .config import Config, NetworkConfig, config_error
 from .data import AXES, CalibrationData
-from .network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, TrainProgress, check_network_size,
-                      ensemble_passes, fit_residual_network, merge_progress, progress_bar, recalibrate,
-                      training_threads, validation_rows)
+from .network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, check_network_size, ensemble_passes,
+                      fit_residual_network, merged_reporter, progress_bar, recalibrate, training_threads,
+                      validation_rows)
 from .physics import inputs_from_data
 from .physics_uq import PhysicsUQ
 from .predictor import (FUSIONS, Components, Prediction, Predictor, compose, conformal_quantile, conformal_ratios,
@@ -153,22 +152,17 @@ def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg
     paper's machine often waited on one fold's last axis). Each network is the one
     :func:`train_network` gives alone (the axes do not depend on the threads).
     """
-    latest: list = [None] * n_folds
-    lock = threading.Lock()
     n_axes = r.shape[1]
-    update, bar = progress_bar(spec.max_epochs, n_folds * n_axes, desc=f"network training ({spec.likelihood}, "
-                                                                      f"{n_folds} fold networks x {n_axes} axes)") \
-        if progress else (None, None)
-
-    def report(k: int, p: TrainProgress) -> None:       # folds still waiting for a thread count as epoch 0
-        with lock:
-            latest[k] = p
-            update(merge_progress(latest, n_axes, p.max_epochs))
+    report, bar = None, None
+    if progress:                                        # folds still waiting for a thread count as epoch 0
+        update, bar = progress_bar(spec.max_epochs, n_folds * n_axes, desc=f"network training ({spec.likelihood}, "
+                                                                          f"{n_folds} fold networks x {n_axes} axes)")
+        report = merged_reporter(n_folds, n_axes, update)
 
     def one(k: int, pool) -> ResidualNetwork:
         rows = np.flatnonzero(folds != k)
         return train_network(x[rows], r[rows], spec, net_cfg, groups=groups[rows], pool=pool,
-                             progress=(lambda p: report(k, p)) if progress else False)
+                             progress=(lambda p: report(k, p)) if report is not None else False)
 
     try:
         with ThreadPoolExecutor(training_threads(), thread_name_prefix="bayesmag-train") as pool, \

@@ -103,7 +103,7 @@ from .likelihoods import LIKELIHOODS, Likelihood, ShapeParam, get_likelihood
 __all__ = ["Dense", "NetworkSpec", "Standardizer", "TrainInfo", "ResidualNetwork", "MCPrediction",
            "ACTIVATIONS", "MAX_PARAMS_PER_ROW", "MIN_VALIDATION_ROWS", "init", "apply", "drop_connect", "keep_masks", "max_drops",
            "count_params", "fourier_frequencies", "embed", "head_distribution", "regularized_nll", "build_trainer",
-           "validation_rows", "TrainProgress", "TRAIN_CHUNK_EPOCHS", "progress_bar", "merge_progress", "LEARN", "shape_settings",
+           "validation_rows", "TrainProgress", "TRAIN_CHUNK_EPOCHS", "progress_bar", "merge_progress", "merged_reporter", "LEARN", "shape_settings",
            "check_network_size", "fit_residual_network", "mc_predict", "mc_samples", "recalibrate", "VALIDATION_KINDS",
            "NetworkEnsemble", "ensemble_passes", "pool_mc"]
 
@@ -686,20 +686,12 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
     """
     n_axes = r_fit.shape[1]
     threads = training_threads() if threads is None else threads
-    latest: list = [None] * n_axes
-    lock = threading.Lock()
-
-    def report(a, p: TrainProgress) -> None:
-        with lock:
-            latest[a] = p
-            if progress is not None:        # an axis still waiting for a thread counts as epoch 0
-                progress(merge_progress(latest, 1, p.max_epochs))
-
+    report = merged_reporter(n_axes, 1, progress) if progress is not None else None   # waiting axes: epoch 0
     r_fit, r_val = np.asarray(r_fit), np.asarray(r_val)
 
     def run(a):
         return _train_axes(spec, keys[a:a + 1], x_fit, r_fit[:, a:a + 1], x_val, r_val[:, a:a + 1],
-                           progress=lambda p: report(a, p))
+                           progress=None if report is None else lambda p: report(a, p))
 
     if pool is not None:
         parts = [f.result() for f in [pool.submit(run, a) for a in range(n_axes)]]
@@ -732,6 +724,20 @@ def progress_bar(max_epochs: int, n_axes: int = 1, *,
             bar.set_postfix_str(f"{int(p.done.sum())} of {p.done.size} stopped")
 
     return update, bar
+
+
+def merged_reporter(n_parts: int, n_axes: int, sink: Callable[[TrainProgress], None]) -> Callable[[int, TrainProgress], None]:
+    """``report(k, p)`` for ``n_parts`` trainings of ``n_axes`` axes running on threads: keeps each one's
+    latest :class:`TrainProgress` and passes ``sink`` all of them merged (:func:`merge_progress`), under a lock."""
+    latest: list = [None] * n_parts
+    lock = threading.Lock()
+
+    def report(k: int, p: TrainProgress) -> None:
+        with lock:
+            latest[k] = p
+            sink(merge_progress(latest, n_axes, p.max_epochs))
+
+    return report
 
 
 def merge_progress(parts: list, n_axes: int, max_epochs: int) -> TrainProgress:

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 from .data import AXES  # noqa: E402
 
 __all__ = ["calibration_scatter", "residual_histograms", "residuals_vs", "residuals_vs_time", "residual_figures",
-           "job_figures", "physics_figures", "FigureWorker"]
+           "physics_figures", "residual_histogram_figure", "FigureWorker"]
 
 
 def calibration_scatter(path: Path, measured: np.ndarray, calibrated: np.ndarray, reference: np.ndarray,
@@ -134,12 +134,6 @@ def physics_figures(out: Path, test, columns: dict) -> None:
     """The physics stage's figures of a job: calibration scatter and residual diagnostics of the test rows."""
     calibration_scatter(out / "calibration.png", columns["measured"], columns["predicted"], columns["reference"])
     residual_figures(out, test, columns["predicted"], columns["total"])
-
-
-def job_figures(out: Path, result, columns: dict) -> None:
-    """The standard figures of a calibration job (:func:`physics_figures` and the residual histograms)."""
-    physics_figures(out, result["data"].subset(result["split"].test), columns)
-    residual_histogram_figure(out, result, columns)
 
 
 def residual_histogram_figure(out: Path, result, columns: dict) -> None:
