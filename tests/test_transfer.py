@@ -154,7 +154,12 @@ def test_fast_rows_are_flagged_with_their_reason():
 @pytest.mark.parametrize("n_runs", [4])
 def test_fold_fits_equal_separate_fits(n_runs):
     """fit_folds (weight-0 rows, one compile) gives each fold's own LM solution and the same transfer sd
-    as refitting every fold separately with fit_physics (to 1e-8 relative)."""
+    as refitting every fold separately with fit_physics.
+
+    Tolerance: the two are different float programs stopped by the same LM rule (relative cost change
+    < 1e-12), which pins a weakly determined parameter only to ~sqrt(1e-12) of its scale, so the
+    parameters must agree to 1e-4 of their posterior sd (seen: at most 5e-10 absolute,
+    2e-7 sd) and the transfer sd to 1e-6 relative."""
     from bayesmag._src.fit import fit_folds
     d = _session(7, n_runs, rows=150)
     model = bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature)))
@@ -163,10 +168,11 @@ def test_fold_fits_equal_separate_fits(n_runs):
     assert ok.all()
     for k in range(keep.shape[0]):
         sep = bayesmag.fit_physics(d.subset(np.flatnonzero(keep[k])), model)
-        np.testing.assert_allclose(theta[k], sep.theta, rtol=1e-8, atol=1e-10)
+        sd = sep.std
+        assert np.all(np.abs(theta[k] - np.asarray(sep.theta)) <= 1e-4 * sd), (theta[k] - sep.theta) / sd
     fit = bayesmag.fit_physics(d, model)
     np.testing.assert_allclose(estimate_transfer(d, fit).sd,
-                               estimate_transfer(d, fit, lambda x: bayesmag.fit_physics(x, model)).sd, rtol=1e-8)
+                               estimate_transfer(d, fit, lambda x: bayesmag.fit_physics(x, model)).sd, rtol=1e-6)
 
 
 def test_transfer_sd_is_the_chi_square_bound_on_the_whole_new_session_variance():
