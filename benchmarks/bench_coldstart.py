@@ -6,7 +6,14 @@ the cache is off (``BAYESMAG_COMPILE_CACHE=0``) for comparison. Prints per-run w
 the process's CPU time (user + sys: less sensitive than wall time to other load on a shared
 machine) and the job's own stage timings (metrics.json), then medians.
 
+``--code DIR [DIR ...]`` times the ``bayesmag`` of other checkouts too (e.g. ``git worktree add
+/tmp/base 70b89a9``, the code when issue #14 was written), interleaved with this one within every
+repeat, so that a machine whose speed drifts compares them fairly (each runs the config of its own
+tree); checkouts without the
+persistent cache compile on every run.
+
     BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_coldstart.py --repeats 3
+    BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_coldstart.py --repeats 3 --code /tmp/base
 """
 
 from __future__ import annotations
@@ -27,12 +34,13 @@ ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("physics_fit", "physics_uq", "network_train", "hybrid_inference", "total")
 
 
-def one_run(config: str, out: Path, cache_value: str, sets: list[str] = ()) -> dict:
-    env = {**os.environ, "BAYESMAG_COMPILE_CACHE": cache_value, "PYTHONPATH": str(ROOT)}
+def one_run(config: str, out: Path, cache_value: str, sets: list[str] = (), code: Path = ROOT) -> dict:
+    env = {**os.environ, "BAYESMAG_COMPILE_CACHE": cache_value, "PYTHONPATH": str(code)}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "run", config, "--out", str(out), "--no-progress",
-                        *(a for s in sets for a in ("--set", s))], env=env, capture_output=True, text=True)
+                        *(a for s in sets for a in ("--set", s))], env=env, capture_output=True, text=True,
+                       cwd=out.parent)       # not this repository: its bayesmag/ would shadow PYTHONPATH
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -50,21 +58,28 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cache", action="store_true", help="also time runs with the cache off")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override passed to every run (e.g. output.figures=false)")
+    ap.add_argument("--code", nargs="*", default=[], metavar="DIR",
+                    help="other checkouts to time as well, interleaved with this one")
     args = ap.parse_args(argv)
-    rows: dict[str, list[dict]] = {"first run (empty cache)": [], "second run (cache filled)": []}
-    if args.no_cache:
-        rows["cache off"] = []
+    codes = [ROOT] + [Path(c).resolve() for c in args.code]
+    kinds = ["first run (empty cache)", "second run (cache filled)"] + (["cache off"] if args.no_cache else [])
+    name = (lambda c: "" if len(codes) == 1 else f"{'this checkout' if c == ROOT else c}: ")   # noqa: E731
+    rows: dict[str, list[dict]] = {name(c) + k: [] for c in codes for k in kinds}
+    config = Path(args.config).resolve()
+
+    def config_of(code: Path) -> str:
+        """The config inside ``code``'s own tree when it is one of this repository's (settings change)."""
+        return str(code / config.relative_to(ROOT)) if config.is_relative_to(ROOT) else str(config)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for i in range(args.repeats):
-            cache_dir = tmp / f"cache{i}"
-            for label, value in (("first run (empty cache)", str(cache_dir)),
-                                 ("second run (cache filled)", str(cache_dir)), ("cache off", "0")):
-                if label not in rows:
-                    continue
-                res = one_run(args.config, tmp / "out", value, args.set)
-                rows[label].append(res)
-                print(f"repeat {i} {label}: " + ", ".join(f"{k} {v:.2f}" for k, v in res.items()), flush=True)
+            for j, code in enumerate(codes):
+                cache_dir = tmp / f"cache{i}_{j}"
+                for kind, value in zip(kinds, (str(cache_dir), str(cache_dir), "0")):
+                    res = one_run(config_of(code), tmp / "out", value, args.set, code)
+                    rows[name(code) + kind].append(res)
+                    print(f"repeat {i} {name(code)}{kind}: " + ", ".join(f"{k} {v:.2f}" for k, v in res.items()),
+                          flush=True)
     print(f"\nmedians of {args.repeats} ({Path(args.config).name}" + "".join(f" --set {s}" for s in args.set)
           + "; seconds):")
     print("| run | whole process (wall) | whole process (CPU, user+sys) | " + " | ".join(STAGES) + " |")
