@@ -61,41 +61,44 @@ def _calibrate(train: CalibrationData) -> Predictor:
 
 
 def test_session_shift_is_covered_or_flagged():
-    """Fit on 30 campaigns of simulated sessions, apply to 40 new sessions with shifted offsets and cross-axis terms.
+    """Fit on 30 simulated sessions (one run each), apply to 40 new sessions with shifted offsets and
+    cross-axis terms; repeated for 20 training draws, each with its own new sessions.
 
-    Declared bands: in-domain coverage of the 95 % intervals 90-99 % per axis, pooled over the new
-    sessions (a session's shift is constant over its rows, so the sessions, not the rows, are the
-    sample: binomial sd of the pooled coverage ~3.4 % at 40 sessions), and at least 95 % of the rows
-    either covered or flagged out of domain (the issue's target). The new-session variance is an 80 %
-    upper confidence bound (x 1.29 at R = 30 runs): with an exact estimate the intervals would cover
-    ~97.4 %, so the upper band is 99 %, not the issue's 98 %. The transfer sd is estimated from the
-    training runs and is noisy: over 8 training draws x 200 new sessions (benchmarks/bench_transfer.py)
-    an axis falls under 95 % covered or flagged in 2 / 2 / 5 of 8 draws (x / y / z; docs/uncertainty.md).
+    Declared bands, the issue's: in-domain coverage of the 95 % intervals 90-98 % per axis and at
+    least 95 % of the rows covered or flagged out of domain, both pooled over the 20 draws: the
+    coverage a calibration procedure promises is marginal over the training data and the new
+    session. One draw says little: a session's shift is constant over its rows, so the sessions,
+    not the rows, are the sample, and the transfer sd from 30 runs is noisy; one draw's coverage has
+    an sd of 3-4 % per axis (``benchmarks/bench_transfer.py --draws 30 --sessions 40``, the same
+    draws: mean 97.1 / 96.4 / 96.4 %, docs/uncertainty.md), the mean of 20 draws about 0.8 %. Fresh
+    sessions per draw: one shared set of 40 moves every draw the same way (98.2 / 94.3 / 96.4 % over
+    the same 30 training draws with the sessions 1000-1039, ``--shared``).
     """
-    pr = _calibrate(_session(0, 30, rows=100))
-    tau = pr.transfer_sd
+    covered, in_dom, bare_covered, taus = [], [], [], []
+    for draw in range(20):
+        pr = _calibrate(_session(draw, 30, rows=100))
+        taus.append(pr.transfer_sd)
+        bare = Predictor(fit=pr.fit, sigma_in=pr.sigma_in, residual_sd=pr.residual_sd, uq=pr.uq)
+        for s in range(40):
+            new = _session(10_000 + 1000 * draw + s, 1, kind=s)      # bench_transfer.py's fresh sessions
+            p = pr.predict(new)
+            lo, hi = p.interval(0.95)
+            covered.append((new.b_ref >= lo) & (new.b_ref <= hi))
+            in_dom.append(p.in_domain)
+            assert np.all(p.transfer == pr.transfer_sd)
+            lo, hi = bare.predict(new).interval(0.95)
+            bare_covered.append((new.b_ref >= lo) & (new.b_ref <= hi))
     # The pooled fit's residual sd already holds part of the between-session scatter (the sessions'
     # offsets differ by OFFSET_SD = 0.3 uT); tau is the excess of the leave-one-run-out error over it.
-    assert np.all((tau > 0.05) & (tau < 0.5)), tau
-    bare = Predictor(fit=pr.fit, sigma_in=pr.sigma_in, residual_sd=pr.residual_sd, uq=pr.uq)
-    covered, in_dom, bare_covered = [], [], []
-    for s in range(40):
-        new = _session(1000 + s, 1, kind=s)
-        p = pr.predict(new)
-        lo, hi = p.interval(0.95)
-        covered.append((new.b_ref >= lo) & (new.b_ref <= hi))
-        in_dom.append(p.in_domain)
-        assert np.all(p.transfer == tau)
-        lo, hi = bare.predict(new).interval(0.95)
-        bare_covered.append((new.b_ref >= lo) & (new.b_ref <= hi))
+    taus = np.array(taus)
+    assert np.all((taus > 0.05) & (taus < 0.6)), taus
     covered, in_dom = np.concatenate(covered), np.concatenate(in_dom)
     assert in_dom.mean() > 0.5
     cov_in = covered[in_dom].mean(axis=0)
-    print(f"in-domain coverage {cov_in}, rows in domain {in_dom.mean():.4f}, covered or flagged "
-          f"{(covered | ~in_dom[:, None]).mean(axis=0)}")                      # docs/uncertainty.md (pytest -s)
-    assert np.all((cov_in >= 0.90) & (cov_in <= 0.99)), cov_in
-    # measured 98.6 / 95.2 / 96.8 % covered or flagged (this draw; the benchmark shows the spread over draws)
-    assert np.all((covered | ~in_dom[:, None]).mean(axis=0) >= 0.95)
+    ok = (covered | ~in_dom[:, None]).mean(axis=0)
+    print(f"in-domain coverage {cov_in}, rows in domain {in_dom.mean():.4f}, covered or flagged {ok}")  # pytest -s
+    assert np.all((cov_in >= 0.90) & (cov_in <= 0.98)), cov_in
+    assert np.all(ok >= 0.95), ok
     # without the transfer part the within-session intervals under-cover new sessions
     bare_in = np.concatenate(bare_covered)[in_dom].mean(axis=0)
     assert np.all(bare_in < cov_in - 0.02), (bare_in, cov_in)
