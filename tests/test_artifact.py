@@ -142,11 +142,12 @@ def test_hybrid_calibration_round_trip(tmp_path, likelihood, fourier, extra):
     res, out = _run(tmp_path, network=net)
     cal = load(out)
     assert cal.network is not None and cal.likelihood == likelihood
-    # the conformal fold networks (default 5) are kept as a deep ensemble: every member saved
-    assert cal.network["meta"]["members"] == 5 and json.loads((out / "calibration.json").read_text())[
+    # the conformal fold networks are kept as a deep ensemble: every member saved (test blocks of 0.2 of a run:
+    # fold blocks of 0.25 of the training rows, so 3 of the default 5 folds fit, hybrid.conformal_plan)
+    assert cal.network["meta"]["members"] == 3 and json.loads((out / "calibration.json").read_text())[
         "format_version"] == 2
-    assert ("member4/fourier/frequencies" in cal.network["arrays"]) == (fourier > 0)
-    assert ("member4/recalibration/variance_scale" in cal.network["arrays"]) == bool(extra)
+    assert ("member2/fourier/frequencies" in cal.network["arrays"]) == (fourier > 0)
+    assert ("member2/recalibration/variance_scale" in cal.network["arrays"]) == bool(extra)
     test = res["data"].subset(res["split"].test)
     assert cal.interval_scale is not None                              # conformal scale (default) saved
     pred = cal.predict(test, method="psqmc", n_params=UQ["n_params"], n_qmc=UQ["n_qmc"], seed=UQ["seed"],

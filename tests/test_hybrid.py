@@ -10,7 +10,7 @@ import pytest
 
 from bayesmag import ConfigError, run_job
 from bayesmag._src.config import config_from_dict
-from bayesmag._src.hybrid import check_network_config, fuse
+from bayesmag._src.hybrid import check_network_config, conformal_plan, fuse
 from bayesmag._src.network import NetworkSpec
 from helpers import uq_parts
 
@@ -158,6 +158,27 @@ def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     assert "network_train" in m["timings"] and "hybrid_inference" in m["timings"]
 
 
+@pytest.mark.parametrize("split,folds_cfg,want", [
+    ({"kind": "random", "test_fraction": 0.2}, 5, (0.1, 5)),                    # no test blocks: validation_fraction
+    ({"kind": "by_run", "test_runs": [1]}, 5, (0.1, 5)),
+    ({"kind": "time_blocks", "test_fraction": 0.05}, 5, (0.1, 5)),              # test blocks shorter: unchanged
+    ({"kind": "time_blocks", "test_fraction": 0.1}, 5, (0.1 / 0.9, 5)),         # 0.1 of a run = 0.111 of its training rows
+    ({"kind": "time_blocks", "test_fraction": 0.2}, 5, (0.25, 3)),              # 5 x 0.25 > 1: three folds
+    ({"kind": "time_blocks", "test_fraction": 0.2, "n_blocks": 2}, 5, (0.125, 5)),
+    ({"kind": "time_blocks", "test_fraction": 0.4}, 5, (0.49, 2)),              # longer than half the rows: capped
+    ({"kind": "time_blocks", "test_fraction": 0.2}, 2, (0.25, 2)),
+])
+def test_conformal_blocks_are_as_long_as_the_test_blocks(split, folds_cfg, want):
+    """The fold blocks calibrate the intervals of the test rows, so they are at least as long as the
+    job's test blocks, with as many folds (at most the configured number) as fit in a run."""
+    raw = copy.deepcopy(SIMULATED)
+    raw["split"] = {**split, "seed": 0}
+    cfg = _config(raw, conformal_folds=folds_cfg, validation_fraction=0.1)
+    fraction, n = conformal_plan(cfg.split, cfg.network)
+    assert (fraction, n) == (pytest.approx(want[0]), want[1])
+    assert n * fraction < 1.0
+
+
 def test_conformal_folds_are_one_block_per_run_in_their_own_stretch():
     """Fold k: one contiguous block of ``fraction`` of every run, inside the k-th of K equal stretches of the run."""
     from bayesmag._src.hybrid import conformal_folds
@@ -188,12 +209,14 @@ def test_each_conformal_fold_is_scored_by_a_network_that_never_saw_it(tmp_path, 
     raw["data"]["simulate"].update(n=1200, design="campaign")
     raw["split"] = {"kind": "time_blocks", "test_fraction": 0.1, "seed": 0}
     raw["output"]["figures"] = False
-    result = run_job(_config(raw, likelihoods=["gaussian"], max_epochs=5, mc_passes=5, conformal_folds=3,
-                                 width=16), tmp_path / "cv")
+    cfg = _config(raw, likelihoods=["gaussian"], max_epochs=5, mc_passes=5, conformal_folds=3, width=16)
+    result = run_job(cfg, tmp_path / "cv")
     assert len(seen) == 3
     data, split = result["data"], result["split"]
     train = data.subset(split.train)
-    folds = hybrid.conformal_folds(train.run, fraction=0.1, folds=3, seed=1)
+    fraction, n_folds = hybrid.conformal_plan(cfg.split, cfg.network)
+    assert n_folds == 3 and fraction == pytest.approx(0.1 / 0.9)      # as long as the test blocks (0.1 of a run)
+    folds = hybrid.conformal_folds(train.run, fraction=fraction, folds=3, seed=1)
     x = np.column_stack([train.b_meas, train.temperature])
     test_x = {tuple(v) for v in np.column_stack([data.b_meas, data.temperature])[split.test]}
     for k in range(3):
@@ -202,7 +225,8 @@ def test_each_conformal_fold_is_scored_by_a_network_that_never_saw_it(tmp_path, 
         fold = {tuple(v) for v in x[folds == k]}
         assert fold and not fold & fitted[0] and not fold & test_x       # never trained on, never a test row
     assert result["metrics"]["network"]["training"]["gaussian"]["conformal"] == {
-        "folds": 3, "rows": int(np.sum(folds >= 0)), "ensemble_passes": [2, 2, 2]}     # 5 passes: at least 2 each
+        "folds": 3, "block_fraction": round(fraction, 6), "rows": int(np.sum(folds >= 0)),
+        "ensemble_passes": [2, 2, 2]}                                                 # 5 passes: at least 2 each
     # the predictor keeps the three fold networks as its ensemble, fold 0's first; metrics describe fold 0's
     ens = result["predictor"].network
     assert len(ens.members) == 3

@@ -88,7 +88,7 @@ class NetworkConfig(NetworkSpec):
     likelihoods: list = dataclasses.field(default_factory=lambda: ["gaussian"])
     validation: str = "time_blocks"     # the job's default; the library's NetworkSpec keeps the paper's "random"
     interval_calibration: str = "conformal"  # "conformal": scale the intervals to cover uq.level of held-out blocks
-    conformal_folds: int = 5            # cross-conformal: time-block folds (one network each) pooled for that scale
+    conformal_folds: int = 5            # cross-conformal: at most this many time-block folds (one network each; fewer when long test blocks need long folds, hybrid.conformal_plan)
     fusion: str = "moment_match"
 
     def __post_init__(self):

@@ -67,8 +67,8 @@ from .physics_uq import PhysicsUQ
 from .predictor import (FUSIONS, Components, Prediction, Predictor, compose, conformal_quantile, conformal_ratios,
                         network_inputs)
 
-__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "check_network_config", "conformal_folds", "network_inputs",
-           "train_network",
+__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "check_network_config", "conformal_folds", "conformal_plan",
+           "network_inputs", "train_network",
            "fuse", "score", "run_hybrid_stage", "hybrid_metrics", "hybrid_columns", "hybrid_writers",
            "comparison_markdown", "comparison_records"]
 
@@ -90,6 +90,28 @@ def conformal_folds(run: np.ndarray, *, fraction: float, folds: int, seed: int) 
         slot = np.minimum(np.arange(rows.size) // max(rows.size // folds, 1), folds - 1)   # split_time_blocks' slots
         fold[rows[held[rows]]] = slot[held[rows]]
     return fold
+
+
+def conformal_plan(split, net_cfg: NetworkConfig) -> tuple[float, int]:
+    """``(fraction, folds)`` of the cross-conformal folds: each fold one block of ``fraction`` of every
+    run's training rows, ``folds`` of them.
+
+    The scores must be as hard as the rows they calibrate: a network predicting the middle of a long
+    held-out stretch errs more than one bridging a short gap. So with a ``time_blocks`` split the fold
+    blocks are at least as long as the test blocks (``test_fraction / n_blocks`` of a run, i.e.
+    ``test_fraction / n_blocks / (1 - test_fraction)`` of its training rows), else
+    ``validation_fraction``; and there are at most ``conformal_folds`` of them, fewer where longer
+    blocks would not fit in a run together (folds x fraction < 1; at least 2 folds, blocks then < 1/2).
+
+    Example: ``test_fraction = 0.2`` in one block per run: blocks of 0.25 of the training rows, 3 folds.
+    """
+    fraction = net_cfg.validation_fraction
+    if split.kind == "time_blocks":
+        fraction = max(fraction, split.test_fraction / split.n_blocks / (1.0 - split.test_fraction))
+    folds = net_cfg.conformal_folds
+    while folds > 2 and folds * fraction >= 1.0:
+        folds -= 1
+    return min(fraction, 0.49), folds
 
 
 #: The fused hybrid prediction: a :class:`~bayesmag._src.predictor.Prediction` (mean, dist, total,
@@ -237,8 +259,9 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
     """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them.
 
     With ``network.interval_calibration = "conformal"`` the interval scale is cross-conformal over
-    ``network.conformal_folds`` = K time-block folds (:func:`conformal_folds`; each one block of
-    ``validation_fraction`` of every run): for every fold a network is trained without that fold's rows
+    K time-block folds (:func:`conformal_folds`; each one block of every run, as long as
+    ``validation_fraction`` of it or as the job's test blocks if those are longer, K at most
+    ``network.conformal_folds``: :func:`conformal_plan`): for every fold a network is trained without that fold's rows
     (and without its own early-stopping block), and the fold's rows are scored by it
     (:func:`~bayesmag._src.predictor.conformal_ratios`); the scale is the split-conformal quantile of the
     scores of all K folds pooled (:func:`~bayesmag._src.predictor.conformal_quantile`), floored at 1. The
@@ -257,8 +280,8 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
     folds = np.zeros(train.n, int) - 1
     n_folds = 0
     if net_cfg.interval_calibration == "conformal":
-        n_folds = net_cfg.conformal_folds
-        folds = conformal_folds(train.run, fraction=net_cfg.validation_fraction, folds=n_folds, seed=net_cfg.seed + 1)
+        fold_fraction, n_folds = conformal_plan(cfg.split, net_cfg)
+        folds = conformal_folds(train.run, fraction=fold_fraction, folds=n_folds, seed=net_cfg.seed + 1)
     fit_idx = np.flatnonzero(folds != 0)
     # Size checks for every likelihood before any training.
     try:
@@ -323,7 +346,8 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
             alts[name] = pr.compose(comp, fusion=other, new_session=new_session)
             training[name] = {**net.info_dict(), "train_seconds": round(train_s, 3)}
             if pr.scale is not None:
-                training[name]["conformal"] = {"folds": n_folds, "rows": int(np.sum(folds >= 0)),
+                training[name]["conformal"] = {"folds": n_folds, "block_fraction": round(fold_fraction, 6),
+                                               "rows": int(np.sum(folds >= 0)),
                                                "ensemble_passes": list(ensemble_passes(net_cfg.mc_passes, n_folds))}
                 for a, ax in enumerate(AXES):
                     training[name][ax]["interval_scale"] = float(pr.scale[a])
