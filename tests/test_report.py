@@ -104,6 +104,19 @@ def test_units_on_every_parameter_and_nuts_and_hybrid_sections():
     assert "| x | S_x | 1 | 0.01 | 1.0004 | 2500 | 2000 |" in text
     assert "| gaussian | x | 0.01 | 5.000 | 1e-06 | 0.200 |" in text
     assert "| gaussian | x | 120 | 70 | -1.5 |" in text
+    assert "interval scale" not in text                  # no conformal scale, no column
+
+
+def test_hybrid_section_reports_the_conformal_scale_and_its_folds():
+    m, params = _metrics_params()
+    m["network"] = {"training": {"gaussian": {
+        "x": {"epochs_run": 120, "best_epoch": 70, "best_val_loss": -1.5, "interval_scale": 1.234},
+        "y": {"epochs_run": 90, "best_epoch": 40, "best_val_loss": -1.0, "interval_scale": 1.0},
+        "conformal": {"folds": 3, "block_fraction": 0.25, "rows": 2880, "ensemble_passes": [17, 17, 16]}}}}
+    text = render_report(m, params)
+    assert "| gaussian | x | 120 | 70 | -1.5 | 1.234 |" in text and "| gaussian | y | 90 | 40 | -1 | 1.000 |" in text
+    assert "cross-conformal over 3 time-block folds, each one block of 0.25 of every run's training rows" in text
+    assert "2880 rows scored" in text and "(17 / 17 / 16 MC passes)" in text
 
 
 def test_report_of_a_run_uses_reference_sd_from_the_config(tmp_path):

@@ -217,14 +217,27 @@ def _hybrid_section(m: dict) -> list[str]:
                                  f"{t['cohens_d']:.3f} |")
         lines.append("")
     if train:
-        lines += ["| likelihood | axis | epochs run | best epoch | best validation loss |", "|---|---|---|---|---|"]
+        scaled = any("interval_scale" in axes.get(a, {}) for axes in train.values() for a in AXES)
+        lines += ["| likelihood | axis | epochs run | best epoch | best validation loss |"
+                  + (" interval scale k |" if scaled else ""), "|---|---|---|---|---|" + ("---|" if scaled else "")]
         for lik, axes in train.items():
             for a in AXES:
                 if a in axes:
                     t = axes[a]
+                    k = t.get("interval_scale")
                     lines.append(f"| {lik} | {a} | {t.get('epochs_run', '-')} | {t.get('best_epoch', '-')} | "
-                                 f"{t.get('best_val_loss', float('nan')):.5g} |")
+                                 f"{t.get('best_val_loss', float('nan')):.5g} |"
+                                 + ((f" {k:.3f} |" if k is not None else " - |") if scaled else ""))
         lines.append("")
+        for lik, axes in train.items():
+            c = axes.get("conformal")
+            if c:
+                lines += [f"Interval scale k ({lik}): cross-conformal over {c['folds']} time-block folds, each one block "
+                          f"of {c.get('block_fraction', float('nan')):.3g} of every run's training rows (the network's "
+                          f"validation fraction, or as long as the job's test blocks if longer), {c['rows']} rows scored, each by the fold network that did not "
+                          f"see it; k multiplies the sd of the hybrid's intervals (floored at 1), and the "
+                          f"{c['folds']} fold networks predict together as an ensemble "
+                          f"({' / '.join(map(str, c.get('ensemble_passes', [])))} MC passes).", ""]
     return lines
 
 
