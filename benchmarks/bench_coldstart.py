@@ -9,8 +9,7 @@ machine) and the job's own stage timings (metrics.json), then medians.
 ``--code DIR [DIR ...]`` times the ``bayesmag`` of other checkouts too (e.g. ``git worktree add
 /tmp/base 70b89a9``, the code when issue #14 was written), interleaved with this one within every
 repeat, so that a machine whose speed drifts compares them fairly (each runs the config of its own
-tree); checkouts without the
-persistent cache compile on every run.
+tree); checkouts without the persistent cache compile on every run.
 
     BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_coldstart.py --repeats 3
     BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_coldstart.py --repeats 3 --code /tmp/base

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_transfer import _shifted_params  # noqa: E402  (the test's session generator)
+from test_transfer import _session  # noqa: E402  (the test's session generator)
 
 import bayesmag  # noqa: E402
 from bayesmag._src.config import config_from_dict  # noqa: E402
@@ -38,20 +38,8 @@ AXES = "xyz"
 
 def sessions(n: int, rows: int, seed: int) -> bayesmag.CalibrationData:
     """``n`` simulated sessions (runs 1..n), each with its own shifted parameters, one shared distortion."""
-    rng = np.random.default_rng(seed)
-    eff = [get_effect("axis_quadratic", out="y", inp="x", coeff=0.001)]
-    parts, t_off = [], 0.0
-    for k in range(n):
-        d = bayesmag.simulate.simulate(rows, design="campaign", seed=seed * 100 + k, params=_shifted_params(rng),
-                                       noise_sd=0.05, n_runs=1, run_kinds=["thermal" if k % 2 == 0 else "room"],
-                                       field_range=40.0, effects=eff)
-        parts.append((d, k + 1, t_off))
-        t_off += d.time.max() + 100.0
-    return bayesmag.CalibrationData(np.concatenate([d.b_meas for d, _, _ in parts]),
-                                    np.concatenate([d.temperature for d, _, _ in parts]),
-                                    np.concatenate([d.b_ref for d, _, _ in parts]),
-                                    np.concatenate([d.time + t for d, _, t in parts]),
-                                    np.concatenate([np.full(d.n, r) for d, r, _ in parts]))
+    return _session(seed, n, rows=rows, noise_sd=0.05,
+                    effects=[get_effect("axis_quadratic", out="y", inp="x", coeff=0.001)])
 
 
 def leave_one_out(path: Path, run: int, out: Path) -> dict:

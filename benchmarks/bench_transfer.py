@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_transfer import _calibrate, _session, _shifted_params  # noqa: E402  (the test's simulated sessions)
+from test_transfer import _calibrate, _new_sessions, _session, _shifted_params  # noqa: E402  (the test's simulated sessions)
 
 GENERATORS = {
     "gauss": lambda rng: _shifted_params(rng),
@@ -50,11 +50,7 @@ GENERATORS = {
 def run_generator(name: str, args) -> dict:
     """Per-draw table of one generator; returns its summary."""
     gen = GENERATORS[name]
-    def sessions(draw):
-        seed0 = 1000 if args.shared else 10_000 + 1000 * draw
-        return [_session(seed0 + s, 1, kind=s, session_params=gen) for s in range(args.sessions)]
-
-    news = sessions(0) if args.shared else None
+    shared = [_session(1000 + s, 1, kind=s, session_params=gen) for s in range(args.sessions)] if args.shared else None
     print(f"### generator `{name}`\n")
     print("| training draw | transfer sd x / y / z (uT) | in-domain coverage x / y / z (%) | rows covered or flagged "
           "x / y / z (%) | same, first 40 sessions (%) | mean 95 % width x / y / z (uT) |")
@@ -64,7 +60,7 @@ def run_generator(name: str, args) -> dict:
     for draw in range(args.draws):
         pr = _calibrate(_session(draw, args.runs, rows=100, session_params=gen))
         cov, dom, width = [], [], []
-        news_d = news if args.shared else sessions(draw)
+        news_d = shared if args.shared else _new_sessions(draw, args.sessions, gen)
         for new in news_d:
             p = pr.predict(new)
             lo, hi = p.interval(0.95)

@@ -23,16 +23,18 @@ def _shifted_params(rng, offset=lambda rng: rng.normal(0, OFFSET_SD, 3), cross_s
 
 
 def _session(seed: int, n_runs: int, rows: int = 200, first_run: int = 1, kind: int = 0,
-             session_params=_shifted_params) -> CalibrationData:
+             session_params=_shifted_params, noise_sd: float = 0.02, effects=()) -> CalibrationData:
     """``n_runs`` campaigns (runs), each a session with its own offsets and cross-axis terms
     (``session_params(rng)``, default Gaussian offsets sd 0.3 uT and cross-axis sd 0.003); heated and
-    room-temperature runs alternate, starting with heated (``kind`` even) or room (odd)."""
+    room-temperature runs alternate, starting with heated (``kind`` even) or room (odd); ``effects``:
+    distortions every session shares (``simulate``'s)."""
     rng = np.random.default_rng(seed)
     parts = []
     for k in range(n_runs):
         d = bayesmag.simulate.simulate(rows, design="campaign", seed=seed * 100 + k, params=session_params(rng),
-                                       noise_sd=0.02, n_runs=1, run_kinds=["thermal" if (k + kind) % 2 == 0 else "room"],
-                                       field_range=40.0)
+                                       noise_sd=noise_sd, n_runs=1,
+                                       run_kinds=["thermal" if (k + kind) % 2 == 0 else "room"], field_range=40.0,
+                                       effects=effects)
         parts.append((d, first_run + k))
     t_off = 0.0
     cols = {"b_meas": [], "temperature": [], "b_ref": [], "time": [], "run": []}
@@ -44,6 +46,12 @@ def _session(seed: int, n_runs: int, rows: int = 200, first_run: int = 1, kind: 
         cols["run"].append(np.full(d.n, r))
         t_off += d.time.max() + 100.0
     return CalibrationData(*(np.concatenate(cols[k]) for k in ("b_meas", "temperature", "b_ref", "time", "run")))
+
+
+def _new_sessions(draw: int, n: int, session_params=_shifted_params) -> list[CalibrationData]:
+    """The ``n`` new one-run sessions of training draw ``draw`` (seeds 10000 + 1000 draw + s; heated and
+    room alternate), drawn afresh for every draw."""
+    return [_session(10_000 + 1000 * draw + s, 1, kind=s, session_params=session_params) for s in range(n)]
 
 
 def _calibrate(train: CalibrationData) -> Predictor:
@@ -79,8 +87,7 @@ def test_session_shift_is_covered_or_flagged():
         pr = _calibrate(_session(draw, 30, rows=100))
         taus.append(pr.transfer_sd)
         bare = Predictor(fit=pr.fit, sigma_in=pr.sigma_in, residual_sd=pr.residual_sd, uq=pr.uq)
-        for s in range(40):
-            new = _session(10_000 + 1000 * draw + s, 1, kind=s)      # bench_transfer.py's fresh sessions
+        for new in _new_sessions(draw, 40):                           # bench_transfer.py's fresh sessions
             p = pr.predict(new)
             lo, hi = p.interval(0.95)
             covered.append((new.b_ref >= lo) & (new.b_ref <= hi))

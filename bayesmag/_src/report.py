@@ -234,8 +234,8 @@ def _hybrid_section(m: dict) -> list[str]:
             if c:
                 lines += [f"Interval scale k ({lik}): cross-conformal over {c['folds']} time-block folds, each one block "
                           f"of {c.get('block_fraction', float('nan')):.3g} of every run's training rows (the network's "
-                          f"validation fraction, or as long as the job's test blocks if longer), {c['rows']} rows scored, each by the fold network that did not "
-                          f"see it; k multiplies the sd of the hybrid's intervals (floored at 1), and the "
+                          f"validation fraction, or as long as the job's test blocks if longer), {c['rows']} rows "
+                          f"scored, each by the fold network that did not see it; k multiplies the sd of the hybrid's intervals (floored at 1), and the "
                           f"{c['folds']} fold networks predict together as an ensemble "
                           f"({' / '.join(map(str, c.get('ensemble_passes', [])))} MC passes).", ""]
     return lines
