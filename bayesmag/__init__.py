@@ -77,7 +77,7 @@ def _needs_x64(fn):
     return wrapper
 
 
-from ._src.cache import configure_compile_cache as configure_compile_cache  # noqa: E402
+from bayesmag._src.core.cache import configure_compile_cache as configure_compile_cache  # noqa: E402
 
 # Cold start: reuse compiled code across processes (off: BAYESMAG_COMPILE_CACHE=0 or [output] compile_cache = false).
 configure_compile_cache()
@@ -86,30 +86,30 @@ __version__ = "0.1.0"
 
 #: public name -> module in bayesmag._src that defines it
 _EXPORTS = {
-    "config": ("Config", "ConfigError", "load_config"),
-    "data": (
+    "app.config": ("Config", "ConfigError", "load_config"),
+    "core.data": (
         "CalibrationData", "DataError", "Split", "load_belsten", "load_csv", "make_split", "validate",
         "write_csv",
     ),
-    "datasets": ("fetch_dataset", "find_dataset", "load_dataset"),
-    "fit": ("LMSolution", "PhysicsFit", "covariance", "fit_physics", "identifiability", "levenberg_marquardt"),
-    "frames": ("from_frame", "prediction_frame", "read_parquet", "to_frame"),
-    "calibrator": ("Calibrator",),
-    "export": ("ExportError", "export_run"),
-    "artifact": ("ArtifactError", "Calibration", "load"),
-    "discover": ("DiscoverOptions", "DiscoveryResult", "discover"),
-    "job": ("JobError", "run_job"),
-    "hybrid": ("HybridPrediction", "fuse"),
-    "network": ("MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict"),
-    "nuts": ("NutsResult", "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts"),
-    "physics": (
+    "core.datasets": ("fetch_dataset", "find_dataset", "load_dataset"),
+    "core.fit": ("LMSolution", "PhysicsFit", "covariance", "fit_physics", "identifiability", "levenberg_marquardt"),
+    "core.frames": ("from_frame", "prediction_frame", "read_parquet", "to_frame"),
+    "app.calibrator": ("Calibrator",),
+    "app.export": ("ExportError", "export_run"),
+    "app.artifact": ("ArtifactError", "Calibration", "load"),
+    "pipeline.discover": ("DiscoverOptions", "DiscoveryResult", "discover"),
+    "app.job": ("JobError", "run_job"),
+    "pipeline.hybrid": ("HybridPrediction", "fuse"),
+    "core.network": ("MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict"),
+    "pipeline.nuts": ("NutsResult", "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts"),
+    "core.physics": (
         "EXTRA_TERMS", "Inputs", "InputTransform", "PhysicsModel", "Term", "ThermoAffine", "inputs_from_data",
     ),
-    "catalogue": (
+    "core.catalogue": (
         "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "RunOffset",
         "TemperatureQuadratic", "ThermalLag", "TimingOffset",
     ),
-    "physics_uq": ("PhysicsUQ", "estimate_input_noise", "physics_uncertainty", "sobol_normal"),
+    "core.physics_uq": ("PhysicsUQ", "estimate_input_noise", "physics_uncertainty", "sobol_normal"),
 }
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
 _SUBMODULES = ("likelihoods", "metrics", "simulate")
@@ -123,7 +123,7 @@ def __getattr__(name):
     if mod is None:
         raise AttributeError(f"module 'bayesmag' has no attribute {name!r}")
     if name in ("EXTRA_TERMS", "CATALOGUE"):
-        _importlib.import_module("._src.catalogue", __name__)      # registers the catalogue's terms
+        _importlib.import_module("._src.core.catalogue", __name__)      # registers the catalogue's terms
     value = getattr(_importlib.import_module(f"._src.{mod}", __name__), name)
     if name in _NEEDS_X64:                                      # float64 entry points warn in float32
         value = _needs_x64(value)

@@ -1,10 +1,10 @@
 """Simulated magnetometer with known parameters: seeded designs and named distortion effects.
 
-See :mod:`bayesmag._src.simulate` for the model (the inverse of the paper's thermo-affine
+See :mod:`bayesmag._src.core.simulate` for the model (the inverse of the paper's thermo-affine
 calibration, section 4.1) and the effect catalogue (:data:`EFFECTS`).
 """
 
-from bayesmag._src.simulate import (
+from bayesmag._src.core.simulate import (
     EFFECTS,
     Conditions,
     Effect,

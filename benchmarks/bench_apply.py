@@ -24,7 +24,7 @@ def main():
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_apply_"))
     run = tmp / "run"
-    subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "run", str(ROOT / "configs/quickstart.toml"), "--out",
+    subprocess.run([sys.executable, "-m", "bayesmag._src.app.cli", "run", str(ROOT / "configs/quickstart.toml"), "--out",
                     str(run), "--set", "output.figures=false", "--set", "network.enabled=false", "--no-progress"],
                    check=True, capture_output=True)
     import bayesmag as bm
@@ -37,7 +37,7 @@ def main():
     for label, extra in (("analytic", ["--uq", "analytic"]),
                          ("psqmc Np=100 Nq=256", ["--uq", "psqmc", "--n-params", "100", "--n-qmc", "256"])):
         t = time.perf_counter()
-        r = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, "-m", "bayesmag._src.cli", "apply",
+        r = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, "-m", "bayesmag._src.app.cli", "apply",
                             "--model", str(run), "--data", str(rec), "--out", str(tmp / "out.csv"), "--no-progress",
                             *extra], capture_output=True, text=True)
         wall = time.perf_counter() - t

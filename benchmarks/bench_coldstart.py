@@ -37,7 +37,7 @@ def one_run(config: str, out: Path, cache_value: str, sets: list[str] = (), code
     env = {**os.environ, "BAYESMAG_COMPILE_CACHE": cache_value, "PYTHONPATH": str(code)}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "run", config, "--out", str(out), "--no-progress",
+    r = subprocess.run([sys.executable, "-m", "bayesmag._src.app.cli", "run", config, "--out", str(out), "--no-progress",
                         *(a for s in sets for a in ("--set", s))], env=env, capture_output=True, text=True,
                        cwd=out.parent)       # not this repository: its bayesmag/ would shadow PYTHONPATH
     wall = time.perf_counter() - t

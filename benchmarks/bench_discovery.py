@@ -48,8 +48,8 @@ import jax
 import numpy as np
 
 import bayesmag  # noqa: F401
-from bayesmag._src import discover as D
-from bayesmag._src.catalogue import SIMULATOR_NAMES
+from bayesmag._src.pipeline import discover as D
+from bayesmag._src.core.catalogue import SIMULATOR_NAMES
 from bayesmag.simulate import TrueParams, get_effect, simulate
 
 sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[1] / 'tests'))

@@ -2,8 +2,8 @@
 
 On the honest_hybrid training rows (Belsten, time-block split, seed 0) and its network settings,
 the K = ``network.conformal_folds`` networks are trained by
-:func:`~bayesmag._src.hybrid.train_fold_networks` (all folds' axes on one shared pool of threads)
-and by :func:`~bayesmag._src.hybrid.train_network` fold by fold (each fold's axes on its own
+:func:`~bayesmag._src.pipeline.hybrid.train_fold_networks` (all folds' axes on one shared pool of threads)
+and by :func:`~bayesmag._src.pipeline.hybrid.train_network` fold by fold (each fold's axes on its own
 threads). One warm-up of each, then ``--repeats`` alternating timings (wall, in-process, compiled);
 prints each and the medians, and checks that both give the same epochs per network and axis.
 
@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 
 import bayesmag
-from bayesmag._src.config import load_config
-from bayesmag._src.data import make_split
-from bayesmag._src.hybrid import check_network_config, conformal_folds, train_fold_networks, train_network
-from bayesmag._src.job import build_model, load_data
-from bayesmag._src.physics import inputs_from_data
-from bayesmag._src.predictor import network_inputs
+from bayesmag._src.app.config import load_config
+from bayesmag._src.core.data import make_split
+from bayesmag._src.pipeline.hybrid import check_network_config, conformal_folds, train_fold_networks, train_network
+from bayesmag._src.app.job import build_model, load_data
+from bayesmag._src.core.physics import inputs_from_data
+from bayesmag._src.core.predictor import network_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 import bayesmag as bm
-from bayesmag._src.config import load_config
-from bayesmag._src.hybrid import check_network_config, fuse, network_inputs, train_network
-from bayesmag._src.network import mc_predict
+from bayesmag._src.app.config import load_config
+from bayesmag._src.pipeline.hybrid import check_network_config, fuse, network_inputs, train_network
+from bayesmag._src.core.network import mc_predict
 
 PAPER_TRAIN_S = 505.5
 PAPER_INFER_S = 39.47

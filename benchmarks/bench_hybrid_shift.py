@@ -29,9 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_transfer import _session  # noqa: E402  (the test's session generator)
 
 import bayesmag  # noqa: E402
-from bayesmag._src.config import config_from_dict  # noqa: E402
-from bayesmag._src.data import write_csv  # noqa: E402
-from bayesmag._src.simulate import get_effect  # noqa: E402
+from bayesmag._src.app.config import config_from_dict  # noqa: E402
+from bayesmag._src.core.data import write_csv  # noqa: E402
+from bayesmag._src.core.simulate import get_effect  # noqa: E402
 
 AXES = "xyz"
 

@@ -30,7 +30,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 
 def main(argv=None) -> int:
-    from bayesmag._src.nuts import CHAIN_METHODS, PARAMETRISATIONS
+    from bayesmag._src.pipeline.nuts import CHAIN_METHODS, PARAMETRISATIONS
     from bayesmag.likelihoods import LIKELIHOODS
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     import bayesmag as bm
-    from bayesmag._src.nuts import NutsWarning, run_nuts
+    from bayesmag._src.pipeline.nuts import NutsWarning, run_nuts
 
     data = bm.load_dataset("belsten2023")
     if args.train_split:

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import bayesmag as bm
-from bayesmag._src.physics_uq import _General, _gen_jit, sobol_normal
+from bayesmag._src.core.physics_uq import _General, _gen_jit, sobol_normal
 
 PAPER_FIT_S = 0.165
 PAPER_INFER_S = 39.47

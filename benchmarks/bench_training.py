@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 import bayesmag  # noqa: F401  (float64 for the rest; the network casts to float32)
-from bayesmag._src import network as N
+from bayesmag._src.core import network as N
 
 
 def time_fit(x, r, spec, repeats):

@@ -5,7 +5,7 @@ Run:  python benchmarks/bench_transfer.py [--draws 6] [--sessions 200] [--runs 3
 The simulated session shift of ``tests/test_transfer.py`` (each run a session with its own offsets,
 sd 0.3 uT, and cross-axis terms, sd 0.003), repeated: for training draws 0..draws-1 fit on ``runs``
 simulated sessions (100 rows each), estimate the transfer sd by leave-one-run-out
-(:func:`~bayesmag._src.predictor.estimate_transfer`, the job's path), and apply the calibration to
+(:func:`~bayesmag._src.core.predictor.estimate_transfer`, the job's path), and apply the calibration to
 ``sessions`` new sessions (200 rows each) drawn afresh for every training draw (seeds
 10000 + 1000 * draw + s; ``--shared`` applies every draw to the same sessions, seeds 1000...,
 as the test does). Prints, per draw, the transfer sd, the in-domain coverage of the 95 %

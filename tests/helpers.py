@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesmag import CalibrationData, PhysicsModel, PhysicsUQ, inputs_from_data
-from bayesmag._src import likelihoods as _likelihoods_src
-from bayesmag._src.network import MCPrediction
+from bayesmag._src.core import likelihoods as _likelihoods_src
+from bayesmag._src.core.network import MCPrediction
 from bayesmag.likelihoods import Likelihood, sample_by_inversion
 
 TRUE_THETA = np.array([[1.02, -0.16, -0.21, 0.003, 0.004, 0.008, -1.2, 0.036],

@@ -8,10 +8,10 @@ import pytest
 
 import bayesmag
 from bayesmag import CalibrationData, DataError, write_csv
-from bayesmag._src.apply import apply_calibration
-from bayesmag._src.artifact import ArtifactError, load
-from bayesmag._src.cli import main
-from bayesmag._src.config import config_from_dict
+from bayesmag._src.app.apply import apply_calibration
+from bayesmag._src.app.artifact import ArtifactError, load
+from bayesmag._src.app.cli import main
+from bayesmag._src.app.config import config_from_dict
 
 UQ = {"n_params": 40, "n_qmc": 64, "seed": 3}
 
@@ -203,8 +203,8 @@ def _copy(out, tmp_path):
 
 
 def test_ensemble_calibration_saves_every_member_and_predicts_with_all(ensemble_run):
-    from bayesmag._src.network import NetworkEnsemble, mc_predict
-    from bayesmag._src.predictor import network_inputs
+    from bayesmag._src.core.network import NetworkEnsemble, mc_predict
+    from bayesmag._src.core.predictor import network_inputs
 
     res, out = ensemble_run
     pr = res["predictor"]
@@ -228,8 +228,8 @@ def test_ensemble_calibration_saves_every_member_and_predicts_with_all(ensemble_
 def test_single_network_calibration_of_the_previous_version_still_loads(ensemble_run, tmp_path):
     """A calibration written before ensembles (one network under network/..., format version 1) loads as
     one network and predicts with it."""
-    from bayesmag._src.network import NetworkEnsemble, ResidualNetwork, mc_predict
-    from bayesmag._src.predictor import network_inputs
+    from bayesmag._src.core.network import NetworkEnsemble, ResidualNetwork, mc_predict
+    from bayesmag._src.core.predictor import network_inputs
 
     res, out = ensemble_run
     run = _copy(out, tmp_path)

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 import bayesmag
-from bayesmag._src import catalogue as C
-from bayesmag._src.catalogue import make_extra
-from bayesmag._src.physics import EXTRA_TERMS, PhysicsModel
+from bayesmag._src.core import catalogue as C
+from bayesmag._src.core.catalogue import make_extra
+from bayesmag._src.core.physics import EXTRA_TERMS, PhysicsModel
 from bayesmag.simulate import get_effect, simulate
 
 #: Timing delay recovered within this many seconds on a 2000-row campaign (a tenth of a 4 Hz sample).

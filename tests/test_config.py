@@ -3,7 +3,7 @@
 import pytest
 
 from bayesmag import ConfigError, load_config
-from bayesmag._src.config import apply_overrides, config_from_dict, to_toml
+from bayesmag._src.app.config import apply_overrides, config_from_dict, to_toml
 import tomllib
 
 BASE = {"data": {"source": "simulated"}}
@@ -62,8 +62,8 @@ def test_shipped_configs_validate():
 
 def test_choice_lists_come_from_the_library():
     """config.py holds no copy of the library's choice lists: a name the library registers is valid."""
-    from bayesmag._src import network
-    from bayesmag._src.nuts import CHAIN_METHODS
+    from bayesmag._src.core import network
+    from bayesmag._src.pipeline.nuts import CHAIN_METHODS
     with pytest.raises(ConfigError, match=r"'nuts.chain_method' = 'pmap'.*" + str(list(CHAIN_METHODS)).replace("[", r"\[")):
         config_from_dict({**BASE, "nuts": {"chain_method": "pmap"}})
     with pytest.raises(ConfigError, match=r"'network.activation' = 'swish' is not valid"):
@@ -88,7 +88,7 @@ assert not jax.config.jax_enable_x64 and not bm.X64_AT_IMPORT
 with bm.enable_x64():
     assert bm.x64_enabled() and jax.numpy.zeros(1).dtype == np.float64
 assert not jax.config.jax_enable_x64
-from bayesmag._src.simulate import simulate_from_config
+from bayesmag._src.core.simulate import simulate_from_config
 d = simulate_from_config({"n": 200, "seed": 0})
 with warnings.catch_warnings(record=True) as w:
     warnings.simplefilter("always")

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 import bayesmag
-from bayesmag._src.discover import DiscoverOptions, discover, main
-from bayesmag._src.discover.options import T_IDENT, Z_MIN, Z_RUN
+from bayesmag._src.app.discover_cli import main
+from bayesmag._src.pipeline.discover import DiscoverOptions, discover
+from bayesmag._src.pipeline.discover.options import T_IDENT, Z_MIN, Z_RUN
 from bayesmag.simulate import get_effect, simulate
 from independent_campaigns import campaign
 
@@ -89,7 +90,7 @@ def test_run_contrast_sees_a_step_in_one_run_and_not_noise():
     (5 of 30 blocks) is seen, white or AR(1) noise is not."""
     rng = np.random.default_rng(0)
     run = np.repeat(np.arange(6), 500)
-    from bayesmag._src.discover.diagnostics import run_contrast
+    from bayesmag._src.pipeline.discover.diagnostics import run_contrast
     blocks = np.arange(run.size) // 100
     zs = []
     for _ in range(200):
@@ -180,7 +181,7 @@ def test_cli_writes_folder_atomically(tmp_path):
     assert not list(tmp_path.glob(".disc.partial*"))
     # the extended model is usable by `bayesmag run`
     extra = bayesmag.PhysicsModel.paper(extra=tuple(
-        __import__("bayesmag._src.catalogue", fromlist=["make_extra"]).make_extra(s) for s in j["extra_terms"]))
+        __import__("bayesmag._src.core.catalogue", fromlist=["make_extra"]).make_extra(s) for s in j["extra_terms"]))
     assert "h" in extra.param_names
 
 

@@ -12,11 +12,11 @@ import pytest
 
 import bayesmag
 from bayesmag import CalibrationData, PhysicsModel, inputs_from_data
-from bayesmag._src import export as E
-from bayesmag._src.artifact import Calibration
-from bayesmag._src.cli import main
-from bayesmag._src.config import config_from_dict
-from bayesmag._src.domain import Domain
+from bayesmag._src.app import export as E
+from bayesmag._src.app.artifact import Calibration
+from bayesmag._src.app.cli import main
+from bayesmag._src.app.config import config_from_dict
+from bayesmag._src.core.domain import Domain
 from helpers import TRUE_THETA
 
 T0 = 22.5
@@ -176,7 +176,7 @@ def test_a_rotated_sensor_loses_accuracy_in_symmetric_targets_and_says_so():
 
 
 def test_extra_terms_are_named_as_dropped():
-    from bayesmag._src.catalogue import make_extra
+    from bayesmag._src.core.catalogue import make_extra
     term = make_extra("axis_quadratic", t0=T0)
     cal = _cal(np.column_stack([TRUE_THETA, np.full((3, len(term.param_names())), 1e-3)]), extra=(term,))
     ex = E.build_export(cal, None)
@@ -199,7 +199,7 @@ def test_export_cli_on_a_run_measures_the_loss(tmp_path, capsys):
     assert doc["format"] == "bayesmag.calibration"
     assert json.loads((out / "calibration.export.json").read_text())["format"] == "bayesmag.export"
     assert bayesmag.load(out).theta.shape == (3, 8)
-    from bayesmag._src.outdir import check_out
+    from bayesmag._src.app.outdir import check_out
     check_out(out)                     # the exports are listed in the run's marker: the folder may be re-run
 
 

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 import bayesmag as bm
-from bayesmag._src import catalogue as C
-from bayesmag._src import likelihoods as _lik
-from bayesmag._src.catalogue import Entry, Setting
-from bayesmag._src.config import config_from_dict
-from bayesmag._src.catalogue import make_extra
-from bayesmag._src.physics import EXTRA_TERMS, PhysicsModel, Term
+from bayesmag._src.core import catalogue as C
+from bayesmag._src.core import likelihoods as _lik
+from bayesmag._src.core.catalogue import Entry, Setting
+from bayesmag._src.app.config import config_from_dict
+from bayesmag._src.core.catalogue import make_extra
+from bayesmag._src.core.physics import EXTRA_TERMS, PhysicsModel, Term
 from helpers import Logistic, affine_data
 
 
@@ -130,7 +130,7 @@ def test_discover_names_the_toy_term_on_its_channel():
 def test_nuts_with_the_toy_family_and_term():
     """NUTS (2 chains x 200 draws) with the toy family as observation model and the toy term in the
     mean function: converged, and the posterior of the toy coefficient covers the truth (4 sd)."""
-    from bayesmag._src.nuts import NutsWarning
+    from bayesmag._src.pipeline.nuts import NutsWarning
     data = _toy_data(400, seed=1, noise=0.2)
     fit = bm.fit_physics(data, PhysicsModel.paper(extra=(AbsField(),)))
     with warnings.catch_warnings():

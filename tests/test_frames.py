@@ -8,7 +8,7 @@ import pytest
 
 import bayesmag
 from bayesmag import CalibrationData, DataError, PhysicsModel, fit_physics, inputs_from_data
-from bayesmag._src.frames import from_frame, prediction_frame, read_parquet, to_frame
+from bayesmag._src.core.frames import from_frame, prediction_frame, read_parquet, to_frame
 from helpers import affine_data
 
 
@@ -20,7 +20,7 @@ def data():
 
 def test_frame_round_trip_is_exact(data):
     df = to_frame(data)
-    assert list(df.columns) == list(bayesmag._src.data.CANONICAL_COLUMNS)
+    assert list(df.columns) == list(bayesmag._src.core.data.CANONICAL_COLUMNS)
     back = from_frame(df)
     for k in ("b_meas", "temperature", "b_ref", "time", "run"):
         np.testing.assert_array_equal(getattr(back, k), getattr(data, k))
@@ -85,7 +85,7 @@ def test_calibrator_fit_predict_matches_the_physics_fit(data, tmp_path):
     f = field.rename(columns={"bx_meas": "Bx", "by_meas": "By", "bz_meas": "Bz", "temperature": "T"})
     f[["Bx", "By", "Bz"]] *= 1e3
     f.to_csv(tmp_path / "nt.csv", index=False)
-    from bayesmag._src.cli import main
+    from bayesmag._src.app.cli import main
     assert main(["apply", "--model", str(tmp_path / "run"), "--data", str(tmp_path / "nt.csv"), "--out",
                  str(tmp_path / "o.csv"), "--columns", "bx_meas=Bx,by_meas=By,bz_meas=Bz,temperature=T",
                  "--field-unit", "nT", "--no-progress"]) == 0

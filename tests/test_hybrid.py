@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from bayesmag import ConfigError, run_job
-from bayesmag._src.config import config_from_dict
-from bayesmag._src.hybrid import check_network_config, conformal_plan, fuse
-from bayesmag._src.network import NetworkSpec
+from bayesmag._src.app.config import config_from_dict
+from bayesmag._src.pipeline.hybrid import check_network_config, conformal_plan, fuse
+from bayesmag._src.core.network import NetworkSpec
 from helpers import uq_parts
 
 LEVEL = 0.95
@@ -181,7 +181,7 @@ def test_conformal_blocks_are_as_long_as_the_test_blocks(split, folds_cfg, want)
 
 def test_conformal_folds_are_one_block_per_run_in_their_own_stretch():
     """Fold k: one contiguous block of ``fraction`` of every run, inside the k-th of K equal stretches of the run."""
-    from bayesmag._src.hybrid import conformal_folds
+    from bayesmag._src.pipeline.hybrid import conformal_folds
     run = np.repeat([3, 1, 7], [200, 310, 95])
     fold = conformal_folds(run, fraction=0.1, folds=5, seed=1)
     assert set(np.unique(fold)) == {-1, 0, 1, 2, 3, 4}
@@ -197,7 +197,7 @@ def test_conformal_folds_are_one_block_per_run_in_their_own_stretch():
 
 def test_each_conformal_fold_is_scored_by_a_network_that_never_saw_it(tmp_path, monkeypatch):
     """Cross-conformal in the job: K networks, network k trained without fold k's rows; no fold row is a test row."""
-    from bayesmag._src import hybrid
+    from bayesmag._src.pipeline import hybrid
     seen, real = [], hybrid.train_network
 
     def spy(x, r, spec, net_cfg, groups=None, progress=False, pool=None):     # the folds train at once, unordered
@@ -260,7 +260,7 @@ def test_real_data_hybrid_beats_physics_on_the_random_split(belsten, tmp_path):
 def test_fold_networks_trained_together_equal_each_trained_alone():
     """train_fold_networks trains the K cross-conformal networks at once on one shared pool of threads;
     each must be bit-identical to the network train_network gives for its rows alone."""
-    from bayesmag._src.hybrid import conformal_folds, train_fold_networks, train_network
+    from bayesmag._src.pipeline.hybrid import conformal_folds, train_fold_networks, train_network
     cfg = _config(max_epochs=6, likelihoods=["gaussian"], width=16, hidden_layers=2)
     rng = np.random.default_rng(3)
     n = 400

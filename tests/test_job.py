@@ -11,8 +11,8 @@ import pytest
 
 import bayesmag
 from bayesmag import CalibrationData, ConfigError, DataError, write_csv
-from bayesmag._src.cli import main
-from bayesmag._src.config import config_from_dict
+from bayesmag._src.app.cli import main
+from bayesmag._src.app.config import config_from_dict
 
 FAST_UQ = {"n_params": 50, "n_qmc": 64}
 SIM = {"design": "campaign", "n": 1200, "seed": 1, "noise_sd": 0.05}
@@ -97,7 +97,7 @@ def test_unknown_dataset_named(tmp_path, monkeypatch):
 
 def test_fetch_verifies_sha256(tmp_path, monkeypatch):
     import dataclasses
-    from bayesmag._src import datasets
+    from bayesmag._src.core import datasets
     src = tmp_path / "src.csv"
     src.write_text("1,2,3\n")
     good = dataclasses.replace(datasets.DATASETS["belsten2023"], url=src.as_uri(),
@@ -134,7 +134,7 @@ def test_cli_bad_key_is_a_clear_error(tmp_path, capsys):
 
 
 def test_console_script_help():
-    r = subprocess.run([sys.executable, "-m", "bayesmag._src.cli", "--help"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "bayesmag._src.app.cli", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "run" in r.stdout
 
 

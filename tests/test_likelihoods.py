@@ -67,7 +67,7 @@ def _crps_integral(sdist, y):
 
 # The fourth family (tests/helpers.py): the worked example of docs/extending.md.
 # Registered only while this module's tests run (helpers unregisters it at import).
-from bayesmag._src import likelihoods as _likelihoods_src  # noqa: E402
+from bayesmag._src.core import likelihoods as _likelihoods_src  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -386,8 +386,8 @@ LOGISTIC_RTOL = 1e-10
 def test_a_registered_family_is_known_everywhere():
     logistic = Logistic
     """One class: the registry, the network head, moment matching, numpyro -- against scipy."""
-    from bayesmag._src.config import _choices
-    from bayesmag._src.network import NetworkSpec
+    from bayesmag._src.app.config import _choices
+    from bayesmag._src.core.network import NetworkSpec
     assert get_likelihood("logistic") is logistic and "logistic" in _choices("nuts.likelihood")
     loc, scale = np.array([0.3, -1.0]), np.array([0.5, 2.0])
     d = logistic(jnp.asarray(loc), jnp.asarray(scale))
@@ -410,7 +410,7 @@ def test_a_registered_family_is_known_everywhere():
 
 
 def _toy_config(nuts: bool):
-    from bayesmag._src.config import config_from_dict
+    from bayesmag._src.app.config import config_from_dict
     return config_from_dict({
         "name": "toy_family",
         "data": {"source": "simulated", "simulate": {"design": "iid", "n": 1200, "seed": 0, "noise_sd": 0.05}},
@@ -429,7 +429,7 @@ def test_a_registered_family_runs_the_network_fusion_and_apply(tmp_path):
     import csv
 
     import bayesmag as bm
-    from bayesmag._src.apply import apply_calibration
+    from bayesmag._src.app.apply import apply_calibration
     res = bm.run_job(_toy_config(nuts=False), tmp_path / "run")
     m = res["metrics"]
     assert set(m["hybrid"]) == {"logistic"} and np.isfinite(m["hybrid"]["logistic"]["nll"]["x"])
@@ -451,7 +451,7 @@ def test_a_registered_family_runs_in_nuts(tmp_path):
     import warnings
 
     import bayesmag as bm
-    from bayesmag._src.nuts import NutsWarning
+    from bayesmag._src.pipeline.nuts import NutsWarning
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NutsWarning)
         res = bm.run_job(_toy_config(nuts=True), tmp_path / "run")

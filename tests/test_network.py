@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import pytest
 
 import bayesmag as bm
-from bayesmag._src import network as N
-from bayesmag._src.config import config_error, config_from_dict
+from bayesmag._src.core import network as N
+from bayesmag._src.app.config import config_error, config_from_dict
 
 # Statistical tolerances, stated once.
 MASK_SIGMAS = 5.0            # fraction of dropped weights within 5 binomial sds of the rate
@@ -218,7 +218,7 @@ def test_chunked_training_is_the_one_loop_and_reports_progress():
     first = seen[0]
     np.testing.assert_allclose(first.val_loss, np.asarray(info_ref.val_loss)[:, 6], rtol=1e-5)   # epoch 7's loss
     # the job saves the curves as a figure
-    from bayesmag._src.network_plots import loss_curves
+    from bayesmag._src.app.network_plots import loss_curves
     net = N.ResidualNetwork(spec, p, st, jax.device_get(info), 0, 0)
     path = loss_curves(Path(tempfile.mkdtemp()) / "loss.png", {"gaussian": net}, axes=("a", "b", "c"))
     assert path.stat().st_size > 0
@@ -347,7 +347,7 @@ def test_config_reports_library_errors_with_the_key_path():
 def test_one_settings_type_for_the_table_and_the_library():
     """[network] is NetworkSpec plus the job's switches: every spec setting is a table key with the
     same default, and the spec of a likelihood carries the table's values."""
-    from bayesmag._src.config import NetworkConfig
+    from bayesmag._src.app.config import NetworkConfig
     spec_fields = {f.name: f.default for f in dataclasses.fields(N.NetworkSpec)}
     cfg_fields = {f.name: f.default for f in dataclasses.fields(NetworkConfig)}
     assert issubclass(NetworkConfig, N.NetworkSpec)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import bayesmag as bm
-from bayesmag._src.config import config_from_dict
+from bayesmag._src.app.config import config_from_dict
 from bayesmag import CalibrationData, ConfigError, PhysicsModel, TemperatureQuadratic, fit_physics, inputs_from_data
 # Implementation path until the package re-exports these names (bayesmag/__init__.py).
-from bayesmag._src.nuts import (NutsWarning, build_problem, check_settings, compare_models, crosscheck, loo,
+from bayesmag._src.pipeline.nuts import (NutsWarning, build_problem, check_settings, compare_models, crosscheck, loo,
                                 parse_priors, run_nuts, sample_nuts)
 
 #: Truth for the simulated sensor (one row per output axis; paper parameter order, T0 = 0).

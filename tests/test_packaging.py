@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 import bayesmag
-from bayesmag._src import cache
-from bayesmag._src.cli import _resolve_config, main, packaged_configs_dir
+from bayesmag._src.core import cache
+from bayesmag._src.app.cli import _resolve_config, main, packaged_configs_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -126,7 +126,7 @@ def test_job_with_the_cache_switched_off_runs_without_it_and_restores_it(tmp_pat
     """[output] compile_cache = false from Python: off during the job, the caller's setting back after."""
     import jax
 
-    from bayesmag._src import job
+    from bayesmag._src.app import job
     seen = []
     real = job.run_physics_stage
 
@@ -146,8 +146,8 @@ def test_job_with_the_cache_switched_off_runs_without_it_and_restores_it(tmp_pat
 
 
 def test_import_is_lazy_and_every_public_name_resolves():
-    code = ("import sys, bayesmag, bayesmag._src.cli; heavy = [m for m in ('numpyro', 'arviz', 'bayesmag._src.discover',"
-            " 'bayesmag._src.nuts', 'optax') if m in sys.modules]; print(heavy);"
+    code = ("import sys, bayesmag, bayesmag._src.app.cli; heavy = [m for m in ('numpyro', 'arviz', 'bayesmag._src.pipeline.discover',"
+            " 'bayesmag._src.pipeline.nuts', 'optax') if m in sys.modules]; print(heavy);"
             " assert all(hasattr(bayesmag, n) for n in bayesmag.__all__); print(len(bayesmag.EXTRA_TERMS) > 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                        env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})

@@ -9,7 +9,7 @@ from helpers import affine_data
 
 from bayesmag import CalibrationData, PhysicsModel, estimate_input_noise, fit_physics, inputs_from_data, \
     physics_uncertainty, sobol_normal
-from bayesmag._src.physics_uq import _General, _gen_jit
+from bayesmag._src.core.physics_uq import _General, _gen_jit
 
 SIGMA = np.diag([0.3, 0.2, 0.4, 0.5]) ** 2
 

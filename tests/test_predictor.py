@@ -8,8 +8,8 @@ import scipy.stats
 
 import bayesmag
 from bayesmag import PhysicsUQ, metrics
-from bayesmag._src.likelihoods import Gaussian
-from bayesmag._src.predictor import (Components, Predictor, UQOptions, compose, conformal_quantile,
+from bayesmag._src.core.likelihoods import Gaussian
+from bayesmag._src.core.predictor import (Components, Predictor, UQOptions, compose, conformal_quantile,
                                      conformal_ratios, conformal_scale)
 from helpers import uq_parts
 
@@ -102,7 +102,7 @@ def test_score_is_the_one_scorer():
 
 def _small_nets(k: int, likelihood: str = "gaussian"):
     """``k`` small trained residual networks on one synthetic problem, differing in rows and seed (fold networks)."""
-    from bayesmag._src.network import NetworkSpec, fit_residual_network
+    from bayesmag._src.core.network import NetworkSpec, fit_residual_network
 
     rng = np.random.default_rng(0)
     x = rng.normal(size=(300, 4))
@@ -116,7 +116,7 @@ def _small_nets(k: int, likelihood: str = "gaussian"):
 @pytest.mark.parametrize("passes", [9, 12])
 def test_ensemble_pools_every_pass_exactly(passes):
     """Deep ensemble x MC DropConnect: the pooled moments are those of all raw passes of all members together."""
-    from bayesmag._src.network import NetworkEnsemble, ensemble_passes, mc_predict, mc_samples
+    from bayesmag._src.core.network import NetworkEnsemble, ensemble_passes, mc_predict, mc_samples
 
     nets, x = _small_nets(3)
     counts = ensemble_passes(passes, 3)
@@ -147,8 +147,8 @@ def test_ensemble_pools_every_pass_exactly(passes):
 
 def test_ensemble_predictor_pools_student_t_shape_and_chunks():
     """A Predictor with an ensemble: family and shape from the members, chunked rows as one call."""
-    from bayesmag._src import predictor as P
-    from bayesmag._src.network import NetworkEnsemble, mc_predict
+    from bayesmag._src.core import predictor as P
+    from bayesmag._src.core.network import NetworkEnsemble, mc_predict
 
     nets, x = _small_nets(2, "student_t")
     ens = NetworkEnsemble(tuple(nets))

@@ -9,8 +9,8 @@ import pytest
 from scipy import stats
 
 import bayesmag
-from bayesmag._src.config import config_from_dict
-from bayesmag._src.report import (coverage_factor, parameter_unit, render_report, welch_satterthwaite)
+from bayesmag._src.app.config import config_from_dict
+from bayesmag._src.app.report import (coverage_factor, parameter_unit, render_report, welch_satterthwaite)
 
 
 def test_welch_satterthwaite_hand_computed():
@@ -135,7 +135,7 @@ def test_reference_sd_is_validated():
 
 
 def test_residual_figures_label_axes_and_count_rows_inside_the_band(tmp_path):
-    from bayesmag._src import plots
+    from bayesmag._src.app import plots
     rng = np.random.default_rng(1)
     n = 4000
     sd = np.tile([0.1, 0.2, 0.05], (n, 1))
@@ -154,7 +154,7 @@ def test_residual_figures_label_axes_and_count_rows_inside_the_band(tmp_path):
 
 def test_histogram_and_pit_panels_are_labelled(tmp_path, monkeypatch):
     import matplotlib.pyplot as plt
-    from bayesmag._src import hybrid_plots, plots
+    from bayesmag._src.app import hybrid_plots, plots
     from bayesmag.likelihoods import Gaussian
     saved = []
     monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
@@ -178,7 +178,7 @@ def _draw_broken(folder):
 def test_figure_worker_draws_in_background_and_surfaces_errors(tmp_path):
     """FigureWorker: queued figures land in the output folder at finish(), drawn in one other process;
     a drawing error is raised by finish() (never a silently missing figure); close() removes its folder."""
-    from bayesmag._src.plots import FigureWorker
+    from bayesmag._src.app.plots import FigureWorker
 
     with FigureWorker() as figs:
         figs.submit(_draw_named, "a.png")

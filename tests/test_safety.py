@@ -1,7 +1,7 @@
 """Issue 11: never lose a user's data -- safe outputs, validated calibrations, one-line errors.
 
 Every case works in temporary folders. The bad-input table at the end drives ``run``, ``apply``
-and ``discover`` through ``bayesmag._src.cli.main`` and asserts exit code 2, a single line on
+and ``discover`` through ``bayesmag._src.app.cli.main`` and asserts exit code 2, a single line on
 stderr that names the row, column, key or field, and no traceback.
 """
 
@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 
 from bayesmag import CalibrationData, DataError, load_csv, validate, write_csv
-from bayesmag._src import job as job_module
-from bayesmag._src import outdir
-from bayesmag._src.artifact import ArtifactError, load
-from bayesmag._src.cli import main
-from bayesmag._src.fit import RANK_RTOL, fit_physics, unidentifiable
-from bayesmag._src.outdir import MARKER, OutputError, marker_status, recover, staging_dir
+from bayesmag._src.app import job as job_module
+from bayesmag._src.app import outdir
+from bayesmag._src.app.artifact import ArtifactError, load
+from bayesmag._src.app.cli import main
+from bayesmag._src.core.fit import RANK_RTOL, fit_physics, unidentifiable
+from bayesmag._src.app.outdir import MARKER, OutputError, marker_status, recover, staging_dir
 from bayesmag.simulate import simulate
 
 CONFIG = """name = "t"
@@ -128,7 +128,7 @@ def test_run_refuses_a_run_folder_holding_a_users_file(tmp_path, capsys, model, 
 
 
 def test_study_refuses_a_foreign_out_before_computing(tmp_path, capsys, monkeypatch):
-    import bayesmag._src.study as study
+    import bayesmag._src.app.study as study
     monkeypatch.setattr(study, "run_study", lambda *a, **k: (_ for _ in ()).throw(AssertionError("computed")))
     (tmp_path / "u").mkdir()
     (tmp_path / "u" / "thesis.txt").write_text("x")
@@ -180,7 +180,7 @@ def test_apply_refuses_to_overwrite_the_recording_or_the_calibration(tmp_path, c
 _KILLER = """
 import os, signal, sys
 from pathlib import Path
-from bayesmag._src.outdir import staging_dir
+from bayesmag._src.app.outdir import staging_dir
 out, mode = Path(sys.argv[1]), sys.argv[2]
 if mode == "between":                      # die right after phase 1 (old folder renamed away)
     orig = Path.rename
@@ -318,7 +318,7 @@ def test_unwritable_out_fails_before_computing(tmp_path, capsys, no_work, kind):
 def test_disk_full_while_writing_is_one_line_and_keeps_the_old_run(tmp_path, capsys, monkeypatch, model):
     import errno
 
-    import bayesmag._src.report as report
+    import bayesmag._src.app.report as report
     rec = _write(tmp_path / "rec.csv")
     out = tmp_path / "out"
     shutil.copytree(model, out)
@@ -336,7 +336,7 @@ def test_disk_full_while_writing_is_one_line_and_keeps_the_old_run(tmp_path, cap
 
 @pytest.mark.parametrize("kind", ["missing_folder", "too_long"])
 def test_apply_unwritable_out_fails_before_computing(tmp_path, capsys, monkeypatch, model, kind):
-    import bayesmag._src.apply as apply_module
+    import bayesmag._src.app.apply as apply_module
     monkeypatch.setattr(apply_module, "load", lambda *a: (_ for _ in ()).throw(AssertionError("loaded")))
     rec = _write(tmp_path / "rec.csv")
     out = tmp_path / "nope" / "o.csv" if kind == "missing_folder" else tmp_path / ("o" * 250 + ".csv")
@@ -494,7 +494,7 @@ def test_batched_rank_check_agrees_with_unidentifiable_and_ignores_zeroed_rows()
     """fit_folds zeroes left-out rows and checks all folds with one batched SVD (rank_deficient): the
     verdict equals unidentifiable() on the kept rows alone, for a full-rank, a barely varying, a constant
     and a zero column."""
-    from bayesmag._src.fit import rank_deficient
+    from bayesmag._src.core.fit import rank_deficient
     d = _recording(200)
     rng = np.random.default_rng(3)
     keep = rng.random(d.n) < 0.7
@@ -702,7 +702,7 @@ def test_good_input_control(tmp_path, capsys, model, cmd):
 
 
 def test_discover_refuses_foreign_out_before_searching(tmp_path, capsys, monkeypatch):
-    import bayesmag._src.discover as disc
+    import bayesmag._src.pipeline.discover as disc
     monkeypatch.setattr(disc, "discover", lambda *a, **k: (_ for _ in ()).throw(AssertionError("searched")))
     data = _write(tmp_path / "rec.csv")
     (tmp_path / "out").mkdir()

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayesmag._src.physics import PhysicsModel, inputs_from_data
+from bayesmag._src.core.physics import PhysicsModel, inputs_from_data
 from bayesmag.simulate import (
     EFFECTS,
     Conditions,
@@ -239,7 +239,7 @@ def test_every_registered_effect_runs_and_is_described(name, design):
 
 def test_new_effect_is_one_new_class():
     """Subclassing Effect registers it by name (registry cleaned up afterwards)."""
-    from bayesmag._src import simulate as src
+    from bayesmag._src.core import simulate as src
 
     @dataclasses.dataclass(frozen=True)
     class Constant(Effect):

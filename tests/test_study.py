@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bayesmag import ConfigError, load_config
-from bayesmag._src.study import run_study
+from bayesmag._src.app.study import run_study
 
 CFG = Path(__file__).resolve().parents[1] / "configs/paper_simulation.toml"
 

@@ -5,10 +5,10 @@ import pytest
 
 import bayesmag
 from bayesmag import CalibrationData
-from bayesmag._src.domain import Domain, rates
-from bayesmag._src.job import _residual_variance
-from bayesmag._src.predictor import Predictor, UQOptions, estimate_transfer
-from bayesmag._src.simulate import TrueParams
+from bayesmag._src.core.domain import Domain, rates
+from bayesmag._src.app.job import _residual_variance
+from bayesmag._src.core.predictor import Predictor, UQOptions, estimate_transfer
+from bayesmag._src.core.simulate import TrueParams
 
 SIGMA_IN = np.diag([0.02**2] * 3 + [1e-4])
 OFFSET_SD, CROSS_SD = 0.3, 0.003          # session-to-session change: offsets (uT), off-diagonal S terms
@@ -170,7 +170,7 @@ def test_fold_fits_equal_separate_fits(n_runs):
     < 1e-12), which pins a weakly determined parameter only to ~sqrt(1e-12) of its scale, so the
     parameters must agree to 1e-4 of their posterior sd (seen: at most 5e-10 absolute,
     2e-7 sd) and the transfer sd to 1e-6 relative."""
-    from bayesmag._src.fit import fit_folds
+    from bayesmag._src.core.fit import fit_folds
     d = _session(7, n_runs, rows=150)
     model = bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature)))
     keep = np.stack([d.run != r for r in np.unique(d.run)])

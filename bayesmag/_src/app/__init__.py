@@ -1,0 +1,1 @@
+"""bayesmag app layer."""

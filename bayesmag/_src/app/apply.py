@@ -1,0 +1,135 @@
+"""Apply a saved calibration to a new recording: checks, chunked prediction, CSV out, optional metrics."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bayesmag._src.app.artifact import load
+from bayesmag._src.core.data import AXES, DataError, check_field_unit, check_values
+from bayesmag._src.core.domain import REASON_CODES
+
+__all__ = ["apply_calibration", "check_units", "check_apply_paths"]
+
+OUTPUT_COLUMNS = ("calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "aleatoric_nn",
+                  "epistemic_nn", "transfer", "total", "lower", "upper")
+
+
+def check_units(cal, data) -> list[str]:
+    """Errors for units that cannot be right; warnings for suspicious ones (vs the training domain).
+
+    The field check is :func:`~bayesmag._src.core.data.check_field_unit`, shared with ``run`` and ``discover``.
+    """
+    finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
+    if not finite.any():
+        raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature.")
+    train_max = float(np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max())
+    warn = check_field_unit(data.subset(finite), train_max_ut=train_max, fix="Use --field-unit nT")
+    med_t = float(np.median(data.temperature[finite]))
+    if med_t > 150:
+        raise DataError(f"Column 'temperature' has median {med_t:.2f}, which looks like kelvin, but the calibration "
+                        f"expects Celsius. Use --temperature-unit K.")
+    return warn
+
+
+def check_apply_paths(model_dir, data_path, out_path) -> Path:
+    """Refuse an ``--out`` that would overwrite the recording, a file of the calibration, or a folder."""
+    out, data, model = Path(out_path), Path(data_path), Path(model_dir)
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder; give the path of the output CSV file, e.g. {out / 'calibrated.csv'}.")
+    if out.exists() and data.exists() and out.resolve() == data.resolve():
+        raise DataError(f"--out {out} is the input recording --data {data}; it would be overwritten. "
+                        f"Give another output file name.")
+    try:
+        out.resolve().relative_to(model.resolve())
+        inside = True
+    except ValueError:
+        inside = False
+    if inside:
+        raise DataError(f"--out {out} lies inside the calibration folder --model {model}; writing there could "
+                        f"overwrite the calibration. Give an output file outside it.")
+    parent = out.parent
+    if not parent.is_dir():
+        raise DataError(f"--out {out}: the folder {parent} does not exist; create it or give another path.")
+    probe = parent / f".{out.name}.partial-{os.getpid()}"
+    probe.touch()                           # unwritable, read-only or over-long: OSError now, not after the work
+    probe.unlink()
+    return out
+
+
+def _check_magnitudes(data) -> None:
+    """Absurd magnitudes (|B| > 1 T, |T| > 1e4 C) are corrupt data, refused naming the row (NaN rows stay allowed)."""
+    check_values(data, origin=data.source, allow_nonfinite=True)
+
+
+def apply_calibration(model_dir, data_path, out_path, *, level=None, method="analytic", n_params=100, n_qmc=256,
+                      temperature_unit="C", field_unit="uT", columns=None, chunk_size=100_000,
+                      progress=False) -> dict:
+    """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``.
+
+    ``columns`` maps canonical names to the file's columns; ``field_unit`` and ``temperature_unit``
+    are converted at load. The output never replaces the recording or a file of the calibration, and
+    is written to a temporary sibling first, then renamed into place.
+    """
+    t0 = time.perf_counter()
+    out_path = check_apply_paths(model_dir, data_path, out_path)
+    cal = load(model_dir)
+    from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
+    data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                      require_reference=False)
+    _check_magnitudes(data)
+    warnings = check_units(cal, data)
+    pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
+                       progress=progress)
+    level = cal.level if level is None else level
+    bad = np.flatnonzero(~pred["valid"])
+    if bad.size:
+        shown = ", ".join(str(int(r) + 1) for r in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
+        warnings.append(f"{bad.size} row(s) have non-finite inputs or outputs and were not calibrated "
+                        f"(marked valid=false): data row(s) {shown}.")
+    n_out = int((~pred["in_domain"] & pred["valid"]).sum())
+    if n_out:
+        warnings.append(f"{n_out} of {data.n} rows lie outside the calibration's training domain (in_domain=false): "
+                        f"their values are extrapolation and their intervals may be far too narrow.")
+    cols = [c for c in OUTPUT_COLUMNS if c in pred]
+    header = ["time", "run"] + [f"{a}_{c}" for a in AXES for c in cols] + ["in_domain_reason", "in_domain", "valid"]
+    mats = [data.time[:, None], data.run[:, None].astype(np.float64)]
+    for a in range(3):
+        mats += [pred[c][:, a:a + 1] for c in cols]
+    # the reason as a bit code (the file stays all-numeric): sum of REASON_CODES, 0 inside or invalid
+    code = np.array([sum(REASON_CODES[k] for k in w.split(";") if k in REASON_CODES) for w in pred["in_domain_reason"]])
+    mats += [code[:, None].astype(np.float64), pred["in_domain"][:, None].astype(np.float64),
+             pred["valid"][:, None].astype(np.float64)]
+    mat = np.concatenate(mats, axis=1)
+    fmt = ["%.6f", "%d"] + ["%.8g"] * (mat.shape[1] - 5) + ["%d", "%d", "%d"]
+    tmp = out_path.with_name(f".{out_path.name}.partial-{os.getpid()}")
+    try:
+        with open(tmp, "w") as f:
+            f.write(",".join(header) + "\n")
+            for lo in range(0, data.n, 200_000):
+                np.savetxt(f, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
+        tmp.replace(out_path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    summary = {"n_rows": data.n, "n_valid": int(pred["valid"].sum()), "n_outside_domain": n_out,
+               "outside_domain_by_reason": {k: int(np.sum(pred["in_domain_reason"][pred["valid"]] == k))
+                                            for k in sorted(set(pred["in_domain_reason"][pred["valid"]])) if k},
+               "transfer_sd": (None if cal.transfer_sd is None
+                               else dict(zip(AXES, np.asarray(cal.transfer_sd, float).tolist()))),
+               "warnings": warnings, "level": level, "seconds": time.perf_counter() - t0}
+    if data.b_ref is not None:
+        ok = pred["valid"] & np.isfinite(data.b_ref).all(axis=1)
+        y, mu = data.b_ref[ok], pred["calibrated"][ok]
+        inside = (y >= pred["lower"][ok]) & (y <= pred["upper"][ok])
+        summary["metrics"] = {"rmse": dict(zip(AXES, np.sqrt(np.mean((y - mu) ** 2, axis=0)).tolist())),
+                              "coverage": dict(zip(AXES, inside.mean(axis=0).tolist()))}
+        dom = pred["in_domain"][ok]
+        if dom.any():
+            summary["metrics"]["coverage_in_domain"] = dict(zip(AXES, inside[dom].mean(axis=0).tolist()))
+        miss = ~inside
+        summary["metrics"]["misses_flagged"] = dict(zip(AXES, [float((miss[:, a] & ~dom).sum() / max(miss[:, a].sum(), 1))
+                                                               for a in range(3)]))
+    return summary

@@ -1,0 +1,486 @@
+"""Calibrations users keep: a versioned, self-contained, non-pickle artifact; load it and apply it.
+
+A run folder holds the calibration as two files:
+
+* ``calibration.json`` -- format name and version, package version, the physics model
+  (terms and transforms with their settings), parameter names, the input-noise covariance,
+  residual standard deviations, the training domain, the likelihood family, the resolved
+  config, and the names of the arrays below;
+* ``calibration.npz`` -- numeric arrays (``theta`` (3, p), ``cov`` (3, p, p), ``transfer_sd`` (3,)
+  the between-session sd, ``interval_scale`` (3,) the conformal interval factor when the hybrid
+  stage set one, and, when the hybrid stage ran, the network weights and standardisation under
+  ``network/...`` keys; a deep ensemble of K networks (the job's cross-conformal fold networks)
+  under ``network/member<k>/...`` with ``network.members = K`` in the JSON and format version 2),
+  written with ``numpy.savez`` (loaded with ``allow_pickle=False``).
+
+Together they describe one :class:`~bayesmag._src.core.predictor.Predictor`: :func:`save_calibration`
+writes it, :meth:`Calibration.predictor` rebuilds it, and :meth:`Calibration.predict` only chunks
+rows through it.
+
+:func:`load` returns a :class:`Calibration` whose :meth:`~Calibration.predict` is sklearn-like:
+it takes a recording (no reference needed) and returns calibrated values with their
+uncertainty parts (the ``transfer`` part for a new session included), a central interval, an
+``in_domain`` flag and its ``in_domain_reason`` per row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bayesmag._src.core.data import AXES, CalibrationData
+from bayesmag._src.core.domain import Domain
+from bayesmag._src.core.frames import frame_io
+from bayesmag._src.core.physics import PhysicsModel, ThermoAffine
+
+__all__ = ["Calibration", "save_calibration", "load", "validate_artifact", "ArtifactError", "FORMAT",
+           "FORMAT_VERSION"]
+
+FORMAT = "bayesmag.calibration"
+FORMAT_VERSION = 1
+#: Format version of a calibration whose network is a deep ensemble (``network/member<k>/...``): older
+#: bayesmag versions then refuse it by version instead of missing weights. Everything else stays version 1.
+ENSEMBLE_FORMAT_VERSION = 2
+#: Versions this code reads (older ones listed here once a converter exists).
+READABLE_VERSIONS = (1, 2)
+
+
+class ArtifactError(ValueError):
+    """A calibration folder that cannot be loaded; the message says exactly why."""
+
+
+def _component_registry() -> dict[str, type]:
+    from bayesmag._src.core import catalogue  # noqa: F401  (registers catalogue terms)
+    from bayesmag._src.core.physics import EXTRA_TERMS
+    return {"thermo_affine": ThermoAffine, **EXTRA_TERMS}
+
+
+def model_to_json(model: PhysicsModel) -> dict:
+    def one(c):
+        return {"name": c.name, "settings": {f.name: getattr(c, f.name) for f in dataclasses.fields(c)}}
+    return {"terms": [one(t) for t in model.terms], "transforms": [one(t) for t in model.transforms]}
+
+
+def model_from_json(d: dict) -> PhysicsModel:
+    reg = _component_registry()
+
+    def build(item):
+        name = item["name"]
+        if name not in reg:
+            raise ArtifactError(f"the calibration uses physics component {name!r}, which this bayesmag does not "
+                                f"know (known: {sorted(reg)}); install the version that wrote it.")
+        return reg[name](**item["settings"])
+    return PhysicsModel(tuple(build(t) for t in d["terms"]), tuple(build(t) for t in d["transforms"]))
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """A fitted calibration: physics parameters and covariance, noise model, domain, optional network."""
+
+    model: PhysicsModel
+    theta: np.ndarray
+    cov: np.ndarray
+    sigma_in: np.ndarray
+    residual_sd: np.ndarray
+    domain: Domain
+    likelihood: str = "gaussian"
+    level: float = 0.95
+    config: dict = dataclasses.field(default_factory=dict)
+    network: dict | None = None          # {"meta": {...}, "arrays": {name: array}} when the hybrid stage ran
+    package_version: str = ""
+    s2: np.ndarray | None = None
+    transfer_sd: np.ndarray | None = None    # (3,) between-session sd added for new recordings
+    interval_scale: np.ndarray | None = None  # (3,) conformal interval factor of the hybrid prediction
+
+    @property
+    def param_names(self):
+        return self.model.param_names
+
+    def physics_fit(self):
+        """A :class:`~bayesmag.PhysicsFit`-like view for :func:`~bayesmag.physics_uncertainty`."""
+        from bayesmag._src.core.fit import PhysicsFit
+        s2 = self.s2 if self.s2 is not None else self.residual_sd**2
+        empty = ({}, {}, {})
+        return PhysicsFit(model=self.model, theta=self.theta, cov=self.cov, s2=s2, n=0,
+                          rmse_in_sample=np.full(3, np.nan), result=("converged",) * 3, n_steps=np.zeros(3),
+                          covariance_method="", cov_info=empty, diagnostics=empty)
+
+    def predictor(self, *, method: str = "analytic", n_params: int = 100, n_qmc: int = 256, seed: int = 0,
+                  chunk_size: int = 256):
+        """The saved :class:`~bayesmag._src.core.predictor.Predictor` with these physics-UQ settings."""
+        from bayesmag._src.core.predictor import Predictor, UQOptions
+        net, passes, nseed, fusion = None, 100, 0, "moment_match"
+        if self.network is not None:
+            meta = self.network["meta"]
+            net = network_from_artifact(self.network)
+            passes, nseed, fusion = meta["passes"], meta["seed"], meta.get("fusion", "moment_match")
+        return Predictor(fit=self.physics_fit(), sigma_in=self.sigma_in, residual_sd=self.residual_sd, network=net,
+                         passes=passes, network_seed=nseed, fusion=fusion, transfer_sd=self.transfer_sd,
+                         scale=self.interval_scale, domain=self.domain,
+                         uq=UQOptions(method, n_params, n_qmc, seed, chunk_size))
+
+    @frame_io    # a pandas DataFrame in, a DataFrame out (frames.py); CalibrationData in, the dict below out
+    def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
+                n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
+                new_session: bool = True, progress: bool = False) -> dict[str, np.ndarray]:
+        """Calibrated field and uncertainty for every row of ``data`` (reference columns not needed).
+
+        Rows with non-finite inputs are not dropped: their outputs are NaN and ``valid`` is False.
+        Returns a dict of (n, 3) arrays: ``calibrated, aleatoric_physics, epistemic_physics,
+        residual_physics, total, lower, upper`` (plus ``aleatoric_nn, epistemic_nn`` with a network,
+        and ``transfer`` when the calibration holds a transfer sd), and (n,) arrays ``in_domain``,
+        ``in_domain_reason`` (strings, '' inside) and ``valid``. Every chunk is predicted by
+        :meth:`predictor`. ``new_session`` (default True: ``data`` is a new recording) adds the
+        transfer part; False treats the rows as from the training sessions.
+        """
+        level = self.level if level is None else level
+        n = data.n
+        x = np.column_stack([data.b_meas, data.temperature])
+        valid = np.isfinite(x).all(axis=1) & np.isfinite(data.time)
+        names = ["calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "total", "lower", "upper"]
+        if self.network is not None:
+            names += ["aleatoric_nn", "epistemic_nn"]
+        out = {k: np.full((n, 3), np.nan) for k in names}
+        idx = np.flatnonzero(valid)
+        base = self.predictor(method=method, n_params=n_params, n_qmc=n_qmc, seed=seed)
+        starts = range(0, idx.size, chunk_size)
+        if progress:
+            from tqdm.auto import tqdm
+            starts = tqdm(starts, desc="apply", unit="chunk", leave=False)
+        for lo in starts:
+            rows = idx[lo:lo + chunk_size]
+            pr = dataclasses.replace(base, uq=dataclasses.replace(base.uq, chunk_size=min(4096, max(256, rows.size))),
+                                     domain=None)
+            pred = pr.predict(data.subset(rows), new_session=new_session)
+            lo_, hi_ = pred.interval(level)
+            out["calibrated"][rows], out["total"][rows] = pred.mean, pred.total
+            out["lower"][rows], out["upper"][rows] = lo_, hi_
+            for k, v in pred.parts.items():
+                if k == "residual_physics" and self.network is not None:
+                    continue
+                out.setdefault(k, np.full((n, 3), np.nan))[rows] = v
+        out["residual_physics"][idx] = np.broadcast_to(self.residual_sd, (idx.size, 3))
+        valid = valid & np.all([np.isfinite(out[k]).all(axis=1) for k in ("calibrated", "total", "lower", "upper")],
+                               axis=0)                     # a NaN output is never valid
+        in_dom = np.zeros(n, dtype=bool)
+        reason = np.full(n, "invalid", dtype=object)
+        outside = self.domain.outside(data.subset(valid), out["calibrated"][valid])
+        in_dom[valid] = ~outside.any(axis=1)
+        reason[valid] = self.domain.reasons(outside)
+        out["in_domain"] = in_dom
+        out["in_domain_reason"] = reason
+        out["valid"] = valid
+        return out
+
+
+def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95) -> None:
+    """Write the :class:`~bayesmag._src.core.predictor.Predictor` as ``calibration.json`` and ``calibration.npz``
+    into folder ``path``."""
+    from bayesmag import __version__
+    fit = predictor.fit
+    arrays = {"theta": np.asarray(fit.theta), "cov": np.asarray(fit.cov), "sigma_in": np.asarray(predictor.sigma_in),
+              "residual_sd": np.asarray(predictor.residual_sd, dtype=np.float64), "s2": np.asarray(fit.s2)}
+    if predictor.transfer_sd is not None:
+        arrays["transfer_sd"] = np.asarray(predictor.transfer_sd, np.float64)
+    if predictor.scale is not None:
+        arrays["interval_scale"] = np.asarray(predictor.scale, np.float64)
+    meta_net, version = None, FORMAT_VERSION
+    if predictor.network is not None:
+        network = network_to_artifact(predictor.network, passes=predictor.passes, seed=predictor.network_seed,
+                                      fusion=predictor.fusion)
+        meta_net = network["meta"]
+        if "members" in meta_net:
+            version = ENSEMBLE_FORMAT_VERSION
+        for k, v in network["arrays"].items():
+            arrays[f"network/{k}"] = np.asarray(v)
+    doc = {
+        "format": FORMAT, "format_version": version, "package_version": __version__,
+        "model": model_to_json(fit.model), "param_names": list(fit.model.param_names),
+        "axes": list(AXES), "likelihood": predictor.family, "level": level,
+        "domain": dataclasses.asdict(predictor.domain), "config": config, "network": meta_net,
+        "arrays": {"file": "calibration.npz", "keys": sorted(arrays)},
+        "units": {"field": "uT", "temperature": "C", "time": "s"},
+    }
+    np.savez(Path(path) / "calibration.npz", **arrays)
+    (Path(path) / "calibration.json").write_text(json.dumps(doc, indent=2, default=_json_default))
+
+
+def _json_default(o: Any):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def load(path: str | Path) -> Calibration:
+    """Load the calibration a ``bayesmag run`` wrote into folder ``path``.
+
+    Every field is checked (:func:`validate_artifact`); a damaged, tampered or unfinished
+    calibration raises :class:`ArtifactError` naming the file and field, never a wrong result.
+    """
+    from bayesmag._src.app.outdir import is_staging_name, marker_status
+
+    path = Path(path)
+    j, z = path / "calibration.json", path / "calibration.npz"
+    if not path.is_dir():
+        old = sorted(path.parent.glob(f".{path.name}.old-*")) if not path.exists() else []
+        hint = (f" An interrupted run left the earlier result in {old[0]}; the next bayesmag run into "
+                f"{path.parent} restores it (or rename it yourself)." if old else "")
+        raise ArtifactError(f"{path} is not a folder; give the run folder that holds calibration.json.{hint}")
+    if is_staging_name(path.name):
+        raise ArtifactError(f"{path} is a temporary folder of an unfinished or interrupted bayesmag run, not a "
+                            f"calibration; give the run folder itself (re-run `bayesmag run` if it is missing).")
+    mark = marker_status(path)
+    if mark is not None and not mark.get("complete"):
+        raise ArtifactError(f"{path} was not finished (its .bayesmag-run marker says incomplete); re-run "
+                            f"`bayesmag run` to write a full calibration.")
+    missing = [p.name for p in (j, z) if not p.exists()]
+    if missing:
+        raise ArtifactError(f"{path} is incomplete: {missing} missing. Re-run `bayesmag run` to write a full calibration.")
+    try:
+        doc = json.loads(j.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ArtifactError(f"{j} is not valid JSON ({e}); the file is damaged.") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise ArtifactError(f"{j} is not a bayesmag calibration "
+                            f"(format {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}).")
+    v = doc.get("format_version")
+    if v not in READABLE_VERSIONS:
+        raise ArtifactError(f"{j} has calibration format version {v}; this bayesmag reads versions "
+                            f"{list(READABLE_VERSIONS)}. It was written by bayesmag {doc.get('package_version')}: "
+                            f"install that version (or newer) to apply it.")
+    try:
+        with np.load(z, allow_pickle=False) as f:
+            arrays = {k: np.asarray(f[k]) for k in f.files}
+    except Exception as e:          # BadZipFile, pickled data, truncated members, zlib errors ...
+        raise ArtifactError(f"{z} cannot be read as a numpy .npz archive ({type(e).__name__}: {e}); "
+                            f"the file is damaged.") from None
+    try:
+        return validate_artifact(doc, arrays, where=str(path))
+    except ArtifactError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
+        raise ArtifactError(f"{j}: the calibration description is damaged ({type(e).__name__}: {e}).") from None
+
+
+def _field(name: str, value, where: str, *, shape=None, finite=True) -> np.ndarray:
+    arr = np.asarray(value)
+    if not (np.issubdtype(arr.dtype, np.number) and not np.issubdtype(arr.dtype, np.complexfloating)):
+        raise ArtifactError(f"{where}: field '{name}' holds {arr.dtype} values, not real numbers; the file is damaged.")
+    arr = arr.astype(np.float64)
+    if shape is not None and arr.shape != shape:
+        raise ArtifactError(f"{where}: field '{name}' has shape {arr.shape}; expected {shape}. The file is damaged.")
+    if finite and not np.isfinite(arr).all():
+        raise ArtifactError(f"{where}: field '{name}' holds {int((~np.isfinite(arr)).sum())} NaN/inf value(s); "
+                            f"the calibration is damaged and would give NaN results.")
+    return arr
+
+
+def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") -> Calibration:
+    """A :class:`Calibration` from the parsed ``calibration.json`` and ``.npz`` arrays, every field checked.
+
+    Refused with :class:`ArtifactError` naming the field: missing keys, wrong shapes or
+    types, NaN/inf anywhere (parameters, covariance, noise model, domain, network weights), a
+    covariance that is not symmetric positive definite, an input-noise covariance that is not
+    positive semi-definite, a negative residual sd, an unknown likelihood or fusion, ``level``
+    outside (0, 1), and network weights without a network description (or the reverse).
+    """
+    from bayesmag._src.core.likelihoods import LIKELIHOODS
+
+    for key in ("model", "param_names", "domain"):
+        if key not in doc:
+            raise ArtifactError(f"{where}: calibration.json lacks field '{key}'; the file is damaged.")
+    need = {"theta", "cov", "sigma_in", "residual_sd"}
+    if not need <= set(arrays):
+        raise ArtifactError(f"{where}: calibration.npz lacks arrays {sorted(need - set(arrays))}; the file is "
+                            f"damaged or incomplete.")
+    model = model_from_json(doc["model"])
+    p = model.n_params
+    if tuple(doc["param_names"]) != model.param_names:
+        raise ArtifactError(f"{where}: field 'param_names' {doc['param_names']} does not match the model "
+                            f"{list(model.param_names)}; the files are inconsistent.")
+    theta = _field("theta", arrays["theta"], where, shape=(3, p))
+    cov = _field("cov", arrays["cov"], where, shape=(3, p, p))
+    sigma_in = _field("sigma_in", arrays["sigma_in"], where, shape=(4, 4))
+    residual_sd = _field("residual_sd", arrays["residual_sd"], where, shape=(3,))
+    s2 = _field("s2", arrays["s2"], where, shape=(3,)) if "s2" in arrays else None
+    for a, ax in enumerate(AXES):
+        c = cov[a]
+        d = np.sqrt(np.abs(np.diag(c)))
+        if not (np.diag(c) > 0).all() or not np.allclose(c, c.T, rtol=1e-8, atol=0):
+            raise ArtifactError(f"{where}: field 'cov' (axis {ax}) is not a symmetric matrix with a positive "
+                                f"diagonal; the calibration is damaged.")
+        try:
+            np.linalg.cholesky(c / np.outer(d, d))
+        except np.linalg.LinAlgError:
+            raise ArtifactError(f"{where}: field 'cov' (axis {ax}) is not positive definite; the calibration "
+                                f"is damaged.") from None
+    if not np.allclose(sigma_in, sigma_in.T) or np.linalg.eigvalsh(sigma_in).min() < -1e-12 * max(
+            1.0, np.abs(sigma_in).max()):
+        raise ArtifactError(f"{where}: field 'sigma_in' is not a symmetric positive semi-definite 4x4 matrix.")
+    if (residual_sd < 0).any() or (s2 is not None and (s2 < 0).any()):
+        raise ArtifactError(f"{where}: field 'residual_sd' or 's2' is negative; the calibration is damaged.")
+    likelihood = doc.get("likelihood", "gaussian")
+    if likelihood not in LIKELIHOODS:
+        raise ArtifactError(f"{where}: field 'likelihood' = {likelihood!r} is not known; it must be one of "
+                            f"{sorted(LIKELIHOODS)}.")
+    level = doc.get("level", 0.95)
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
+        raise ArtifactError(f"{where}: field 'level' = {level!r} must be a number in (0, 1).")
+    dom = doc["domain"]
+    if not isinstance(dom, dict):
+        raise ArtifactError(f"{where}: field 'domain' must be a table; got {dom!r}.")
+    low = _field("domain.low", dom.get("low"), where, shape=(4,))
+    high = _field("domain.high", dom.get("high"), where, shape=(4,))
+    out_lo = None if dom.get("out_low") is None else _field("domain.out_low", dom["out_low"], where, shape=(3,))
+    out_hi = None if dom.get("out_high") is None else _field("domain.out_high", dom["out_high"], where, shape=(3,))
+    margin = float(_field("domain.margin", dom.get("margin", 0.05), where, shape=()))
+    rate_hi = None if dom.get("rate_high") is None else _field("domain.rate_high", dom["rate_high"], where, shape=(4,))
+    extra = {k: _field(k, arrays[k], where, shape=(3,)) for k in ("transfer_sd", "interval_scale") if k in arrays}
+    if any((v < 0).any() for v in extra.values()):
+        raise ArtifactError(f"{where}: field 'transfer_sd' or 'interval_scale' is negative; the calibration is damaged.")
+    if (low > high).any():
+        raise ArtifactError(f"{where}: field 'domain' has low > high; the calibration is damaged.")
+    net_arrays = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("network/")}
+    meta = doc.get("network")
+    network = None
+    if meta is None and net_arrays:
+        raise ArtifactError(f"{where}: field 'network' is null but calibration.npz holds network weights "
+                            f"{sorted(net_arrays)[:3]}...; the files are inconsistent.")
+    if meta is not None:
+        network = _check_network(meta, net_arrays, where)
+    return Calibration(model=model, theta=theta, cov=cov, sigma_in=sigma_in, residual_sd=residual_sd,
+                       domain=Domain(tuple(low.tolist()), tuple(high.tolist()), margin,
+                                     None if out_lo is None else tuple(out_lo.tolist()),
+                                     None if out_hi is None else tuple(out_hi.tolist()),
+                                     None if rate_hi is None else tuple(rate_hi.tolist())),
+                       likelihood=likelihood, level=float(level), config=doc.get("config", {}), network=network,
+                       package_version=doc.get("package_version", ""), s2=s2, **extra)
+
+
+def _check_network(meta, arrays: dict, where: str) -> dict:
+    """The saved network's description and weights: known fusion, complete finite weights, matching shapes."""
+    from bayesmag._src.pipeline.hybrid import FUSIONS
+
+    if not isinstance(meta, dict) or not isinstance(meta.get("spec"), dict):
+        raise ArtifactError(f"{where}: field 'network' must be a table with 'spec'; the file is damaged.")
+    fusion = meta.get("fusion", "moment_match")
+    if fusion not in FUSIONS:
+        raise ArtifactError(f"{where}: field 'network.fusion' = {fusion!r} is not known; it must be one of "
+                            f"{list(FUSIONS)}.")
+    n_layers, passes = meta.get("n_layers"), meta.get("passes")
+    for name, v in (("network.n_layers", n_layers), ("network.passes", passes)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ArtifactError(f"{where}: field '{name}' = {v!r} must be a positive integer.")
+    if not arrays:
+        raise ArtifactError(f"{where}: field 'network' describes a network but calibration.npz holds no network "
+                            f"weights; the files are inconsistent.")
+    for k, v in arrays.items():
+        _field(f"network/{k}", v, where)
+    members = meta.get("members")
+    prefixes = [""]
+    if members is not None:
+        if isinstance(members, bool) or not isinstance(members, int) or members < 2:
+            raise ArtifactError(f"{where}: field 'network.members' = {members!r} must be an integer of at least 2 "
+                                f"(the networks of a deep ensemble).")
+        prefixes = [f"member{k}/" for k in range(members)]
+        stray = sorted(k for k in arrays if not k.startswith(tuple(prefixes)))
+        if stray:
+            raise ArtifactError(f"{where}: calibration.npz holds network arrays {['network/' + k for k in stray][:3]} "
+                                f"outside the {members} ensemble members 'network/member0..{members - 1}/'; the files "
+                                f"are inconsistent.")
+    shapes = None
+    for pre in prefixes:
+        width = None
+        for i in range(n_layers):
+            w, b = arrays.get(f"{pre}layer{i}/w"), arrays.get(f"{pre}layer{i}/b")
+            if w is None or b is None:
+                raise ArtifactError(f"{where}: calibration.npz lacks network/{pre}layer{i}/w or /b; the file is "
+                                    f"damaged.")
+            if w.ndim < 2 or b.shape != w.shape[:-2] + w.shape[-1:] or (width is not None and w.shape[-2] != width):
+                raise ArtifactError(f"{where}: network {pre}layer {i} has shapes w {w.shape}, b {b.shape} that do not "
+                                    f"chain; the file is damaged.")
+            width = w.shape[-1]
+        mine = {k[len(pre):]: v.shape for k, v in arrays.items() if k.startswith(pre)}
+        if shapes is not None and mine != shapes:
+            diff = sorted(k for k in set(mine) | set(shapes) if mine.get(k) != shapes.get(k))
+            raise ArtifactError(f"{where}: ensemble member network/{pre} differs from member 0 in arrays {diff[:3]} "
+                                f"(shapes {[mine.get(k) for k in diff[:3]]} against {[shapes.get(k) for k in diff[:3]]}); "
+                                f"every member has the same network. The file is damaged.")
+        shapes = mine
+    network = {"meta": meta, "arrays": arrays}
+    network_from_artifact(network)          # every remaining key and setting present and known
+    return network
+
+
+# --------------------------------------------------------------------------- network weights
+
+
+def network_to_artifact(net, *, passes: int, seed: int, fusion: str) -> dict:
+    """A trained :class:`~bayesmag._src.core.network.ResidualNetwork` as JSON metadata + named arrays; a
+    :class:`~bayesmag._src.core.network.NetworkEnsemble` as every member's arrays under ``member<k>/`` and
+    ``meta["members"] = K`` (the rest of ``meta``, ``n_fit`` / ``n_val`` included, from member 0)."""
+    from bayesmag._src.core.network import NetworkEnsemble
+
+    if isinstance(net, NetworkEnsemble):
+        parts = [network_to_artifact(m, passes=passes, seed=seed, fusion=fusion) for m in net.members]
+        arrays = {f"member{k}/{name}": v for k, p in enumerate(parts) for name, v in p["arrays"].items()}
+        return {"meta": {**parts[0]["meta"], "members": len(parts)}, "arrays": arrays}
+    spec = net.spec.to_dict()
+    arrays = {f"standardizer/{k}": np.asarray(v) for k, v in net.standardizer._asdict().items()}
+    for i, layer in enumerate(net.params):
+        arrays[f"layer{i}/w"] = np.asarray(layer.w)
+        arrays[f"layer{i}/b"] = np.asarray(layer.b)
+    if net.frequencies is not None:
+        arrays["fourier/frequencies"] = np.asarray(net.frequencies)
+    if net.variance_scale is not None:
+        arrays["recalibration/variance_scale"] = np.asarray(net.variance_scale, np.float64)
+    meta = {"spec": spec, "n_layers": len(net.params), "passes": int(passes), "seed": int(seed), "fusion": fusion,
+            "n_fit": int(net.n_fit), "n_val": int(net.n_val), "inputs": ["bx_meas", "by_meas", "bz_meas", "temperature"]}
+    return {"meta": meta, "arrays": arrays}
+
+
+def network_from_artifact(network: dict):
+    """Rebuild the :class:`~bayesmag._src.core.network.ResidualNetwork` (or, with ``meta["members"]``, the
+    :class:`~bayesmag._src.core.network.NetworkEnsemble`) saved by :func:`network_to_artifact`."""
+    import jax.numpy as jnp
+
+    from bayesmag._src.core.network import Dense, NetworkEnsemble, NetworkSpec, ResidualNetwork, Standardizer
+
+    meta, arr = network["meta"], network["arrays"]
+    if meta.get("members") is not None:
+        single = {k: v for k, v in meta.items() if k != "members"}
+        return NetworkEnsemble(tuple(
+            network_from_artifact({"meta": single, "arrays": {n[len(f"member{k}/"):]: v for n, v in arr.items()
+                                                              if n.startswith(f"member{k}/")}})
+            for k in range(meta["members"])))
+    try:
+        spec = NetworkSpec.from_dict(meta["spec"])
+    except KeyError as e:
+        raise ArtifactError(f"the saved network has {e.args[0]} this bayesmag does not know; "
+                            f"install the version that wrote it.") from None
+    try:
+        params = tuple(Dense(jnp.asarray(arr[f"layer{i}/w"]), jnp.asarray(arr[f"layer{i}/b"]))
+                       for i in range(meta["n_layers"]))
+        st = Standardizer(*(arr[f"standardizer/{k}"] for k in Standardizer._fields))
+        freqs = np.asarray(arr["fourier/frequencies"], np.float64) if spec.fourier_features else None
+        vscale = arr.get("recalibration/variance_scale")
+    except KeyError as e:
+        raise ArtifactError(f"the saved network lacks array {e}; calibration.npz is damaged.") from None
+    return ResidualNetwork(spec, params, st, None, meta.get("n_fit", 0), meta.get("n_val", 0), freqs,
+                           None if vscale is None else np.asarray(vscale, np.float64))
+
+
+def apply_network(network: dict, data: CalibrationData):
+    """MC-DropConnect residual mean, aleatoric and epistemic variances (n, 3) of a saved network."""
+    from bayesmag._src.core.network import mc_predict
+    from bayesmag._src.core.predictor import network_inputs
+
+    net = network_from_artifact(network)
+    p = mc_predict(net, network_inputs(data), passes=network["meta"]["passes"], seed=network["meta"]["seed"])
+    return p.mean, p.aleatoric**2, p.epistemic**2, p.shape

@@ -1,0 +1,426 @@
+"""Job configuration: TOML validated into typed, frozen objects.
+
+Unknown keys and wrong types are :class:`ConfigError` naming the key, the value and the
+valid choices. ``--set key=value`` overrides are applied before validation; the value is
+parsed as a TOML literal (``uq.n_params=100``, ``split.kind="by_run"``) and falls back to
+a plain string (``data.path=my.csv``). Setting ``data.path`` replaces whatever data source
+the file names.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import re
+import tomllib
+import types
+import typing
+from pathlib import Path
+from typing import Any, ClassVar, Union
+
+from bayesmag._src.core.likelihoods import LIKELIHOODS
+from bayesmag._src.core.network import ACTIVATIONS, VALIDATION_KINDS, NetworkSpec
+
+__all__ = ["Config", "ConfigError", "load_config", "config_from_dict", "apply_overrides", "to_toml",
+           "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig", "NutsConfig",
+           "config_error"]
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the key and the fix."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Where the recording comes from: a named dataset, a CSV path, or the built-in simulator."""
+
+    source: str | None = None           # "belsten2023" | "simulated"
+    path: str | None = None             # canonical CSV (or mapped with `columns`)
+    temperature_unit: str = "C"
+    columns: dict = dataclasses.field(default_factory=dict)
+    simulate: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class SplitConfig:
+    kind: str = "random"                # random | by_run | time_blocks | none
+    test_fraction: float = 0.1
+    seed: int = 0
+    test_runs: list = dataclasses.field(default_factory=list)
+    n_blocks: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsConfig:
+    t0: Union[float, str] = 0.0         # reference temperature, or "mean" (training mean)
+    temperature_terms: bool = True
+    extra_terms: list = dataclasses.field(default_factory=list)
+    covariance: str = "white"           # white | ar1 | newey_west
+
+
+@dataclasses.dataclass(frozen=True)
+class UQConfig:
+    method: str = "psqmc"               # psqmc | mc | analytic
+    n_params: int = 500
+    n_qmc: int = 1000
+    sigma_in: Union[str, list] = "auto"  # "auto", [sd_bx, sd_by, sd_bz, sd_T], or a 4x4 covariance
+    level: float = 0.95
+    seed: int = 0
+    chunk_size: int = 256
+    residual_term: bool = True          # add the fit's unexplained residual variance (false = the paper's total)
+    transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "off"
+    reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkConfig(NetworkSpec):
+    """``[network]``: the library's :class:`~bayesmag.NetworkSpec` settings (names, defaults and
+    checks written once, there) plus the job's switches. ``enabled = false`` runs the physics
+    stage only; ``likelihoods`` trains one network per family; ``fusion`` combines it with physics."""
+
+    #: spec fields set per network by the job, not by the table
+    internal: ClassVar[tuple[str, ...]] = ("likelihood", "n_in")
+    #: spec settings whose job default differs from the library's (honest by default, issue #13)
+    job_defaults: ClassVar[tuple[str, ...]] = ("validation",)
+
+    enabled: bool = False
+    likelihoods: list = dataclasses.field(default_factory=lambda: ["gaussian"])
+    validation: str = "time_blocks"     # the job's default; the library's NetworkSpec keeps the paper's "random"
+    interval_calibration: str = "conformal"  # "conformal": scale the intervals to cover uq.level of held-out blocks
+    conformal_folds: int = 5            # cross-conformal: at most this many time-block folds (one network each; fewer when long test blocks need long folds, hybrid.conformal_plan)
+    fusion: str = "moment_match"
+
+    def __post_init__(self):
+        super().__post_init__()
+        names = self.likelihoods
+        if not names:
+            raise ValueError(f"likelihoods = [] is empty; name at least one of {sorted(LIKELIHOODS)}.")
+        unknown = [n for n in names if not isinstance(n, str) or n not in LIKELIHOODS]
+        if unknown:
+            raise ValueError(f"likelihoods = {list(names)} names unknown likelihood(s) {unknown}; each must be one "
+                             f"of {sorted(LIKELIHOODS)}.")
+        if len(set(names)) != len(names):
+            raise ValueError(f"likelihoods = {list(names)} repeats a name.")
+        if self.conformal_folds < 2 or self.conformal_folds * self.validation_fraction >= 1.0:
+            raise ValueError(f"conformal_folds = {self.conformal_folds} is not valid with validation_fraction = "
+                             f"{self.validation_fraction}: it must be at least 2, and the folds (each one block of "
+                             f"validation_fraction of every run) must fit in a run together (folds x fraction < 1).")
+
+    def spec(self, likelihood: str) -> NetworkSpec:
+        """The library settings of the network for one ``likelihood``."""
+        return NetworkSpec.from_config(self, likelihood)
+
+    def table(self) -> dict:
+        """The ``[network]`` table (no internal fields)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in self.internal}
+
+
+@dataclasses.dataclass(frozen=True)
+class NutsConfig:
+    """Full-Bayesian cross-check of the physics posterior with NumPyro NUTS."""
+
+    enabled: bool = False
+    chains: int = 4
+    warmup: int = 1000
+    draws: int = 1000
+    target_accept: float = 0.8
+    chain_method: str = "vectorized"    # vectorized | parallel | sequential
+    likelihood: str = "gaussian"        # observation model: a family of bayesmag.likelihoods
+    priors: dict = dataclasses.field(default_factory=dict)
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyConfig:
+    """The simulation study (``bayesmag study``): one simulated data set per size."""
+
+    sizes: list = dataclasses.field(default_factory=lambda: [50000, 100000, 200000, 500000])
+    #: per-size [network] overrides, e.g. {"500000" = {batch_size = 2048, max_epochs = 40}}
+    per_size: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputConfig:
+    figures: bool = True
+    progress: bool = True
+    compile_cache: bool = True          # JAX persistent compilation cache in the user cache folder (cache.py)
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A whole job: data, split, physics, uncertainty, network and output settings."""
+
+    name: str = "bayesmag"
+    data: DataConfig = dataclasses.field(default_factory=DataConfig)
+    split: SplitConfig = dataclasses.field(default_factory=SplitConfig)
+    physics: PhysicsConfig = dataclasses.field(default_factory=PhysicsConfig)
+    uq: UQConfig = dataclasses.field(default_factory=UQConfig)
+    network: NetworkConfig = dataclasses.field(default_factory=NetworkConfig)
+    nuts: NutsConfig = dataclasses.field(default_factory=NutsConfig)
+    discover: dict = dataclasses.field(default_factory=dict)   # validated by bayesmag discover (DiscoverOptions)
+    study: StudyConfig = dataclasses.field(default_factory=StudyConfig)
+    output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["network"] = dataclasses.asdict(self.network)
+        for k in NetworkConfig.internal:
+            d["network"].pop(k)
+        return d
+
+
+_CHOICES = {
+    "split.kind": ("random", "by_run", "time_blocks", "none"),
+    "physics.covariance": ("white", "ar1", "newey_west"),
+    "uq.method": ("psqmc", "mc", "analytic"),
+    "data.temperature_unit": ("C", "K"),
+    "network.interval_calibration": ("conformal", "none"),
+    "uq.transfer": ("loro", "off"),
+}
+
+
+def _choices(path: str) -> tuple | None:
+    """The valid values of a key: the library's own lists (registries are read when asked, so a
+    family or activation registered after import is valid too)."""
+    if path in _CHOICES:
+        return _CHOICES[path]
+    if path == "network.activation":
+        return tuple(ACTIVATIONS)
+    if path == "network.validation":
+        return VALIDATION_KINDS
+    if path == "network.fusion":
+        from bayesmag._src.pipeline.hybrid import FUSIONS
+        return FUSIONS
+    if path == "nuts.chain_method":
+        from bayesmag._src.pipeline.nuts import CHAIN_METHODS
+        return CHAIN_METHODS
+    if path == "nuts.likelihood":
+        return tuple(LIKELIHOODS)
+    return None
+
+
+def config_error(e: Exception, section: str, keys=()) -> ConfigError:
+    """A library ``ValueError`` as a :class:`ConfigError` naming the key path in ``[section]``.
+
+    The library names its own parameters (``width = 0 must be at least 1``, ``Lower 'width'``);
+    a message that starts with a known key becomes ``Config key 'section.key' = ...`` and
+    quoted keys become ``'section.key'``; anything else is prefixed with ``[section]``.
+    """
+    msg = str(e)
+    keys = sorted(set(keys), key=len, reverse=True)
+    for k in keys:
+        msg = msg.replace(f"'{k}'", f"'{section}.{k}'")
+    m = re.match(r"([A-Za-z_][\w.\[\]'\"]*) = ", msg)
+    if m and m.group(1).split(".")[0].split("[")[0] in keys:
+        return ConfigError(f"Config key '{section}.{m.group(1)}' = {msg[m.end():]}")
+    if m and not keys:
+        return ConfigError(f"Config key '{section}.{m.group(1)}' = {msg[m.end():]}")
+    first = re.match(r"(\w+)\b", msg)
+    if first and first.group(1) in keys:
+        return ConfigError(f"Config key '{section}.{first.group(1)}'{msg[first.end():]}")
+    return ConfigError(f"[{section}] {msg}")
+
+
+def _type_ok(value: Any, tp: Any) -> bool:
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        return any(_type_ok(value, a) for a in typing.get_args(tp))
+    if tp is type(None):
+        return value is None
+    if tp is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp in (str, bool, list, dict):
+        return isinstance(value, tp)
+    return True
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    return "none" if tp is type(None) else getattr(tp, "__name__", str(tp))
+
+
+def _build(cls, raw: dict, prefix: str):
+    if not isinstance(raw, dict):
+        raise ConfigError(f"[{prefix}] must be a table; got {raw!r}.")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name not in getattr(cls, "internal", ())}
+    kwargs = {}
+    for key, value in raw.items():
+        path = f"{prefix}.{key}" if prefix else key
+        if key not in fields:
+            raise ConfigError(f"Unknown config key '{path}'. Valid keys{' in [' + prefix + ']' if prefix else ''}: "
+                              f"{sorted(fields)}.")
+        tp = hints[key]
+        if dataclasses.is_dataclass(tp):
+            kwargs[key] = _build(tp, value, path)
+            continue
+        if not _type_ok(value, tp):
+            raise ConfigError(f"Config key '{path}' = {value!r} has the wrong type: expected {_type_name(tp)}.")
+        choices = _choices(path)
+        if choices is not None and value not in choices:
+            raise ConfigError(f"Config key '{path}' = {value!r} is not valid; it must be one of {list(choices)}.")
+        kwargs[key] = float(value) if tp is float else value
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except ValueError as e:            # the library's own check, e.g. NetworkSpec: name the key path
+        raise config_error(e, prefix, fields) from None
+
+
+#: Smallest valid value of integer keys (a seed is a non-negative integer; counts and sizes are positive).
+_INT_MIN = {
+    "split.seed": 0, "split.n_blocks": 1, "uq.seed": 0, "uq.chunk_size": 1, "uq.n_params": 2, "uq.n_qmc": 2,
+    "network.seed": 0, "network.hidden_layers": 0, "network.width": 1, "network.batch_size": 1,
+    "network.max_epochs": 1, "network.patience": 1, "network.mc_passes": 1, "network.lr_plateau_patience": 1,
+    "network.fourier_features": 0, "nuts.seed": 0, "nuts.chains": 1, "nuts.warmup": 0, "nuts.draws": 1,
+}
+
+
+def _numbers(x):
+    if isinstance(x, bool):
+        return
+    if isinstance(x, (int, float)):
+        yield x
+    elif isinstance(x, (list, tuple)):
+        for v in x:
+            yield from _numbers(v)
+
+
+def _check_numbers(cfg: Config) -> None:
+    """Every number in a section is finite; integer keys respect :data:`_INT_MIN`."""
+    for section in ("split", "physics", "uq", "network", "nuts", "output"):
+        block = getattr(cfg, section)
+        for f in dataclasses.fields(block):
+            key, value = f"{section}.{f.name}", getattr(block, f.name)
+            if any(not math.isfinite(v) for v in _numbers(value)):
+                raise ConfigError(f"Config key '{key}' = {value!r} must be finite (no nan or inf).")
+            lo = _INT_MIN.get(key)
+            if lo is not None and value < lo:
+                raise ConfigError(f"Config key '{key}' = {value!r} must be at least {lo}.")
+
+
+def _check_semantics(cfg: Config) -> None:
+    _check_numbers(cfg)
+    d = cfg.data
+    if d.source is not None and d.path is not None:
+        raise ConfigError("[data] names both 'source' and 'path'; give one.")
+    if d.source is None and d.path is None:
+        raise ConfigError("[data] needs 'source' (\"belsten2023\" or \"simulated\") or 'path' (a CSV file).")
+    if not 0 < cfg.split.test_fraction < 1:
+        raise ConfigError(f"Config key 'split.test_fraction' = {cfg.split.test_fraction} must be in (0, 1).")
+    if cfg.uq.n_params < 2 or cfg.uq.n_qmc < 2:
+        raise ConfigError("Config keys 'uq.n_params' and 'uq.n_qmc' must be at least 2.")
+    if not 0 < cfg.uq.level < 1:
+        raise ConfigError(f"Config key 'uq.level' = {cfg.uq.level} must be in (0, 1).")
+    if isinstance(cfg.physics.t0, str) and cfg.physics.t0 != "mean":
+        raise ConfigError(f"Config key 'physics.t0' = {cfg.physics.t0!r} must be a number or \"mean\".")
+    s = cfg.uq.sigma_in
+    if isinstance(s, str) and s != "auto":
+        raise ConfigError(f"Config key 'uq.sigma_in' = {s!r} must be \"auto\", 4 standard deviations or a 4x4 matrix.")
+    if isinstance(s, list) and not (len(s) == 4 and (all(isinstance(v, (int, float)) for v in s)
+                                                     or all(isinstance(r, list) and len(r) == 4 for r in s))):
+        raise ConfigError("Config key 'uq.sigma_in' must be 4 standard deviations [Bx, By, Bz, T] or a 4x4 matrix.")
+    r = cfg.uq.reference_sd
+    if not (isinstance(r, (int, float)) and r >= 0 or isinstance(r, list) and len(r) == 3
+            and all(isinstance(v, (int, float)) and v >= 0 for v in r)):
+        raise ConfigError(f"Config key 'uq.reference_sd' = {r!r} must be a standard uncertainty >= 0 in uT, or 3 of them.")
+
+
+def config_from_dict(raw: dict) -> Config:
+    """Validate a plain dict (parsed TOML) into a :class:`Config`."""
+    cfg = _build(Config, raw, "")
+    _check_semantics(cfg)
+    return cfg
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(raw: dict, overrides: list[str]) -> dict:
+    """Apply ``key.sub=value`` overrides to a raw config dict (returns a new dict)."""
+    raw = copy.deepcopy(raw)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r} must look like key=value, e.g. --set uq.n_params=100.")
+        key, text = item.split("=", 1)
+        parts = key.strip().split(".")
+        node = raw
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {key}: '{p}' is not a table.")
+        node[parts[-1]] = _parse_value(text.strip())
+        if parts == ["data", "path"]:
+            raw["data"].pop("source", None)          # a path replaces any named source
+            raw["data"].pop("simulate", None)
+        if parts == ["data", "source"]:
+            raw["data"].pop("path", None)
+    return raw
+
+
+def read_config_dict(path: str | Path, overrides: list[str] = ()) -> dict:
+    """The raw TOML dict of a config file with ``--set`` overrides applied (data paths made relative to it)."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"Config file {path} does not exist.")
+    if path.is_dir():
+        raise ConfigError(f"Config {path} is a folder; give a TOML config file (e.g. configs/quickstart.toml).")
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+    except UnicodeDecodeError:
+        raise ConfigError(f"Config {path} is not a text file (not UTF-8); give a TOML config file.") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path} is not valid TOML: {e}") from None
+    raw = apply_overrides(raw, list(overrides))
+    data = raw.get("data", {})
+    if isinstance(data, dict) and data.get("path"):
+        p = Path(data["path"]).expanduser()
+        if not p.is_absolute() and not p.exists() and (path.parent / p).exists():
+            data["path"] = str(path.parent / p)   # relative to the config file
+    return raw
+
+
+def load_config(path: str | Path, overrides: list[str] = ()) -> Config:
+    """Read a TOML config, apply ``--set`` overrides and validate it."""
+    return config_from_dict(read_config_dict(path, overrides))
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {v!r} to TOML")
+
+
+def to_toml(d: dict, _prefix: str = "") -> str:
+    """A small TOML writer for resolved configs (tables, scalars, lists, inline dicts); None is omitted."""
+    lines, tables = [], []
+    for k, v in d.items():
+        if v is None:
+            continue
+        if isinstance(v, dict) and v and all(not isinstance(x, dict) or True for x in v.values()) and _prefix == "":
+            tables.append((k, v))
+        else:
+            lines.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(lines)
+    for k, v in tables:
+        body = "\n".join(f"{kk} = {_toml_value(vv)}" for kk, vv in v.items() if vv is not None)
+        out += f"\n\n[{k}]\n{body}"
+    return out.strip() + "\n"

@@ -1,0 +1,103 @@
+"""The ``bayesmag discover`` command: its argument parsing and the ``[discover]`` config table."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+from bayesmag._src.core.data import load_csv
+from bayesmag._src.pipeline.discover.options import DiscoverOptions
+from bayesmag._src.pipeline.discover.pipeline import discover
+
+__all__ = ["load_discover_config", "build_parser", "main"]
+
+
+def load_discover_config(path: str | Path, overrides: Sequence[str] = ()):
+    """(Config, DiscoverOptions) from a TOML file whose optional ``[discover]`` table holds
+    :class:`DiscoverOptions` fields (validated; unknown keys are errors naming the valid set)."""
+    from bayesmag._src.app.config import ConfigError, config_from_dict, read_config_dict
+
+    raw = read_config_dict(path, overrides)
+    disc = raw.pop("discover", {})
+    cfg = config_from_dict(raw)
+    valid = [f.name for f in dataclasses.fields(DiscoverOptions)]
+    unknown = sorted(set(disc) - set(valid))
+    if unknown:
+        raise ConfigError(f"Unknown config key(s) {['discover.' + k for k in unknown]}. Valid keys in [discover]: {valid}.")
+    try:
+        opts = DiscoverOptions(**disc)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"[discover]: {e}") from None
+    if "t0" not in disc and cfg.physics.t0 != 0.0:
+        opts = dataclasses.replace(opts, t0=cfg.physics.t0)
+    return cfg, opts
+
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bayesmag discover", description="Find physics missing from the calibration model.")
+    p.add_argument("config", nargs="?", help="config file with [data] and optional [discover]")
+    p.add_argument("--data", help="a canonical CSV instead of a config (defaults for everything else)")
+    p.add_argument("--out", help="output folder (default runs/discover_<name>)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no stage lines on stderr")
+    return p
+
+
+def _progress_printer():
+    t0 = time.perf_counter()
+
+    def show(msg: str) -> None:
+        print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+    return show
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from bayesmag._src.app.config import ConfigError
+    from bayesmag._src.core.data import DataError
+    from bayesmag._src.app.job import load_data
+
+    try:
+        if args.data and args.config:
+            raise ConfigError("give a CONFIG or --data FILE.csv, not both.")
+        if args.data:
+            data = load_csv(args.data)
+            opts = DiscoverOptions()
+            header = Path(args.data).read_text(encoding="utf-8-sig").splitlines()[0]   # BOM-safe, any delimiter
+            if "time" not in [c.strip().strip('"') for c in re.split(r"[,;\t]", header)]:
+                opts = dataclasses.replace(opts, time_available=False)
+            name = Path(args.data).stem
+        elif args.config:
+            cfg, opts = load_discover_config(args.config, args.set or [])
+            data = load_data(cfg)
+            name = cfg.name
+        else:
+            raise ConfigError("give a CONFIG or --data FILE.csv.")
+        if args.no_figures:
+            opts = dataclasses.replace(opts, figures=False)
+        out = Path(args.out) if args.out else Path("runs") / f"discover_{name}"
+        res = discover(data, opts, progress=None if args.no_progress else _progress_printer())
+        res.write(out)
+    except (ConfigError, DataError, FileNotFoundError, ValueError) as e:
+        print(f"bayesmag discover: error: {e}", file=sys.stderr)
+        return 2
+    print(f"bayesmag discover: wrote {out}/ in {res.seconds:.1f} s")
+    if res.no_missing_physics:
+        print("  no missing physics found")
+    for f in res.findings:
+        ps = ", ".join(f"{k}={p['value']:.4g}+-{p['se']:.2g}" for k, p in f["parameters"].items())
+        where = f"{f['channel']} channel" if f["frame"] == "sensor" else (
+            "whole sensor" if f["frame"] == "whole" else f"{f['axis']} output")
+        print(f"  {where}: {f['effect']} ({ps})")
+    for u in res.unexplained:
+        print(f"  {u['channel']} channel: unexplained, time scale {u['time_scale_s']:.3g} s ({u['basis']})")
+    for n in res.notes:
+        print(f"  note: {n}")
+    return 0

@@ -1,0 +1,704 @@
+r"""Catalogue of candidate physics: small named model extensions that discovery can name.
+
+Each entry is one frozen class (a :class:`~bayesmag._src.core.physics.Term` or an
+:class:`~bayesmag._src.core.physics.InputTransform`) with a one-sentence physical
+``explanation``, its own parameters (in physical units) and, for linear terms, exact
+design columns. All are registered in :data:`~bayesmag._src.core.physics.EXTRA_TERMS`, so a
+``bayesmag run`` config can use them directly::
+
+    [physics]
+    extra_terms = ["cross_axis_quadratic", {name = "thermal_lag", tau0 = 40.0},
+                   {name = "hysteresis", axis = "x", mode = "excursion", threshold = 25.0}]
+
+Terms act on the *measured* field ``b`` (uT), the logged temperature ``t`` (C), ``time``
+(s) and ``run`` of :class:`~bayesmag._src.core.physics.Inputs`; every output axis gets its
+own coefficients. Conventions of each parameter are in the class docstrings.
+
+=======================  ==========  =============================================  =====================
+name                     kind        parameters per output axis                     simulator effect
+=======================  ==========  =============================================  =====================
+axis_quadratic           linear      q_xx q_yy q_zz (1/uT)                          axis_quadratic
+cross_axis_quadratic     linear      q_xy q_xz q_yz (1/uT)                          cross_axis_quadratic
+cubic_nonlinearity       linear      c_x c_y c_z (1/uT^2)                           cubic
+temperature_quadratic    linear      Ko2 (uT/C^2) [+ Ks2_x Ks2_y Ks2_z (1/C^2)]     temperature_quadratic
+thermal_lag              transform   log_tau (tau in s)                             thermal_lag
+timing_offset            transform   delta (s)                                      timing_offset
+hysteresis               linear      h (uT)                                         hysteresis
+offset_drift             linear      drift_rate (uT/s) [+ run_step (uT/run)]        offset_drift
+run_offset               linear      o_<run> per run after the first (uT)           (none)
+=======================  ==========  =============================================  =====================
+
+Every class also carries its discovery registry entry (:class:`Entry`): requirements, scope
+(one channel, or the whole sensor), search grid, plain-words description, the variable it is
+drawn against and a plausibility check of its nonlinear parameter. Adding a term is one class
+(plus its tests); discovery iterates :data:`CATALOGUE` and has no per-name branches. A class
+defined outside this module joins every registry with :func:`register` (``docs/extending.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesmag._src.core import physics as _physics
+from bayesmag._src.core.physics import EXTRA_TERMS, InputTransform, Inputs, Term
+
+__all__ = ["CATALOGUE", "make_extra", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "TemperatureQuadratic",
+           "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "RunOffset", "SIMULATOR_NAMES", "explanation",
+           "Entry", "Setting", "SearchContext", "register", "unregister"]
+
+_AXES = ("x", "y", "z")
+
+
+def _check_axis(value, field: str) -> None:
+    if value not in _AXES:
+        raise ValueError(f"{field} is {value!r}; it must be one of {list(_AXES)}.")
+
+
+def _run_starts(run: jax.Array) -> jax.Array:
+    return jnp.concatenate([jnp.array([True]), run[1:] != run[:-1]])
+
+
+def _hold_last(value: jax.Array, has_value: jax.Array, run: jax.Array) -> jax.Array:
+    """Carry the last ``value`` where ``has_value`` forward within each run (0 before any)."""
+    starts = _run_starts(run)
+    n = value.shape[0]
+    idx = jnp.where(has_value | starts, jnp.arange(n), 0)
+    idx = jax.lax.cummax(idx)
+    v = jnp.where(has_value, value, 0.0)
+    return v[idx]
+
+
+def _run_first_last(run: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Index of the first and last row of each row's run (runs contiguous)."""
+    n = run.shape[0]
+    starts = _run_starts(run)
+    ends = jnp.concatenate([run[1:] != run[:-1], jnp.array([True])])
+    first = jax.lax.cummax(jnp.where(starts, jnp.arange(n), 0))
+    last = jax.lax.cummin(jnp.where(ends, jnp.arange(n), n - 1), reverse=True)
+    return first, last
+
+
+# --------------------------------------------------------------------------- registry interface
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchContext:
+    """What a catalogue entry needs to lay out its search grid on one recording.
+
+    ``t0`` reference temperature (C); ``dt`` median sampling step (s); ``time_ref`` first time
+    stamp; ``runs`` the run ids in order; ``run_span`` median run duration (s); ``reach`` 98th
+    percentile of |measured field| per channel; ``step_noise`` sd of the row-to-row change of
+    the measured field per channel (noise scale); ``cal`` the baseline thermo-affine
+    coefficients of each output (``S_x S_y S_z Ks_x Ks_y Ks_z O Ko``) and ``ref_reach`` the 98th
+    percentile of |reference field| per axis (for entries driven by the calibrated field)."""
+
+    t0: float = 0.0
+    dt: float = 1.0
+    time_ref: float = 0.0
+    runs: tuple = (0,)
+    run_span: float = 1.0
+    reach: tuple = (1.0, 1.0, 1.0)
+    step_noise: tuple = (0.1, 0.1, 0.1)
+    cal: tuple = ()
+    ref_reach: tuple = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """One concrete point of an entry's search grid: the component, the columns of its
+    features that are used (None: all) and, for a transform, its fixed nonlinear value."""
+
+    component: object
+    cols: tuple | None = None
+    nl: float | None = None
+
+
+class Entry:
+    """Registry interface every catalogue class carries (so adding a term is one class).
+
+    * ``requires``: what the recording must have: ``"time"``, ``"temperature"``, ``"runs"``
+      (two or more runs);
+    * ``scope``: ``"channel"`` (a distortion of one sensor reading, or of one calibrated
+      output) or ``"sensor"`` (a transform of the whole input series);
+    * ``simulator_name``: the :mod:`bayesmag.simulate` effect it represents (its twin), or None;
+    * :meth:`grid` the settings tried on channel ``c`` (None for sensor-scope entries);
+    * :meth:`describe` a plain-words phrase for the used columns;
+    * :meth:`depends_on` the variable the effect is drawn against;
+    * :meth:`implausible` a reason why a fitted nonlinear value is not this physics (or None);
+    * ``localised``: ``"run"`` for an effect that is constant within each run and may sit in
+      one run only (discovery then also scores it by run, not only by time block), else None.
+    """
+
+    requires: ClassVar[tuple] = ()
+    scope: ClassVar[str] = "channel"
+    localised: ClassVar[str | None] = None
+    simulator_name: ClassVar[str | None] = None
+
+    @classmethod
+    def grid(cls, ctx: SearchContext, c: int | None) -> list:
+        return [Setting(cls())]
+
+    def describe(self, cols) -> str:
+        return self.name.replace("_", " ")
+
+    def depends_on(self, cols) -> str:
+        return "time"
+
+    def implausible(self, value: float, ctx: SearchContext) -> str | None:
+        return None
+
+
+def _cols_names(names, cols):
+    return [names[i] for i in (cols if cols is not None else range(len(names)))]
+
+
+# --------------------------------------------------------------------------- linear terms
+
+
+def _with_thermal(term, X: jax.Array, inputs) -> jax.Array:
+    """``X`` and, with ``term.thermal``, ``X * (T - t0)`` (the term's coefficients varying linearly with T)."""
+    if not term.thermal:
+        return X
+    return jnp.concatenate([X, X * (inputs.t - term.t0)[..., None]], axis=-1)
+
+
+def _thermal_names(term, names: tuple) -> tuple:
+    return names + tuple(f"{n}_T" for n in names) if term.thermal else names
+
+
+_THERMAL_DOC = """
+    With ``thermal=True`` every coefficient gets a temperature slope (parameters ``<name>_T``,
+    per C, about ``t0``): a distortion of the sensor's own reading reaches the calibrated
+    output multiplied by the temperature-dependent gain :math:`S + K_s T`, so in calibrated
+    units its coefficient changes with temperature (strongly on an axis whose gain changes a
+    lot with T, such as y of the paper's sensor, whose gain falls from 2.4 to 0.3)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class AxisQuadratic(Term, Entry):
+    r"""Squares of the measured field: :math:`\sum_j q_{jj} B_j^2` (``q`` in 1/uT)."""
+
+    t0: float = 0.0
+    thermal: bool = False
+    name: ClassVar[str] = "axis_quadratic"
+    explanation: ClassVar[str] = ("Bridge asymmetry and imperfect set/reset make an axis respond to the square of "
+                                  "the field along an axis (even-order nonlinearity).")
+
+    @property
+    def degree(self) -> int:
+        """Largest power of any single input (2; 2 + 1 with the temperature slopes)."""
+        return 2 + int(self.thermal)
+
+    def param_names(self):
+        return _thermal_names(self, ("q_xx", "q_yy", "q_zz"))
+
+    def features(self, inputs):
+        return _with_thermal(self, inputs.b * inputs.b, inputs)
+
+    simulator_name: ClassVar[str] = "axis_quadratic"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls())]
+
+    def describe(self, cols):
+        return "reading gains " + " + ".join(f"B{n[2]}^2" for n in _cols_names(("q_xx", "q_yy", "q_zz"), cols)) + " terms"
+
+    def depends_on(self, cols):
+        return "B" + "xyz"[(cols or (0,))[0]]
+
+
+@dataclasses.dataclass(frozen=True)
+class CrossAxisQuadratic(Term, Entry):
+    r"""Products of two measured field components: :math:`q_{xy} B_x B_y + q_{xz} B_x B_z + q_{yz} B_y B_z`."""
+
+    t0: float = 0.0
+    thermal: bool = False
+    name: ClassVar[str] = "cross_axis_quadratic"
+    explanation: ClassVar[str] = ("Nonlinear coupling between the bridges (cross-field effect of AMR films) makes "
+                                  "one axis respond to the product of the fields along two axes.")
+
+    @property
+    def degree(self) -> int:
+        """Largest power of any single input (2; 2 + 1 with the temperature slopes)."""
+        return 2 + int(self.thermal)
+
+    def param_names(self):
+        return _thermal_names(self, ("q_xy", "q_xz", "q_yz"))
+
+    def features(self, inputs):
+        b = inputs.b
+        X = jnp.stack([b[..., 0] * b[..., 1], b[..., 0] * b[..., 2], b[..., 1] * b[..., 2]], axis=-1)
+        return _with_thermal(self, X, inputs)
+
+    simulator_name: ClassVar[str] = "cross_axis_quadratic"
+
+    def describe(self, cols):
+        pairs = {"q_xy": "Bx*By", "q_xz": "Bx*Bz", "q_yz": "By*Bz"}
+        return "reading gains " + " + ".join(pairs[n] for n in _cols_names(tuple(pairs), cols)) + " terms"
+
+    def depends_on(self, cols):
+        return ("Bx", "Bx", "By")[(cols or (0,))[0]]
+
+
+@dataclasses.dataclass(frozen=True)
+class CubicNonlinearity(Term, Entry):
+    r"""Cubes of the measured field: :math:`\sum_j c_j B_j^3` (``c`` in 1/uT^2; saturation flattens the response)."""
+
+    t0: float = 0.0
+    thermal: bool = False
+    name: ClassVar[str] = "cubic_nonlinearity"
+    explanation: ClassVar[str] = ("The magnetoresistive response flattens (or steepens) as the film approaches "
+                                  "saturation, an odd-order nonlinearity of the transfer curve.")
+
+    @property
+    def degree(self) -> int:
+        """Largest power of any single input (3; 3 + 1 with the temperature slopes)."""
+        return 3 + int(self.thermal)
+
+    def param_names(self):
+        return _thermal_names(self, ("c_x", "c_y", "c_z"))
+
+    def features(self, inputs):
+        return _with_thermal(self, inputs.b ** 3, inputs)
+
+    simulator_name: ClassVar[str] = "cubic"
+
+    def describe(self, cols):
+        return "reading gains " + " + ".join(f"B{n[2]}^3" for n in _cols_names(("c_x", "c_y", "c_z"), cols)) + " terms"
+
+    def depends_on(self, cols):
+        return "B" + "xyz"[(cols or (0,))[0]]
+
+
+@dataclasses.dataclass(frozen=True)
+class TemperatureQuadratic(Term, Entry):
+    r"""Second-order thermal terms: :math:`K_{o2} T_c^2` and, with ``scale=True``, :math:`\sum_j K_{s2,j} T_c^2 B_j`.
+
+    ``T_c = T - t0`` (C). ``Ko2`` in uT/C^2, ``Ks2_j`` in 1/C^2. With ``linear=True`` the
+    first-order columns ``Ko1 T_c`` [and ``Ks1_j T_c B_j``] follow (for a distortion of the
+    reading, which reaches the output through ``S + Ks T_c``). With ``cubic=True`` a
+    further :math:`K_{o3} T_c^3` (uT/C^3): an offset curvature of the sensor's own reading
+    reaches the calibrated output multiplied by the temperature-dependent gain
+    :math:`S + K_s T`, i.e. as a cubic in T (strongly so on an axis whose gain changes a lot
+    with temperature, such as y of the paper's sensor). Column order: Ko2, [Ko3], [Ks2_j], [Ko1, [Ks1_j]].
+    """
+
+    t0: float = 0.0
+    scale: bool = False
+    cubic: bool = False
+    linear: bool = False
+    name: ClassVar[str] = "temperature_quadratic"
+    degree: ClassVar[int] = 2           # T^2 and T^2 B_j: no input beyond the second power
+    explanation: ClassVar[str] = ("The bridge offset (and sensitivity) drifts nonlinearly with temperature, beyond "
+                                  "the linear Ko (and Ks) coefficients.")
+
+    def param_names(self):
+        return (("Ko2",) + (("Ko3",) if self.cubic else ())
+                + (("Ks2_x", "Ks2_y", "Ks2_z") if self.scale else ())
+                + ((("Ko1",) + (("Ks1_x", "Ks1_y", "Ks1_z") if self.scale else ())) if self.linear else ()))
+
+    def features(self, inputs):
+        tc = inputs.t - self.t0
+        tc2 = (tc * tc)[..., None]
+        cols = [tc2]
+        if self.cubic:
+            cols.append(tc2 * tc[..., None])
+        if self.scale:
+            cols.append(tc2 * inputs.b)
+        if self.linear:
+            cols.append(tc[..., None])
+            if self.scale:
+                cols.append(tc[..., None] * inputs.b)
+        return jnp.concatenate(cols, axis=-1) if len(cols) > 1 else tc2
+
+    requires: ClassVar[tuple] = ("temperature",)
+    simulator_name: ClassVar[str] = "temperature_quadratic"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        # the channel's offset curving with T, or its gain (T^2 times its own reading)
+        # with the first-order column too: a curvature about another temperature, (T - Tr)^2 =
+        # Tc^2 + 2 (T0 - Tr) Tc + const, is not absorbed by Ko once it passes through S + Ks Tc
+        return [Setting(cls(t0=ctx.t0, linear=True), cols=(0, 1)),
+                Setting(cls(t0=ctx.t0, scale=True, linear=True), cols=(1 + c, 5 + c))]
+
+    def describe(self, cols):
+        if cols is not None and self.scale and all(1 <= i <= 3 or 5 <= i <= 7 for i in cols):
+            return f"gain varies with (T-T0)^2 (T0 = {self.t0:.3g} C)"
+        return f"offset varies with (T-T0)^2 (T0 = {self.t0:.3g} C)"
+
+    def depends_on(self, cols):
+        return "T"
+
+
+@dataclasses.dataclass(frozen=True)
+class Hysteresis(Term, Entry):
+    r"""Offset :math:`h\,s(t)` with :math:`s \in \{-1, 0, +1\}` set by the history of measured field ``axis``.
+
+    ``mode="excursion"``: ``s`` is the sign of the last excursion of the measured component
+    beyond ``+-threshold`` uT. ``mode="direction"``: ``s`` is the sign of the last change
+    ``B(t) - B(t - lag samples)`` larger than ``min_step`` uT (direction of travel; the lag
+    averages down the sensor noise). ``s = 0`` before the first event of each run; with
+    ``across_runs=True`` the state is held across the gaps between runs (remanence survives
+    a power cycle), ``s = 0`` only before the first event of the recording.
+    Parameter ``h`` in uT. Thresholds are in *measured* uT (before calibration), unless
+    ``cal`` is given: the 8 (or 4, without temperature terms) thermo-affine coefficients
+    ``S_x S_y S_z Ks_x Ks_y Ks_z O Ko`` (``S_x S_y S_z O``) of the output ``axis``, about
+    ``t0``; the history is then that of the *calibrated* field ``(S + Ks T_c) . B + O + Ko T_c``
+    and the thresholds are in calibrated uT (needed where the axis' gain changes strongly
+    with temperature, so a fixed measured threshold is no fixed field).
+    """
+
+    axis: str = "x"
+    mode: str = "excursion"
+    threshold: float = 25.0
+    min_step: float = 2.0
+    lag: int = 4
+    t0: float = 0.0
+    thermal: bool = False
+    cal: tuple = ()
+    across_runs: bool = False
+    name: ClassVar[str] = "hysteresis"
+    degree: ClassVar[None] = None
+    explanation: ClassVar[str] = ("The permalloy film keeps a remanent magnetisation whose sign follows the last "
+                                  "large field excursion (or the direction of travel), shifting the bridge offset.")
+
+    def __post_init__(self):
+        _check_axis(self.axis, "hysteresis axis")
+        if self.mode not in ("excursion", "direction"):
+            raise ValueError(f"hysteresis mode is {self.mode!r}; it must be one of ['excursion', 'direction'].")
+        object.__setattr__(self, "cal", tuple(float(c) for c in self.cal))
+        if len(self.cal) not in (0, 4, 8):
+            raise ValueError(f"hysteresis cal has {len(self.cal)} values; it must have 0, 4 (S_x S_y S_z O) or 8 "
+                             f"(S_x S_y S_z Ks_x Ks_y Ks_z O Ko).")
+        if not (self.threshold >= 0 and self.min_step >= 0 and int(self.lag) >= 1):
+            raise ValueError(f"hysteresis threshold and min_step must be >= 0 uT and lag >= 1 sample; got "
+                             f"{self.threshold!r}, {self.min_step!r}, {self.lag!r}.")
+
+    def param_names(self):
+        return _thermal_names(self, ("h",))
+
+    def state(self, inputs: Inputs) -> jax.Array:
+        """(n,) magnetisation sign in {-1, 0, +1}."""
+        level = self.threshold if self.mode == "excursion" else self.min_step
+        run = jnp.zeros_like(inputs.run) if self.across_runs else inputs.run
+        return hysteresis_state(self.drive(inputs), run, level, mode=self.mode, lag=int(self.lag))
+
+    def drive(self, inputs: Inputs) -> jax.Array:
+        """(n,) the field whose history sets the state: measured ``axis``, or calibrated with ``cal``."""
+        b = inputs.b
+        if not self.cal:
+            return b[:, _AXES.index(self.axis)]
+        c = jnp.asarray(self.cal, dtype=b.dtype)
+        if c.size == 4:
+            return b @ c[:3] + c[3]
+        tc = inputs.t - self.t0
+        return b @ c[:3] + tc * (b @ c[3:6]) + c[6] + c[7] * tc
+
+    def features(self, inputs):
+        return _with_thermal(self, self.state(inputs)[:, None], inputs)
+
+    simulator_name: ClassVar[str] = "hysteresis"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        out = []
+        for k, ax in enumerate(_AXES):
+            m = float(ctx.reach[k])
+            if m <= 0:
+                continue
+            for across in (False, True):
+                for frac in (0.3, 0.5, 0.7):
+                    out.append(Setting(cls(axis=ax, mode="excursion", threshold=round(frac * m, 4),
+                                           across_runs=across)))
+                out.append(Setting(cls(axis=ax, mode="direction", min_step=round(6.0 * float(ctx.step_noise[k]), 4),
+                                       lag=4, across_runs=across)))
+            if ctx.cal and ctx.ref_reach:
+                # excursions of the calibrated field: a fixed field threshold even where the
+                # channel's gain changes with temperature
+                coef = tuple(round(float(v), 10) for v in ctx.cal[k])
+                for frac in (0.3, 0.5, 0.7):
+                    out.append(Setting(cls(axis=ax, mode="excursion", threshold=round(frac * float(ctx.ref_reach[k]), 4),
+                                           t0=ctx.t0, cal=coef)))
+        return out
+
+    def describe(self, cols):
+        how = (f"the last excursion of B{self.axis} beyond +-{self.threshold:.3g}" if self.mode == "excursion"
+               else f"the direction of travel of B{self.axis}")
+        return (f"offset switches with {how} (remanent state"
+                + (", held across the gaps between runs)" if self.across_runs else ", reset at each run)"))
+
+    def depends_on(self, cols):
+        return f"dir{self.axis}" if self.mode == "direction" else f"B{self.axis}"
+
+
+@dataclasses.dataclass(frozen=True)
+class OffsetDrift(Term, Entry):
+    r"""Offset changing with time: ``drift_rate (time - time_ref)`` and, with ``steps=True``, ``run_step (run - run_ref)``.
+
+    ``drift_rate`` in uT/s, ``run_step`` in uT per unit of run id (runs numbered
+    consecutively). Set ``time_ref`` near the data (e.g. its first time stamp) so the rate
+    is not collinear with the offset numerically.
+    """
+
+    time_ref: float = 0.0
+    run_ref: int = 0
+    rate: bool = True
+    steps: bool = False
+    name: ClassVar[str] = "offset_drift"
+    degree: ClassVar[None] = None
+    explanation: ClassVar[str] = ("Ageing, stress relaxation and slow electronics drift move the offset over time "
+                                  "and between sessions.")
+
+    def __post_init__(self):
+        if not (self.rate or self.steps):
+            raise ValueError("offset_drift needs rate=true, steps=true or both; got neither.")
+
+    def param_names(self):
+        return (("drift_rate",) if self.rate else ()) + (("run_step",) if self.steps else ())
+
+    def features(self, inputs):
+        cols = []
+        if self.rate:
+            cols.append(inputs.time - self.time_ref)
+        if self.steps:
+            cols.append((inputs.run - self.run_ref).astype(inputs.time.dtype))
+        return jnp.stack(cols, axis=-1)
+
+    requires: ClassVar[tuple] = ("time",)
+    simulator_name: ClassVar[str] = "offset_drift"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls(time_ref=ctx.time_ref, run_ref=int(ctx.runs[0]), rate=True, steps=False))]
+
+    def describe(self, cols):
+        return "offset drifts linearly in time"
+
+
+@dataclasses.dataclass(frozen=True)
+class RunOffset(Term, Entry):
+    r"""A separate offset for each run after the first: ``sum_k o_k [run == runs[k]]``, k >= 1 (uT).
+
+    Power cycling and set/reset pulses re-seat the bridge offset between runs; ``runs`` lists
+    the run ids (the first is the reference). Parameters ``o_<run>``.
+    """
+
+    runs: tuple = (0, 1)
+    name: ClassVar[str] = "run_offset"
+    degree: ClassVar[None] = None
+    requires: ClassVar[tuple] = ("runs",)
+    localised: ClassVar[str | None] = "run"
+    explanation: ClassVar[str] = ("Power cycling and set/reset pulses re-seat the bridge offset, so the offset steps "
+                                  "between runs.")
+
+    def __post_init__(self):
+        object.__setattr__(self, "runs", tuple(int(r) for r in self.runs))
+        if len(self.runs) < 2 or len(set(self.runs)) != len(self.runs):
+            raise ValueError(f"run_offset runs is {self.runs!r}; it must list two or more distinct run ids.")
+
+    def param_names(self):
+        return tuple(f"o_{r}" for r in self.runs[1:])
+
+    def features(self, inputs):
+        return (inputs.run[:, None] == jnp.asarray(self.runs[1:])[None, :]).astype(inputs.t.dtype)
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls(runs=tuple(ctx.runs)))]
+
+    def describe(self, cols):
+        if cols is None or len(cols) == len(self.runs) - 1:
+            return "offset steps between runs"
+        which = ", ".join(str(self.runs[1:][c]) for c in cols)
+        return f"offset of run{'s' if len(cols) > 1 else ''} {which} differs from the other runs'"
+
+    def depends_on(self, cols):
+        return "run"
+
+
+def hysteresis_state(f: jax.Array, run: jax.Array, level, *, mode: str, lag: int = 4) -> jax.Array:
+    """Sign of the last excursion of ``f`` beyond +-``level`` (``mode="excursion"``) or of the
+    last change ``f(t) - f(t - lag)`` larger than ``level`` (``mode="direction"``), held within runs."""
+    if mode == "excursion":
+        sign = jnp.where(f > level, 1.0, jnp.where(f < -level, -1.0, 0.0))
+    else:
+        prev = jnp.concatenate([jnp.zeros((lag,), f.dtype), f[:-lag]])
+        prev_run = jnp.concatenate([jnp.full((lag,), -1, run.dtype), run[:-lag]])
+        d = jnp.where(prev_run == run, f - prev, 0.0)
+        sign = jnp.where(jnp.abs(d) > level, jnp.sign(d), 0.0)
+    return _hold_last(sign, sign != 0, run)
+
+
+# --------------------------------------------------------------------------- transforms
+
+
+@dataclasses.dataclass(frozen=True)
+class ThermalLag(_physics.ThermalLag, Entry):
+    r"""Sensor temperature as a first-order lag of the logged temperature (time constant tau, s).
+
+    See :class:`bayesmag._src.core.physics.ThermalLag`; parameter ``log_tau``; ``tau0`` is the
+    starting value in seconds.
+    """
+
+    explanation: ClassVar[str] = ("The sensor die heats and cools more slowly than the thermometer that logs the "
+                                  "temperature, so it sees a lagged temperature.")
+    requires: ClassVar[tuple] = ("time", "temperature")
+    scope: ClassVar[str] = "sensor"
+    simulator_name: ClassVar[str] = "thermal_lag"
+    #: A lag shorter than this many samples is smoothing of the temperature log, not heat flow.
+    MIN_SAMPLES: ClassVar[float] = 10.0
+
+    @classmethod
+    def grid(cls, ctx, c):
+        lo = max(cls.MIN_SAMPLES * ctx.dt, 5.0)
+        hi = max(2 * lo, ctx.run_span / 2)
+        return [Setting(cls(tau0=float(t)), nl=float(np.log(t))) for t in np.geomspace(lo, hi, 10)]
+
+    def describe(self, cols):
+        return "temperature the sensor sees lags the logged temperature"
+
+    def depends_on(self, cols):
+        return "dT/dt"
+
+    def implausible(self, value, ctx):
+        tau = float(np.exp(value))
+        if tau < self.MIN_SAMPLES * ctx.dt:
+            return (f"tau = {tau:.3g} s is under {self.MIN_SAMPLES:g} samples ({self.MIN_SAMPLES * ctx.dt:.3g} s): "
+                    f"that smooths the noise of the temperature log; it is not heat flow")
+        if tau > 2 * ctx.run_span:
+            return f"tau = {tau:.3g} s is longer than twice a run ({ctx.run_span:.3g} s): not identified"
+        return None
+
+
+@dataclasses.dataclass(frozen=True)
+class TimingOffset(InputTransform, Entry):
+    r"""The sensor stream is delayed by ``delta`` s against the reference.
+
+    The row logged at time :math:`t` saw the field of time :math:`t - \delta`, so the
+    calibrated field at :math:`t` uses the readings (and temperature) interpolated at
+    :math:`t + \delta`, linearly within each run and held at the run's ends. Parameter
+    ``delta`` in s (positive: the sensor lags); ``delta0`` is its starting value.
+    """
+
+    delta0: float = 0.0
+    name: ClassVar[str] = "timing_offset"
+    explanation: ClassVar[str] = ("The sensor and the reference are sampled by different clocks, so each sensor row "
+                                  "is logged a fixed latency after the field it saw.")
+
+    requires: ClassVar[tuple] = ("time", "increasing_time")
+    scope: ClassVar[str] = "sensor"
+    simulator_name: ClassVar[str] = "timing_offset"
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls(delta0=float(d)), nl=float(d)) for d in np.arange(-8, 9) * ctx.dt / 2 if d != 0]
+
+    def describe(self, cols):
+        return "sensor stream is delayed against the reference"
+
+    def depends_on(self, cols):
+        return "dBx/dt"
+
+    def implausible(self, value, ctx):
+        if abs(value) > 10 * ctx.dt:
+            return f"delta = {value:.3g} s is more than 10 samples: not a clock latency"
+        return None
+
+    def param_names(self):
+        return ("delta",)
+
+    def init_params(self, axis):
+        return np.array([float(self.delta0)])
+
+    def __call__(self, params, inputs):
+        delta = params[0]
+        time = inputs.time
+        first, last = _run_first_last(inputs.run)
+        t_first, t_last = time[first], time[last]
+        order = jnp.cumsum(_run_starts(inputs.run)).astype(time.dtype)
+        width = jnp.max(t_last - t_first) + 1.0
+        tm = time - t_first + order * width                     # strictly increasing across runs
+        q = jnp.clip(time + delta, t_first, t_last) - t_first + order * width
+        b = jnp.stack([jnp.interp(q, tm, inputs.b[:, k]) for k in range(3)], axis=-1)
+        t = jnp.interp(q, tm, inputs.t)
+        return inputs._replace(b=b, t=t)
+
+
+for _cls in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, Hysteresis):
+    _cls.__doc__ = (_cls.__doc__ or "") + _THERMAL_DOC
+
+#: The discovery catalogue: name -> class (each class carries its own grid, label, requirements, twin).
+CATALOGUE: dict[str, type] = {
+    c.name: c for c in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, TemperatureQuadratic, ThermalLag,
+                        TimingOffset, Hysteresis, OffsetDrift, RunOffset)
+}
+
+#: Simulator effect name (:mod:`bayesmag.simulate`) -> catalogue name that represents it.
+SIMULATOR_NAMES: dict[str, str] = {c.simulator_name: n for n, c in CATALOGUE.items() if c.simulator_name}
+
+
+def explanation(name: str) -> str:
+    """The one-sentence physical explanation of catalogue entry ``name``."""
+    if name not in CATALOGUE:
+        raise ValueError(f"catalogue entry {name!r} is not known; it must be one of {sorted(CATALOGUE)}.")
+    return CATALOGUE[name].explanation
+
+
+EXTRA_TERMS.update(CATALOGUE)
+
+
+def register(cls: type) -> type:
+    """Add catalogue class ``cls`` to :data:`CATALOGUE`, :data:`~bayesmag._src.core.physics.EXTRA_TERMS`
+    and :data:`SIMULATOR_NAMES` (so fit, discover, NUTS and saved calibrations know it); returns
+    ``cls``, so it can decorate the class. Undo with :func:`unregister`."""
+    if not (isinstance(cls, type) and issubclass(cls, Entry) and issubclass(cls, (Term, InputTransform))
+            and dataclasses.is_dataclass(cls)):
+        raise TypeError(f"a catalogue entry must be a dataclass subclassing Entry and Term or InputTransform; "
+                        f"got {cls!r}.")
+    name = getattr(cls, "name", None)
+    if not isinstance(name, str) or not isinstance(getattr(cls, "explanation", None), str):
+        raise TypeError(f"catalogue entry {cls.__name__} must set a string 'name' and a one-sentence 'explanation'.")
+    if name in EXTRA_TERMS or name == "thermo_affine":
+        raise ValueError(f"a physics term named {name!r} is already registered; registered: {sorted(EXTRA_TERMS)}.")
+    if cls.scope not in ("channel", "sensor"):
+        raise ValueError(f"catalogue entry {name!r} has scope {cls.scope!r}; it must be one of ['channel', 'sensor'].")
+    CATALOGUE[name] = EXTRA_TERMS[name] = cls
+    if cls.simulator_name:
+        SIMULATOR_NAMES[cls.simulator_name] = name
+    return cls
+
+
+def unregister(name: str) -> type:
+    """Remove catalogue entry ``name`` (e.g. one a test registered) from every registry; returns its class."""
+    if name not in CATALOGUE:
+        raise ValueError(f"catalogue entry {name!r} is not registered; registered: {sorted(CATALOGUE)}.")
+    cls = CATALOGUE.pop(name)
+    EXTRA_TERMS.pop(name, None)
+    if SIMULATOR_NAMES.get(cls.simulator_name) == name:
+        del SIMULATOR_NAMES[cls.simulator_name]
+    return cls
+
+
+def make_extra(spec, *, t0: float = 0.0):
+    """Build an extra term/transform from a name or a ``{name = ..., field = value}`` table."""
+    if isinstance(spec, str):
+        spec = {"name": spec}
+    spec = dict(spec)
+    name = spec.pop("name", None)
+    if name not in EXTRA_TERMS:
+        raise ValueError(f"physics extra term {name!r} is not known; it must be one of {sorted(EXTRA_TERMS)}.")
+    cls = EXTRA_TERMS[name]
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(spec) - fields
+    if unknown:
+        raise ValueError(f"physics extra term {name!r} has no parameter(s) {sorted(unknown)}; valid: {sorted(fields)}.")
+    if "t0" in fields and "t0" not in spec:
+        spec["t0"] = t0
+    return cls(**spec)

@@ -1,0 +1,277 @@
+r"""Physics calibration models, built from small terms.
+
+The model for output axis :math:`i` is a sum of terms evaluated on (possibly transformed)
+inputs,
+
+.. math::  \hat B_{\mathrm{ref},i} = \sum_k g_k(\theta_{i,k};\, \mathcal{T}(x; \theta_{i,\mathcal{T}}))
+
+where the base term is the paper's temperature-compensated affine model (Shetty & Marndi
+2026, eq. 1-2), written in :math:`T_c = T - T_0`,
+
+.. math::  \sum_j (S_{ij} + K_{s,ij} T_c) B_{\mathrm{meas},j} + O_i + K_{o,i} T_c .
+
+Extension points (each one small frozen class, nothing else changes):
+
+* :class:`Term` -- an additive contribution ``g(params, inputs) -> (n,)``. A term that is
+  linear in its parameters also exposes ``features(inputs) -> (n, k)`` so fits and the
+  physics uncertainty can use exact linear algebra; ``degree`` is its largest power of any
+  single input among (Bx, By, Bz, T) (``T*B_j`` has degree 1, ``B_j^2`` degree 2; ``None`` if
+  not polynomial), used by the analytic uncertainty method (``degree + 1`` Gauss-Hermite
+  nodes per input are exact).
+* :class:`InputTransform` -- maps the whole input series to new inputs with its own
+  (possibly nonlinear) parameters, e.g. a thermal lag or a timing delay.
+
+Parameters of one axis are one flat vector: base term, extra terms, transforms, in order.
+All axes share the structure, so three axes are handled with ``jax.vmap``.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import functools
+from typing import ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Inputs", "Term", "InputTransform", "ThermoAffine", "ThermalLag",
+           "PhysicsModel", "inputs_from_data", "AXES"]
+
+AXES = ("x", "y", "z")
+
+
+class Inputs(NamedTuple):
+    """Model inputs: field b (..., 3) in uT, temperature t (...,) in C, time (...,) in s, run id."""
+
+    b: jax.Array
+    t: jax.Array
+    time: jax.Array
+    run: jax.Array
+
+
+def inputs_from_data(data) -> Inputs:
+    """:class:`Inputs` (float64) from a :class:`~bayesmag.CalibrationData`."""
+    return Inputs(jnp.asarray(data.b_meas), jnp.asarray(data.temperature), jnp.asarray(data.time),
+                  jnp.asarray(data.run))
+
+
+class Term(abc.ABC):
+    """An additive model term for one output axis.
+
+    Subclasses are frozen dataclasses and set ``name``, ``linear`` and ``degree``.
+    """
+
+    name: ClassVar[str]
+    linear: ClassVar[bool] = True
+    #: Largest power of any single input (Bx, By, Bz, T) in the features; None if not polynomial.
+    #: A larger value is still exact, only slower.
+    degree: ClassVar[int | None] = 1
+
+    @abc.abstractmethod
+    def param_names(self) -> tuple[str, ...]: ...
+
+    def init_params(self, axis: int) -> np.ndarray:
+        """Starting values for output ``axis``; zeros unless the term says otherwise."""
+        return np.zeros(len(self.param_names()))
+
+    def features(self, inputs: Inputs) -> jax.Array:
+        """(..., k) design columns such that ``self(p, inputs) == features @ p`` (linear terms)."""
+        raise NotImplementedError(f"term {self.name!r} is not linear in its parameters")
+
+    def __call__(self, params: jax.Array, inputs: Inputs) -> jax.Array:
+        return self.features(inputs) @ params
+
+
+class InputTransform(abc.ABC):
+    """A transform of the whole input series with its own parameters (often nonlinear)."""
+
+    name: ClassVar[str]
+
+    @abc.abstractmethod
+    def param_names(self) -> tuple[str, ...]: ...
+
+    @abc.abstractmethod
+    def init_params(self, axis: int) -> np.ndarray: ...
+
+    @abc.abstractmethod
+    def __call__(self, params: jax.Array, inputs: Inputs) -> Inputs: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class ThermoAffine(Term):
+    """The paper's base model: ``(S + Ks Tc) B + O + Ko Tc`` with ``Tc = T - t0``.
+
+    Parameters per axis (paper order): ``S_x S_y S_z Ks_x Ks_y Ks_z O Ko``; with
+    ``temperature=False`` only ``S_x S_y S_z O`` (for recordings at constant temperature).
+    """
+
+    t0: float = 0.0
+    temperature: bool = True
+    name: ClassVar[str] = "thermo_affine"
+    degree: ClassVar[int] = 1           # B_j, T, T*B_j: each input at most to the first power
+
+    def param_names(self):
+        if self.temperature:
+            return ("S_x", "S_y", "S_z", "Ks_x", "Ks_y", "Ks_z", "O", "Ko")
+        return ("S_x", "S_y", "S_z", "O")
+
+    def init_params(self, axis):
+        p = np.zeros(len(self.param_names()))
+        p[axis] = 1.0
+        return p
+
+    def features(self, inputs):
+        b = inputs.b
+        one = jnp.ones_like(inputs.t)
+        if not self.temperature:
+            return jnp.concatenate([b, one[..., None]], axis=-1)
+        tc = inputs.t - self.t0
+        return jnp.concatenate([b, tc[..., None] * b, one[..., None], tc[..., None]], axis=-1)
+
+
+@dataclasses.dataclass(frozen=True)
+class ThermalLag(InputTransform):
+    r"""Sensor temperature as a first-order lag of the logged temperature.
+
+    .. math::  \tau\, \dot T_s = T - T_s, \quad T_s(0) = T(0) \text{ at each run start},
+
+    discretised exactly for piecewise-constant input between samples
+    (:math:`a = e^{-\Delta t/\tau}`), run with ``lax.scan``. Parameter ``log_tau``
+    (tau in seconds, log-parametrised so it stays positive).
+    """
+
+    tau0: float = 30.0
+    name: ClassVar[str] = "thermal_lag"
+
+    def param_names(self):
+        return ("log_tau",)
+
+    def init_params(self, axis):
+        return np.array([np.log(self.tau0)])
+
+    def __call__(self, params, inputs):
+        tau = jnp.exp(params[0])
+        dt = jnp.diff(inputs.time, prepend=inputs.time[:1])
+        new_run = jnp.concatenate([jnp.array([True]), inputs.run[1:] != inputs.run[:-1]])
+
+        def step(ts, xs):
+            t, d, fresh = xs
+            a = jnp.exp(-jnp.maximum(d, 0.0) / tau)
+            nxt = jnp.where(fresh, t, a * ts + (1 - a) * t)
+            return nxt, nxt
+
+        _, ts = jax.lax.scan(step, inputs.t[0], (inputs.t, dt, new_run))
+        return inputs._replace(t=ts)
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsModel:
+    """A calibration model for one output axis: terms summed on transformed inputs.
+
+    Example:
+      >>> m = PhysicsModel.paper()
+      >>> m.param_names[:3], m.n_params
+      (('S_x', 'S_y', 'S_z'), 8)
+    """
+
+    terms: tuple[Term, ...]
+    transforms: tuple[InputTransform, ...] = ()
+
+    @classmethod
+    def paper(cls, *, t0: float = 0.0, temperature: bool = True, extra: tuple = ()) -> "PhysicsModel":
+        """The paper's thermo-affine model plus optional extra terms/transforms."""
+        terms = (ThermoAffine(t0=t0, temperature=temperature),) + tuple(e for e in extra if isinstance(e, Term))
+        transforms = tuple(e for e in extra if isinstance(e, InputTransform))
+        return cls(terms, transforms)
+
+    # ---- parameter bookkeeping (static) --------------------------------------------
+    @property
+    def components(self) -> tuple:
+        return self.terms + self.transforms
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(n for c in self.components for n in c.param_names())
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def _slices(self):
+        out, i = [], 0
+        for c in self.components:
+            k = len(c.param_names())
+            out.append(slice(i, i + k))
+            i += k
+        return out
+
+    def init_params(self, axis: int) -> np.ndarray:
+        return np.concatenate([c.init_params(axis) for c in self.components])
+
+    def init_params_all(self) -> np.ndarray:
+        """(3, p) starting values for the three output axes."""
+        return np.stack([self.init_params(a) for a in range(3)])
+
+    @property
+    def is_linear(self) -> bool:
+        """True if the prediction is linear in all parameters (exact linear algebra applies)."""
+        return not self.transforms and all(t.linear for t in self.terms)
+
+    @property
+    def degree(self) -> int | None:
+        """Largest power of any single input in the features (see :class:`Term`), or None."""
+        if self.transforms or any(t.degree is None for t in self.terms):
+            return None
+        return max(t.degree for t in self.terms)
+
+    # ---- evaluation -------------------------------------------------------------------
+    def transform(self, theta: jax.Array, inputs: Inputs) -> Inputs:
+        """Apply the input transforms (whole series) for parameters ``theta`` (p,)."""
+        sl = self._slices()[len(self.terms):]
+        for tr, s in zip(self.transforms, sl):
+            inputs = tr(theta[s], inputs)
+        return inputs
+
+    def pointwise(self, theta: jax.Array, inputs: Inputs) -> jax.Array:
+        """Sum of the additive terms on already-transformed inputs, any leading shape."""
+        sl = self._slices()
+        out = 0.0
+        for term, s in zip(self.terms, sl):
+            out = out + term(theta[s], inputs)
+        return out
+
+    def predict(self, theta: jax.Array, inputs: Inputs) -> jax.Array:
+        """Calibrated field of one axis, (n,), for parameters ``theta`` (p,)."""
+        return self.pointwise(theta, self.transform(theta, inputs))
+
+    def features(self, inputs: Inputs) -> jax.Array:
+        """(..., p) design matrix of a linear model: ``predict(theta) == features @ theta``."""
+        if not self.is_linear:
+            raise ValueError("features() needs a model linear in its parameters; this one has "
+                             f"nonlinear components {[c.name for c in self.components if not getattr(c, 'linear', False)]}.")
+        return jnp.concatenate([t.features(inputs) for t in self.terms], axis=-1)
+
+    def predict_all(self, theta3: jax.Array, inputs: Inputs) -> jax.Array:
+        """(n, 3) calibrated field for per-axis parameters ``theta3`` (3, p); one compiled program per model
+        and shape (called eagerly, the vmapped terms were a dozen small programs each)."""
+        return _predict_all(self, theta3, inputs)
+
+    def describe(self) -> dict:
+        return {
+            "terms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.terms],
+            "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
+            "param_names": list(self.param_names),
+        }
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _predict_all(model: PhysicsModel, theta3, inputs: Inputs):
+    return jax.vmap(model.predict, in_axes=(0, None), out_axes=1)(theta3, inputs)
+
+
+#: Named model extensions usable as ``[physics] extra_terms = ["name", {name = "...", ...}]``;
+#: filled by :mod:`bayesmag._src.core.catalogue` (the discovery catalogue, which builds them by name
+#: with :func:`~bayesmag._src.core.catalogue.make_extra`). physics does not import the catalogue: no cycle.
+EXTRA_TERMS: dict[str, type] = {}

@@ -1,0 +1,1 @@
+"""bayesmag pipeline layer."""

@@ -1,0 +1,345 @@
+r"""Discovery of missing physics: search the catalogue in the sensor's frame, check the set, describe the rest.
+
+1. **Baseline**: the thermo-affine model per output; each output weighted by 1 / its
+   high-frequency noise floor; folds of contiguous time blocks (or runs).
+2. **Search** (:mod:`.search`): every catalogue entry on every sensor channel, every output,
+   or the whole sensor, scored out of sample against the current joint model; forward
+   selection.
+3. **Checks** (:mod:`.checks`): drop-one refits of the whole finding set; coefficients the
+   data do not identify are removed; the joint model is refitted exactly (:mod:`.frame`, one
+   LM over 24 + k parameters) and nonlinear values outside the entry's physical range
+   remove the effect.
+4. **Describe** (:mod:`.diagnostics`): the final residual, mapped back to the sensor
+   channels, is located again; structure left (strong autocorrelation above the noise floor,
+   or located patterns) is reported as unexplained with its time scale.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time as _time
+
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from bayesmag._src.core import catalogue as C
+from bayesmag._src.core.data import AXES, CalibrationData
+from bayesmag._src.core.fit import lag1_autocorrelation
+from bayesmag._src.core.physics import ThermoAffine, inputs_from_data
+from bayesmag._src.pipeline.discover.checks import drop_one, identified, lag_or_smoothing
+from bayesmag._src.pipeline.discover.diagnostics import block_ids, block_length, locate, make_variables, noise_floor, run_starts, structure
+from bayesmag._src.pipeline.discover.frame import Designs, Extension, JointModel, gain_matrix, lstsq, refit
+from bayesmag._src.pipeline.discover.options import DELTA_SYS_FRACTION, ROWS_PER_PARAM, Z_DISTINCT, DiscoverOptions
+from bayesmag._src.pipeline.discover.result import DiscoveryResult
+from bayesmag._src.pipeline.discover.search import compare, cv_residuals, forward, groups, score_group
+
+__all__ = ["discover"]
+
+
+def _folds(data, options, notes, corr_rows):
+    same = ~run_starts(data.run)[1:]
+    dt = float(np.median(np.diff(data.time)[same])) if same.any() else 1.0
+    if options.block_s is not None:
+        block_rows = max(10, int(round(options.block_s / max(dt, 1e-9))))
+    else:
+        block_rows = int(np.clip(max(data.n // 150, corr_rows), 10, max(10, data.n // 30)))
+    blocks = block_ids(data, block_rows)
+    runs = np.unique(data.run)
+    if options.cv == "by_run":
+        if runs.size < 2:
+            notes.append(f"cv = 'by_run' needs at least two runs; the data has one (run {runs[0]}), so "
+                         f"contiguous time blocks ({options.n_folds} folds) are used instead.")
+        else:
+            return np.searchsorted(runs, data.run), blocks, f"leave-one-run-out over {runs.size} runs"
+    nb = blocks.max() + 1
+    folds = blocks % int(options.n_folds) if nb >= int(options.n_folds) else blocks
+    return folds, blocks, (f"{int(options.n_folds)}-fold cross-validation by contiguous time blocks "
+                           f"(~{block_rows} rows each, {nb} blocks)")
+
+
+def _context(data, t0, dt, W0=None) -> C.SearchContext:
+    runs = tuple(int(r) for r in dict.fromkeys(data.run.tolist()))
+    spans = [float(np.ptp(data.time[data.run == r])) for r in runs]
+    b = data.b_meas
+    same = ~run_starts(data.run)[1:]
+    steps = [float(1.4826 * np.median(np.abs(np.diff(b[:, k])[same]))) + 1e-9 for k in range(3)]
+    return C.SearchContext(t0=t0, dt=dt, time_ref=float(data.time[0]), runs=runs,
+                           run_span=float(np.median(spans)) if spans else 1.0,
+                           reach=tuple(float(np.quantile(np.abs(b[:, k]), 0.98)) for k in range(3)),
+                           step_noise=tuple(steps),
+                           cal=tuple(tuple(float(v) for v in w) for w in W0) if W0 is not None and W0.shape[1] in (4, 8)
+                           else (),
+                           ref_reach=tuple(float(np.quantile(np.abs(data.b_ref[:, k]), 0.98)) for k in range(3)))
+
+
+def _label(ext) -> str:
+    c = ext.component
+    fields = {f.name: getattr(c, f.name) for f in dataclasses.fields(c)
+              if f.name not in ("t0", "cal", "tau0", "delta0", "time_ref", "run_ref", "runs")}
+    inner = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in fields.items())
+    place = "whole sensor" if ext.frame == "whole" else f"{AXES[ext.slot]} {'channel' if ext.frame == 'sensor' else 'output'}"
+    cols = f", {'+'.join(ext.param_names)}" if ext.frame != "whole" else ""
+    return f"{c.name}({inner}{', ' if inner else ''}{place}{cols})"
+
+
+def _spec(ext, value) -> dict:
+    c = ext.component
+    d = {"name": c.name}
+    for f in dataclasses.fields(c):
+        if f.name != "t0":
+            d[f.name] = getattr(c, f.name)
+    if c.name == "thermal_lag":
+        d["tau0"] = round(float(math.exp(value)), 4)
+    if c.name == "timing_offset":
+        d["delta0"] = round(float(value), 4)
+    return d
+
+
+def _scores(y, pred, e_oos_w, w, run) -> list:
+    n = y.shape[0]
+    e = e_oos_w.reshape(3, n).T / w
+    r = y - pred
+    return [{"rmse": float(np.sqrt(np.mean(e[:, a] ** 2))), "mae": float(np.mean(np.abs(e[:, a]))),
+             "lag1_autocorrelation": lag1_autocorrelation(r[:, a], run),
+             "rmse_in_sample": float(np.sqrt(np.mean(r[:, a] ** 2)))} for a in range(3)]
+
+
+def _axis_dict(per_axis: list) -> dict:
+    return {k: {ax: per_axis[a][k] for a, ax in enumerate(AXES)} for k in per_axis[0]}
+
+
+def _to_channels(base, W, t, resid) -> np.ndarray:
+    """Output residuals (n, 3) mapped back to the sensor channels: solve (S + Ks Tc) r_ch = r."""
+    G = gain_matrix(base, W, t)
+    return np.linalg.solve(G, resid[..., None])[..., 0]
+
+
+def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, progress=None,
+             **kwargs) -> DiscoveryResult:
+    """Locate, name and model physics missing from the thermo-affine calibration model.
+
+    Args:
+      data: a recording with a reference (:class:`~bayesmag.CalibrationData`).
+      options: :class:`DiscoverOptions`; or give its fields as keyword arguments.
+      progress: optional callable receiving one line per stage.
+
+    Returns:
+      :class:`DiscoveryResult` (``.write(dir)`` writes findings.json, report.md, figures).
+
+    Example:
+      >>> from bayesmag.simulate import simulate, get_effect
+      >>> d = simulate(3000, design="campaign", seed=0, effects=[get_effect("cubic", out="x", inp="x")])
+      >>> r = discover(d, figures=False)
+      >>> [(f["channel"], f["effect"]) for f in r.findings][:1]
+      [('x', 'cubic_nonlinearity')]
+    """
+    t_start = _time.perf_counter()
+    say = progress or (lambda msg: None)
+    if options is None:
+        options = DiscoverOptions(**kwargs)
+    elif kwargs:
+        raise TypeError(f"give options or keyword arguments, not both; got keywords {sorted(kwargs)}.")
+    if not isinstance(data, CalibrationData):
+        raise TypeError(f"data must be a CalibrationData; got {type(data).__name__}.")
+    if data.b_ref is None:
+        raise ValueError("discovery needs a recording with reference columns (b_ref); this one has none.")
+    from bayesmag._src.core.data import validate_for_discover
+    validate_for_discover(data)             # finite, plausible uT/Celsius values, rows sorted by time (issue 11)
+    if data.n < 50:
+        raise ValueError(f"discovery needs at least 50 rows; the data has {data.n}.")
+    notes, skipped, rejected = [], [], []
+    # ---- baseline
+    time_ok = options.time_available
+    if time_ok is None:
+        time_ok = not np.array_equal(data.time, np.arange(data.n, dtype=np.float64))
+        if not time_ok:
+            notes.append("The data have no time column (time equals the row index): time-domain candidates "
+                         "and the periodicity check are skipped.")
+    t_std = float(np.std(data.temperature))
+    temp_terms = t_std > 0.05
+    t0 = float(np.mean(data.temperature)) if options.t0 == "mean" else float(options.t0)
+    base = ThermoAffine(t0=t0, temperature=temp_terms)
+    if not temp_terms:
+        notes.append(f"Temperature varies by only {t_std:.3g} C (sd): the base model has no temperature terms.")
+    inputs = inputs_from_data(data)
+    y = np.asarray(data.b_ref)
+    run = np.asarray(data.run)
+    X0 = np.asarray(base.features(inputs))
+    W0 = np.stack([lstsq(X0, y[:, a]) for a in range(3)])
+    base_resid = y - X0 @ W0.T
+    floors = np.array([noise_floor(base_resid[:, a], run) for a in range(3)])
+    w = 1.0 / np.maximum(floors, 1e-12)
+    corr_rows = max(block_length(base_resid[:, a]) for a in range(3))
+    folds, blocks, cv_desc = _folds(data, options, notes, corr_rows)
+    folds3 = np.tile(folds, 3)
+    same = ~run_starts(run)[1:]
+    dt = float(np.median(np.diff(data.time)[same])) if same.any() else 1.0
+    designs = Designs(base, inputs, y, w, gain_matrix(base, W0, np.asarray(data.temperature)))
+    ctx = _context(data, t0, dt, W0)
+    say(f"baseline thermo-affine fit on {data.n} rows; {cv_desc}")
+
+    # ---- candidate groups from the registry
+    has = set()
+    if time_ok:
+        has.add("time")
+        if not (np.diff(data.time)[same] <= 0).any():
+            has.add("increasing_time")
+    if temp_terms:
+        has.add("temperature")
+    if len(ctx.runs) >= 2 and options.cv != "by_run":
+        has.add("runs")
+    names = list(options.candidates or C.CATALOGUE)
+    n_train_min = int(np.min([np.sum(folds != k) for k in np.unique(folds)]))
+    for name in names:
+        missing = sorted(set(C.CATALOGUE[name].requires) - has)
+        if missing:
+            why = {"time": "a time column", "increasing_time": "time increasing within each run",
+                   "temperature": f"temperature variation (sd {t_std:.3g} C)",
+                   "runs": "two or more runs and cv = 'time_blocks'"}
+            skipped.append({"candidate": name, "reason": "needs " + ", ".join(why[m] for m in missing)})
+    cands = groups(ctx, [n for n in names if n not in {s["candidate"] for s in skipped}], has)
+    k_base = 3 * len(base.param_names())
+    too_big = sorted({k[0] for k, opts in cands.items()
+                      if n_train_min < ROWS_PER_PARAM * (k_base + max(o.n_linear for o in opts))})
+    for name in too_big:
+        skipped.append({"candidate": name, "reason": f"needs at least {ROWS_PER_PARAM} training rows per parameter; "
+                                                     f"a fold has {n_train_min}"})
+    cands = {k: v for k, v in cands.items() if k[0] not in too_big}
+    for s in skipped:
+        notes.append(f"Candidate {s['candidate']} skipped: {s['reason']}.")
+
+    def n_eff_fn(r):
+        rho = np.mean([max(lag1_autocorrelation(r.reshape(3, -1)[a], run), 0.0) for a in range(3)])
+        return r.size * (1 - rho) / (1 + rho)
+
+    e0, r0, _, k0 = cv_residuals(designs, (), [None], folds3)
+    say(f"searching {len(cands)} candidate groups ({sum(len(v) for v in cands.values())} settings)")
+    selected, steps, _ = forward(designs, cands, folds3, blocks, (e0, r0, k0), n_eff_fn, int(options.max_terms),
+                                 progress=say)
+    kept, dropped = drop_one(designs, selected, folds3, blocks, n_eff_fn, progress=say)
+    for ext, s in dropped:
+        rejected.append({"effect": ext.name, "where": _label(ext),
+                         "reason": f"does not survive the drop-one check: given the other findings its out-of-sample "
+                                   f"gain is {s.gain:.1%} (block z = {s.z:.1f}, BIC_eff change {s.dbic:.1f})"})
+    kept, not_ident = identified(designs, kept, run)
+    for lag in [e for e in kept if e.name == "thermal_lag"]:
+        z_lag, tau_sm = lag_or_smoothing(designs, kept, lag, folds3, blocks)
+        if z_lag < Z_DISTINCT:
+            kept = tuple(e for e in kept if e != lag)
+            rejected.append({"effect": "thermal_lag", "where": _label(lag),
+                             "reason": f"a zero-phase smoothing of the temperature log (tau {tau_sm:.3g} s, no delay) "
+                                       f"fits as well out of sample (lag better by block z = {z_lag:.1f} < "
+                                       f"{Z_DISTINCT}): the gain is smoothing of the log's noise, not heat flow"})
+            notes.append(f"Smoothing the logged temperature (tau ~{tau_sm:.3g} s) improves the fit, but a delay does "
+                         f"not: the temperature log is noisy; no thermal lag is reported.")
+    if "thermal_lag" in {k[0] for k in cands} and not any(e.name == "thermal_lag" for e in kept):
+        # a lag of a few samples is outside the grid (not heat flow); say so if it would help
+        few = [Extension(C.Setting(C.ThermalLag(tau0=m * dt), nl=float(np.log(m * dt))), "whole") for m in (2, 4)]
+        e_k, r_k, _, k_k = cv_residuals(designs, kept, [None], folds3)
+        sm = score_group(designs, kept, ("thermal_lag", "whole", None), few, folds3, blocks, (e_k, r_k, k_k),
+                         n_eff_fn(r_k))
+        if sm.accepted:
+            notes.append(f"Smoothing the logged temperature over a few samples (a first-order lag of "
+                         f"{math.exp(sm.ext.setting.nl):.3g} s) improves the fit out of sample (block z = {sm.z:.1f}): "
+                         f"the temperature log is noisy. That is not heat flow, so no thermal lag is reported.")
+
+    # ---- exact joint refit, plausibility of nonlinear values
+    while True:
+        model = JointModel(base, kept)
+        X = designs.matrix(kept)
+        beta = lstsq(X, designs.y)
+        theta0 = np.concatenate([beta, [e.setting.nl for e in model.transforms]])
+        say(f"joint Levenberg-Marquardt refit: {model.n_params} parameters")
+        theta, cov, resid, converged = refit(model, theta0, inputs, y, w, run)
+        sl = model.slices()
+        bad = [(e, e.component.implausible(float(theta[sl[e][0]]), ctx)) for e in model.transforms]
+        bad = [(e, why) for e, why in bad if why]
+        if not bad:
+            break
+        for e, why in bad:
+            rejected.append({"effect": e.name, "where": _label(e), "reason": why})
+        kept = tuple(e for e in kept if e not in {b[0] for b in bad})
+    if not converged:
+        notes.append("The joint Levenberg-Marquardt refit did not report convergence; parameters are its last iterate.")
+
+    # ---- findings
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    e_fin, r_fin, _, k_fin = cv_residuals(designs, kept, [None], folds3)
+    n_eff = n_eff_fn(r_fin)
+    pred = np.asarray(model.predict(jnp.asarray(theta), inputs))
+    base_scores = _scores(y, X0 @ W0.T, e0, w, run)
+    final_scores = _scores(y, pred, e_fin, w, run)
+    variables = make_variables(data, time_ok)
+    findings, extra_terms, effects = [], [], []
+    step_of = {(st["score"].ext.setting.component, st["score"].ext.frame, st["score"].ext.slot): st for st in steps}
+    for e in kept:
+        others = tuple(x for x in kept if x != e)
+        e_wo, r_wo, _, k_wo = cv_residuals(designs, others, [None], folds3)
+        s = compare((e.name, e.frame, e.slot), e, e_fin, r_fin, k_fin, e_wo, r_wo, k_wo, blocks, n_eff, data.n, 1,
+                    designs)
+        if e.frame == "whole":
+            m_wo = JointModel(base, others)
+            th_wo = np.delete(theta, sl[e])
+            eff = pred - np.asarray(m_wo.predict(jnp.asarray(th_wo), inputs))
+        else:
+            eff = pred - np.asarray(model.predict(jnp.asarray(theta), inputs, drop=e))
+        rms = np.sqrt(np.mean(eff**2, axis=0))
+        outputs = [AXES[a] for a in range(3) if rms[a] >= 0.2 * rms.max() and rms.max() > 0]
+        params = {n: {"value": float(theta[i]), "se": float(se[i])} for n, i in zip(e.param_names, sl[e])}
+        if e.name == "thermal_lag":
+            lt = params.pop("log_tau")
+            tau = math.exp(lt["value"])
+            params["tau"] = {"value": tau, "se": tau * lt["se"], "unit": "s"}
+        if e.name == "timing_offset":
+            p = params["delta"]
+            sys_se = DELTA_SYS_FRACTION * dt
+            p.update({"se": math.hypot(p["se"], sys_se), "se_statistical": p["se"], "se_interpolation": sys_se,
+                      "unit": "s"})
+        st = step_of.get((e.setting.component, e.frame, e.slot))
+        e_before = (e_wo.reshape(3, -1).T / w)
+        channel = AXES[e.slot] if e.frame == "sensor" else ("all" if e.frame == "whole" else None)
+        findings.append({
+            "effect": e.name, "frame": e.frame, "channel": channel,
+            "axis": channel if e.frame != "output" else AXES[e.slot],
+            "outputs": outputs, "description": e.component.describe(e.setting.cols), "setting": _label(e),
+            "parameters": params,
+            "not_identified": [p for p in not_ident if (p["effect"], p["frame"], p["slot"]) == (e.name, e.frame, e.slot)],
+            "rmse_before": {a: float(np.sqrt(np.mean(e_before[:, k] ** 2))) for k, a in enumerate(AXES)},
+            "rmse_after": dict(_axis_dict(final_scores)["rmse"]),
+            "evidence": {"oos_gain": s.gain, "z": float(st["score"].z) if st else s.z,
+                         "p_value": float(stats.norm.sf(st["score"].z if st else s.z)),
+                         "delta_bic_eff": float(st["score"].dbic) if st else s.dbic,
+                         "drop_one_z": s.z, "drop_one_gain": s.gain, "cv": cv_desc,
+                         **({"z_run": float(st["score"].z_run) if st else s.z_run, "drop_one_z_run": s.z_run,
+                             "run_mean_furthest_from_the_others": s.run}
+                            if getattr(e.component, "localised", None) == "run" else {})},
+            "explanation": e.component.explanation,
+            "indistinguishable_from": [{"effect": a.ext.name, "where": _label(a.ext), "oos_gain": a.gain}
+                                       for a in (st["alternatives"] if st else [])],
+            "config": _spec(e, theta[sl[e][0]] if e.frame == "whole" else None),
+        })
+        effects.append({"effect": eff, "before": e_before, "depends_on": e.component.depends_on(e.setting.cols)})
+        spec = json.dumps(findings[-1]["config"], sort_keys=True, default=str)
+        if spec not in {json.dumps(x, sort_keys=True, default=str) for x in extra_terms}:
+            extra_terms.append(findings[-1]["config"])
+    say(f"{len(findings)} finding(s); checking the residual for structure left")
+
+    # ---- unexplained structure, in the sensor channels
+    W = theta[: k_base].reshape(3, -1)
+    t_arr = np.asarray(data.temperature)
+    ch_base = _to_channels(base, W0, t_arr, base_resid)
+    ch_final = _to_channels(base, W, t_arr, y - pred)
+    located = locate(data, ch_base, time_available=time_ok, seed=options.seed, variables=variables)
+    located_final = locate(data, ch_final, time_available=time_ok, seed=options.seed + 1, variables=variables)
+    for l in located + located_final:
+        l["channel"] = l["axis"]
+    unexplained = structure(data, ch_final, located_final, dt=dt)
+    baseline, final = _axis_dict(base_scores), _axis_dict(final_scores)
+    baseline["cv"] = final["cv"] = cv_desc
+    arrays = {"variables": variables, "effects": effects, "base_resid": ch_base, "final_resid": ch_final}
+    say(f"done: {len(findings)} finding(s), {len(unexplained)} unexplained")
+    return DiscoveryResult(findings, unexplained, located, baseline, final, extra_terms, notes, skipped, options,
+                           data.source, _time.perf_counter() - t_start, rejected, arrays)

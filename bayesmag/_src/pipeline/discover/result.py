@@ -1,0 +1,192 @@
+"""What discovery found: :class:`DiscoveryResult`, findings.json and the plain-words report.md."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from bayesmag._src.core.data import AXES
+from bayesmag._src.pipeline.discover.options import DBIC_MIN, FLOOR_RATIO, LOCATE_FRACTION, LOCATE_P, MIN_GAIN, N_PERM, RHO_STRUCTURE, T_IDENT, \
+    Z_DISTINCT, Z_MIN, DiscoverOptions
+
+__all__ = ["DiscoveryResult", "report_markdown"]
+
+
+@dataclasses.dataclass
+class DiscoveryResult:
+    """What :func:`~bayesmag._src.pipeline.discover.discover` found. ``to_json()`` is findings.json.
+
+    ``findings``: one entry per physical effect, with ``channel`` (the sensor channel it acts
+    on; ``"all"`` for whole-sensor effects; None for an output-frame term), ``axis`` (the
+    channel, or the output axis of an output-frame term; kept for compatibility), ``outputs``
+    (the calibrated outputs it shows in) and ``parameters`` (identified coefficients only;
+    the rest under ``not_identified``). ``unexplained``: structure left, per sensor channel."""
+
+    findings: list
+    unexplained: list
+    located: list
+    baseline: dict
+    final: dict
+    extra_terms: list
+    notes: list
+    skipped: list
+    options: DiscoverOptions
+    source: str
+    seconds: float
+    rejected: list = dataclasses.field(default_factory=list)
+    arrays: dict = dataclasses.field(default_factory=dict, repr=False)
+
+    @property
+    def no_missing_physics(self) -> bool:
+        return not self.findings and not self.unexplained
+
+    def to_json(self) -> dict:
+        return {
+            "source": self.source,
+            "no_missing_physics": self.no_missing_physics,
+            "frame": "sensor: B_ref = (S + Ks Tc)(u - d) + O + Ko Tc, d acting on one sensor channel",
+            "baseline": self.baseline,
+            "final": self.final,
+            "findings": self.findings,
+            "unexplained": self.unexplained,
+            "rejected": self.rejected,
+            "extra_terms": self.extra_terms,
+            "located": [{k: v for k, v in l.items() if k not in ("bin_labels", "bin_means")} for l in self.located],
+            "notes": self.notes,
+            "skipped": self.skipped,
+            "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self.options).items()},
+            "thresholds": {"z_min": Z_MIN, "min_gain": MIN_GAIN, "dbic_min": DBIC_MIN, "z_distinct": Z_DISTINCT,
+                           "t_ident": T_IDENT, "locate_p": LOCATE_P, "locate_fraction": LOCATE_FRACTION,
+                           "n_perm": N_PERM, "rho_structure": RHO_STRUCTURE, "floor_ratio": FLOOR_RATIO},
+            "seconds": self.seconds,
+        }
+
+    def write(self, out: str | Path) -> Path:
+        """Write findings.json, report.md and the figures to ``out`` atomically (temp folder, then rename)."""
+        from bayesmag._src.app.outdir import staging_dir
+
+        out = Path(out)
+        with staging_dir(out) as tmp:
+            figures = []
+            if self.options.figures:
+                from bayesmag._src.app import discover_plots
+                figures = discover_plots.discovery_figures(tmp, self)
+            (tmp / "findings.json").write_text(json.dumps(jsonable(self.to_json()), indent=2))
+            (tmp / "report.md").write_text(report_markdown(self, figures))
+        return out
+
+
+def jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    return x
+
+
+def _outputs_phrase(outs: list) -> str:
+    if len(outs) == 3:
+        return "all three calibrated outputs"
+    if len(outs) == 2:
+        return f"the {outs[0]} and {outs[1]} calibrated outputs"
+    return f"the {outs[0]} calibrated output" if outs else "no calibrated output above the noise"
+
+
+def headline(fd: dict) -> str:
+    """One sentence per effect, in the frame where it happens."""
+    if fd["frame"] == "sensor":
+        return (f"the {fd['channel']} sensor channel's {fd['description']}; seen in {_outputs_phrase(fd['outputs'])} "
+                f"through the calibration matrix")
+    if fd["frame"] == "whole":
+        return f"the {fd['description']} (acts on every channel); seen in {_outputs_phrase(fd['outputs'])}"
+    return (f"the {fd['axis']} calibrated output's {fd['description']} (an output-frame term: it predicts better "
+            f"out of sample than the same term on any sensor channel)")
+
+
+def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
+    """A plain-words report for a metrologist."""
+    L = ["# Discovery of missing physics", "", f"Data: {res.source}", "",
+         f"Out-of-sample scores: {res.baseline['cv']}. Discovery took {res.seconds:.1f} s.", "",
+         "Effects are modelled where they happen: as distortions of one sensor channel's reading, "
+         "B_ref = (S + Ks Tc)(u - d) + O + Ko Tc, fitted jointly over the three outputs. One effect is one finding, "
+         "whichever outputs it reaches through the calibration matrix.", ""]
+    if res.no_missing_physics:
+        L += ["**No missing physics was found.** No catalogue extension improves the thermo-affine model out of "
+              "sample, and the residual of every sensor channel is close to its high-frequency noise floor "
+              f"(lag-1 autocorrelation < {RHO_STRUCTURE} or variance < {FLOOR_RATIO} x the floor) with no located "
+              f"structure (thresholds: block z >= {Z_MIN}, gain >= {MIN_GAIN:.0%}, BIC_eff drop >= {DBIC_MIN}; "
+              f"located structure needs p <= {LOCATE_P} and >= {LOCATE_FRACTION:.0%} of the residual variance).", ""]
+    L += ["## Before and after, per calibrated output (out of sample unless noted)", "",
+          "| output | RMSE before | RMSE after | MAE before | MAE after | lag-1 autocorr. before | after |",
+          "|---|---|---|---|---|---|---|"]
+    b, f = res.baseline, res.final
+    for ax in AXES:
+        L.append(f"| {ax} | {b['rmse'][ax]:.4g} | {f['rmse'][ax]:.4g} | {b['mae'][ax]:.4g} | {f['mae'][ax]:.4g} | "
+                 f"{b['lag1_autocorrelation'][ax]:.2f} | {f['lag1_autocorrelation'][ax]:.2f} |")
+    L += ["", "RMSE/MAE in uT; lag-1 autocorrelation of the in-sample residual.", ""]
+    if res.findings:
+        L += ["## Findings", ""]
+        for i, fd in enumerate(res.findings, 1):
+            ev = fd["evidence"]
+            ps = ", ".join(f"{k} = {p['value']:.4g} +- {p['se']:.2g}" + (f" {p['unit']}" if p.get("unit") else "")
+                           for k, p in fd["parameters"].items())
+            rb, ra = fd["rmse_before"], fd["rmse_after"]
+            L += [f"### {i}. {fd['effect']}: {headline(fd)}", "", f"*{fd['explanation']}*", "",
+                  f"- Setting: {fd['setting']}; fitted (+- one standard error, Newey-West, joint fit of the three "
+                  f"outputs): {ps}.",
+                  "- Out-of-sample RMSE (uT) " + ", ".join(f"{a}: {rb[a]:.4g} -> {ra[a]:.4g}" for a in AXES)
+                  + f" (block z = {ev['z']:.1f}, p = {ev['p_value']:.2g}; BIC_eff change {ev['delta_bic_eff']:.1f}; "
+                    f"drop-one z given the other findings = {ev['drop_one_z']:.1f})."]
+            if fd.get("not_identified"):
+                L.append("- Not identified by these data (dropped, |value| < "
+                         f"{T_IDENT} se): " + ", ".join(f"{p['parameter']} = {p['value']:.3g} +- {p['se']:.2g}"
+                                                         for p in fd["not_identified"]) + ".")
+            if fd["indistinguishable_from"]:
+                alts = ", ".join(f"{al['effect']} ({al['where']}, gain {al['oos_gain']:.1%})"
+                                 for al in fd["indistinguishable_from"])
+                L.append(f"- **Indistinguishable** on these data from: {alts}.")
+            L.append("")
+    if res.unexplained:
+        L += ["## Unexplained structure", "",
+              "Nothing in the catalogue explains the following; it is described, not named:", ""]
+        for u in res.unexplained:
+            L.append(f"- {u['channel']} sensor channel: {u['description']}.")
+        L.append("")
+    if res.rejected:
+        L += ["## Rejected", ""] + [f"- {r['effect']} ({r['where']}): {r['reason']}." for r in res.rejected] + [""]
+    if res.extra_terms:
+        L += ["## Using the extended model", "", "Add to the `[physics]` table of a `bayesmag run` config (there each "
+              "output gets its own coefficients, an output-frame approximation of the sensor-frame terms):", "",
+              "```toml", "[physics]", "extra_terms = " + _toml_list(res.extra_terms), "```", ""]
+    if res.notes:
+        L += ["## Notes", ""] + [f"- {n}" for n in res.notes] + [""]
+    if figures:
+        L += ["## Figures", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in figures] + [""]
+    return "\n".join(L)
+
+
+def _toml_list(specs: list) -> str:
+    def val(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(val(x) for x in v) + "]"
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    items = ["{" + ", ".join(f"{k} = {val(v)}" for k, v in s.items()) + "}" for s in specs]
+    return "[" + ", ".join(items) + "]"

@@ -1,0 +1,429 @@
+r"""Hybrid stage: physics prediction + residual network, uncertainty fusion, likelihood comparison.
+
+Shetty & Marndi (2026), sections 2.4-2.6 and 3.7-3.8. For every likelihood named in
+``[network] likelihoods`` one :mod:`~bayesmag._src.core.network` residual network per axis is
+trained on the same rows with the same seed, evaluated on the test rows by Monte-Carlo
+DropConnect, and fused with the physics uncertainty.
+
+**Residual targets.** :math:`r = B_{ref} - \hat y_{phys}(x)` on the training rows uses the
+plug-in physics prediction ``fit.predict(x)`` (:math:`f(x, \hat\theta)`), not the PS-QMC mean
+of sec. 2.3.3. For the thermo-affine model (linear in its parameters, bilinear in B and T)
+the two are equal up to the PS-QMC sampling noise whenever the input noise of B and T is
+uncorrelated (the nested average of :math:`\phi(x+\epsilon)^T\theta` is
+:math:`E[\phi(x+\epsilon)]^T\hat\theta = \phi(x)^T\hat\theta + \mathrm{cov}(\epsilon_B, \epsilon_T)`
+terms); the plug-in is exact and costs nothing on 3000 rows. On the test rows the hybrid
+mean adds the network correction to the job's PS-QMC mean (``result["uq"].mean``), the same
+physics prediction the physics-only metrics use.
+
+**Fusion** (``network.fusion``), per row and axis, with NN aleatoric variance
+:math:`a^2`, NN epistemic variance :math:`e^2` (MC DropConnect, :func:`~bayesmag._src.core.network.mc_predict`)
+and the physics aleatoric/epistemic sds :math:`a_p, e_p` from the PS-QMC stage:
+
+* ``"moment_match"`` (default): mean :math:`\hat y = \bar y_{phys} + \bar\mu_{NN}`, variance
+  :math:`\sigma^2 = a^2 + e^2 + e_p^2`. The physics aleatoric part :math:`a_p^2` (input noise
+  pushed through the model) is *not* added: the network learned :math:`a^2` from residuals
+  that already contain that noise, so adding it counts the measurement noise twice -- the
+  reason the paper's 95 % intervals cover 98-99 %. The predictive distribution is the trained
+  family moment-matched to :math:`(\hat y, \sigma^2)`
+  (:func:`~bayesmag.likelihoods.moment_match`): Gaussian :math:`N(\hat y, \sigma^2)`;
+  Laplace with :math:`b = \sigma/\sqrt2`; Student-t keeping its degrees of freedom -- the
+  fixed ``network.student_t_df``, or with ``student_t_df = "learn"`` the per-row mean over
+  MC passes of the learned :math:`\nu` -- and scale :math:`\sigma\sqrt{(\nu-2)/\nu}`.
+* ``"paper"``: the paper's root-sum-of-squares (sec. 2.5),
+  :math:`\sigma^2 = a_p^2 + a^2 + e_p^2 + e^2`, with Gaussian predictive intervals
+  (sec. 2.6) for every family: :math:`N(\hat y, \sigma^2)`.
+
+RMSE and MAE are of :math:`\hat y`; coverage, interval width, NLL and CRPS all come from
+that one predictive distribution (central interval of level ``uq.level``). The fusion not
+selected is scored too (``metrics["hybrid_<other>_fusion"]``) for comparison.
+
+Outputs: ``metrics["hybrid"][likelihood]`` = ``rmse, mae, coverage, nll, crps, mean_width``
+per axis; ``metrics["network"]`` = settings and per-likelihood training outcome (epochs
+run, best epoch, NaN epoch, seconds); ``metrics["hybrid_vs_physics"]`` = paired squared-error
+test (sec. 4.4); prediction columns for the first (primary) likelihood; with several
+likelihoods, ``likelihood_comparison.md`` / ``.json`` (the layout of the paper's Table 7);
+figures (:mod:`~bayesmag._src.app.hybrid_plots`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from bayesmag._src.core import metrics as M
+from bayesmag._src.app.config import Config, NetworkConfig, config_error
+from bayesmag._src.core.data import AXES, CalibrationData
+from bayesmag._src.core.network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, check_network_size, ensemble_passes,
+                      fit_residual_network, merged_reporter, progress_bar, recalibrate, training_threads,
+                      validation_rows)
+from bayesmag._src.core.physics import inputs_from_data
+from bayesmag._src.core.physics_uq import PhysicsUQ
+from bayesmag._src.core.predictor import (FUSIONS, Components, Prediction, Predictor, compose, conformal_quantile, conformal_ratios,
+                        network_inputs)
+
+__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "check_network_config", "conformal_folds", "conformal_plan",
+           "network_inputs", "train_network",
+           "fuse", "score", "run_hybrid_stage", "hybrid_metrics", "hybrid_columns", "hybrid_writers",
+           "comparison_markdown", "comparison_records"]
+
+
+def conformal_folds(run: np.ndarray, *, fraction: float, folds: int, seed: int) -> np.ndarray:
+    """Cross-conformal folds ``(n,)``: fold ``k`` is one contiguous time block of ``fraction`` of every run,
+    placed at a seeded position inside the k-th of ``folds`` equal stretches of the run (rows in time order);
+    rows in no fold are -1. Stratified positions: the folds together sample the whole length of every run,
+    so the scale does not hang on where one block per run happened to fall.
+    """
+    from bayesmag._src.core.data import split_time_blocks
+
+    sp = split_time_blocks(run, test_fraction=folds * fraction, n_blocks=folds, seed=seed)
+    held = np.zeros(run.size, bool)
+    held[sp.test] = True
+    fold = np.full(run.size, -1)
+    for r in np.unique(run):
+        rows = np.flatnonzero(run == r)
+        slot = np.minimum(np.arange(rows.size) // max(rows.size // folds, 1), folds - 1)   # split_time_blocks' slots
+        fold[rows[held[rows]]] = slot[held[rows]]
+    return fold
+
+
+def conformal_plan(split, net_cfg: NetworkConfig) -> tuple[float, int]:
+    """``(fraction, folds)`` of the cross-conformal folds: each fold one block of ``fraction`` of every
+    run's training rows, ``folds`` of them.
+
+    The scores must be as hard as the rows they calibrate: a network predicting the middle of a long
+    held-out stretch errs more than one bridging a short gap. So with a ``time_blocks`` split the fold
+    blocks are at least as long as the test blocks (``test_fraction / n_blocks`` of a run, i.e.
+    ``test_fraction / n_blocks / (1 - test_fraction)`` of its training rows), else
+    ``validation_fraction``; and there are at most ``conformal_folds`` of them, fewer where longer
+    blocks would not fit in a run together (folds x fraction < 1; at least 2 folds, blocks then < 1/2).
+
+    Example: ``test_fraction = 0.2`` in one block per run: blocks of 0.25 of the training rows, 3 folds.
+    """
+    fraction = net_cfg.validation_fraction
+    if split.kind == "time_blocks":
+        fraction = max(fraction, split.test_fraction / split.n_blocks / (1.0 - split.test_fraction))
+    folds = net_cfg.conformal_folds
+    while folds > 2 and folds * fraction >= 1.0:
+        folds -= 1
+    return min(fraction, 0.49), folds
+
+
+#: The fused hybrid prediction: a :class:`~bayesmag._src.core.predictor.Prediction` (mean, dist, total,
+#: and the named parts ``aleatoric_nn, epistemic_nn, aleatoric_physics, epistemic_physics``).
+HybridPrediction = Prediction
+
+
+@dataclasses.dataclass(frozen=True)
+class HybridStage:
+    """What the hybrid stage computed, per likelihood name (the first is the primary one).
+
+    ``predictors``: the full :class:`Predictor` (physics + network + fusion) per likelihood;
+    ``predictions`` / ``alternates``: its prediction of the test rows with the configured and
+    with the other fusion; ``training``: per-axis training outcome and seconds.
+    """
+
+    specs: tuple
+    networks: dict
+    predictors: dict
+    predictions: dict
+    alternates: dict
+    training: dict
+    nan_messages: list
+    fusion: str
+    other_fusion: str
+
+    @property
+    def primary(self) -> str:
+        return self.specs[0].likelihood
+
+
+def check_network_config(cfg: Config) -> list[NetworkSpec]:
+    """Validate the ``[network]`` table; return one :class:`NetworkSpec` per likelihood.
+
+    The settings were validated when the config was loaded (``NetworkConfig``).
+    """
+    return [cfg.network.spec(name) for name in cfg.network.likelihoods]   # validated at load (config.py)
+
+
+def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig,
+                  groups: np.ndarray | None = None, progress=False, pool=None) -> ResidualNetwork:
+    """Train the axis networks as ``[network]`` says: validation rows, then optional recalibration.
+
+    ``groups``: the run of every row (time order within a run), used by ``validation = "time_blocks"``;
+    ``progress`` and ``pool``: as in :func:`~bayesmag._src.core.network.fit_residual_network`.
+    """
+    net = fit_residual_network(x, r, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
+                               validation=net_cfg.validation, groups=groups, progress=progress, pool=pool)
+    if net_cfg.recalibrate:
+        net = recalibrate(net, x[net.val_rows], r[net.val_rows], passes=net_cfg.mc_passes, seed=net_cfg.seed)
+    return net
+
+
+def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig, groups: np.ndarray,
+                        folds: np.ndarray, n_folds: int, progress: bool = False) -> list[ResidualNetwork]:
+    """The ``n_folds`` cross-conformal networks, network ``k`` trained without the rows of fold ``k``
+    (``folds == k``), all at once: every fold's axes share one pool of
+    :func:`~bayesmag._src.core.network.training_threads` threads, so the K x 3 trainings keep the cores
+    busy however unequal their early stops (trained one fold after the other, the two cores of the
+    paper's machine often waited on one fold's last axis). Each network is the one
+    :func:`train_network` gives alone (the axes do not depend on the threads).
+    """
+    n_axes = r.shape[1]
+    report, bar = None, None
+    if progress:                                        # folds still waiting for a thread count as epoch 0
+        update, bar = progress_bar(spec.max_epochs, n_folds * n_axes, desc=f"network training ({spec.likelihood}, "
+                                                                          f"{n_folds} fold networks x {n_axes} axes)")
+        report = merged_reporter(n_folds, n_axes, update)
+
+    def one(k: int, pool) -> ResidualNetwork:
+        rows = np.flatnonzero(folds != k)
+        return train_network(x[rows], r[rows], spec, net_cfg, groups=groups[rows], pool=pool,
+                             progress=(lambda p: report(k, p)) if report is not None else False)
+
+    try:
+        with ThreadPoolExecutor(training_threads(), thread_name_prefix="bayesmag-train") as pool, \
+                ThreadPoolExecutor(n_folds, thread_name_prefix="bayesmag-fold") as fold_threads:
+            return [f.result() for f in [fold_threads.submit(one, k, pool) for k in range(n_folds)]]
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str = "moment_match") -> Prediction:
+    """Combine the physics PS-QMC prediction and the MC-DropConnect residual prediction.
+
+    See the module docstring for the two rules (:func:`~bayesmag._src.core.predictor.compose`).
+    ``physics`` and ``nn`` are for the same rows.
+    """
+    return compose(physics, nn, fusion=fusion, family=spec.likelihood, fixed_shape=spec.fixed_shape)
+
+
+def score(y: np.ndarray, pred: Prediction, level: float) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Per-axis ``rmse, mae, coverage, nll, crps, mean_width`` (:func:`~bayesmag.metrics.score`) and the
+    central ``level`` interval."""
+    lo, hi = pred.interval(level)
+    return M.score_per_axis(y, pred.dist, level, mean=pred.mean), lo, hi
+
+
+def comparison_records(hybrid_metrics: dict[str, dict]) -> list[dict]:
+    """Rows of ``likelihood_comparison.json``: likelihood, rmse, mae, coverage, nll, crps, mean_width."""
+    keys = ("rmse", "mae", "coverage", "nll", "crps", "mean_width")
+    return [{"likelihood": name, **{k: block[k] for k in keys}} for name, block in hybrid_metrics.items()]
+
+
+def comparison_markdown(hybrid_metrics: dict[str, dict], *, fusion: str, level: float, n_test: int) -> str:
+    """The paper's Table 7 layout: one row per likelihood and axis."""
+    lines = [
+        "# Likelihood comparison (hybrid, test rows)",
+        "",
+        f"{n_test} test rows; fusion `{fusion}`; coverage of the central {level:.0%} interval; NLL and CRPS of the "
+        "fused predictive distribution (uT units). Lower RMSE, MAE, NLL, CRPS are better; coverage should be "
+        f"near {level:.0%}.",
+        "",
+        "| Likelihood | Axis | RMSE (uT) | MAE (uT) | Coverage (%) | NLL | CRPS (uT) | Mean width (uT) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, b in hybrid_metrics.items():
+        for ax in AXES:
+            lines.append(f"| {name} | {ax} | {b['rmse'][ax]:.5f} | {b['mae'][ax]:.5f} | "
+                         f"{100 * b['coverage'][ax]:.2f} | {b['nll'][ax]:.3f} | {b['crps'][ax]:.5f} | "
+                         f"{b['mean_width'][ax]:.4f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
+    msgs = []
+    for ax, info in net.info_dict().items():
+        if info["nan_epoch"] >= 0:
+            kept = (f"the weights of epoch {info['best_epoch']} (best finite validation loss) are used"
+                    if info["best_epoch"] >= 0
+                    else "no epoch finished with a finite loss, so the initial weights are used")
+            msg = (f"Residual network '{name}', axis {ax}: the training loss became NaN/inf in epoch "
+                   f"{info['nan_epoch']}; training stopped there and {kept}. Usual causes: a learning rate too "
+                   "high for the data (lower 'network.learning_rate') or a log-scale clip that lets the scale "
+                   "collapse (raise the low end of 'network.log_scale_clip').")
+            warnings.warn(msg, RuntimeWarning, stacklevel=3)
+            msgs.append(msg)
+    return msgs
+
+
+def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: CalibrationData,
+                     test: CalibrationData, timings: dict[str, float], *, new_session=False,
+                     progress: bool = False) -> HybridStage:
+    """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them.
+
+    With ``network.interval_calibration = "conformal"`` the interval scale is cross-conformal over
+    K time-block folds (:func:`conformal_folds`; each one block of every run, as long as
+    ``validation_fraction`` of it or as the job's test blocks if those are longer, K at most
+    ``network.conformal_folds``: :func:`conformal_plan`): for every fold a network is trained without that fold's rows
+    (and without its own early-stopping block), and the fold's rows are scored by it
+    (:func:`~bayesmag._src.core.predictor.conformal_ratios`); the scale is the split-conformal quantile of the
+    scores of all K folds pooled (:func:`~bayesmag._src.core.predictor.conformal_quantile`), floored at 1. The
+    predictor keeps all K fold networks as a :class:`~bayesmag._src.core.network.NetworkEnsemble` (deep
+    ensemble x MC DropConnect: ``mc_passes`` split over the members, moments pooled over all passes,
+    :func:`~bayesmag._src.core.network.mc_predict`) with that scale; ``networks[name]`` (training
+    diagnostics, metrics) stays fold 0's network. The K fold networks train at once
+    (:func:`train_fold_networks`). Without conformal folds the predictor keeps the one network, as
+    before. ``new_session``: test rows that get the transfer part. Adds ``timings["network_train"]``
+    (all networks) and ``["hybrid_inference"]`` (s).
+    """
+    specs = check_network_config(cfg)
+    net_cfg = cfg.network
+    # Conformal rows: K folds of held-out time blocks, each seen neither by its network's training nor by its early
+    # stopping (scores on the early-stopping rows are optimistic: their coverage overstates).
+    folds = np.zeros(train.n, int) - 1
+    n_folds = 0
+    if net_cfg.interval_calibration == "conformal":
+        fold_fraction, n_folds = conformal_plan(cfg.split, net_cfg)
+        folds = conformal_folds(train.run, fraction=fold_fraction, folds=n_folds, seed=net_cfg.seed + 1)
+    fit_idx = np.flatnonzero(folds != 0)
+    # Size checks for every likelihood before any training.
+    try:
+        fit_rows, _ = validation_rows(fit_idx.size, net_cfg.validation_fraction, seed=net_cfg.seed)
+        for spec in specs:
+            check_network_size(spec, fit_rows.size)
+    except ValueError as e:
+        raise config_error(e, "network", net_cfg.table()) from None
+
+    fit = physics.fit
+    x_train = network_inputs(train)
+    r_train = train.b_ref - fit.predict(inputs_from_data(train))
+    other = "paper" if net_cfg.fusion == "moment_match" else "moment_match"
+    networks, predictors, preds, alts, training = {}, {}, {}, {}, {}
+    nan_messages: list[str] = []
+    timings.setdefault("network_train", 0.0)
+    timings.setdefault("hybrid_inference", 0.0)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(specs), desc="residual networks (3 axes each)", unit="likelihood")
+    try:
+        for spec in specs:
+            name = spec.likelihood
+            if bar is not None:
+                bar.set_postfix_str(f"training {name}")
+            t = time.perf_counter()
+            if n_folds:
+                nets = train_fold_networks(x_train, r_train, spec, net_cfg, train.run, folds, n_folds,
+                                           progress=progress)
+            else:
+                nets = [train_network(x_train[fit_idx], r_train[fit_idx], spec, net_cfg, groups=train.run[fit_idx],
+                                      progress=progress)]
+            net = nets[0]
+            train_s = time.perf_counter() - t
+            timings["network_train"] += train_s
+            for k, nk in enumerate(nets):
+                nan_messages += _warn_nan(name if k == 0 else f"{name}, conformal fold {k}", nk)
+
+            pr = dataclasses.replace(physics, network=net, passes=net_cfg.mc_passes, network_seed=net_cfg.seed,
+                                     fusion=net_cfg.fusion)
+            if n_folds:
+                t = time.perf_counter()
+                ratios = []
+                for k, nk in enumerate(nets):
+                    pk = dataclasses.replace(pr, network=nk)
+                    val = train.subset(np.flatnonzero(folds == k))
+                    ratios.append(conformal_ratios(val.b_ref, pk.compose(pk.components(val), new_session=False),
+                                                   cfg.uq.level))
+                timings["hybrid_inference"] += time.perf_counter() - t
+                # only ever widen: a factor < 1 would trust the calibration blocks over the network's own sd
+                # the K fold networks predict together (deep ensemble), with the scale their held-out folds gave
+                pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(nets)),
+                                         scale=np.maximum(conformal_quantile(np.concatenate(ratios), cfg.uq.level), 1.0))
+            t = time.perf_counter()
+            comp = Components(uq, pr.network_part(test))
+            pred = pr.compose(comp, new_session=new_session)
+            timings["hybrid_inference"] += time.perf_counter() - t
+
+            networks[name], predictors[name], preds[name] = net, pr, pred
+            alts[name] = pr.compose(comp, fusion=other, new_session=new_session)
+            training[name] = {**net.info_dict(), "train_seconds": round(train_s, 3)}
+            if pr.scale is not None:
+                training[name]["conformal"] = {"folds": n_folds, "block_fraction": round(fold_fraction, 6),
+                                               "rows": int(np.sum(folds >= 0)),
+                                               "ensemble_passes": list(ensemble_passes(net_cfg.mc_passes, n_folds))}
+                for a, ax in enumerate(AXES):
+                    training[name][ax]["interval_scale"] = float(pr.scale[a])
+            if net.variance_scale is not None:
+                for a, ax in enumerate(AXES):
+                    training[name][ax]["variance_scale"] = float(net.variance_scale[a])
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return HybridStage(tuple(specs), networks, predictors, preds, alts, training, nan_messages, net_cfg.fusion,
+                       other)
+
+
+def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int) -> dict:
+    """``hybrid``, ``hybrid_<other>_fusion``, ``hybrid_vs_physics`` and ``network`` blocks of metrics.json."""
+    scores, other, paired = {}, {}, {}
+    for name, pred in hs.predictions.items():
+        scores[name] = M.score_per_axis(y, pred.dist, level, mean=pred.mean)
+        alt = M.score_per_axis(y, hs.alternates[name].dist, level, mean=hs.alternates[name].mean)
+        other[name] = {k: alt[k] for k in ("coverage", "nll", "crps", "mean_width")}
+        pt = M.paired_test(y - physics_mean, y - pred.mean)
+        paired[name] = {ax: {"mean_diff": float(pt["mean_diff"][a]), "t": float(pt["t"][a]),
+                             "p": float(pt["p"][a]), "cohens_d": float(pt["cohens_d"][a])}
+                        for a, ax in enumerate(AXES)}
+    first = hs.networks[hs.primary]
+    return {
+        "hybrid": scores,
+        f"hybrid_{hs.other_fusion}_fusion": other,
+        "hybrid_vs_physics": paired,
+        "network": {
+            "fusion": hs.fusion,
+            "primary": hs.primary,
+            "residual_physics_mean": "plug-in fit.predict on the training rows; PS-QMC mean on the test rows",
+            "n_fit_rows": first.n_fit, "n_validation_rows": first.n_val,
+            "n_params_per_axis": {s.likelihood: s.n_params for s in hs.specs},
+            "mc_passes": passes,
+            "training": hs.training,
+            "warnings": hs.nan_messages,
+        },
+    }
+
+
+def hybrid_columns(hs: HybridStage, y: np.ndarray, level: float) -> dict[str, np.ndarray]:
+    """predictions.csv columns of the primary likelihood's hybrid prediction."""
+    pred = hs.predictions[hs.primary]
+    lo, hi = pred.interval(level)
+    return {"hybrid_predicted": pred.mean, "aleatoric_nn": pred.aleatoric_nn, "epistemic_nn": pred.epistemic_nn,
+            "hybrid_total": pred.total, "hybrid_lower": lo, "hybrid_upper": hi,
+            "hybrid_covered": (y >= lo) & (y <= hi)}
+
+
+def hybrid_writers(cfg: Config, hs: HybridStage, columns: dict, test: CalibrationData, level: float) -> list:
+    """Writers ``f(folder)`` of the stage's files: likelihood comparison (several likelihoods), figures."""
+    writers = []
+    if len(hs.specs) > 1:
+        scores = {name: M.score_per_axis(test.b_ref, p.dist, level, mean=p.mean) for name, p in hs.predictions.items()}
+        md = comparison_markdown(scores, fusion=hs.fusion, level=level, n_test=test.n)
+        records = comparison_records(scores)
+
+        def write_comparison(out: Path) -> None:
+            (Path(out) / "likelihood_comparison.md").write_text(md)
+            (Path(out) / "likelihood_comparison.json").write_text(json.dumps(records, indent=2))
+
+        writers.append(write_comparison)
+    if cfg.output.figures:
+        temperature = np.asarray(test.temperature)
+        dists = {name: p.dist for name, p in hs.predictions.items()}
+        cols = dict(columns)
+
+        def write_figures(out: Path) -> None:
+            from bayesmag._src.app.hybrid_plots import hybrid_figures
+            hybrid_figures(Path(out), cols, temperature, dists, level=level)
+            from bayesmag._src.app.network_plots import loss_curves
+            loss_curves(Path(out) / "network_loss.png", hs.networks)
+
+        writers.append(write_figures)
+    return writers
