@@ -4,7 +4,11 @@
   about 3x the calibrated noise (``draw_effect``), a periodic (out of catalogue), or nothing;
 * ``independent``: ``tests/independent_campaigns.py``, written apart from simulate (own run
   designs, effects on one sensor channel sized in sensor units, periodic interference and gain
-  drift in time out of catalogue, per-run offsets, hysteresis held across run gaps).
+  drift in time out of catalogue, per-run offsets, hysteresis held across run gaps);
+* ``chamber``: ``tests/chamber_campaigns.py`` (issue #25), temperature-chamber programmes
+  (0.5-2 C/min ramps and holds, heating and cooling) with a first-order or two-node heat path
+  of 30-600 s mean delay, or none (clean). ``tau_in_interval``: the planted mean delay lies in
+  the finding's 95 % interval of tau.
 
     python benchmarks/bench_discovery.py --generator simulate,independent --seeds 20 [--kinds cubic,clean]
         [--jobs 2] [--out bench_discovery.json] [--resume] [--table]
@@ -54,6 +58,7 @@ from bayesmag.simulate import TrueParams, get_effect, simulate
 
 sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[1] / 'tests'))
 import independent_campaigns as IC  # noqa: E402  (the independent generator)
+import chamber_campaigns as CC  # noqa: E402  (the chamber generator, issue #25)
 
 N_ROWS = 5000
 NOISE = 0.5
@@ -181,9 +186,20 @@ def magnitude(res, truth) -> dict | None:
     return {"worst_parameter": worst, "worst_abs_z": float(zs[worst]), "magnitude_ok": bool(zs[worst] <= 3.0)}
 
 
+def chamber_case(kind: str, seed: int):
+    """(data, truth) from the chamber generator tests/chamber_campaigns.py (slow heat paths, 30-600 s)."""
+    data, p = CC.campaign(kind, seed, n=N_ROWS)
+    truth = {"name": p.name, "channel": p.channel, "out_of_catalogue": False}
+    if p.name == "thermal_lag":
+        truth["tau"] = p.params["tau"]
+        truth["nodes"] = p.params["nodes"]
+    return data, truth
+
+
 SIM_KINDS = ("axis_quadratic", "cross_axis_quadratic", "cubic", "temperature_quadratic", "thermal_lag",
              "timing_offset", "hysteresis", "offset_drift", "periodic", "clean")
-GENERATORS = {"simulate": (sim_case, SIM_KINDS), "independent": (indep_case, tuple(IC.KINDS))}
+GENERATORS = {"simulate": (sim_case, SIM_KINDS), "independent": (indep_case, tuple(IC.KINDS)),
+              "chamber": (chamber_case, tuple(CC.KINDS))}
 
 
 def score(res, truth) -> dict:
@@ -197,7 +213,13 @@ def score(res, truth) -> dict:
     n_true = 1 if hit else 0
     extra = len(fs) - n_true
     unexpl = [u.get("channel", u["axis"]) for u in res.unexplained]
+    tau_in = None
+    if "tau" in truth:
+        lag = [f for f in res.findings if f["effect"] == "thermal_lag"]
+        iv = lag[0]["parameters"]["tau"].get("interval95") if lag else None
+        tau_in = bool(iv and iv[0] <= truth["tau"] <= iv[1]) if hit else False
     return {"findings": [f"{fe}@{fc}" for fe, fc in fs], "unexplained": unexpl, "hit": hit,
+            "tau_in_interval": tau_in,
             "magnitude": magnitude(res, truth) if hit else None,
             "extra_findings": extra,
             "clean_ok": (not fs and not unexpl) if truth["name"] is None and not truth["out_of_catalogue"] else None,
@@ -272,18 +294,20 @@ def table(rows: list) -> str:
         seeds = sorted({r["seed"] for r in rg})
         out.append(f"**{g}** ({len(rg)} campaigns, seeds {seeds[0]}-{seeds[-1]})\n")
         out.append("| planted | campaigns | right effect and channel | campaigns with extra findings | "
-                   "clean (no finding) / unexplained on its channel | magnitude within 3 se | median s | max s |")
-        out.append("|---|---|---|---|---|---|---|---|")
+                   "clean (no finding) / unexplained on its channel | magnitude within 3 se | tau inside its 95 % "
+                   "interval | median s | max s |")
+        out.append("|---|---|---|---|---|---|---|---|---|")
         for k in dict.fromkeys(r["kind"] for r in rg):
             rk = [r for r in rg if r["kind"] == k]
             hits = [r["hit"] for r in rk if r["hit"] is not None]
             cl = [r["clean_ok"] for r in rk if r["clean_ok"] is not None]
             un = [r["unexplained_ok"] for r in rk if r["unexplained_ok"] is not None]
             mg = [r["magnitude"]["magnitude_ok"] for r in rk if r.get("magnitude")]
+            ti = [r["tau_in_interval"] for r in rk if r.get("tau_in_interval") is not None]
             frac = lambda v: f"{sum(v)}/{len(v)}" if v else "–"      # noqa: E731
             ce = frac(cl) if cl else frac(un)
             out.append(f"| {k} | {len(rk)} | {frac(hits)} | {sum(r['extra_findings'] > 0 for r in rk)}/{len(rk)} | "
-                       f"{ce} | {frac(mg)} | {np.median([r['seconds'] for r in rk]):.0f} | "
+                       f"{ce} | {frac(mg)} | {frac(ti)} | {np.median([r['seconds'] for r in rk]):.0f} | "
                        f"{np.max([r['seconds'] for r in rk]):.0f} |")
         out.append("")
         for r in rg:
@@ -297,7 +321,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--seeds", type=int, default=20)
     p.add_argument("--first-seed", type=int, default=0)
-    p.add_argument("--generator", default="simulate,independent", help="simulate, independent or both (comma)")
+    p.add_argument("--generator", default="simulate,independent", help="simulate, independent, chamber (comma list)")
     p.add_argument("--kinds", default=None, help="comma list (default: all kinds of each generator)")
     p.add_argument("--out", default="bench_discovery.json")
     p.add_argument("--jobs", type=int, default=1, help="worker processes, each single-threaded")
@@ -320,7 +344,8 @@ def main(argv=None) -> int:
     if stored:
         print(f"resuming: {len(stored)} campaigns stored, {len(todo)} to run", file=sys.stderr)
     rows = dict(stored)
-    keys = ("generator", "kind", "seed", "findings", "unexplained", "hit", "extra_findings", "magnitude", "seconds")
+    keys = ("generator", "kind", "seed", "findings", "unexplained", "hit", "extra_findings", "magnitude", "tau_in_interval",
+            "seconds")
     with open(a.out + ".rows.jsonl", "a") as sink:
         def done(r):
             rows[_key(r)] = r

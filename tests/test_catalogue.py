@@ -118,7 +118,8 @@ def test_thermal_slopes_and_calibrated_hysteresis(campaign):
 
 def test_registry_entry_carries_grid_requirements_and_description():
     """Adding a term is one class: discovery reads everything from the entry itself."""
-    ctx = C.SearchContext(t0=25.0, dt=0.25, runs=(0, 1, 2), run_span=600.0, reach=(40.0, 40.0, 40.0))
+    ctx = C.SearchContext(t0=25.0, dt=0.25, runs=(0, 1, 2), run_span=600.0, reach=(40.0, 40.0, 40.0),
+                          heated_span=600.0, run_bounds=((0, 0.0, 600.0), (1, 700.0, 1300.0), (2, 1400.0, 2000.0)))
     for name, cls in C.CATALOGUE.items():
         assert set(cls.requires) <= {"time", "temperature", "runs", "increasing_time"}, name
         assert cls.scope in ("channel", "sensor"), name
@@ -127,6 +128,20 @@ def test_registry_entry_carries_grid_requirements_and_description():
         assert all((s.nl is not None) == (cls.scope == "sensor") for s in grid), name
         assert isinstance(grid[0].component.describe(grid[0].cols), str)
     assert C.SIMULATOR_NAMES["cubic"] == "cubic_nonlinearity" and "run_offset" not in C.SIMULATOR_NAMES.values()
+
+
+def test_run_step_features_sit_inside_one_run():
+    """run_step: 1 from time ``at`` to the end of run ``run_id``, 0 elsewhere (other runs, before ``at``)."""
+    run = np.array([0, 0, 0, 1, 1, 1, 1])
+    time = np.array([0.0, 1, 2, 10, 11, 12, 13])
+    inputs = bayesmag.Inputs(jnp.zeros((7, 3)), jnp.zeros(7), jnp.asarray(time), jnp.asarray(run))
+    X = np.asarray(C.RunStep(run_id=1, at=11.5).features(inputs))
+    np.testing.assert_array_equal(X[:, 0], [0, 0, 0, 0, 0, 1, 1])
+    ctx = C.SearchContext(run_bounds=((0, 0.0, 2.0), (1, 10.0, 13.0)))
+    ats = [s.component.at for s in C.RunStep.grid(ctx, 0) if s.component.run_id == 1]
+    assert all(10.0 < a < 13.0 for a in ats) and len(ats) == len(C.RunStep.FRACTIONS)
+    g = C.RunStep(run_id=1, at=11.5).located_grid(ctx)
+    assert g.min() >= 10.0 and g.max() <= 13.0 and g.size == 41
 
 
 def test_run_offset_features_and_validation():
@@ -151,7 +166,7 @@ def test_hysteresis_state_held_across_runs():
 
 
 def test_thermal_lag_of_a_few_samples_is_not_heat_flow():
-    ctx = C.SearchContext(dt=0.25, run_span=600.0)
+    ctx = C.SearchContext(dt=0.25, run_span=600.0, heated_span=600.0)
     lag = C.ThermalLag()
     assert "smooths the noise" in lag.implausible(np.log(1.0), ctx)       # 4 samples
     assert lag.implausible(np.log(60.0), ctx) is None

@@ -16,6 +16,7 @@ from bayesmag._src.app.discover_cli import main
 from bayesmag._src.pipeline.discover import DiscoverOptions, discover
 from bayesmag._src.pipeline.discover.options import T_IDENT, Z_MIN, Z_RUN
 from bayesmag.simulate import get_effect, simulate
+from scipy.stats import norm
 from independent_campaigns import campaign
 
 N = 3000
@@ -85,6 +86,29 @@ def _step_in_one_run(seed, run_k=2, factor=8.0):
     return bayesmag.CalibrationData(u, d.temperature, d.b_ref, d.time, d.run, "step in one run"), "xyz"[ch], step
 
 
+def test_step_inside_a_run_is_located_sized_and_named():
+    """A clean independent campaign whose channel-0 reading steps by 10 x its noise sd 40 % of
+    the way through run 1 and stays stepped to the run's end (a set/reset flip): named run_step
+    (not run_offset) on the channel, its time inside the stated 95 % interval, its size within
+    N_SE standard errors, and the finding says it describes the training sessions only."""
+    d, p = campaign("clean", 2, n=4000)
+    run = np.asarray(d.run)
+    t1 = d.time[run == 1]
+    at = float(t1[0] + 0.4 * (t1[-1] - t1[0]))
+    step = 10.0 * p.params["noise_sd_sensor_units"][0]
+    u = np.array(d.b_meas)
+    u[:, 0] += step * ((run == 1) & (d.time >= at))
+    r = discover(bayesmag.CalibrationData(u, d.temperature, d.b_ref, d.time, d.run, "step inside run 1"), figures=False)
+    assert [(f["effect"], f["channel"]) for f in r.findings] == [("run_step", "x")], r.findings
+    f = r.findings[0]
+    loc = f["location"]
+    assert loc["run"] == 1 and loc["interval95"][0] <= at <= loc["interval95"][1], (loc, at)
+    assert loc["interval95"][1] - loc["interval95"][0] < 0.05 * (t1[-1] - t1[0]), loc
+    par = f["parameters"]["step"]
+    assert abs(par["value"] - step) <= N_SE * par["se"], (par, step)
+    assert "cannot be applied to a new session" in f["applies_to"]
+
+
 def test_run_contrast_sees_a_step_in_one_run_and_not_noise():
     """The by-run F test: block means within runs are the yardstick; a step in one run of six
     (5 of 30 blocks) is seen, white or AR(1) noise is not."""
@@ -138,7 +162,7 @@ def test_no_time_column_skips_time_domain_candidates():
     d, p = campaign("axis_quadratic", 3, n=N)
     d = bayesmag.CalibrationData(d.b_meas, d.temperature, d.b_ref, None, d.run, "no time")
     r = discover(d, figures=False)
-    assert {s["candidate"] for s in r.skipped} == {"thermal_lag", "timing_offset", "offset_drift"}
+    assert {s["candidate"] for s in r.skipped} == {"thermal_lag", "timing_offset", "offset_drift", "run_step"}
     assert any("no time column" in n for n in r.notes)
     assert any(f["effect"] == "axis_quadratic" and f["channel"] == p.channel for f in r.findings), r.findings
 
@@ -173,16 +197,31 @@ def test_cli_writes_folder_atomically(tmp_path):
     assert set(j["baseline"]["rmse"]) == {"x", "y", "z"}
     f = j["findings"][0]
     assert f["effect"] == "hysteresis" and f["channel"] == "x" and f["axis"] == "x"
+    ev = f["evidence"]                      # the reported p is the one of the statistic that decided
+    assert ev["decided_by"] == "block z" and ev["z_decisive"] == ev["z"] >= Z_MIN
+    assert ev["p_value"] == pytest.approx(norm.sf(ev["z_decisive"])) and ev["p_value_block"] == ev["p_value"]
+    assert "closest_not_accepted" in j
     for key in ("parameters", "rmse_before", "rmse_after", "evidence", "explanation", "outputs"):
         assert key in f
     report = (out / "report.md").read_text()
     assert report.startswith("# Discovery") and "x sensor channel's" in report
+    assert "Accepted on the block z" in report and "share of the out-of-sample mean square" in report
     assert list(out.glob("*.png"))
     assert not list(tmp_path.glob(".disc.partial*"))
     # the extended model is usable by `bayesmag run`
     extra = bayesmag.PhysicsModel.paper(extra=tuple(
         __import__("bayesmag._src.core.catalogue", fromlist=["make_extra"]).make_extra(s) for s in j["extra_terms"]))
     assert "h" in extra.param_names
+
+
+def test_packaged_config_name_and_default_folder():
+    """`bayesmag discover discover_belsten` resolves the packaged config; the default folder is
+    runs/discover_belsten (not runs/discover_discover_belsten)."""
+    from pathlib import Path
+    from bayesmag._src.app.discover_cli import default_out, resolve_config
+    assert resolve_config("discover_belsten").name == "discover_belsten.toml"
+    assert default_out("discover_belsten") == Path("runs") / "discover_belsten"
+    assert default_out("lab3") == Path("runs") / "discover_lab3"
 
 
 def test_timing_offset_se_includes_interpolation_term():
@@ -211,8 +250,17 @@ def test_belsten_reports_only_identified_coefficients_and_admits_structure(belst
     assert ("axis_quadratic", "x") in where, r.findings
     z = [f for f in r.findings if f["effect"] == "run_offset" and f["axis"] == "z"]
     assert len(z) == 1, r.findings
-    assert z[0]["evidence"]["z_run"] >= Z_RUN and z[0]["evidence"]["z"] < Z_MIN, z[0]["evidence"]
+    ev = z[0]["evidence"]
+    assert ev["z_run"] >= Z_RUN and ev["z"] < Z_MIN, ev
+    # issue #25: the statistic shown is the one that decided (z_run), the block p kept apart
+    assert ev["decided_by"] == "run contrast z_run" and ev["z_decisive"] == ev["z_run"], ev
+    assert ev["p_value"] == pytest.approx(norm.sf(ev["z_run"])) and ev["p_value_block"] == pytest.approx(norm.sf(ev["z"]))
     assert z[0]["rmse_after"]["z"] < z[0]["rmse_before"]["z"], z[0]
+    # run 2's z step: named (its offset reported), or the reason it cannot be stated is written out
+    k = ev["run_mean_furthest_from_the_others"]
+    assert k == 2, ev
+    assert "o_2" in z[0]["parameters"] or ("cannot be stated" in z[0]["furthest_run_not_stated"]
+                                           and "run 2" in z[0]["furthest_run_not_stated"]), z[0]
 
 
 def test_noisy_temperature_log_is_not_called_a_thermal_lag():

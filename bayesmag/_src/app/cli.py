@@ -233,15 +233,16 @@ def build_parser() -> argparse.ArgumentParser:
 def _cmd_discover(argv: list[str]) -> int:
     """``bayesmag discover``: check and lock --out before the search, then run discover's own CLI."""
     from bayesmag._src.app.config import read_config_dict
-    from bayesmag._src.app.discover_cli import build_parser as discover_parser, main as discover_main
+    from bayesmag._src.app.discover_cli import build_parser as discover_parser, default_out, main as discover_main, \
+        resolve_config
     from bayesmag._src.app.outdir import reserve
 
     args = discover_parser().parse_args(argv)
     if bool(args.data) == bool(args.config):
         return discover_main(argv)          # discover names the usage error
-    raw = read_config_dict(args.config, args.set or []) if args.config else {}
+    raw = read_config_dict(resolve_config(args.config), args.set or []) if args.config else {}
     name = Path(args.data).stem if args.data else raw.get("name", "bayesmag")
-    out = Path(args.out) if args.out else Path("runs") / f"discover_{name}"
+    out = Path(args.out) if args.out else default_out(name)
     data_table = raw.get("data") if isinstance(raw.get("data"), dict) else {}
     with reserve(out, inputs=[args.data, args.config, data_table.get("path")]):
         return discover_main(argv)

@@ -39,11 +39,24 @@ def load_discover_config(path: str | Path, overrides: Sequence[str] = ()):
 
 
 
+def resolve_config(name: str) -> Path:
+    """A config path, or the name of a packaged config (``discover_belsten``), as ``bayesmag run`` accepts."""
+    from bayesmag._src.app.cli import _resolve_config
+    return _resolve_config(name)
+
+
+def default_out(name: str) -> Path:
+    """``runs/discover_<name>``; a name that already starts with ``discover`` is not prefixed twice."""
+    return Path("runs") / (name if name.startswith("discover") else f"discover_{name}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bayesmag discover", description="Find physics missing from the calibration model.")
-    p.add_argument("config", nargs="?", help="config file with [data] and optional [discover]")
+    p.add_argument("config", nargs="?", help="config file with [data] and optional [discover], or the name of a "
+                                             "packaged config (e.g. discover_belsten)")
     p.add_argument("--data", help="a canonical CSV instead of a config (defaults for everything else)")
-    p.add_argument("--out", help="output folder (default runs/discover_<name>)")
+    p.add_argument("--out", help="output folder (default runs/discover_<name>, or runs/<name> when the config's "
+                                 "name starts with discover)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--no-figures", action="store_true")
     p.add_argument("--no-progress", action="store_true", help="no stage lines on stderr")
@@ -75,14 +88,14 @@ def main(argv: list[str] | None = None) -> int:
                 opts = dataclasses.replace(opts, time_available=False)
             name = Path(args.data).stem
         elif args.config:
-            cfg, opts = load_discover_config(args.config, args.set or [])
+            cfg, opts = load_discover_config(resolve_config(args.config), args.set or [])
             data = load_data(cfg)
             name = cfg.name
         else:
             raise ConfigError("give a CONFIG or --data FILE.csv.")
         if args.no_figures:
             opts = dataclasses.replace(opts, figures=False)
-        out = Path(args.out) if args.out else Path("runs") / f"discover_{name}"
+        out = Path(args.out) if args.out else default_out(name)
         res = discover(data, opts, progress=None if args.no_progress else _progress_printer())
         res.write(out)
     except (ConfigError, DataError, FileNotFoundError, ValueError) as e:
@@ -92,7 +105,14 @@ def main(argv: list[str] | None = None) -> int:
     if res.no_missing_physics:
         print("  no missing physics found")
     for f in res.findings:
-        ps = ", ".join(f"{k}={p['value']:.4g}+-{p['se']:.2g}" for k, p in f["parameters"].items())
+        ps = ", ".join(f"{k}={p['value']:.4g}+-{p['se']:.2g}"
+                       + (f" [95 %: {p['interval95'][0]:.4g}, {p['interval95'][1]:.4g}]" if p.get("interval95") else "")
+                       for k, p in f["parameters"].items())
+        loc = f.get("location")
+        if loc:
+            ps += f"; at {loc['value']:.6g} s [95 %: {loc['interval95'][0]:.6g}, {loc['interval95'][1]:.6g}]"
+        ev = f["evidence"]
+        ps += f"; {ev['decided_by']} = {ev['z_decisive']:.2f}"
         where = f"{f['channel']} channel" if f["frame"] == "sensor" else (
             "whole sensor" if f["frame"] == "whole" else f"{f['axis']} output")
         print(f"  {where}: {f['effect']} ({ps})")

@@ -21,11 +21,12 @@ axis_quadratic           linear      q_xx q_yy q_zz (1/uT)                      
 cross_axis_quadratic     linear      q_xy q_xz q_yz (1/uT)                          cross_axis_quadratic
 cubic_nonlinearity       linear      c_x c_y c_z (1/uT^2)                           cubic
 temperature_quadratic    linear      Ko2 (uT/C^2) [+ Ks2_x Ks2_y Ks2_z (1/C^2)]     temperature_quadratic
-thermal_lag              transform   log_tau (tau in s)                             thermal_lag
+thermal_lag              transform   log_tau (tau in s; nodes = 1 or 2)             thermal_lag
 timing_offset            transform   delta (s)                                      timing_offset
 hysteresis               linear      h (uT)                                         hysteresis
 offset_drift             linear      drift_rate (uT/s) [+ run_step (uT/run)]        offset_drift
 run_offset               linear      o_<run> per run after the first (uT)           (none)
+run_step                 linear      step (uT) from time ``at`` inside run ``run_id``   (none)
 =======================  ==========  =============================================  =====================
 
 Every class also carries its discovery registry entry (:class:`Entry`): requirements, scope
@@ -48,7 +49,7 @@ from bayesmag._src.core import physics as _physics
 from bayesmag._src.core.physics import EXTRA_TERMS, InputTransform, Inputs, Term
 
 __all__ = ["CATALOGUE", "make_extra", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "TemperatureQuadratic",
-           "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "RunOffset", "SIMULATOR_NAMES", "explanation",
+           "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "RunOffset", "RunStep", "SIMULATOR_NAMES", "explanation",
            "Entry", "Setting", "SearchContext", "register", "unregister"]
 
 _AXES = ("x", "y", "z")
@@ -95,7 +96,9 @@ class SearchContext:
     percentile of |measured field| per channel; ``step_noise`` sd of the row-to-row change of
     the measured field per channel (noise scale); ``cal`` the baseline thermo-affine
     coefficients of each output (``S_x S_y S_z Ks_x Ks_y Ks_z O Ko``) and ``ref_reach`` the 98th
-    percentile of |reference field| per axis (for entries driven by the calibrated field)."""
+    percentile of |reference field| per axis (for entries driven by the calibrated field);
+    ``heated_span`` the longest run over which the logged temperature changes by >= 1 C (s; the
+    longest run when none does); ``run_bounds`` ``(run, first time, last time)`` per run."""
 
     t0: float = 0.0
     dt: float = 1.0
@@ -106,6 +109,8 @@ class SearchContext:
     step_noise: tuple = (0.1, 0.1, 0.1)
     cal: tuple = ()
     ref_reach: tuple = ()
+    heated_span: float = 1.0
+    run_bounds: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,13 +136,29 @@ class Entry:
     * :meth:`depends_on` the variable the effect is drawn against;
     * :meth:`implausible` a reason why a fitted nonlinear value is not this physics (or None);
     * ``localised``: ``"run"`` for an effect that is constant within each run and may sit in
-      one run only (discovery then also scores it by run, not only by time block), else None.
+      one run only (discovery then also scores it by run, not only by time block), else None;
+    * ``frames``: where a channel-scope entry is tried (``"sensor"`` channels, calibrated ``"output"`` axes);
+    * ``located``: the name of a field that places the effect in time (a step's ``at``): after
+      selection discovery refines it and states it with an interval; :meth:`located_grid` the values tried;
+    * :meth:`canonical` the component with its starting values reset (one compiled transform per form);
+    * :meth:`variants` alternative forms tried after selection (e.g. a two-node heat path).
     """
 
     requires: ClassVar[tuple] = ()
     scope: ClassVar[str] = "channel"
     localised: ClassVar[str | None] = None
     simulator_name: ClassVar[str | None] = None
+    frames: ClassVar[tuple] = ("sensor", "output")
+    located: ClassVar[str | None] = None
+
+    def canonical(self):
+        return type(self)()
+
+    def variants(self) -> tuple:
+        return ()
+
+    def located_grid(self, ctx: SearchContext, k: int = 41):
+        return np.array([])
 
     @classmethod
     def grid(cls, ctx: SearchContext, c: int | None) -> list:
@@ -210,7 +231,7 @@ class AxisQuadratic(Term, Entry):
         return "reading gains " + " + ".join(f"B{n[2]}^2" for n in _cols_names(("q_xx", "q_yy", "q_zz"), cols)) + " terms"
 
     def depends_on(self, cols):
-        return "B" + "xyz"[(cols or (0,))[0]]
+        return "B" + "xyz"[(cols or (0,))[0] % 3]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -243,7 +264,7 @@ class CrossAxisQuadratic(Term, Entry):
         return "reading gains " + " + ".join(pairs[n] for n in _cols_names(tuple(pairs), cols)) + " terms"
 
     def depends_on(self, cols):
-        return ("Bx", "Bx", "By")[(cols or (0,))[0]]
+        return ("Bx", "Bx", "By")[(cols or (0,))[0] % 3]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,7 +294,7 @@ class CubicNonlinearity(Term, Entry):
         return "reading gains " + " + ".join(f"B{n[2]}^3" for n in _cols_names(("c_x", "c_y", "c_z"), cols)) + " terms"
 
     def depends_on(self, cols):
-        return "B" + "xyz"[(cols or (0,))[0]]
+        return "B" + "xyz"[(cols or (0,))[0] % 3]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -523,6 +544,57 @@ class RunOffset(Term, Entry):
         return "run"
 
 
+@dataclasses.dataclass(frozen=True)
+class RunStep(Term, Entry):
+    r"""The offset of one run steps by a constant at time ``at`` inside it: ``step [run == run_id, time >= at]`` (uT).
+
+    A set/reset flip, a power cycle without a new run, or a knock re-seats the bridge offset
+    part-way through a run. Distinct from ``run_offset`` (a constant for a *whole* run): the step
+    sits inside the run, at a time discovery locates (``at``, s) and states with an interval.
+    Parameter ``step`` (sensor units where it distorts a channel).
+    """
+
+    run_id: int = 0
+    at: float = 0.0
+    name: ClassVar[str] = "run_step"
+    degree: ClassVar[None] = None
+    requires: ClassVar[tuple] = ("time",)
+    frames: ClassVar[tuple] = ("sensor",)
+    located: ClassVar[str | None] = "at"
+    #: Candidate step times per run: these fractions of the run (the ends are run offsets).
+    FRACTIONS: ClassVar[tuple] = (1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6)
+    explanation: ClassVar[str] = ("A set/reset flip, a power cycle or a mechanical knock re-seats the bridge offset "
+                                  "part-way through a run, so the reading steps by a constant from that moment on.")
+
+    def param_names(self):
+        return ("step",)
+
+    def features(self, inputs):
+        on = (inputs.run == int(self.run_id)) & (inputs.time >= self.at)
+        return on.astype(inputs.t.dtype)[:, None]
+
+    @classmethod
+    def grid(cls, ctx, c):
+        return [Setting(cls(run_id=int(r), at=round(float(a + f * (b - a)), 6)))
+                for r, a, b in ctx.run_bounds for f in cls.FRACTIONS if b > a]
+
+    def located_grid(self, ctx, k=41):
+        """Step times tried when the step is refined: +-1/6 of its run around ``at`` (the spacing of
+        the search grid), inside the run."""
+        for r, a, b in ctx.run_bounds:
+            if int(r) == int(self.run_id):
+                w = (b - a) / 6
+                lo, hi = max(a + 0.02 * (b - a), self.at - w), min(b - 0.02 * (b - a), self.at + w)
+                return np.linspace(lo, hi, k)
+        return np.array([self.at])
+
+    def describe(self, cols):
+        return f"offset steps inside run {self.run_id} at t = {self.at:.6g} s (stays stepped to the run's end)"
+
+    def depends_on(self, cols):
+        return "time"
+
+
 def hysteresis_state(f: jax.Array, run: jax.Array, level, *, mode: str, lag: int = 4) -> jax.Array:
     """Sign of the last excursion of ``f`` beyond +-``level`` (``mode="excursion"``) or of the
     last change ``f(t) - f(t - lag)`` larger than ``level`` (``mode="direction"``), held within runs."""
@@ -541,12 +613,26 @@ def hysteresis_state(f: jax.Array, run: jax.Array, level, *, mode: str, lag: int
 
 @dataclasses.dataclass(frozen=True)
 class ThermalLag(_physics.ThermalLag, Entry):
-    r"""Sensor temperature as a first-order lag of the logged temperature (time constant tau, s).
+    r"""Sensor temperature as a lag of the logged temperature: one node, or a housing and a die node.
 
-    See :class:`bayesmag._src.core.physics.ThermalLag`; parameter ``log_tau``; ``tau0`` is the
-    starting value in seconds.
+    ``nodes=1``: :class:`bayesmag._src.core.physics.ThermalLag`, :math:`\tau \dot T_s = T - T_s`.
+    ``nodes=2``: the heat reaches the die through its housing, :math:`\tau_h \dot T_h = T - T_h`,
+    :math:`\tau_d \dot T_s = T_h - T_s` with :math:`\tau_h = \text{split}\,\tau`,
+    :math:`\tau_d = (1 - \text{split})\,\tau`. In both forms ``tau`` is the *mean delay* of the
+    heat path (the lag of the die behind a steady ramp; :math:`\tau_h + \tau_d` for two nodes).
+    Parameter ``log_tau``; ``tau0`` is the starting value in seconds; each node starts in
+    equilibrium with the log at every run start.
+
+    Example:
+      >>> import numpy as np; from bayesmag._src.core.physics import Inputs
+      >>> t = np.arange(2000.0); x = Inputs(np.zeros((2000, 3)), t / 60, t, np.zeros(2000, int))
+      >>> lag = ThermalLag(nodes=2)(np.array([np.log(120.0)]), x).t
+      >>> round(float(x.t[-1] - lag[-1]) * 60, 1)    # 1 C/min: the die trails by tau (less dt/2 per node)
+      119.0
     """
 
+    nodes: int = 1
+    split: float = 0.5
     explanation: ClassVar[str] = ("The sensor die heats and cools more slowly than the thermometer that logs the "
                                   "temperature, so it sees a lagged temperature.")
     requires: ClassVar[tuple] = ("time", "temperature")
@@ -554,14 +640,40 @@ class ThermalLag(_physics.ThermalLag, Entry):
     simulator_name: ClassVar[str] = "thermal_lag"
     #: A lag shorter than this many samples is smoothing of the temperature log, not heat flow.
     MIN_SAMPLES: ClassVar[float] = 10.0
+    #: Shortest lag searched (s), and the search's upper cap (s): half the longest heated run, at most TAU_MAX.
+    TAU_MIN: ClassVar[float] = 1.0
+    TAU_MAX: ClassVar[float] = 900.0
+
+    def __post_init__(self):
+        if int(self.nodes) not in (1, 2):
+            raise ValueError(f"thermal_lag nodes is {self.nodes!r}; it must be 1 (one node) or 2 (housing and die).")
+        if not 0.0 < float(self.split) < 1.0:
+            raise ValueError(f"thermal_lag split is {self.split!r}; it must lie strictly between 0 and 1 "
+                             f"(the housing's share of the mean delay).")
+
+    def __call__(self, params, inputs):
+        if int(self.nodes) == 1:
+            return super().__call__(params, inputs)
+        tau = params[0]
+        first = super().__call__(jnp.atleast_1d(tau + jnp.log(self.split)), inputs)
+        return super().__call__(jnp.atleast_1d(tau + jnp.log(1.0 - self.split)), first)
+
+    def canonical(self):
+        return ThermalLag(nodes=int(self.nodes), split=float(self.split))
+
+    def variants(self):
+        return (ThermalLag(tau0=self.tau0, nodes=2, split=0.5),) if int(self.nodes) == 1 else ()
 
     @classmethod
     def grid(cls, ctx, c):
-        lo = max(cls.MIN_SAMPLES * ctx.dt, 5.0)
-        hi = max(2 * lo, ctx.run_span / 2)
-        return [Setting(cls(tau0=float(t)), nl=float(np.log(t))) for t in np.geomspace(lo, hi, 10)]
+        lo = max(cls.MIN_SAMPLES * ctx.dt, cls.TAU_MIN)
+        hi = max(2 * lo, min(cls.TAU_MAX, ctx.heated_span / 2))
+        k = max(4, int(np.ceil(np.log(hi / lo) / np.log(1.8))) + 1)
+        return [Setting(cls(tau0=float(t)), nl=float(np.log(t))) for t in np.geomspace(lo, hi, k)]
 
     def describe(self, cols):
+        if int(self.nodes) == 2:
+            return "temperature the sensor sees lags the logged temperature (through its housing: two nodes)"
         return "temperature the sensor sees lags the logged temperature"
 
     def depends_on(self, cols):
@@ -572,8 +684,9 @@ class ThermalLag(_physics.ThermalLag, Entry):
         if tau < self.MIN_SAMPLES * ctx.dt:
             return (f"tau = {tau:.3g} s is under {self.MIN_SAMPLES:g} samples ({self.MIN_SAMPLES * ctx.dt:.3g} s): "
                     f"that smooths the noise of the temperature log; it is not heat flow")
-        if tau > 2 * ctx.run_span:
-            return f"tau = {tau:.3g} s is longer than twice a run ({ctx.run_span:.3g} s): not identified"
+        if tau > ctx.heated_span:
+            return (f"tau = {tau:.3g} s is longer than the longest run over which the temperature changes "
+                    f"({ctx.heated_span:.3g} s): not identified")
         return None
 
 
@@ -611,6 +724,9 @@ class TimingOffset(InputTransform, Entry):
             return f"delta = {value:.3g} s is more than 10 samples: not a clock latency"
         return None
 
+    def canonical(self):
+        return TimingOffset()
+
     def param_names(self):
         return ("delta",)
 
@@ -637,7 +753,7 @@ for _cls in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, Hysteresis):
 #: The discovery catalogue: name -> class (each class carries its own grid, label, requirements, twin).
 CATALOGUE: dict[str, type] = {
     c.name: c for c in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, TemperatureQuadratic, ThermalLag,
-                        TimingOffset, Hysteresis, OffsetDrift, RunOffset)
+                        TimingOffset, Hysteresis, OffsetDrift, RunOffset, RunStep)
 }
 
 #: Simulator effect name (:mod:`bayesmag.simulate`) -> catalogue name that represents it.

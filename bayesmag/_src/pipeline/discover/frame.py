@@ -173,7 +173,8 @@ class Designs:
         if key not in self._inp:
             inp = self.inputs
             for e in transforms:
-                inp = _transform_jit(type(e.component)(), jnp.array([e.setting.nl]), inp)
+                canon = e.component.canonical() if hasattr(e.component, "canonical") else type(e.component)()
+                inp = _transform_jit(canon, jnp.array([e.setting.nl]), inp)
             self._inp[key] = inp
         return self._inp[key]
 

@@ -53,6 +53,8 @@ ROWS_PER_PARAM = 10
 #: Systematic (type-B) standard uncertainty of a timing offset from linear interpolation of the
 #: readings, as a fraction of the sampling step (noise-free simulations: |bias| <= dt/10).
 DELTA_SYS_FRACTION = 0.1
+#: Bootstrap replicates of the 95 % interval of a thermal lag's tau or a step's time.
+N_BOOT_LAG = 200
 
 
 @dataclasses.dataclass(frozen=True)

@@ -27,14 +27,16 @@ from scipy import stats
 
 from bayesmag._src.core import catalogue as C
 from bayesmag._src.core.data import AXES, CalibrationData
-from bayesmag._src.core.fit import lag1_autocorrelation
+from bayesmag._src.core.fit import covariance, lag1_autocorrelation
 from bayesmag._src.core.physics import ThermoAffine, inputs_from_data
 from bayesmag._src.pipeline.discover.checks import drop_one, identified, lag_or_smoothing
-from bayesmag._src.pipeline.discover.diagnostics import block_ids, block_length, locate, make_variables, noise_floor, run_starts, structure
+from bayesmag._src.pipeline.discover.diagnostics import block_z, block_ids, block_length, locate, make_variables, noise_floor, run_starts, structure
 from bayesmag._src.pipeline.discover.frame import Designs, Extension, JointModel, gain_matrix, lstsq, refit
-from bayesmag._src.pipeline.discover.options import DELTA_SYS_FRACTION, ROWS_PER_PARAM, Z_DISTINCT, DiscoverOptions
+from bayesmag._src.pipeline.discover.intervals import profile_interval, profile_minimiser
+from bayesmag._src.pipeline.discover.options import DELTA_SYS_FRACTION, N_BOOT_LAG, ROWS_PER_PARAM, Z_DISTINCT, \
+    Z_MIN, DiscoverOptions
 from bayesmag._src.pipeline.discover.result import DiscoveryResult
-from bayesmag._src.pipeline.discover.search import compare, cv_residuals, forward, groups, score_group
+from bayesmag._src.pipeline.discover.search import compare, cv_residuals, forward, groups, row_loss, score_group
 
 __all__ = ["discover"]
 
@@ -63,6 +65,8 @@ def _folds(data, options, notes, corr_rows):
 def _context(data, t0, dt, W0=None) -> C.SearchContext:
     runs = tuple(int(r) for r in dict.fromkeys(data.run.tolist()))
     spans = [float(np.ptp(data.time[data.run == r])) for r in runs]
+    heated = [sp for r, sp in zip(runs, spans) if np.ptp(data.temperature[data.run == r]) >= 1.0]
+    bounds = tuple((r, float(data.time[data.run == r].min()), float(data.time[data.run == r].max())) for r in runs)
     b = data.b_meas
     same = ~run_starts(data.run)[1:]
     steps = [float(1.4826 * np.median(np.abs(np.diff(b[:, k])[same]))) + 1e-9 for k in range(3)]
@@ -72,7 +76,8 @@ def _context(data, t0, dt, W0=None) -> C.SearchContext:
                            step_noise=tuple(steps),
                            cal=tuple(tuple(float(v) for v in w) for w in W0) if W0 is not None and W0.shape[1] in (4, 8)
                            else (),
-                           ref_reach=tuple(float(np.quantile(np.abs(data.b_ref[:, k]), 0.98)) for k in range(3)))
+                           ref_reach=tuple(float(np.quantile(np.abs(data.b_ref[:, k]), 0.98)) for k in range(3)),
+                           heated_span=max(heated) if heated else (max(spans) if spans else 1.0), run_bounds=bounds)
 
 
 def _label(ext) -> str:
@@ -115,6 +120,97 @@ def _to_channels(base, W, t, resid) -> np.ndarray:
     """Output residuals (n, 3) mapped back to the sensor channels: solve (S + Ks Tc) r_ch = r."""
     G = gain_matrix(base, W, t)
     return np.linalg.solve(G, resid[..., None])[..., 0]
+
+
+def _dominant(ext, theta, sl, inputs) -> str:
+    """The variable the effect is drawn against: for a linear term, the one of its column with the
+    largest contribution (rms of coefficient x feature), e.g. Bz for a reading that gains mostly q_zz Bz^2."""
+    if ext.frame == "whole":
+        return ext.component.depends_on(ext.setting.cols)
+    F = np.asarray(ext.features(inputs))
+    contrib = np.sqrt(np.mean((F * theta[sl[ext]][None, :]) ** 2, axis=0))
+    cols = ext.setting.cols if ext.setting.cols is not None else tuple(range(F.shape[1]))
+    return ext.component.depends_on((int(cols[int(np.argmax(contrib))]),))
+
+
+def _localised_ext(ext) -> bool:
+    return ext.frame != "whole" and getattr(ext.component, "localised", None) == "run"
+
+
+def _unstated_run(designs, kept, ext, run_k, e_fin, folds3, blocks, run) -> str | None:
+    """Why the run whose mean stands out most in a run-localised finding has no stated offset:
+    its offset alone, added to the final model (value +- Newey-West se), and the block z of that
+    addition out of sample; None when the finding reports that run's offset."""
+    name = f"o_{run_k}"
+    runs = list(ext.component.runs[1:])
+    if name in ext.param_names or run_k not in runs:
+        return None
+    alone = Extension(dataclasses.replace(ext.setting, cols=(runs.index(run_k),)), ext.frame, ext.slot)
+    model = tuple(kept) + (alone,)
+    X = designs.matrix(model)
+    beta = lstsq(X, designs.y)
+    run3 = np.concatenate([run + a * (int(run.max()) + 1) for a in range(3)])
+    cov, _ = covariance(X, designs.y - X @ beta, method="newey_west", run=run3)
+    v, sd = float(beta[-1]), float(np.sqrt(max(cov[-1, -1], 0.0)))
+    e_new, _, _, _ = cv_residuals(designs, model, [None], folds3)
+    z = block_z(row_loss(e_fin, designs.n) - row_loss(e_new, designs.n), blocks)
+    if z >= Z_MIN:
+        return None
+    return (f"run {run_k}'s mean stands out most in the by-run contrast, but an offset of run {run_k} alone added "
+            f"to the final model, {name} = {v:.3g} +- {sd:.2g} (t = {abs(v) / max(sd, 1e-300):.2f}), predicts no better "
+            f"out of sample (block z = {z:.2f} < {Z_MIN}): the step of run {run_k} cannot be stated from these data")
+
+
+def _tau_interval(designs, others, lag, log_tau, se_log, block_rows, seed) -> dict:
+    """95 % interval of a thermal lag's tau by the block bootstrap of its profile
+    (:func:`~.intervals.profile_interval`, on log tau), moved so that the profile's minimiser
+    on all rows falls on the joint fit's value; widened while replicates pile up at a grid edge."""
+    half = float(np.clip(6 * se_log, 0.1, 1.5))
+    for _ in range(3):
+        grid = log_tau + np.linspace(-half, half, 25)
+        lo, hi, best, edge = profile_interval(
+            lambda v: designs.matrix(others + (Extension(dataclasses.replace(lag.setting, nl=float(v)), "whole"),)),
+            designs.y, grid, block_rows, outputs=3, n_boot=N_BOOT_LAG, seed=seed)
+        if edge <= 0.01:
+            break
+        half *= 2
+    shift = log_tau - best
+    # never narrower than the joint fit's own +-1.96 Newey-West se (the bootstrap holds the
+    # designs fixed; on the chamber generator it alone covered tau in 15/18 first-order campaigns)
+    lo, hi = min(lo + shift, log_tau - 1.96 * se_log), max(hi + shift, log_tau + 1.96 * se_log)
+    form = {}
+    comp = lag.component
+    if int(getattr(comp, "nodes", 1)) == 2:
+        # the housing's share of the delay is not fitted: the interval also covers tau's minimiser
+        # for shares 0.2 and 0.8 (a steady ramp fixes the sum, the transients the share)
+        for share in (0.2, 0.8):
+            alt = dataclasses.replace(lag.setting, component=dataclasses.replace(comp, split=share))
+            m = profile_minimiser(lambda v: designs.matrix(others + (Extension(dataclasses.replace(alt, nl=float(v)),
+                                                                               "whole"),)), designs.y, grid) + shift
+            lo, hi = min(lo, m), max(hi, m)
+        form = {"interval_form": "widened to cover tau for housing shares 0.2 to 0.8 of the delay"}
+    return {"interval95": [float(math.exp(lo)), float(math.exp(hi))], **form,
+            "interval_method": (f"moving-block bootstrap ({N_BOOT_LAG} replicates, blocks of {block_rows} rows) of "
+                                f"the least-squares profile over log tau, joined with +-1.96 Newey-West se"),
+            **({"interval_open": f"{edge:.0%} of the replicates at the edge of +-{half:.2g} in log tau"}
+               if edge > 0.01 else {})}
+
+
+def _locate_interval(designs, others, ext, ctx, block_rows, seed) -> dict:
+    """Where a located effect (a step inside a run) sits, with a 95 % interval (block bootstrap of its profile)."""
+    comp = ext.component
+    field = comp.located
+    grid = comp.located_grid(ctx)
+    move = lambda v: Extension(dataclasses.replace(ext.setting, component=dataclasses.replace(comp, **{field: float(v)})),  # noqa: E731
+                               ext.frame, ext.slot)
+    lo, hi, best, edge = profile_interval(lambda v: designs.matrix(others + (move(v),)), designs.y, grid, block_rows,
+                                          outputs=3, n_boot=N_BOOT_LAG, seed=seed)
+    return {"field": field, "value": float(getattr(comp, field)), "interval95": [lo, hi], "unit": "s",
+            **({"run": int(comp.run_id)} if hasattr(comp, "run_id") else {}),
+            "interval_method": f"moving-block bootstrap ({N_BOOT_LAG} replicates, blocks of {block_rows} rows) of "
+                               f"the least-squares profile over {field}",
+            **({"interval_open": f"{edge:.0%} of the replicates at the edge of the searched window"}
+               if edge > 0.01 else {})}
 
 
 def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, progress=None,
@@ -217,16 +313,18 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
 
     e0, r0, _, k0 = cv_residuals(designs, (), [None], folds3)
     say(f"searching {len(cands)} candidate groups ({sum(len(v) for v in cands.values())} settings)")
-    selected, steps, _ = forward(designs, cands, folds3, blocks, (e0, r0, k0), n_eff_fn, int(options.max_terms),
-                                 progress=say)
+    selected, steps, _, closest = forward(designs, cands, folds3, blocks, (e0, r0, k0), n_eff_fn,
+                                          int(options.max_terms), progress=say, ctx=ctx)
     kept, dropped = drop_one(designs, selected, folds3, blocks, n_eff_fn, progress=say)
     for ext, s in dropped:
         rejected.append({"effect": ext.name, "where": _label(ext),
                          "reason": f"does not survive the drop-one check: given the other findings its out-of-sample "
                                    f"gain is {s.gain:.1%} (block z = {s.z:.1f}, BIC_eff change {s.dbic:.1f})"})
     kept, not_ident = identified(designs, kept, run)
+    z_smoothing = {}
     for lag in [e for e in kept if e.name == "thermal_lag"]:
         z_lag, tau_sm = lag_or_smoothing(designs, kept, lag, folds3, blocks)
+        z_smoothing[lag.setting.component] = (float(z_lag), float(tau_sm))
         if z_lag < Z_DISTINCT:
             kept = tuple(e for e in kept if e != lag)
             rejected.append({"effect": "thermal_lag", "where": _label(lag),
@@ -274,7 +372,8 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
     final_scores = _scores(y, pred, e_fin, w, run)
     variables = make_variables(data, time_ok)
     findings, extra_terms, effects = [], [], []
-    step_of = {(st["score"].ext.setting.component, st["score"].ext.frame, st["score"].ext.slot): st for st in steps}
+    step_of = {st["score"].key: st for st in steps}
+    block_rows = int(np.median(np.bincount(blocks)[np.bincount(blocks) > 0]))
     for e in kept:
         others = tuple(x for x in kept if x != e)
         e_wo, r_wo, _, k_wo = cv_residuals(designs, others, [None], folds3)
@@ -289,16 +388,25 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
         rms = np.sqrt(np.mean(eff**2, axis=0))
         outputs = [AXES[a] for a in range(3) if rms[a] >= 0.2 * rms.max() and rms.max() > 0]
         params = {n: {"value": float(theta[i]), "se": float(se[i])} for n, i in zip(e.param_names, sl[e])}
+        location = None
         if e.name == "thermal_lag":
             lt = params.pop("log_tau")
             tau = math.exp(lt["value"])
-            params["tau"] = {"value": tau, "se": tau * lt["se"], "unit": "s"}
+            params["tau"] = {"value": tau, "se": tau * lt["se"], "unit": "s",
+                             **_tau_interval(designs, others, e, lt["value"], lt["se"], block_rows, options.seed)}
+            if int(getattr(e.component, "nodes", 1)) == 2:
+                params["tau"]["nodes"] = 2
+                params["tau"]["tau_housing"] = float(e.component.split * tau)
+                params["tau"]["tau_die"] = float((1 - e.component.split) * tau)
+        if getattr(e.component, "located", None):
+            location = _locate_interval(designs, others, e, ctx, block_rows, options.seed)
         if e.name == "timing_offset":
             p = params["delta"]
             sys_se = DELTA_SYS_FRACTION * dt
             p.update({"se": math.hypot(p["se"], sys_se), "se_statistical": p["se"], "se_interpolation": sys_se,
                       "unit": "s"})
-        st = step_of.get((e.setting.component, e.frame, e.slot))
+        st = step_of.get((e.name, e.frame, e.slot))
+        sc = st["score"] if st else s
         e_before = (e_wo.reshape(3, -1).T / w)
         channel = AXES[e.slot] if e.frame == "sensor" else ("all" if e.frame == "whole" else None)
         findings.append({
@@ -309,19 +417,32 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
             "not_identified": [p for p in not_ident if (p["effect"], p["frame"], p["slot"]) == (e.name, e.frame, e.slot)],
             "rmse_before": {a: float(np.sqrt(np.mean(e_before[:, k] ** 2))) for k, a in enumerate(AXES)},
             "rmse_after": dict(_axis_dict(final_scores)["rmse"]),
-            "evidence": {"oos_gain": s.gain, "z": float(st["score"].z) if st else s.z,
-                         "p_value": float(stats.norm.sf(st["score"].z if st else s.z)),
-                         "delta_bic_eff": float(st["score"].dbic) if st else s.dbic,
+            **({"location": location} if location else {}),
+            "evidence": {"oos_gain": s.gain, "decided_by": sc.decided_by, "z_decisive": float(sc.z_decisive),
+                         "p_value": float(stats.norm.sf(sc.z_decisive)),
+                         "z": float(sc.z), "p_value_block": float(stats.norm.sf(sc.z)),
+                         "delta_bic_eff": float(sc.dbic),
                          "drop_one_z": s.z, "drop_one_gain": s.gain, "cv": cv_desc,
-                         **({"z_run": float(st["score"].z_run) if st else s.z_run, "drop_one_z_run": s.z_run,
+                         **({"z_run": float(sc.z_run), "drop_one_z_run": s.z_run,
                              "run_mean_furthest_from_the_others": s.run}
-                            if getattr(e.component, "localised", None) == "run" else {})},
+                            if getattr(e.component, "localised", None) == "run" else {}),
+                         **({"form": st["form"]} if st and st.get("form", {}).get("tried") else {}),
+                         **({"z_lag_vs_zero_phase_smoothing": z_smoothing[e.setting.component][0],
+                             "zero_phase_smoothing_tau": z_smoothing[e.setting.component][1]}
+                            if e.setting.component in z_smoothing else {})},
             "explanation": e.component.explanation,
             "indistinguishable_from": [{"effect": a.ext.name, "where": _label(a.ext), "oos_gain": a.gain}
                                        for a in (st["alternatives"] if st else [])],
             "config": _spec(e, theta[sl[e][0]] if e.frame == "whole" else None),
         })
-        effects.append({"effect": eff, "before": e_before, "depends_on": e.component.depends_on(e.setting.cols)})
+        if _localised_ext(e) and s.run is not None:
+            unstated = _unstated_run(designs, kept, e, s.run, e_fin, folds3, blocks, run)
+            if unstated:
+                findings[-1]["furthest_run_not_stated"] = unstated
+        if getattr(e.component, "localised", None) == "run" or getattr(e.component, "located", None):
+            findings[-1]["applies_to"] = ("the training sessions only: it describes the runs of this recording "
+                                          "and cannot be applied to a new session")
+        effects.append({"effect": eff, "before": e_before, "depends_on": _dominant(e, theta, sl, inputs)})
         spec = json.dumps(findings[-1]["config"], sort_keys=True, default=str)
         if spec not in {json.dumps(x, sort_keys=True, default=str) for x in extra_terms}:
             extra_terms.append(findings[-1]["config"])
@@ -339,7 +460,15 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
     unexplained = structure(data, ch_final, located_final, dt=dt)
     baseline, final = _axis_dict(base_scores), _axis_dict(final_scores)
     baseline["cv"] = final["cv"] = cv_desc
-    arrays = {"variables": variables, "effects": effects, "base_resid": ch_base, "final_resid": ch_final}
+    arrays = {"variables": variables, "effects": effects, "base_resid": ch_base, "final_resid": ch_final, "X0": X0}
     say(f"done: {len(findings)} finding(s), {len(unexplained)} unexplained")
+    near = None
+    if closest is not None:
+        near = {"effect": closest.ext.name, "where": _label(closest.ext), "decided_by": closest.decided_by,
+                "z_decisive": float(closest.z_decisive), "p_value": float(stats.norm.sf(closest.z_decisive)),
+                "z": float(closest.z), "p_value_block": float(stats.norm.sf(closest.z)),
+                **({"z_run": float(closest.z_run)} if _localised_ext(closest.ext) else {}),
+                "oos_gain": float(closest.gain), "delta_bic_eff": float(closest.dbic),
+                "not_accepted_because": closest.shortfall}
     return DiscoveryResult(findings, unexplained, located, baseline, final, extra_terms, notes, skipped, options,
-                           data.source, _time.perf_counter() - t_start, rejected, arrays)
+                           data.source, _time.perf_counter() - t_start, rejected, arrays, near)

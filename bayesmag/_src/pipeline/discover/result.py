@@ -12,7 +12,7 @@ import numpy as np
 
 from bayesmag._src.core.data import AXES
 from bayesmag._src.pipeline.discover.options import DBIC_MIN, FLOOR_RATIO, LOCATE_FRACTION, LOCATE_P, MIN_GAIN, N_PERM, RHO_STRUCTURE, T_IDENT, \
-    Z_DISTINCT, Z_MIN, DiscoverOptions
+    Z_DISTINCT, Z_MIN, Z_RUN, DiscoverOptions
 
 __all__ = ["DiscoveryResult", "report_markdown"]
 
@@ -40,6 +40,7 @@ class DiscoveryResult:
     seconds: float
     rejected: list = dataclasses.field(default_factory=list)
     arrays: dict = dataclasses.field(default_factory=dict, repr=False)
+    closest_not_accepted: dict | None = None
 
     @property
     def no_missing_physics(self) -> bool:
@@ -55,6 +56,7 @@ class DiscoveryResult:
             "findings": self.findings,
             "unexplained": self.unexplained,
             "rejected": self.rejected,
+            "closest_not_accepted": self.closest_not_accepted,
             "extra_terms": self.extra_terms,
             "located": [{k: v for k, v in l.items() if k not in ("bin_labels", "bin_means")} for l in self.located],
             "notes": self.notes,
@@ -143,14 +145,33 @@ def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
         for i, fd in enumerate(res.findings, 1):
             ev = fd["evidence"]
             ps = ", ".join(f"{k} = {p['value']:.4g} +- {p['se']:.2g}" + (f" {p['unit']}" if p.get("unit") else "")
+                           + (f" (95 % interval {p['interval95'][0]:.4g} to {p['interval95'][1]:.4g}"
+                              f"{' ' + p['unit'] if p.get('unit') else ''})" if p.get("interval95") else "")
                            for k, p in fd["parameters"].items())
             rb, ra = fd["rmse_before"], fd["rmse_after"]
             L += [f"### {i}. {fd['effect']}: {headline(fd)}", "", f"*{fd['explanation']}*", "",
                   f"- Setting: {fd['setting']}; fitted (+- one standard error, Newey-West, joint fit of the three "
                   f"outputs): {ps}.",
-                  "- Out-of-sample RMSE (uT) " + ", ".join(f"{a}: {rb[a]:.4g} -> {ra[a]:.4g}" for a in AXES)
-                  + f" (block z = {ev['z']:.1f}, p = {ev['p_value']:.2g}; BIC_eff change {ev['delta_bic_eff']:.1f}; "
-                    f"drop-one z given the other findings = {ev['drop_one_z']:.1f})."]
+                  "- Out-of-sample RMSE (uT) " + ", ".join(f"{a}: {rb[a]:.4g} -> {ra[a]:.4g}" for a in AXES) + ".",
+                  f"- Accepted on the {ev['decided_by']} = {ev['z_decisive']:.2f} (one-sided p = {ev['p_value']:.2g}; "
+                  f"threshold {Z_MIN if ev['decided_by'] == 'block z' else Z_RUN:.2f})"
+                  + (f", not on the block z = {ev['z']:.2f} (p = {ev['p_value_block']:.2g}), which is below {Z_MIN}"
+                     if ev["decided_by"] != "block z" else "")
+                  + f"; gain {ev['oos_gain']:.1%} (share of the out-of-sample mean square removed on the output it "
+                    f"helps most); BIC_eff change {ev['delta_bic_eff']:.1f}; drop-one z given the other findings = "
+                    f"{ev['drop_one_z']:.1f}."]
+            if fd.get("location"):
+                loc = fd["location"]
+                L.append(f"- Located at {loc['field']} = {loc['value']:.6g} {loc['unit']}"
+                         + (f" in run {loc['run']}" if "run" in loc else "")
+                         + f" (95 % interval {loc['interval95'][0]:.6g} to {loc['interval95'][1]:.6g} {loc['unit']}).")
+            if ev.get("form", {}).get("tried"):
+                L.append("- Form: " + ", ".join(f"{t['form']} against the first-order form: block z = {t['z_vs_first']:.1f}"
+                                                 for t in ev["form"]["tried"]) + f"; kept {ev['form']['chosen']}.")
+            if fd.get("furthest_run_not_stated"):
+                L.append(f"- Not stated: {fd['furthest_run_not_stated']}.")
+            if fd.get("applies_to"):
+                L.append(f"- Applies to {fd['applies_to']}.")
             if fd.get("not_identified"):
                 L.append("- Not identified by these data (dropped, |value| < "
                          f"{T_IDENT} se): " + ", ".join(f"{p['parameter']} = {p['value']:.3g} +- {p['se']:.2g}"
@@ -158,8 +179,16 @@ def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
             if fd["indistinguishable_from"]:
                 alts = ", ".join(f"{al['effect']} ({al['where']}, gain {al['oos_gain']:.1%})"
                                  for al in fd["indistinguishable_from"])
-                L.append(f"- **Indistinguishable** on these data from: {alts}.")
+                L.append(f"- **Indistinguishable** on these data from: {alts} (gain: share of the out-of-sample "
+                         f"mean square removed on the output it helps most).")
             L.append("")
+    near = res.closest_not_accepted
+    if near:
+        L += ["## Closest candidate not accepted", "",
+              f"{near['effect']} ({near['where']}): {near['decided_by']} = {near['z_decisive']:.2f} (one-sided p = "
+              f"{near['p_value']:.2g}), gain {near['oos_gain']:.1%} (share of the out-of-sample mean square removed on "
+              f"the output it helps most), BIC_eff change {near['delta_bic_eff']:.1f}; not accepted because "
+              f"{near['not_accepted_because']}.", ""]
     if res.unexplained:
         L += ["## Unexplained structure", "",
               "Nothing in the catalogue explains the following; it is described, not named:", ""]
@@ -172,6 +201,11 @@ def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
         L += ["## Using the extended model", "", "Add to the `[physics]` table of a `bayesmag run` config (there each "
               "output gets its own coefficients, an output-frame approximation of the sensor-frame terms):", "",
               "```toml", "[physics]", "extra_terms = " + _toml_list(res.extra_terms), "```", ""]
+        local = sorted({fd["effect"] for fd in res.findings if fd.get("applies_to")})
+        if local:
+            L += [f"{' and '.join(local)} describe{'s' if len(local) == 1 else ''} the training sessions only (their "
+                  f"runs and times): keep {'it' if len(local) == 1 else 'them'} in a model refitted to these runs, but "
+                  f"{'it' if len(local) == 1 else 'they'} cannot be applied to a new session.", ""]
     if res.notes:
         L += ["## Notes", ""] + [f"- {n}" for n in res.notes] + [""]
     if figures:

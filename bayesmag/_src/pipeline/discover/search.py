@@ -49,6 +49,30 @@ class Score:
     def accepted(self) -> bool:
         return (self.z >= Z_MIN or self.z_run >= Z_RUN) and self.gain >= MIN_GAIN and self.dbic <= -DBIC_MIN
 
+    @property
+    def decided_by(self) -> str:
+        """The statistic that decides: "block z" (threshold Z_MIN) or, for a run-localised entry
+        whose block z falls short, "run contrast z_run" (threshold Z_RUN)."""
+        return "run contrast z_run" if self.z < Z_MIN and self.z_run > 0 and self.z_run / Z_RUN > self.z / Z_MIN \
+            else "block z"
+
+    @property
+    def z_decisive(self) -> float:
+        return self.z_run if self.decided_by.startswith("run") else self.z
+
+    @property
+    def shortfall(self) -> str | None:
+        """Why the group is not accepted (None when it is)."""
+        why = []
+        if not (self.z >= Z_MIN or self.z_run >= Z_RUN):
+            why.append(f"block z {self.z:.2f} < {Z_MIN}" + (f" and run contrast z_run {self.z_run:.2f} < {Z_RUN:.2f}"
+                                                           if self.z_run > 0 else ""))
+        if self.gain < MIN_GAIN:
+            why.append(f"out-of-sample gain {self.gain:.2%} < {MIN_GAIN:.0%}")
+        if self.dbic > -DBIC_MIN:
+            why.append(f"BIC_eff change {self.dbic:.1f} > -{DBIC_MIN:g}")
+        return "; ".join(why) or None
+
 
 def groups(ctx: C.SearchContext, names, has: set) -> dict:
     """(name, frame, slot) -> list of Extension options, for every entry whose requirements ``has`` meets."""
@@ -60,7 +84,7 @@ def groups(ctx: C.SearchContext, names, has: set) -> dict:
         if cls.scope == "sensor":
             out[(name, "whole", None)] = [Extension(s, "whole") for s in cls.grid(ctx, None)]
             continue
-        for frame in ("sensor", "output"):
+        for frame in getattr(cls, "frames", ("sensor", "output")):
             for c in range(3):
                 out[(name, frame, c)] = [Extension(s, frame, c) for s in cls.grid(ctx, c)]
     return out
@@ -171,12 +195,17 @@ def score_group(designs, current, key, options, folds3, blocks, ref, n_eff) -> S
     return s1 if s1.accepted else s
 
 
-def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int, progress=None):
-    """Forward selection; returns (selected extensions, steps). Each step adds the accepted
-    group with the largest total gain; an output-frame group only if it beats the same entry's
-    best sensor-frame group by block z >= Z_DISTINCT (the physics happens in a channel)."""
+def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int, progress=None, ctx=None):
+    """Forward selection; returns (selected extensions, steps, reference residuals, closest).
+    Each step adds the accepted group with the largest total gain; an output-frame group only if
+    it beats the same entry's best sensor-frame group by block z >= Z_DISTINCT (the physics
+    happens in a channel). A whole-sensor value is refined (and the entry's other forms tried,
+    :meth:`~bayesmag._src.core.catalogue.Entry.variants`); a located effect (a step's time) is
+    refined on :meth:`~bayesmag._src.core.catalogue.Entry.located_grid`. ``closest``: the best
+    group that was not accepted at the last step (its Score), or None."""
     current, steps = (), []
     used = set()
+    closest = None
     while len(current) < max_terms:
         n_eff = n_eff_fn(ref[1])
         scores = []
@@ -187,6 +216,9 @@ def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int,
         ok = [s for s in scores if s.accepted]
         if progress:
             progress(f"step {len(current) + 1}: {len(scores)} candidate groups scored, {len(ok)} accepted")
+        rest = [s for s in scores if not s.accepted]
+        closest = max(rest, key=lambda s: s.z_decisive / (Z_RUN if s.decided_by.startswith("run") else Z_MIN)) \
+            if rest else None
         if not ok:
             break
         best = max(ok, key=lambda s: s.gain_total)
@@ -199,17 +231,54 @@ def forward(designs, cands: dict, folds3, blocks, ref, n_eff_fn, max_terms: int,
                     best = twin
         alts = [s for s in ok if s is not best and s.key[0] != best.key[0]
                 and block_z(row_loss(s.e_oos, designs.n) - row_loss(best.e_oos, designs.n), blocks) < Z_DISTINCT]
-        steps.append({"score": best, "alternatives": alts, "e_before": ref[0]})
+        step = {"score": best, "alternatives": alts, "e_before": ref[0]}
         chosen = best.ext
         if chosen.frame == "whole":
             # refine the nonlinear value around the grid point (in sample), so later steps do not
             # pick up the misfit of a coarse grid (e.g. per-run offsets after a lag of the wrong tau)
             chosen = _refine(designs, current, chosen, folds3)
+            chosen, step["form"] = _other_forms(designs, current, chosen, folds3, blocks)
+        elif getattr(chosen.component, "located", None) and ctx is not None:
+            chosen = _relocate(designs, current, chosen, folds3, ctx)
+        steps.append(step)
         current = current + (chosen,)
         used.add(best.key)
         e, r, _, k = cv_residuals(designs, current, [None], folds3)
         ref = (e, r, k)
-    return current, steps, ref
+    return current, steps, ref, closest
+
+
+def _other_forms(designs, current, ext, folds3, blocks):
+    """(extension, record): the entry's other forms (refined from the same value) replace it only
+    if they predict better out of sample by block z >= Z_DISTINCT; the record gives each z."""
+    rec = {"chosen": ext.component.canonical().__class__.__name__ if hasattr(ext.component, "canonical") else None,
+           "tried": []}
+    variants = ext.component.variants() if hasattr(ext.component, "variants") else ()
+    if not variants:
+        return ext, rec
+    e_ref, _, _, _ = cv_residuals(designs, current + (ext,), [None], folds3)
+    best, best_z = ext, 0.0
+    for comp in variants:
+        alt = _refine(designs, current, Extension(dataclasses.replace(ext.setting, component=comp), "whole"), folds3)
+        e_alt, _, _, _ = cv_residuals(designs, current + (alt,), [None], folds3)
+        z = block_z(row_loss(e_ref, designs.n) - row_loss(e_alt, designs.n), blocks)
+        rec["tried"].append({"form": repr(comp.canonical()), "z_vs_first": float(z)})
+        if z >= Z_DISTINCT and z > best_z:
+            best, best_z = alt, z
+    rec["chosen"] = repr(best.component.canonical())
+    return best, rec
+
+
+def _relocate(designs, current, ext, folds3, ctx):
+    """A located effect moved to the value of its fine grid with the least in-sample SSE."""
+    comp = ext.component
+    grid = comp.located_grid(ctx)
+    if grid.size < 2:
+        return ext
+    opts = [Extension(dataclasses.replace(ext.setting, component=dataclasses.replace(comp, **{comp.located: float(v)})),
+                      ext.frame, ext.slot) for v in grid]
+    _, _, best, _ = cv_residuals(designs, current, opts, folds3)
+    return best
 
 
 def _refine(designs, current, ext, folds3, rounds: int = 2, max_moves: int = 8):

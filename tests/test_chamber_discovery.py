@@ -1,0 +1,85 @@
+"""Discovery on temperature-chamber campaigns (tests/chamber_campaigns.py, issue #25): slow
+thermal lags (30-600 s, one node or a housing/die pair) named on the whole sensor, tau inside
+its stated 95 % interval; clean chamber campaigns get no finding. The 20-seed sweep is
+``benchmarks/bench_discovery.py --generator chamber`` (numbers in docs/discovery.md)."""
+
+import numpy as np
+import pytest
+
+from bayesmag._src.core.catalogue import ThermalLag
+from bayesmag._src.pipeline.discover import discover
+from bayesmag._src.pipeline.discover.options import Z_DISTINCT
+from chamber_campaigns import campaign, first_order
+
+
+def _lag_finding(kind, seed):
+    d, p = campaign(kind, seed)
+    r = discover(d, figures=False, seed=seed)
+    lags = [f for f in r.findings if f["effect"] == "thermal_lag"]
+    return d, p, r, lags
+
+
+@pytest.mark.parametrize("kind,seed", [("lag_first_order", 8), ("lag_two_node", 4)])
+def test_minute_lag_named_with_tau_in_its_interval(kind, seed):
+    """Seed 8: tau 583 s, runs with a median of 392 s (short check runs): the rule of commit
+    b64e352 (reject tau > 2x the median run) threw this lag away; seed 4: a two-node heat path
+    (housing and die) of 348 s mean delay, two check runs."""
+    d, p, r, lags = _lag_finding(kind, seed)
+    assert [(f["effect"], f["channel"]) for f in r.findings] == [("thermal_lag", "all")], (r.findings, r.rejected)
+    tau = lags[0]["parameters"]["tau"]
+    lo, hi = tau["interval95"]
+    assert lo <= p.params["tau"] <= hi, (tau, p.params)
+    assert lo < tau["value"] < hi
+    assert not any(x["effect"] == "thermal_lag" for x in r.rejected), r.rejected
+    # the plausibility check on a long lag: the lag beats a zero-phase smoothing of the log
+    assert lags[0]["evidence"]["z_lag_vs_zero_phase_smoothing"] >= Z_DISTINCT, lags[0]["evidence"]
+    assert not r.unexplained, r.unexplained
+
+
+def test_clean_chamber_campaign_has_no_finding():
+    d, p = campaign("clean", 0)
+    r = discover(d, figures=False)
+    assert r.no_missing_physics, (r.findings, r.unexplained)
+    assert r.closest_not_accepted is not None and r.closest_not_accepted["not_accepted_because"]
+
+
+def test_two_node_form_is_the_mean_delay_of_two_first_order_stages():
+    """The catalogue's two-node lag equals two exact first-order stages (the generator's own
+    recursion) with tau_h = split tau and tau_d = (1 - split) tau; its lag behind a steady ramp is tau."""
+    t = np.arange(3000.0)
+    run = np.zeros(t.size, int)
+    T = np.where(t < 500, 20.0, 20.0 + (t - 500) / 60.0)
+    from bayesmag._src.core.physics import Inputs
+    x = Inputs(np.zeros((t.size, 3)), T, t, run)
+    got = np.asarray(ThermalLag(nodes=2, split=0.3)(np.array([np.log(200.0)]), x).t)
+    want = first_order(first_order(T, t, run, 60.0), t, run, 140.0)
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    assert abs((T[-1] - got[-1]) * 60 - 200.0) < 1.0 + 1e-6      # dt/2 per stage of the held-input recursion
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["lag_first_order", "lag_two_node"])
+def test_more_seeds_named_with_tau_in_interval(kind):
+    hits, inside = 0, 0
+    for seed in range(6):
+        d, p, r, lags = _lag_finding(kind, seed)
+        hits += len(lags) == 1
+        inside += bool(lags) and lags[0]["parameters"]["tau"]["interval95"][0] <= p.params["tau"] \
+            <= lags[0]["parameters"]["tau"]["interval95"][1]
+    assert hits == 6 and inside >= 5, (hits, inside)
+
+
+def test_lag_grid_and_plausibility_follow_the_longest_heated_run():
+    """Commit b64e352 capped the grid at half the *median* run and rejected tau > 2x the median
+    run: with short check runs beside a long programme (median 300 s, programme 3000 s) a 700 s
+    lag was thrown away. Now the grid reaches min(15 min, half the longest heated run) and only
+    a lag longer than that run is not identified."""
+    from bayesmag._src.core.catalogue import SearchContext
+    ctx = SearchContext(dt=1.0, run_span=300.0, heated_span=3000.0)
+    taus = [np.exp(s.nl) for s in ThermalLag.grid(ctx, None)]
+    assert taus[0] == pytest.approx(10.0) and taus[-1] == pytest.approx(900.0)
+    assert ThermalLag().implausible(np.log(700.0), ctx) is None
+    assert "not identified" in ThermalLag().implausible(np.log(3500.0), ctx)
+    assert "under 10 samples" in ThermalLag().implausible(np.log(5.0), ctx)
+    short = SearchContext(dt=1.0, run_span=300.0, heated_span=400.0)
+    assert np.exp(ThermalLag.grid(short, None)[-1].nl) == pytest.approx(200.0)
