@@ -156,9 +156,10 @@ def _unstated_run(designs, kept, ext, run_k, e_fin, folds3, blocks, run) -> str 
     z = block_z(row_loss(e_fin, designs.n) - row_loss(e_new, designs.n), blocks)
     if z >= Z_MIN:
         return None
-    return (f"run {run_k}'s mean stands out most in the by-run contrast, but an offset of run {run_k} alone added "
-            f"to the final model, {name} = {v:.3g} +- {sd:.2g} (t = {abs(v) / max(sd, 1e-300):.2f}), predicts no better "
-            f"out of sample (block z = {z:.2f} < {Z_MIN}): the step of run {run_k} cannot be stated from these data")
+    return (f"run {run_k}'s mean stands out most in the by-run contrast, but an offset of run {run_k} alone, added "
+            f"to the final model, fits {name} = {v:.3g} +- {sd:.2g} in sample (t = {abs(v) / max(sd, 1e-300):.2f}) "
+            f"and predicts no better out of sample (block z = {z:.2f} < {Z_MIN}): the step of run {run_k} cannot be "
+            f"stated as a finding from these data")
 
 
 def _tau_interval(designs, others, lag, log_tau, se_log, block_rows, seed) -> dict:
