@@ -8,6 +8,7 @@ Commands::
     bayesmag report RUN_DIR
     bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T]
     bayesmag study CONFIG [--out DIR] [--set key=value]...
+    bayesmag fleet CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
     bayesmag data list
@@ -32,6 +33,7 @@ def _cmd_run(args) -> int:
     from bayesmag._src.app.outdir import reserve
 
     cfg_path = _resolve_config(args.config)
+    _refuse_fleet_config(cfg_path, "run")
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
@@ -53,6 +55,41 @@ def _cmd_run(args) -> int:
         print(f"  note: {note}")
     for w in m.get("warnings", []):
         print(f"  WARNING: {w}", file=sys.stderr)
+    return 0
+
+
+def _refuse_fleet_config(cfg_path: Path, command: str) -> None:
+    """A config with a [fleet] table is for ``bayesmag fleet`` (issue 27): say so instead of an unknown-key error."""
+    import tomllib
+    try:
+        raw = tomllib.loads(Path(cfg_path).read_text(encoding="utf-8-sig"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return                              # load_config names the problem
+    if isinstance(raw.get("fleet"), dict):
+        from bayesmag._src.app.config import ConfigError
+        raise ConfigError(f"{cfg_path} is a fleet config (it has a [fleet] table): use `bayesmag fleet {cfg_path}`, "
+                          f"not `bayesmag {command}`.")
+
+
+def _cmd_fleet(args) -> int:
+    from bayesmag._src.app.fleet import load_fleet_config, run_fleet
+
+    cfg_path = _resolve_config(args.config)
+    cfg = load_fleet_config(cfg_path, args.set or [])
+    out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+    s = run_fleet(cfg, out, progress=not args.no_progress)
+    print(f"bayesmag: wrote {out}/ ({s['n_sensors']} sensors: {s['n_pass']} pass, {s['n_fail']} flagged; "
+          f"{s['timings']['total']:.1f} s)")
+    for sid in s["flagged"][:20]:
+        why = s["failed_limits"].get(sid, []) + (["outlier"] if sid in s["outliers"] else [])
+        print(f"  flagged {sid}: {', '.join(why)}")
+    if len(s["flagged"]) > 20:
+        print(f"  ... and {len(s['flagged']) - 20} more (fleet_report.md)")
+    if not s["outlier_test"]["computed"]:
+        print(f"  note: outlier test not computed: {s['outlier_test']['reason']}")
+    gt = s.get("ground_truth")
+    if gt:
+        print(f"  ground truth: planted {sorted(gt['defective'])}; flagged exactly: {gt['exact']}")
     return 0
 
 
@@ -198,6 +235,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")
     a.set_defaults(func=_cmd_apply)
+
+    fl = sub.add_parser("fleet", help="calibrate many sensors in one batch; verdicts and outliers (docs/fleet.md)")
+    fl.add_argument("config", help="fleet config (or a packaged one, e.g. fleet_simulated)")
+    fl.add_argument("--out", help="output folder (default runs/<config name>)")
+    fl.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key, e.g. fleet.simulate.n_sensors=1000")
+    fl.add_argument("--no-progress", action="store_true")
+    fl.set_defaults(func=_cmd_fleet)
 
     st = sub.add_parser("study", help="the paper's simulation study over sample sizes")
     st.add_argument("config")
