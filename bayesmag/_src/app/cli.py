@@ -135,6 +135,9 @@ def _cmd_data(args) -> int:
 
 
 def _cmd_apply(args) -> int:
+    from bayesmag._src.app.apply_dask import is_archive
+    if args.scheduler or is_archive(args.data):      # a Parquet dataset, a glob of CSVs or a cluster: Dask
+        return _cmd_apply_dask(args)
 
     from bayesmag._src.app.apply import apply_calibration
 
@@ -150,6 +153,25 @@ def _cmd_apply(args) -> int:
         m = summary["metrics"]
         print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
               + f"   {summary['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
+    return 0
+
+
+def _cmd_apply_dask(args) -> int:
+    from bayesmag._src.app.apply_dask import apply_dask
+
+    s = apply_dask(args.model, args.data, args.out, scheduler=args.scheduler, n_workers=args.workers,
+                   threads_per_worker=args.threads_per_worker, memory_limit=args.memory_limit,
+                   blocksize=int(args.blocksize_mb * 2**20), level=args.level, method=args.uq, n_params=args.n_params,
+                   n_qmc=args.n_qmc, temperature_unit=args.temperature_unit, field_unit=args.field_unit,
+                   columns=_parse_columns(args.columns), progress=not args.no_progress)
+    print(f"bayesmag: calibrated {s['n_valid']} of {s['n_rows']} rows in {s['n_partitions']} partitions -> {args.out}/ "
+          f"({s['seconds']:.2f} s, {s['n_rows'] / max(s['seconds'], 1e-9):,.0f} rows/s)")
+    for w in s["warnings"]:
+        print(f"  WARNING: {w}", file=sys.stderr)
+    if s.get("metrics"):
+        m = s["metrics"]
+        print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
+              + f"   {s['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
     return 0
 
 
@@ -234,6 +256,13 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--columns", metavar="NAME=COL,...",
                    help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")
+    dk = a.add_argument_group("archives on Dask (a Parquet dataset folder or file, or a glob of CSVs; --out is then a "
+                              "folder of Parquet parts; pip install 'bayesmag[dask]')")
+    dk.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (default: a local cluster)")
+    dk.add_argument("--workers", type=int, default=2, help="local cluster: worker processes")
+    dk.add_argument("--threads-per-worker", type=int, default=1, help="local cluster: threads per worker")
+    dk.add_argument("--memory-limit", default="900MB", help="local cluster: memory limit per worker")
+    dk.add_argument("--blocksize-mb", type=float, default=16.0, help="CSV bytes per partition (MB)")
     a.set_defaults(func=_cmd_apply)
 
     fl = sub.add_parser("fleet", help="calibrate many sensors in one batch; verdicts and outliers (docs/fleet.md)")

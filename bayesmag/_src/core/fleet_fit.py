@@ -2,8 +2,9 @@ r"""Many sensors at once: the physics fit, its covariance and the analytic uncer
 
 A fleet is a stack of recordings padded to one length with a row mask (:class:`FleetData`).
 Every per-sensor computation is the single-sensor one with the padded rows given weight 0, so
-one compiled program serves the whole fleet (``jax.lax.map`` over sensor batches of
-``batch_size``, ``vmap`` inside, memory bounded by the batch):
+one compiled program serves the whole fleet (``vmap`` over a batch of ``batch_size`` sensors, the
+batches run one after another with the same shapes -- rows padded to a multiple of :data:`ROW_BUCKET` --
+so memory is bounded by the batch and any number of sensors reuses one compilation):
 
 * the Levenberg-Marquardt fit of :func:`~bayesmag._src.core.fit.levenberg_marquardt` on the residuals
   :math:`w \odot (y - f(\theta; x))` (padded rows :math:`w = 0` change neither the cost nor any step);
@@ -143,10 +144,43 @@ class FleetUQ:
         self.mean, self.aleatoric, self.epistemic = mean, aleatoric, epistemic
 
 
-def _map(fn, xs, batch_size):
-    """``lax.map`` over sensors in batches of ``batch_size`` (vmapped inside)."""
-    n = jax.tree_util.tree_leaves(xs)[0].shape[0]
-    return jax.lax.map(fn, xs, batch_size=max(1, min(int(batch_size), n)))
+#: Rows are padded to a multiple of this, so fleets of similar lengths share one compiled program.
+ROW_BUCKET = 256
+
+
+def _padded_rows(n: int) -> int:
+    return -(-int(n) // ROW_BUCKET) * ROW_BUCKET
+
+
+def _pad_rows(fleet: "FleetData") -> "FleetData":
+    n = fleet.mask.shape[1]
+    extra = _padded_rows(n) - n
+    if not extra:
+        return fleet
+
+    def pad(a, edge=False):
+        w = [(0, 0), (0, extra)] + [(0, 0)] * (a.ndim - 2)
+        return np.pad(a, w, mode="edge") if edge else np.pad(a, w)
+    return FleetData(fleet.ids, pad(fleet.b_meas), pad(fleet.temperature), pad(fleet.time), pad(fleet.run, True),
+                     pad(fleet.b_ref), pad(fleet.mask))
+
+
+def _batched(fn, arrays, batch_size: int):
+    """``fn`` (jitted, vmapped over its leading axis) on consecutive batches of ``batch_size`` sensors.
+
+    Every call has the same shapes (the last batch is filled with copies of sensor 0, dropped after), so one
+    compiled program serves any number of sensors; memory is bounded by the batch.
+    """
+    n = arrays[0].shape[0]
+    b = max(1, min(int(batch_size), n))
+    outs = []
+    for lo in range(0, n, b):
+        chunk = [a[lo:lo + b] for a in arrays]
+        k = chunk[0].shape[0]
+        if k < b:
+            chunk = [np.concatenate([c, np.repeat(c[:1], b - k, axis=0)]) for c in chunk]
+        outs.append(jax.tree_util.tree_map(lambda a, k=k: a[:k], fn(*map(jnp.asarray, chunk))))
+    return [np.concatenate([np.asarray(o[j]) for o in outs]) for j in range(len(outs[0]))]
 
 
 def _scaled_inverse(A):
@@ -156,12 +190,11 @@ def _scaled_inverse(A):
     return jnp.linalg.inv(As) / jnp.outer(d, d)    # singular: the sensor is reported unidentifiable
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2))
-def _fit_jit(model: PhysicsModel, method: str, batch_size: int, th0, b, t, time, run, y, w):
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _fit_jit(model: PhysicsModel, method: str, th0, b, t, time, run, y, w):
     p = model.n_params
 
-    def one_sensor(args):
-        th0_, b_, t_, time_, run_, y_, w_ = args
+    def one_sensor(th0_, b_, t_, time_, run_, y_, w_):
         inputs = Inputs(b_, t_, time_, run_)
         n = w_.sum()
 
@@ -188,7 +221,7 @@ def _fit_jit(model: PhysicsModel, method: str, batch_size: int, th0, b, t, time,
 
         return jax.vmap(one_axis, in_axes=(0, 1))(th0_, y_)
 
-    return _map(one_sensor, (th0, b, t, time, run, y, w), batch_size)
+    return jax.vmap(one_sensor)(th0, b, t, time, run, y, w)
 
 
 def fit_fleet(fleet: FleetData, model: PhysicsModel | None = None, *, covariance_method: str = "white",
@@ -209,11 +242,11 @@ def fit_fleet(fleet: FleetData, model: PhysicsModel | None = None, *, covariance
         bad = [fleet.ids[i] for i in np.flatnonzero(n <= model.n_params)][:5]
         raise ValueError(f"sensor(s) {bad} have <= {model.n_params} rows, too few to fit {model.n_params} parameters "
                          f"per axis.")
-    th0 = jnp.broadcast_to(jnp.asarray(model.init_params_all(), jnp.float64),
-                           (fleet.n_sensors, 3, model.n_params))
-    out = _fit_jit(model, covariance_method, int(batch_size), th0, *map(jnp.asarray, (
-        fleet.b_meas, fleet.temperature, fleet.time, fleet.run, fleet.b_ref, fleet.mask.astype(np.float64))))
-    theta, cov, s2, rmse, rho, ratio, result, steps = (np.asarray(o) for o in out)
+    th0 = np.broadcast_to(model.init_params_all().astype(np.float64), (fleet.n_sensors, 3, model.n_params))
+    f = _pad_rows(fleet)
+    theta, cov, s2, rmse, rho, ratio, result, steps = _batched(
+        functools.partial(_fit_jit, model, covariance_method),
+        [th0, f.b_meas, f.temperature, f.time, f.run, f.b_ref, f.mask.astype(np.float64)], batch_size)
     return FleetFit(model, theta, cov, s2, rmse, rho, ratio, result, steps, n, covariance_method)
 
 
@@ -241,10 +274,9 @@ def _sqrt_psd_batched(cov: np.ndarray) -> np.ndarray:
     return out
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _uq_jit(model: PhysicsModel, batch_size: int, theta, cov, L, z, wq, b, t, time, run):
-    def one_sensor(args):
-        th, cv, L_, b_, t_, time_, run_ = args
+@functools.partial(jax.jit, static_argnums=0)
+def _uq_jit(model: PhysicsModel, z, wq, theta, cov, L, b, t, time, run):
+    def one_sensor(th, cv, L_, b_, t_, time_, run_):
         inputs = Inputs(b_, t_, time_, run_)
         eps = z @ L_.T                                                   # (q, 4)
         pert = Inputs(b_[:, None, :] + eps[None, :, :3], t_[:, None] + eps[None, :, 3],
@@ -265,7 +297,7 @@ def _uq_jit(model: PhysicsModel, batch_size: int, theta, cov, L, z, wq, b, t, ti
 
         return jax.vmap(one_axis, out_axes=-1)(th, cv)                  # each (n, 3)
 
-    return _map(one_sensor, (theta, cov, L, b, t, time, run), batch_size)
+    return jax.vmap(one_sensor)(theta, cov, L, b, t, time, run)
 
 
 def fleet_uncertainty(fit: FleetFit, fleet: FleetData, sigma_in: np.ndarray, *, batch_size: int = 8,
@@ -285,10 +317,12 @@ def fleet_uncertainty(fit: FleetFit, fleet: FleetData, sigma_in: np.ndarray, *, 
     nodes = quad_nodes or (model.degree + 1 if diagonal else 2 * model.degree + 1)
     from bayesmag._src.core.physics_uq import gauss_hermite_normal
     z, wq = gauss_hermite_normal(nodes, np.eye(4))
-    out = _uq_jit(model, int(batch_size), jnp.asarray(fit.theta), jnp.asarray(fit.cov),
-                  jnp.asarray(_sqrt_psd_batched(np.array(sigma_in))), jnp.asarray(z), jnp.asarray(wq),
-                  *map(jnp.asarray, (fleet.b_meas, fleet.temperature, fleet.time, fleet.run)))
-    mean, alea, epi = (np.asarray(o) for o in out)
+    f = _pad_rows(fleet)
+    n = fleet.mask.shape[1]
+    mean, alea, epi = (o[:, :n] for o in _batched(
+        functools.partial(_uq_jit, model, jnp.asarray(z), jnp.asarray(wq)),
+        [fit.theta, fit.cov, _sqrt_psd_batched(np.array(sigma_in)), f.b_meas, f.temperature, f.time, f.run],
+        batch_size))
     m = fleet.mask[..., None]
     return FleetUQ(np.where(m, mean, 0.0), np.where(m, np.sqrt(np.clip(alea, 0, None)), 0.0),
                    np.where(m, np.sqrt(np.clip(epi, 0, None)), 0.0))
