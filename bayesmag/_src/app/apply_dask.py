@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import glob as globlib
 import io
+import logging
 import time
 from pathlib import Path
 
@@ -94,15 +95,29 @@ def list_pieces(data: str, *, blocksize: int = 16 * 2**20) -> list[tuple]:
     return pieces
 
 
-def _read_piece(piece) -> tuple:
-    """``(DataFrame, where, first_row)``: the rows of one partition, a description, and the file row of its first
-    row (1 = first data row; None when unknown: a CSV block after the first)."""
+def _lines_before(path: str, pos: int) -> int:
+    """Newlines in the first ``pos`` bytes of ``path`` (read only on the error path)."""
+    n, left = 0, pos
+    with open(path, "rb") as fh:
+        while left > 0:
+            buf = fh.read(min(left, 1 << 24))
+            if not buf:
+                break
+            n += buf.count(b"\n")
+            left -= len(buf)
+    return n
+
+
+def _read_piece(piece, index: int) -> tuple:
+    """``(DataFrame, where, first_row)``: the rows of partition ``index``, a description, and the file's data-row
+    number of its first row (1 = the row after the header; None for a CSV block after the first, found only when a
+    row of it is bad)."""
     import pandas as pd
     if piece[0] == "parquet":
         import pyarrow.parquet as pq
         _, path, g, first = piece
         df = pq.ParquetFile(path).read_row_group(g).to_pandas()
-        return df, f"{path} (row group {g})", first + 1
+        return df, f"partition {index}: {path} (row group {g})", first + 1
     _, path, start, end, header = piece
     with open(path, "rb") as fh:
         if start > len(header):
@@ -115,7 +130,7 @@ def _read_piece(piece) -> tuple:
         if body and not body.endswith(b"\n"):
             body += fh.readline()
     first = 1 if start <= len(header) else None
-    where = f"{path} (bytes {start}-{end})"
+    where = f"partition {index}: {path} (bytes {start}-{end})"
     if not body.strip():
         return pd.read_csv(io.BytesIO(header)), where, first
     try:
@@ -127,13 +142,25 @@ def _read_piece(piece) -> tuple:
             bad = np.flatnonzero(num.isna().to_numpy() & ~raw[col].str.strip().str.lower()
                                  .isin(["", "nan", "na", "null"]).to_numpy())
             if bad.size:
+                first = first or _lines_before(path, pos)
                 raise DataError(_row_msg(where, first, int(bad[0]), f"column {col!r} has the non-numeric value "
                                          f"{raw[col].iloc[bad[0]]!r}; fix or remove that row")) from None
         raise
 
 
+def _block_start(piece) -> int:
+    """Byte position of the first line of a CSV block (the line after the one running over its start)."""
+    _, path, start, _end, header = piece
+    if start <= len(header):
+        return start
+    with open(path, "rb") as fh:
+        fh.seek(start - 1)
+        fh.readline()
+        return fh.tell()
+
+
 def _row_msg(where: str, first, k: int, what: str) -> str:
-    row = f"data row {first + k}" if first is not None else f"row {k + 1} of this block"
+    row = f"data row {first + k} of the file" if first is not None else f"row {k + 1} of this block"
     return f"{where}, {row}: {what}."
 
 
@@ -143,14 +170,15 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str) -> "object
     import pandas as pd
     from bayesmag._src.core.frames import from_frame
 
-    df, where, first = _read_piece(piece)
-    where = f"partition {index}: {where}"
+    df, where, first = _read_piece(piece, index)
     try:
         data = from_frame(df, columns=opts["columns"], temperature_unit=opts["temperature_unit"],
                           field_unit=opts["field_unit"], source=where)
-        check_values(data, origin=where, allow_nonfinite=True)
+        check_values(data, origin="the partition", allow_nonfinite=True)
     except DataError as e:
-        raise DataError(f"{where}{'' if first is None else f' (its first row is data row {first} of the file)'}: "
+        if first is None and piece[0] == "csv":
+            first = _lines_before(piece[1], _block_start(piece))
+        raise DataError(f"{where} (its row 1 is data row {first} of the file): "
                         f"{' '.join(str(e).split())}") from None
     n = data.n
     warns: list[str] = []
@@ -254,7 +282,8 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
             client = Client(scheduler, timeout="30s")
         else:
             cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
-                                   memory_limit=memory_limit, processes=True, dashboard_address=None)
+                                   memory_limit=memory_limit, processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
             client = Client(cluster)
         try:
             with dask.config.set({"dataframe.convert-string": False}):
