@@ -15,8 +15,8 @@ so memory is bounded by the batch and any number of sensors reuses one compilati
 * the exact ("analytic") physics uncertainty of :func:`~bayesmag._src.core.physics_uq.physics_uncertainty`
   for models linear in their parameters: with Gauss-Hermite input-noise nodes :math:`\epsilon_q`
   (weights :math:`w_q`), :math:`\phi_q = \phi(x+\epsilon_q)`, :math:`m = \sum_q w_q\phi_q`,
-  :math:`d_q = \phi_q - m`: mean :math:`m^T\hat\theta`, aleatoric
-  :math:`\sum_q w_q[(d_q^T\hat\theta)^2 + d_q^T\Sigma_\theta d_q]`, epistemic
+  :math:`d_q = \phi_q - m`, :math:`C = \sum_q w_q d_q d_q^T`: mean :math:`m^T\hat\theta`, aleatoric
+  :math:`\langle C, \hat\theta\hat\theta^T + \Sigma_\theta\rangle`, epistemic
   :math:`\sqrt{(m^T\Sigma_\theta m + \phi_0^T\Sigma_\theta\phi_0)/2}`.
 
 ``tests/test_fleet.py`` checks every sensor against :func:`~bayesmag.fit_physics` and
@@ -285,14 +285,13 @@ def _uq_jit(model: PhysicsModel, z, wq, theta, cov, L, b, t, time, run):
         phi = model.features(pert)                                       # (n, q, p)
         m = jnp.einsum("q,nqa->na", wq, phi)
         d = phi - m[:, None, :]
+        C = jnp.einsum("nqa,nqb->nab", d * wq[None, :, None], d)         # input-noise covariance of phi, once
         phi0 = model.features(inputs)                                    # (n, p)
 
         def one_axis(th_a, cv_a):
-            dy = d @ th_a                                                # (n, q)
-            dS = jnp.einsum("nqa,ab,nqb->nq", d, cv_a, d)
-            alea = jnp.einsum("q,nq->n", wq, dy**2 + dS)
-            var_mc = jnp.einsum("na,ab,nb->n", m, cv_a, m)
-            var_jac = jnp.einsum("na,ab,nb->n", phi0, cv_a, phi0)
+            alea = jnp.einsum("nab,ab->n", C, jnp.outer(th_a, th_a) + cv_a)
+            var_mc = jnp.sum((m @ cv_a) * m, axis=-1)
+            var_jac = jnp.sum((phi0 @ cv_a) * phi0, axis=-1)
             return m @ th_a, alea, (var_mc + var_jac) / 2
 
         return jax.vmap(one_axis, out_axes=-1)(th, cv)                  # each (n, 3)
