@@ -197,8 +197,9 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str) -> "object
     for a, ax in enumerate(AXES):
         for c in opts["columns_out"]:
             cols[f"{ax}_{c}"] = np.asarray(pred[c][:, a], np.float64)
-    cols["in_domain_reason"] = np.array([sum(REASON_CODES[k] for k in str(w).split(";") if k in REASON_CODES)
-                                         for w in pred["in_domain_reason"]], np.int64)
+    uniq, inv = np.unique(np.asarray(pred["in_domain_reason"]).astype(str), return_inverse=True)
+    cols["in_domain_reason"] = np.array([sum(REASON_CODES[k] for k in w.split(";") if k in REASON_CODES)
+                                         for w in uniq], np.int64)[inv.reshape(-1)] if n else np.zeros(0, np.int64)
     cols["in_domain"] = np.asarray(pred["in_domain"], bool)
     cols["valid"] = np.asarray(pred["valid"], bool)
     out = pd.DataFrame(cols)
