@@ -45,6 +45,25 @@ def one(n_sensors: int, rows: int, batch: int) -> dict:
     return out
 
 
+def detect(seeds: int, n_sensors: int, rows: int, batch: int) -> None:
+    """For each seed: the planted units, those flagged (|robust z| > 7 or a limit), and the largest |z| of a clean unit."""
+    import tempfile as tf
+    import numpy as np
+    from bayesmag._src.app.fleet import fleet_config_from_dict, run_fleet
+    print("| seed | sensors x rows | planted | flagged exactly | largest max-|z| of a clean unit | smallest of a planted unit |")
+    print("|---|---|---|---|---|---|")
+    for seed in range(seeds):
+        raw = {"fleet": {"source": "simulated", "batch_size": batch, "sensor_folders": False, "figures": False,
+                         "simulate": {"n_sensors": n_sensors, "n_rows": rows, "seed": seed, "n_defective": 5}}}
+        s = run_fleet(fleet_config_from_dict(raw), Path(tf.mkdtemp()) / "out", progress=False)
+        gt = s["ground_truth"]
+        z = {x["id"]: x["max_abs_robust_z"] for x in s["sensors"]}
+        clean = max(v for k, v in z.items() if k not in gt["defective"])
+        bad = min(z[k] for k in gt["defective"])
+        print(f"| {seed} | {n_sensors} x {rows} | {len(gt['defective'])} | {gt['exact']} | {clean:.2f} | {bad:.1f} |",
+              flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--sensors", type=int, nargs="*", default=[1, 10, 100, 1000])
@@ -52,7 +71,12 @@ def main():
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--full", type=int, default=0, help="also time `bayesmag fleet` with this many sensors")
     ap.add_argument("--one", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--detect", type=int, default=0, metavar="SEEDS",
+                    help="instead: planted defects vs flagged for seeds 0..SEEDS-1 (--sensors N each, --rows rows)")
     args = ap.parse_args()
+    if args.detect:
+        detect(args.detect, args.sensors[0], args.rows, args.batch)
+        return
     if args.one:
         print(json.dumps(one(args.one, args.rows, args.batch)))
         return

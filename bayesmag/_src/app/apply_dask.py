@@ -38,9 +38,9 @@ _PARQUET = (".parquet", ".pq")
 
 
 def is_archive(data: str) -> bool:
-    """True when ``--data`` names a Parquet dataset folder, a glob, or a Parquet file (the Dask path)."""
-    p = Path(data)
-    return p.is_dir() or any(c in str(data) for c in "*?[") or p.suffix.lower() in _PARQUET
+    """True when ``--data`` names a folder (a partitioned Parquet dataset, or CSV files) or a glob: the Dask path.
+    One CSV or Parquet file stays in process (``apply.apply_calibration``) unless ``--scheduler`` is given."""
+    return Path(data).is_dir() or (any(c in str(data) for c in "*?[") and not Path(data).exists())
 
 
 def _files(data: str) -> list[Path]:
