@@ -314,7 +314,10 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
     from bayesmag._src.app.outdir import reserve, staging_dir
 
     out = Path(out)
-    with reserve(out):
+    inputs = [] if cfg.source == "simulated" else [p for _, p in _recording_paths(cfg)]
+    if cfg.manifest is not None:
+        inputs.append(_resolve(cfg, cfg.manifest))
+    with reserve(out, inputs=inputs):       # an --out holding a recording is refused before any work
         timings = {}
         t_all = t = time.perf_counter()
         recs, ids, truth = load_recordings(cfg)
