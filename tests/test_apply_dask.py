@@ -81,6 +81,31 @@ def test_dask_apply_equals_in_process_apply(cal_dir, archive, cluster, in_proces
     assert s["metrics"]["coverage"]["x"] > 0.9
 
 
+@pytest.mark.parametrize("fmt", ["parquet", "csv"])
+def test_rate_flags_at_partition_boundaries_equal_the_whole_file(cal_dir, cluster, tmp_path, fmt):
+    """Field spikes make the neighbours' rates out of domain; with many partitions, rows at the boundaries still get
+    the whole-file apply's flags (each partition is predicted with the file rows just before and after it)."""
+    from bayesmag._src.core.simulate import simulate
+    df = to_frame(simulate(1200, design="campaign", seed=13, noise_sd=0.05))
+    spikes = np.random.default_rng(0).choice(1200, 100, replace=False)
+    df.loc[spikes, "bx_meas"] += 250.0
+    df.to_csv(tmp_path / "all.csv", index=False)
+    (tmp_path / "in").mkdir()
+    if fmt == "parquet":
+        df.to_parquet(tmp_path / "in" / "a.parquet", row_group_size=37, index=False)
+        s = apply_dask(cal_dir, str(tmp_path / "in"), tmp_path / "out", scheduler=cluster)
+    else:
+        df.to_csv(tmp_path / "in" / "a.csv", index=False)
+        s = apply_dask(cal_dir, str(tmp_path / "in" / "*.csv"), tmp_path / "out", scheduler=cluster, blocksize=2500)
+    assert s["n_partitions"] > 30
+    apply_calibration(cal_dir, tmp_path / "all.csv", tmp_path / "ref.csv")
+    ref, out = pd.read_csv(tmp_path / "ref.csv"), pd.read_parquet(tmp_path / "out")
+    rate_bits = (ref["in_domain_reason"].to_numpy() & 12) != 0
+    assert rate_bits.sum() > 50                                   # the spikes do raise rate flags
+    np.testing.assert_array_equal(out["in_domain_reason"], ref["in_domain_reason"])
+    np.testing.assert_array_equal(out["in_domain"], ref["in_domain"].astype(bool))
+
+
 def test_bad_csv_value_names_partition_file_and_row(cal_dir, archive, cluster, tmp_path):
     src = tmp_path / "in"
     src.mkdir()

@@ -10,9 +10,9 @@ every partition is written (``outdir.staging_dir``), so a failed run leaves no h
 Partitions (``pieces``): one per Parquet row group, or one per ``blocksize`` bytes of a CSV file
 (a line belongs to the block its first byte lies in), so memory per task is bounded by the
 partition, whatever the input size. Bad input is one line naming the file, the partition and the
-row. Rows are independent, except the domain's rate check (``|dB/dt|``, ``|dT/dt|``), which sees the
-time neighbours inside the partition only: the first and last row of a partition compare with one
-neighbour, not two (docs/fleet.md).
+row. Rows are independent, except the domain's rate check (``|dB/dt|``, ``|dT/dt|``), which compares
+each row with its time neighbours: every partition is predicted with the file row just before and
+just after it (read, predicted, dropped), so a time-sorted file gets the whole-file apply's flags.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def list_pieces(data: str, *, blocksize: int = 16 * 2**20) -> list[tuple]:
                 raise DataError(f"{f} cannot be read as Parquet ({type(e).__name__}: {e}).") from None
             first = 0
             for g in range(meta.num_row_groups):
-                pieces.append(("parquet", str(f), g, first))
+                pieces.append(("parquet", str(f), g, first, meta.num_row_groups))
                 first += meta.row_group(g).num_rows
         else:
             with open(f, "rb") as fh:
@@ -115,7 +115,7 @@ def _read_piece(piece, index: int) -> tuple:
     import pandas as pd
     if piece[0] == "parquet":
         import pyarrow.parquet as pq
-        _, path, g, first = piece
+        _, path, g, first = piece[:4]
         df = pq.ParquetFile(path).read_row_group(g).to_pandas()
         return df, f"partition {index}: {path} (row group {g})", first + 1
     _, path, start, end, header = piece
@@ -146,6 +146,48 @@ def _read_piece(piece, index: int) -> tuple:
                 raise DataError(_row_msg(where, first, int(bad[0]), f"column {col!r} has the non-numeric value "
                                          f"{raw[col].iloc[bad[0]]!r}; fix or remove that row")) from None
         raise
+
+
+def _halo(piece) -> tuple:
+    """The file rows just before and just after a partition (DataFrames of one row, or None at a file's ends or when
+    unreadable): the domain's rate check then sees both time neighbours of the partition's first and last row, as
+    the whole-file apply does. A bad neighbour is reported by its own partition."""
+    import pandas as pd
+    try:
+        if piece[0] == "parquet":
+            import pyarrow.parquet as pq
+            _, path, g, _first, n_groups = piece
+            pf = pq.ParquetFile(path)
+            prev = nxt = None
+            if g > 0:
+                t = pf.read_row_group(g - 1)
+                prev = t.slice(t.num_rows - 1, 1).to_pandas() if t.num_rows else None
+            if g < n_groups - 1:
+                t = pf.read_row_group(g + 1)
+                nxt = t.slice(0, 1).to_pandas() if t.num_rows else None
+            return prev, nxt
+        _, path, start, end, header = piece
+        pos = _block_start(piece)
+        prev_line = next_line = b""
+        with open(path, "rb") as fh:
+            if pos > len(header):
+                lo = max(pos - 65536, len(header))
+                fh.seek(lo)
+                chunk = fh.read(pos - lo)[:-1]                      # ends with the newline before `pos`
+                if b"\n" in chunk or lo == len(header):
+                    prev_line = chunk.rsplit(b"\n", 1)[-1] + b"\n"
+            fh.seek(max(end - 1, 0))
+            if end > len(header):
+                fh.readline()                                        # rest of this block's last line
+                next_line = fh.readline()
+
+        def one(line):
+            if not line.strip():
+                return None
+            return pd.read_csv(io.BytesIO(header + line), dtype=np.float64)
+        return one(prev_line), one(next_line)
+    except (ValueError, TypeError, OSError):
+        return None, None
 
 
 def _block_start(piece) -> int:
@@ -188,8 +230,19 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str) -> "object
             warns = check_units(cal, data)
         except DataError as e:
             raise DataError(f"{where}: {' '.join(str(e).split())}") from None
-        pred = cal.predict(data, level=opts["level"], method=opts["method"], n_params=opts["n_params"],
+        prev, nxt = (h if h is not None and list(h.columns) == list(df.columns) else None for h in _halo(piece))
+        lo, full = int(prev is not None), data
+        if prev is not None or nxt is not None:
+            try:
+                full = from_frame(pd.concat([h for h in (prev, df, nxt) if h is not None], ignore_index=True),
+                                  columns=opts["columns"], temperature_unit=opts["temperature_unit"],
+                                  field_unit=opts["field_unit"], source=where)
+            except DataError:
+                lo, full = 0, data
+        pred = cal.predict(full, level=opts["level"], method=opts["method"], n_params=opts["n_params"],
                            n_qmc=opts["n_qmc"], chunk_size=opts["chunk_size"])
+        if full is not data:                                      # drop the neighbour rows again
+            pred = {k: np.asarray(v)[lo:lo + n] for k, v in pred.items()}
     else:
         pred = {"valid": np.zeros(0, bool), "in_domain": np.zeros(0, bool), "in_domain_reason": np.zeros(0, object),
                 **{c: np.zeros((0, 3)) for c in OUTPUT_COLUMNS if c in opts["columns_out"]}}
