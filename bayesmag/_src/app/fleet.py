@@ -24,6 +24,7 @@ import dataclasses
 import glob as globlib
 import json
 import re
+import sys
 import time
 import tomllib
 from pathlib import Path
@@ -149,7 +150,7 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
         raise ConfigError("This is not a fleet config: it has no [fleet] table (see configs/fleet_simulated.toml).")
     _check_keys(raw, "")
     fl, sp, ph, uq = (raw.get(k, {}) for k in ("fleet", "split", "physics", "uq"))
-    chosen = [k for k in ("source", "recordings", "manifest") if fl.get(k) is not None]
+    chosen = [k for k in ("source", "recordings", "manifest") if fl.get(k) not in (None, "")]
     if len(chosen) != 1:
         raise ConfigError(f"[fleet] needs exactly one of source = \"simulated\", recordings = \"FOLDER or GLOB\" or "
                           f"manifest = \"FILE.csv\"; got {chosen or 'none'}.")
@@ -336,10 +337,13 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         train = FleetData.from_recordings(trains, ids)
         test = FleetData.from_recordings(tests, ids)
         timings["load"] = time.perf_counter() - t
+        say = (lambda m: print(f"  fleet: {m}", file=sys.stderr, flush=True)) if progress else (lambda m: None)
+        say(f"{len(ids)} recordings loaded ({timings['load']:.1f} s); fitting in batches of {cfg.batch_size}")
 
         t = time.perf_counter()
         fit = fit_fleet(train, model, covariance_method=cfg.covariance, batch_size=cfg.batch_size)
         timings["physics_fit"] = time.perf_counter() - t
+        say(f"physics fit {timings['physics_fit']:.1f} s; propagating the uncertainty")
         t = time.perf_counter()
         sigma_in = _sigma_in(cfg, train)
         uq_batch = max(1, min(cfg.batch_size, 16))
@@ -422,6 +426,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                                        "planted_missed": sorted(planted - got), "false_flags": sorted(got - planted),
                                        "exact": planted == got}
         t = time.perf_counter()
+        say(f"uncertainty {timings['physics_uq']:.1f} s; writing {out}")
         with staging_dir(out) as tmp:
             from bayesmag._src.app.fleet_report import write_fleet_outputs
             write_fleet_outputs(tmp, cfg, summary, fit=fit, train=trains, sigma_in=sigma_in, residual_sd=residual_sd,

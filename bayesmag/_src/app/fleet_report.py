@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from bayesmag._src.core.data import AXES
 
 __all__ = ["write_fleet_outputs", "write_fleet_report"]
 
