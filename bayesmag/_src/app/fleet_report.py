@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 __all__ = ["write_fleet_outputs", "write_fleet_report"]
 
 
@@ -69,8 +68,8 @@ def _figures(folder: Path, cfg, summary: dict, z, flagged) -> None:
         v = np.array([s["limits_quantities"][k] for s in sensors])
         lo, hi = float(min(v.min(), summary["limits"][k])), float(max(v.max(), summary["limits"][k]))
         bins = np.linspace(lo, hi + 1e-12, 40)
-        ax.hist(v[~flagged], bins=bins, color="tab:blue", label="pass")
-        ax.hist(v[flagged], bins=bins, color="tab:red", label="flagged")
+        ax.hist([v[~flagged], v[flagged]], bins=bins, stacked=True, color=["tab:blue", "tab:red"],
+                label=["pass", "flagged"])
         ax.axvline(summary["limits"][k], color="k", ls="--", lw=1, label="limit")
         ax.set_yscale("log")
         ax.set_title(k, fontsize=9)
