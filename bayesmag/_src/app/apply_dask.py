@@ -21,6 +21,7 @@ import glob as globlib
 import io
 import logging
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -335,9 +336,11 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
         if scheduler:
             client = Client(scheduler, timeout="30s")
         else:
-            cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
-                                   memory_limit=memory_limit, processes=True, dashboard_address=None,
-                                   silence_logs=logging.ERROR)
+            with warnings.catch_warnings():          # "port 8787 is already in use": another cluster's, harmless
+                warnings.simplefilter("ignore", UserWarning)
+                cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
+                                       memory_limit=memory_limit, processes=True, dashboard_address=None,
+                                       silence_logs=logging.ERROR)
             client = Client(cluster)
         try:
             with dask.config.set({"dataframe.convert-string": False}):
@@ -354,10 +357,10 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
             if cluster is not None:
                 cluster.close()
     rows_in, rows_out = int(table["rows_in"].sum()), int(table["rows_out"].sum())
-    warnings = sorted({w for s in table["warnings"] for w in str(s).split(" | ") if w})
+    warns = sorted({w for s in table["warnings"] for w in str(s).split(" | ") if w})
     summary = {"n_rows": rows_out, "n_rows_in": rows_in, "n_partitions": len(pieces),
                "n_valid": int(table["valid"].sum()), "n_outside_domain": int(table["outside"].sum()),
-               "warnings": warnings, "level": level, "out": str(out), "seconds": time.perf_counter() - t0}
+               "warnings": warns, "level": level, "out": str(out), "seconds": time.perf_counter() - t0}
     if rows_out - summary["n_valid"]:
         summary["warnings"].append(f"{rows_out - summary['n_valid']} row(s) have non-finite inputs or outputs and were "
                                    f"not calibrated (valid=false).")
