@@ -256,8 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--columns", metavar="NAME=COL,...",
                    help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")
-    dk = a.add_argument_group("archives on Dask (a Parquet dataset folder or file, or a glob of CSVs; --out is then a "
-                              "folder of Parquet parts; pip install 'bayesmag[dask]')")
+    dk = a.add_argument_group("archives on Dask (--data a folder of Parquet or CSV files, or a glob such as "
+                              "'logs/*.csv'; one file too with --scheduler; --out is then a folder of Parquet parts; "
+                              "pip install 'bayesmag[dask]'; docs/fleet.md)")
     dk.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (default: a local cluster)")
     dk.add_argument("--workers", type=int, default=2, help="local cluster: worker processes")
     dk.add_argument("--threads-per-worker", type=int, default=1, help="local cluster: threads per worker")
