@@ -53,10 +53,13 @@ def archive(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cluster():
+    import dask
     from distributed import LocalCluster
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      memory_limit="1.5GB") as c:
-        yield c.scheduler_address
+    with dask.config.set({"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
+                          "distributed.worker.memory.pause": False}):
+        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                          memory_limit="2GB") as c:
+            yield c.scheduler_address
 
 
 @pytest.fixture(scope="module")

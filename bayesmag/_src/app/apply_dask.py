@@ -331,7 +331,11 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     meta = pd.DataFrame({"partition": pd.Series(dtype="int64"), "rows_in": pd.Series(dtype="int64"),
                          "rows_out": pd.Series(dtype="int64"), "valid": pd.Series(dtype="int64"),
                          "outside": pd.Series(dtype="int64"), "warnings": pd.Series(dtype="object")})
-    with reserve(out, inputs=[]), staging_dir(out) as tmp:
+    # Tasks hold no data between them: spilling and pausing would only stall a worker whose JAX runtime sits near the
+    # limit; a worker past 95 % of --memory-limit is still restarted (and a partition that cannot fit is named below).
+    memory = {"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
+              "distributed.worker.memory.pause": False}
+    with reserve(out, inputs=[]), staging_dir(out) as tmp, dask.config.set(memory):
         cluster = None
         if scheduler:
             client = Client(scheduler, timeout="30s")
@@ -351,7 +355,13 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                 if progress:
                     from distributed import progress as show
                     show(fut)
-                table = fut.result()
+                try:
+                    table = fut.result()
+                except Exception as e:
+                    if type(e).__name__ != "KilledWorker":
+                        raise
+                    raise DataError(f"a Dask worker died (out of memory?) on {e}: give it more memory (--memory-limit), "
+                                    f"or smaller partitions (Parquet row groups, --blocksize-mb).") from None
         finally:
             client.close()
             if cluster is not None:
