@@ -8,6 +8,7 @@ Commands::
     bayesmag report RUN_DIR
     bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T]
     bayesmag study CONFIG [--out DIR] [--set key=value]...
+    bayesmag fleet CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
     bayesmag data list
@@ -32,6 +33,7 @@ def _cmd_run(args) -> int:
     from bayesmag._src.app.outdir import reserve
 
     cfg_path = _resolve_config(args.config)
+    _refuse_fleet_config(cfg_path, "run")
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
@@ -53,6 +55,41 @@ def _cmd_run(args) -> int:
         print(f"  note: {note}")
     for w in m.get("warnings", []):
         print(f"  WARNING: {w}", file=sys.stderr)
+    return 0
+
+
+def _refuse_fleet_config(cfg_path: Path, command: str) -> None:
+    """A config with a [fleet] table is for ``bayesmag fleet`` (issue 27): say so instead of an unknown-key error."""
+    import tomllib
+    try:
+        raw = tomllib.loads(Path(cfg_path).read_text(encoding="utf-8-sig"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return                              # load_config names the problem
+    if isinstance(raw.get("fleet"), dict):
+        from bayesmag._src.app.config import ConfigError
+        raise ConfigError(f"{cfg_path} is a fleet config (it has a [fleet] table): use `bayesmag fleet {cfg_path}`, "
+                          f"not `bayesmag {command}`.")
+
+
+def _cmd_fleet(args) -> int:
+    from bayesmag._src.app.fleet import load_fleet_config, run_fleet
+
+    cfg_path = _resolve_config(args.config)
+    cfg = load_fleet_config(cfg_path, args.set or [])
+    out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+    s = run_fleet(cfg, out, progress=not args.no_progress)
+    print(f"bayesmag: wrote {out}/ ({s['n_sensors']} sensors: {s['n_pass']} pass, {s['n_fail']} flagged; "
+          f"{s['timings']['total']:.1f} s)")
+    for sid in s["flagged"][:20]:
+        why = s["failed_limits"].get(sid, []) + (["outlier"] if sid in s["outliers"] else [])
+        print(f"  flagged {sid}: {', '.join(why)}")
+    if len(s["flagged"]) > 20:
+        print(f"  ... and {len(s['flagged']) - 20} more (fleet_report.md)")
+    if not s["outlier_test"]["computed"]:
+        print(f"  note: outlier test not computed: {s['outlier_test']['reason']}")
+    gt = s.get("ground_truth")
+    if gt:
+        print(f"  ground truth: planted {sorted(gt['defective'])}; flagged exactly: {gt['exact']}")
     return 0
 
 
@@ -98,6 +135,9 @@ def _cmd_data(args) -> int:
 
 
 def _cmd_apply(args) -> int:
+    from bayesmag._src.app.apply_dask import is_archive
+    if args.scheduler or is_archive(args.data):      # a Parquet dataset, a glob of CSVs or a cluster: Dask
+        return _cmd_apply_dask(args)
 
     from bayesmag._src.app.apply import apply_calibration
 
@@ -113,6 +153,25 @@ def _cmd_apply(args) -> int:
         m = summary["metrics"]
         print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
               + f"   {summary['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
+    return 0
+
+
+def _cmd_apply_dask(args) -> int:
+    from bayesmag._src.app.apply_dask import apply_dask
+
+    s = apply_dask(args.model, args.data, args.out, scheduler=args.scheduler, n_workers=args.workers,
+                   threads_per_worker=args.threads_per_worker, memory_limit=args.memory_limit,
+                   blocksize=int(args.blocksize_mb * 2**20), level=args.level, method=args.uq, n_params=args.n_params,
+                   n_qmc=args.n_qmc, temperature_unit=args.temperature_unit, field_unit=args.field_unit,
+                   columns=_parse_columns(args.columns), progress=not args.no_progress)
+    print(f"bayesmag: calibrated {s['n_valid']} of {s['n_rows']} rows in {s['n_partitions']} partitions -> {args.out}/ "
+          f"({s['seconds']:.2f} s, {s['n_rows'] / max(s['seconds'], 1e-9):,.0f} rows/s)")
+    for w in s["warnings"]:
+        print(f"  WARNING: {w}", file=sys.stderr)
+    if s.get("metrics"):
+        m = s["metrics"]
+        print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
+              + f"   {s['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
     return 0
 
 
@@ -197,7 +256,22 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--columns", metavar="NAME=COL,...",
                    help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")
+    dk = a.add_argument_group("archives on Dask (--data a folder of Parquet or CSV files, or a glob such as "
+                              "'logs/*.csv'; one file too with --scheduler; --out is then a folder of Parquet parts; "
+                              "pip install 'bayesmag[dask]'; docs/fleet.md)")
+    dk.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (default: a local cluster)")
+    dk.add_argument("--workers", type=int, default=2, help="local cluster: worker processes")
+    dk.add_argument("--threads-per-worker", type=int, default=1, help="local cluster: threads per worker")
+    dk.add_argument("--memory-limit", default="900MB", help="local cluster: memory limit per worker")
+    dk.add_argument("--blocksize-mb", type=float, default=16.0, help="CSV bytes per partition (MB)")
     a.set_defaults(func=_cmd_apply)
+
+    fl = sub.add_parser("fleet", help="calibrate many sensors in one batch; verdicts and outliers (docs/fleet.md)")
+    fl.add_argument("config", help="fleet config (or a packaged one, e.g. fleet_simulated)")
+    fl.add_argument("--out", help="output folder (default runs/<config name>)")
+    fl.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key, e.g. fleet.simulate.n_sensors=1000")
+    fl.add_argument("--no-progress", action="store_true")
+    fl.set_defaults(func=_cmd_fleet)
 
     st = sub.add_parser("study", help="the paper's simulation study over sample sizes")
     st.add_argument("config")

@@ -1,0 +1,385 @@
+"""``bayesmag apply`` at archive scale: a partitioned Parquet dataset or a glob of CSV files through Dask.
+
+The calibration is loaded and checked once on the client, sent once to every worker
+(``Client.scatter(..., broadcast=True)``), and every partition is calibrated on its own by
+:meth:`~bayesmag._src.app.artifact.Calibration.predict` (the in-process ``apply``'s code) and written by
+the worker that computed it as ``part.<k>.parquet`` into a staging folder beside ``--out``; only a
+small per-partition summary returns to the client. The staging folder replaces ``--out`` only when
+every partition is written (``outdir.staging_dir``), so a failed run leaves no half-written dataset.
+
+Partitions (``pieces``): one per Parquet row group, or one per ``blocksize`` bytes of a CSV file
+(a line belongs to the block its first byte lies in), so memory per task is bounded by the
+partition, whatever the input size. Bad input is one line naming the file, the partition and the
+row. Rows are independent, except the domain's rate check (``|dB/dt|``, ``|dT/dt|``), which compares
+each row with its time neighbours: every partition is predicted with the file row just before and
+just after it (read, predicted, dropped), so a time-sorted file gets the whole-file apply's flags.
+"""
+
+from __future__ import annotations
+
+import glob as globlib
+import io
+import logging
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from bayesmag._src.core.data import AXES, DataError, check_values
+from bayesmag._src.core.domain import REASON_CODES
+
+__all__ = ["apply_dask", "is_archive", "list_pieces", "calibrate_piece"]
+
+# The columns of `bayesmag apply`'s output, in its order (copied from app/apply.py's OUTPUT_COLUMNS so this module
+# does not depend on that module's internals; tests/test_apply_dask.py checks both outputs have the same columns).
+OUTPUT_COLUMNS = ("calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "aleatoric_nn",
+                  "epistemic_nn", "transfer", "total", "lower", "upper")
+_PARQUET = (".parquet", ".pq")
+
+
+def is_archive(data: str) -> bool:
+    """True when ``--data`` names a folder (a partitioned Parquet dataset, or CSV files) or a glob: the Dask path.
+    One CSV or Parquet file stays in process (``apply.apply_calibration``) unless ``--scheduler`` is given."""
+    return Path(data).is_dir() or (any(c in str(data) for c in "*?[") and not Path(data).exists())
+
+
+def _files(data: str) -> list[Path]:
+    p = Path(data)
+    if p.is_dir():
+        files = sorted(q for q in p.rglob("*") if q.is_file() and q.suffix.lower() in _PARQUET + (".csv",)
+                       and not any(part.startswith((".", "_")) for part in q.relative_to(p).parts))
+    elif any(c in str(data) for c in "*?["):
+        files = sorted(Path(q) for q in globlib.glob(str(data), recursive=True) if Path(q).is_file())
+    else:
+        files = [p] if p.is_file() else []
+    if not files:
+        raise DataError(f"--data {data} matches no file (give a Parquet dataset folder, a Parquet file or a glob of "
+                        f"CSV files such as 'logs/*.csv').")
+    kinds = {q.suffix.lower() in _PARQUET for q in files}
+    if len(kinds) > 1:
+        raise DataError(f"--data {data} mixes Parquet and CSV files; give one kind.")
+    bad = [q for q in files if q.suffix.lower() not in _PARQUET + (".csv",)]
+    if bad:
+        raise DataError(f"--data {data}: {bad[0]} is neither .csv nor .parquet; narrow the glob.")
+    return files
+
+
+def list_pieces(data: str, *, blocksize: int = 16 * 2**20) -> list[tuple]:
+    """The partitions of ``data``: ``("parquet", path, row_group, first_row)`` or ``("csv", path, start, end, header)``.
+
+    Only file footers (Parquet) and first lines (CSV) are read here.
+    """
+    pieces = []
+    for f in _files(data):
+        if f.suffix.lower() in _PARQUET:
+            import pyarrow.parquet as pq
+            try:
+                meta = pq.ParquetFile(f).metadata
+            except Exception as e:
+                raise DataError(f"{f} cannot be read as Parquet ({type(e).__name__}: {e}).") from None
+            first = 0
+            for g in range(meta.num_row_groups):
+                pieces.append(("parquet", str(f), g, first, meta.num_row_groups))
+                first += meta.row_group(g).num_rows
+        else:
+            with open(f, "rb") as fh:
+                header = fh.readline()
+                start = fh.tell()
+            size = f.stat().st_size
+            if not header.strip():
+                raise DataError(f"{f} is empty (no header line).")
+            if size <= start:
+                pieces.append(("csv", str(f), start, start, header))
+            for s in range(start, size, max(int(blocksize), 1)):
+                pieces.append(("csv", str(f), s, min(s + int(blocksize), size), header))
+    return pieces
+
+
+def _lines_before(path: str, pos: int) -> int:
+    """Newlines in the first ``pos`` bytes of ``path`` (read only on the error path)."""
+    n, left = 0, pos
+    with open(path, "rb") as fh:
+        while left > 0:
+            buf = fh.read(min(left, 1 << 24))
+            if not buf:
+                break
+            n += buf.count(b"\n")
+            left -= len(buf)
+    return n
+
+
+def _read_piece(piece, index: int) -> tuple:
+    """``(DataFrame, where, first_row)``: the rows of partition ``index``, a description, and the file's data-row
+    number of its first row (1 = the row after the header; None for a CSV block after the first, found only when a
+    row of it is bad)."""
+    import pandas as pd
+    if piece[0] == "parquet":
+        import pyarrow.parquet as pq
+        _, path, g, first = piece[:4]
+        df = pq.ParquetFile(path).read_row_group(g).to_pandas()
+        return df, f"partition {index}: {path} (row group {g})", first + 1
+    _, path, start, end, header = piece
+    with open(path, "rb") as fh:
+        if start > len(header):
+            fh.seek(start - 1)
+            fh.readline()                     # the line that began before this block belongs to the previous one
+        else:
+            fh.seek(start)
+        pos = fh.tell()
+        body = fh.read(max(end - pos, 0))
+        if body and not body.endswith(b"\n"):
+            body += fh.readline()
+    first = 1 if start <= len(header) else None
+    where = f"partition {index}: {path} (bytes {start}-{end})"
+    if not body.strip():
+        return pd.read_csv(io.BytesIO(header)), where, first
+    try:
+        return pd.read_csv(io.BytesIO(header + body), dtype=np.float64), where, first
+    except (ValueError, TypeError):
+        raw = pd.read_csv(io.BytesIO(header + body), dtype=str, keep_default_na=False)
+        for col in raw.columns:
+            num = pd.to_numeric(raw[col].str.strip().replace({"": "nan"}), errors="coerce")
+            bad = np.flatnonzero(num.isna().to_numpy() & ~raw[col].str.strip().str.lower()
+                                 .isin(["", "nan", "na", "null"]).to_numpy())
+            if bad.size:
+                first = first or _lines_before(path, pos)
+                raise DataError(_row_msg(where, first, int(bad[0]), f"column {col!r} has the non-numeric value "
+                                         f"{raw[col].iloc[bad[0]]!r}; fix or remove that row")) from None
+        raise
+
+
+def _halo(piece) -> tuple:
+    """The file rows just before and just after a partition (DataFrames of one row, or None at a file's ends or when
+    unreadable): the domain's rate check then sees both time neighbours of the partition's first and last row, as
+    the whole-file apply does. A bad neighbour is reported by its own partition."""
+    import pandas as pd
+    try:
+        if piece[0] == "parquet":
+            import pyarrow.parquet as pq
+            _, path, g, _first, n_groups = piece
+            pf = pq.ParquetFile(path)
+            prev = nxt = None
+            if g > 0:
+                t = pf.read_row_group(g - 1)
+                prev = t.slice(t.num_rows - 1, 1).to_pandas() if t.num_rows else None
+            if g < n_groups - 1:
+                t = pf.read_row_group(g + 1)
+                nxt = t.slice(0, 1).to_pandas() if t.num_rows else None
+            return prev, nxt
+        _, path, start, end, header = piece
+        pos = _block_start(piece)
+        prev_line = next_line = b""
+        with open(path, "rb") as fh:
+            if pos > len(header):
+                lo = max(pos - 65536, len(header))
+                fh.seek(lo)
+                chunk = fh.read(pos - lo)[:-1]                      # ends with the newline before `pos`
+                if b"\n" in chunk or lo == len(header):
+                    prev_line = chunk.rsplit(b"\n", 1)[-1] + b"\n"
+            fh.seek(max(end - 1, 0))
+            if end > len(header):
+                fh.readline()                                        # rest of this block's last line
+                next_line = fh.readline()
+
+        def one(line):
+            if not line.strip():
+                return None
+            return pd.read_csv(io.BytesIO(header + line), dtype=np.float64)
+        return one(prev_line), one(next_line)
+    except (ValueError, TypeError, OSError):
+        return None, None
+
+
+def _block_start(piece) -> int:
+    """Byte position of the first line of a CSV block (the line after the one running over its start)."""
+    _, path, start, _end, header = piece
+    if start <= len(header):
+        return start
+    with open(path, "rb") as fh:
+        fh.seek(start - 1)
+        fh.readline()
+        return fh.tell()
+
+
+def _row_msg(where: str, first, k: int, what: str) -> str:
+    row = f"data row {first + k} of the file" if first is not None else f"row {k + 1} of this block"
+    return f"{where}, {row}: {what}."
+
+
+def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str) -> "object":
+    """Calibrate partition ``index`` (``piece``) and write ``part.<index>.parquet`` into ``out_dir``; return a one-row
+    summary DataFrame (rows in/out, valid, outside domain, reference sums, warnings)."""
+    import pandas as pd
+    from bayesmag._src.core.frames import from_frame
+
+    df, where, first = _read_piece(piece, index)
+    try:
+        data = from_frame(df, columns=opts["columns"], temperature_unit=opts["temperature_unit"],
+                          field_unit=opts["field_unit"], source=where)
+        check_values(data, origin="the partition", allow_nonfinite=True)
+    except DataError as e:
+        if first is None and piece[0] == "csv":
+            first = _lines_before(piece[1], _block_start(piece))
+        raise DataError(f"{where} (its row 1 is data row {first} of the file): "
+                        f"{' '.join(str(e).split())}") from None
+    n = data.n
+    warns: list[str] = []
+    if n:
+        from bayesmag._src.app.apply import check_units
+        try:
+            warns = check_units(cal, data)
+        except DataError as e:
+            raise DataError(f"{where}: {' '.join(str(e).split())}") from None
+        prev, nxt = (h if h is not None and list(h.columns) == list(df.columns) else None for h in _halo(piece))
+        lo, full = int(prev is not None), data
+        if prev is not None or nxt is not None:
+            try:
+                full = from_frame(pd.concat([h for h in (prev, df, nxt) if h is not None], ignore_index=True),
+                                  columns=opts["columns"], temperature_unit=opts["temperature_unit"],
+                                  field_unit=opts["field_unit"], source=where)
+            except DataError:
+                lo, full = 0, data
+        pred = cal.predict(full, level=opts["level"], method=opts["method"], n_params=opts["n_params"],
+                           n_qmc=opts["n_qmc"], chunk_size=opts["chunk_size"])
+        if full is not data:                                      # drop the neighbour rows again
+            pred = {k: np.asarray(v)[lo:lo + n] for k, v in pred.items()}
+    else:
+        pred = {"valid": np.zeros(0, bool), "in_domain": np.zeros(0, bool), "in_domain_reason": np.zeros(0, object),
+                **{c: np.zeros((0, 3)) for c in OUTPUT_COLUMNS if c in opts["columns_out"]}}
+    cols = {"time": np.asarray(data.time, np.float64), "run": np.asarray(data.run, np.int64)}
+    for a, ax in enumerate(AXES):
+        for c in opts["columns_out"]:
+            cols[f"{ax}_{c}"] = np.asarray(pred[c][:, a], np.float64)
+    uniq, inv = np.unique(np.asarray(pred["in_domain_reason"]).astype(str), return_inverse=True)
+    cols["in_domain_reason"] = np.array([sum(REASON_CODES[k] for k in w.split(";") if k in REASON_CODES)
+                                         for w in uniq], np.int64)[inv.reshape(-1)] if n else np.zeros(0, np.int64)
+    cols["in_domain"] = np.asarray(pred["in_domain"], bool)
+    cols["valid"] = np.asarray(pred["valid"], bool)
+    out = pd.DataFrame(cols)
+    if len(out) != len(df):                 # the guarantee, checked where it is made
+        raise RuntimeError(f"{where}: {len(df)} rows in but {len(out)} out; nothing was written.")
+    out.to_parquet(Path(out_dir) / f"part.{index:06d}.parquet", index=False)
+    row = {"partition": index, "rows_in": len(df), "rows_out": len(out), "valid": int(cols["valid"].sum()),
+           "outside": int((~cols["in_domain"] & cols["valid"]).sum()), "warnings": " | ".join(warns)}
+    if data.b_ref is not None and n:
+        ok = cols["valid"] & np.isfinite(data.b_ref).all(axis=1)
+        y, mu = data.b_ref[ok], pred["calibrated"][ok]
+        inside = (y >= pred["lower"][ok]) & (y <= pred["upper"][ok])
+        for a, ax in enumerate(AXES):
+            row[f"sse_{ax}"] = float(np.sum((y[:, a] - mu[:, a]) ** 2))
+            row[f"covered_{ax}"] = int(inside[:, a].sum())
+        row["n_ref"] = int(ok.sum())
+    return pd.DataFrame([row])
+
+
+def _check_paths(model_dir, data, out) -> Path:
+    out, model = Path(out), Path(model_dir).resolve()
+    if out.suffix.lower() in _PARQUET + (".csv",) and not out.is_dir():
+        raise DataError(f"--out {out}: an archive apply writes a partitioned Parquet dataset (a folder); give a folder "
+                        f"name such as {out.with_suffix('')}.")
+    ro = out.resolve()
+    roots = {Path(p).resolve() for p in _files(data)}
+    d = Path(data)
+    if d.is_dir():
+        roots.add(d.resolve())
+    for r in roots | {model}:
+        if ro == r or r.is_relative_to(ro) or (ro.is_relative_to(r) and r.is_dir()):
+            raise DataError(f"--out {out} overlaps {'the calibration folder' if r == model else 'the input data'} {r}; "
+                            f"writing there could overwrite it. Give an output folder outside both.")
+    if not ro.parent.is_dir():
+        raise DataError(f"--out {out}: the folder {ro.parent} does not exist; create it or give another path.")
+    return out
+
+
+def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers: int = 2, threads_per_worker: int = 1,
+               memory_limit: str = "900MB", blocksize: int = 16 * 2**20, level=None, method: str = "analytic",
+               n_params: int = 100, n_qmc: int = 256, temperature_unit: str = "C", field_unit: str = "uT",
+               columns: dict | None = None, chunk_size: int = 50_000, progress: bool = False) -> dict:
+    """Calibrate every row of an archive (Parquet dataset folder, Parquet file, or glob of CSV files) on Dask.
+
+    ``scheduler``: address of a running Dask scheduler (its workers must see ``data`` and ``out`` at the same paths);
+    None starts a local cluster of ``n_workers`` processes with ``threads_per_worker`` threads and ``memory_limit``
+    each. Writes a Parquet dataset (``part.<k>.parquet``, one per input partition, in input order) to ``out``; returns
+    a summary like :func:`~bayesmag._src.app.apply.apply_calibration`'s.
+    """
+    try:
+        import dask
+        import dask.dataframe as dd
+        from distributed import Client, LocalCluster
+    except ImportError as e:
+        raise DataError(f"applying to an archive needs Dask: pip install 'bayesmag[dask]' ({e}).") from None
+    import pandas as pd
+    from bayesmag._src.app.artifact import load
+    from bayesmag._src.app.outdir import reserve, staging_dir
+
+    t0 = time.perf_counter()
+    out = _check_paths(model_dir, data, out)
+    cal = load(model_dir)
+    level = cal.level if level is None else level
+    if not 0 < level < 1:
+        raise DataError(f"--level {level} must be in (0, 1).")
+    pieces = list_pieces(data, blocksize=blocksize)
+    names = ["calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "total", "lower", "upper"]
+    if cal.network is not None:
+        names += ["aleatoric_nn", "epistemic_nn"]
+    if cal.transfer_sd is not None:
+        names.append("transfer")
+    opts = dict(columns=columns, temperature_unit=temperature_unit, field_unit=field_unit, level=level, method=method,
+                n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
+                columns_out=[c for c in OUTPUT_COLUMNS if c in names])
+    meta = pd.DataFrame({"partition": pd.Series(dtype="int64"), "rows_in": pd.Series(dtype="int64"),
+                         "rows_out": pd.Series(dtype="int64"), "valid": pd.Series(dtype="int64"),
+                         "outside": pd.Series(dtype="int64"), "warnings": pd.Series(dtype="object")})
+    # Tasks hold no data between them: spilling and pausing would only stall a worker whose JAX runtime sits near the
+    # limit; a worker past 95 % of --memory-limit is still restarted (and a partition that cannot fit is named below).
+    memory = {"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
+              "distributed.worker.memory.pause": False}
+    with reserve(out, inputs=[]), staging_dir(out) as tmp, dask.config.set(memory):
+        cluster = None
+        if scheduler:
+            client = Client(scheduler, timeout="30s")
+        else:
+            with warnings.catch_warnings():          # "port 8787 is already in use": another cluster's, harmless
+                warnings.simplefilter("ignore", UserWarning)
+                cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
+                                       memory_limit=memory_limit, processes=True, dashboard_address=None,
+                                       silence_logs=logging.ERROR)
+            client = Client(cluster)
+        try:
+            with dask.config.set({"dataframe.convert-string": False}):
+                cal_f = client.scatter(cal, broadcast=True)          # sent once to every worker
+                stats = dd.from_map(calibrate_piece, pieces, range(len(pieces)), args=(cal_f, opts, str(tmp)),
+                                    meta=meta, enforce_metadata=False, label="bayesmag-apply")
+                fut = client.compute(stats)
+                if progress:
+                    from distributed import progress as show
+                    show(fut)
+                try:
+                    table = fut.result()
+                except Exception as e:
+                    if type(e).__name__ != "KilledWorker":
+                        raise
+                    raise DataError(f"a Dask worker died (out of memory?) on {e}: give it more memory (--memory-limit), "
+                                    f"or smaller partitions (Parquet row groups, --blocksize-mb).") from None
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    rows_in, rows_out = int(table["rows_in"].sum()), int(table["rows_out"].sum())
+    warns = sorted({w for s in table["warnings"] for w in str(s).split(" | ") if w})
+    summary = {"n_rows": rows_out, "n_rows_in": rows_in, "n_partitions": len(pieces),
+               "n_valid": int(table["valid"].sum()), "n_outside_domain": int(table["outside"].sum()),
+               "warnings": warns, "level": level, "out": str(out), "seconds": time.perf_counter() - t0}
+    if rows_out - summary["n_valid"]:
+        summary["warnings"].append(f"{rows_out - summary['n_valid']} row(s) have non-finite inputs or outputs and were "
+                                   f"not calibrated (valid=false).")
+    if summary["n_outside_domain"]:
+        summary["warnings"].append(f"{summary['n_outside_domain']} of {rows_out} rows lie outside the calibration's "
+                                   f"training domain (in_domain=false): their intervals may be far too narrow.")
+    if "n_ref" in table and table["n_ref"].sum() > 0:
+        n_ref = float(table["n_ref"].sum())
+        summary["metrics"] = {"rmse": {ax: float(np.sqrt(table[f"sse_{ax}"].sum() / n_ref)) for ax in AXES},
+                              "coverage": {ax: float(table[f"covered_{ax}"].sum() / n_ref) for ax in AXES}}
+    return summary
+

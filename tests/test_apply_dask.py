@@ -1,0 +1,164 @@
+"""bayesmag apply on Dask (app/apply_dask.py): a 2-worker local cluster on a small dataset equals the in-process
+apply row for row; bad input is one line naming the partition, the file and the row; nothing is overwritten."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("dask")
+pytest.importorskip("distributed")
+pytest.importorskip("pyarrow")
+
+from bayesmag._src.app.apply import apply_calibration  # noqa: E402
+from bayesmag._src.app.apply_dask import OUTPUT_COLUMNS, apply_dask, list_pieces  # noqa: E402
+from bayesmag._src.app.cli import main  # noqa: E402
+from bayesmag._src.core.data import DataError  # noqa: E402
+from bayesmag._src.core.frames import to_frame  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cal_dir(tmp_path_factory):
+    """A calibration (physics, transfer sd) fitted on one simulated recording, saved as `bayesmag run` saves it."""
+    from bayesmag._src.app.artifact import save_calibration
+    from bayesmag._src.core.domain import Domain
+    from bayesmag._src.core.fit import fit_physics
+    from bayesmag._src.core.physics import PhysicsModel
+    from bayesmag._src.core.physics_uq import estimate_input_noise
+    from bayesmag._src.core.predictor import Predictor, UQOptions
+    from bayesmag._src.core.simulate import simulate
+    d = simulate(2000, design="campaign", seed=11, noise_sd=0.05)
+    fit = fit_physics(d, PhysicsModel.paper(t0=25.0))
+    pred = Predictor(fit=fit, sigma_in=estimate_input_noise(d), residual_sd=np.full(3, 0.01),
+                     transfer_sd=np.full(3, 0.02), domain=Domain.from_data(d), uq=UQOptions(method="analytic"))
+    out = tmp_path_factory.mktemp("cal")
+    save_calibration(out, pred, config={}, level=0.95)
+    return out
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory):
+    """3 Parquet files of 3 row groups each and the same rows as 3 CSV files and as one CSV."""
+    from bayesmag._src.core.simulate import simulate
+    root = tmp_path_factory.mktemp("archive")
+    df = to_frame(simulate(2400, design="campaign", seed=12, noise_sd=0.05))
+    (root / "pq").mkdir()
+    (root / "csv").mkdir()
+    for k in range(3):
+        part = df.iloc[k * 800:(k + 1) * 800]
+        part.to_parquet(root / "pq" / f"day{k}.parquet", row_group_size=300, index=False)
+        part.to_csv(root / "csv" / f"day{k}.csv", index=False)
+    df.to_csv(root / "all.csv", index=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    import dask
+    from distributed import LocalCluster
+    with dask.config.set({"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
+                          "distributed.worker.memory.pause": False}):
+        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                          memory_limit="2GB") as c:
+            yield c.scheduler_address
+
+
+@pytest.fixture(scope="module")
+def in_process(cal_dir, archive):
+    apply_calibration(cal_dir, archive / "all.csv", archive / "ref.csv")
+    return pd.read_csv(archive / "ref.csv")
+
+
+@pytest.mark.parametrize("source, blocksize", [("pq", 0), ("csv/*.csv", 9000)])
+def test_dask_apply_equals_in_process_apply(cal_dir, archive, cluster, in_process, tmp_path, source, blocksize):
+    kw = {"blocksize": blocksize} if blocksize else {}
+    s = apply_dask(cal_dir, str(archive / source), tmp_path / "out", scheduler=cluster, **kw)
+    n_parts = len(list_pieces(str(archive / source), **kw))
+    assert n_parts >= 9 and s["n_partitions"] == n_parts
+    assert s["n_rows"] == s["n_rows_in"] == 2400 and s["n_valid"] == 2400
+    out = pd.read_parquet(tmp_path / "out")                       # the parts, read back in input order
+    assert list(out.columns) == list(in_process.columns)         # same columns as the CSV of the in-process apply
+    assert {c.split("_", 1)[1] for c in out.columns if c[:2] in ("x_", "y_", "z_")} <= set(OUTPUT_COLUMNS)
+    for c in in_process.columns:
+        np.testing.assert_allclose(out[c].to_numpy(float), in_process[c].to_numpy(float), rtol=1e-7, atol=1e-6,
+                                   err_msg=c)
+    assert s["metrics"]["coverage"]["x"] > 0.9
+
+
+@pytest.mark.parametrize("fmt", ["parquet", "csv"])
+def test_rate_flags_at_partition_boundaries_equal_the_whole_file(cal_dir, cluster, tmp_path, fmt):
+    """Field spikes make the neighbours' rates out of domain; with many partitions, rows at the boundaries still get
+    the whole-file apply's flags (each partition is predicted with the file rows just before and after it)."""
+    from bayesmag._src.core.simulate import simulate
+    df = to_frame(simulate(1200, design="campaign", seed=13, noise_sd=0.05))
+    spikes = np.random.default_rng(0).choice(1200, 100, replace=False)
+    df.loc[spikes, "bx_meas"] += 250.0
+    df.to_csv(tmp_path / "all.csv", index=False)
+    (tmp_path / "in").mkdir()
+    if fmt == "parquet":
+        df.to_parquet(tmp_path / "in" / "a.parquet", row_group_size=37, index=False)
+        s = apply_dask(cal_dir, str(tmp_path / "in"), tmp_path / "out", scheduler=cluster)
+    else:
+        df.to_csv(tmp_path / "in" / "a.csv", index=False)
+        s = apply_dask(cal_dir, str(tmp_path / "in" / "*.csv"), tmp_path / "out", scheduler=cluster, blocksize=2500)
+    assert s["n_partitions"] > 30
+    apply_calibration(cal_dir, tmp_path / "all.csv", tmp_path / "ref.csv")
+    ref, out = pd.read_csv(tmp_path / "ref.csv"), pd.read_parquet(tmp_path / "out")
+    rate_bits = (ref["in_domain_reason"].to_numpy() & 12) != 0
+    assert rate_bits.sum() > 50                                   # the spikes do raise rate flags
+    np.testing.assert_array_equal(out["in_domain_reason"], ref["in_domain_reason"])
+    np.testing.assert_array_equal(out["in_domain"], ref["in_domain"].astype(bool))
+
+
+def test_bad_csv_value_names_partition_file_and_row(cal_dir, archive, cluster, tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    df = pd.read_csv(archive / "csv" / "day0.csv").astype(object)
+    df.loc[637, "by_meas"] = "12..5"
+    df.to_csv(src / "a.csv", index=False)
+    with pytest.raises(DataError) as e:
+        apply_dask(cal_dir, str(src / "*.csv"), tmp_path / "out", scheduler=cluster, blocksize=20_000)
+    msg = str(e.value)
+    assert "partition " in msg and "a.csv" in msg and "'by_meas'" in msg and "'12..5'" in msg and "\n" not in msg
+    assert "data row 638 of the file" in msg
+    assert not (tmp_path / "out").exists()                       # nothing half-written
+
+
+def test_absurd_parquet_value_names_row(cal_dir, archive, cluster, tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    df = pd.read_parquet(archive / "pq" / "day1.parquet")
+    df.loc[df.index[450], "temperature"] = 1e9
+    df.to_parquet(src / "b.parquet", row_group_size=300, index=False)
+    with pytest.raises(DataError) as e:
+        apply_dask(cal_dir, str(src), tmp_path / "out", scheduler=cluster)
+    msg = str(e.value)
+    assert "partition 1: " in msg and "b.parquet (row group 1)" in msg and "its row 1 is data row 301 of the file" in msg
+    assert "row(s) 151" in msg and "temperature" in msg and "1e+09" in msg
+
+
+@pytest.mark.parametrize("where", ["input", "model", "file"])
+def test_nothing_overwritten(cal_dir, archive, tmp_path, where):
+    out = {"input": archive / "pq", "model": cal_dir / "sub", "file": tmp_path / "x.parquet"}[where]
+    with pytest.raises(DataError, match="--out"):
+        apply_dask(cal_dir, str(archive / "pq"), out)
+
+
+def test_cli_routes_archives_to_dask(cal_dir, archive, cluster, tmp_path, capsys):
+    """`bayesmag apply` on a folder runs on Dask (here the test cluster); its errors are one line, exit status 2."""
+    rc = main(["apply", "--model", str(cal_dir), "--data", str(archive / "pq"), "--out", str(tmp_path / "o"),
+               "--no-progress", "--scheduler", cluster])
+    out = capsys.readouterr()
+    assert rc == 0 and "2400 of 2400 rows in 9 partitions" in out.out
+    assert len(pd.read_parquet(tmp_path / "o")) == 2400
+    assert main(["apply", "--model", str(cal_dir), "--data", str(tmp_path / "nothing*.csv"), "--out",
+                 str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bayesmag: error: --data") and len(err.splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_cli_default_local_cluster(cal_dir, archive, tmp_path, capsys):
+    """Without --scheduler, a local cluster of --workers processes is started and closed (slow: process start-up)."""
+    rc = main(["apply", "--model", str(cal_dir), "--data", str(archive / "csv" / "*.csv"), "--out",
+               str(tmp_path / "o"), "--no-progress", "--workers", "2", "--blocksize-mb", "0.02"])
+    assert rc == 0 and "2400 of 2400 rows" in capsys.readouterr().out
