@@ -136,7 +136,7 @@ def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     md = (out / "likelihood_comparison.md").read_text()
     assert "| Likelihood | Axis | RMSE (uT) | MAE (uT) | Coverage (%) | NLL | CRPS (uT) |" in md
     assert md.count("| laplace |") == 3
-    for fig in ("hybrid_predicted_vs_reference.png", "hybrid_uncertainty_vs_temperature.png",
+    for fig in ("hybrid_residuals_vs_reference.png", "hybrid_uncertainty_vs_temperature.png",
                 "hybrid_calibration.png", "hybrid_pit.png"):
         assert (out / fig).stat().st_size > 10_000
 

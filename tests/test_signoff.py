@@ -1,0 +1,336 @@
+"""What an engineer signs off on (issue 26): the certificate's identity, model, GUM rounding, transfer budget
+and HTML rendering; field metrics (magnitude residual, heading error) against hand computations; the
+figures that replace prediction-vs-reference plots; the NUTS trace's choice of parameters."""
+
+import datetime
+import hashlib
+import json
+import math
+import re
+from decimal import Decimal
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import bayesmag
+from bayesmag._src.app.config import config_from_dict, to_toml
+from bayesmag._src.app.report import (expanded_uncertainties, gum_format, gum_round, render_html, render_report,
+                                      welch_satterthwaite)
+from bayesmag._src.core import metrics as M
+
+
+# --------------------------------------------------------------------------- GUM rounding (item 3)
+
+
+@pytest.mark.parametrize("value, u, want", [
+    (1.00213456, 4.90148e-05, ("1.002135", "0.000049")),
+    (27.6234, 0.0123, ("27.623", "0.012")),
+    (12.345, 0.996, ("12.3", "1.0")),                 # u rounds up to 1.0: the value follows to one decimal
+    (-3.2e-05, 4.87e-07, ("-3.200e-05", "4.9e-07")),  # small numbers: scientific, same last decimal place
+    (123456.7, 12.3, ("123457", "12")),
+    (0.00001, 0.02, ("0.000", "0.020")),              # no "-0.000"
+    (2.5, 0.0, ("2.5", "0")),                         # no uncertainty: value to 6 significant figures
+])
+def test_gum_round_examples(value, u, want):
+    assert gum_round(value, u) == want
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_gum_round_two_significant_figures_and_value_to_the_same_place(seed):
+    r = np.random.default_rng(seed)
+    for _ in range(200):
+        u = 10 ** r.uniform(-9, 4) * r.uniform(1, 9.99)
+        value = r.normal() * 10 ** r.uniform(-6, 5)
+        vs, us = gum_round(value, u)
+        place = math.floor(math.log10(u)) - 1                     # the decimal place of u's 2nd significant figure
+        if round(u / 10.0**place) >= 100:                          # 9.96 -> 10: one place to the left
+            place += 1
+        step = 10.0**place
+        nu_, nv = float(us) / step, float(vs) / step
+        assert 10 <= round(nu_) <= 99 and abs(nu_ - round(nu_)) < 1e-6        # u: two significant figures ...
+        assert abs(nv - round(nv)) < 1e-6 * max(1.0, abs(nv))                 # ... the value to the same place
+        assert abs(float(us) - u) <= 0.5 * step * (1 + 1e-9)
+        assert abs(float(vs) - value) <= 0.5 * step * (1 + 1e-9) + 1e-12 * abs(value)
+    assert gum_format(1.00213456, 4.90148e-05, "uT") == "1.002135 ± 0.000049 uT"
+
+
+# --------------------------------------------------------------------------- certificate of a run (items 1, 2, 4-6)
+
+
+def _raw(tmp_path, **cert):
+    from bayesmag._src.core.data import write_csv
+    from bayesmag._src.core.simulate import simulate_from_config
+    data = simulate_from_config({"design": "campaign", "n": 900, "seed": 2, "noise_sd": 0.05})
+    path = tmp_path / "rec.csv"
+    write_csv(data, path)
+    return {"data": {"path": str(path)}, "split": {"kind": "time_blocks", "test_fraction": 0.2},
+            "uq": {"method": "analytic"}, "physics": {"t0": "mean"}, "certificate": cert,
+            "output": {"figures": True, "progress": False}}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("signoff")
+    raw = _raw(tmp, dut="Acme AMR-3 s/n 0042", reference="Fluxgate FG-1 s/n 7, cert. 2025-17")
+    res = bayesmag.run_job(config_from_dict(raw), tmp / "run")
+    return tmp / "run", raw, res
+
+
+def test_certificate_identity(run):
+    out, raw, res = run
+    m = json.loads((out / "metrics.json").read_text())
+    rec = m["certificate"]
+    digest = hashlib.sha256(open(raw["data"]["path"], "rb").read()).hexdigest()
+    assert rec["data_sha256"] == digest
+    cid = hashlib.sha256((to_toml(res["config"].to_dict()) + digest).encode()).hexdigest()[:16]
+    assert rec["calibration_id"] == cid and re.fullmatch(r"[0-9a-f]{16}", cid)
+    when = datetime.datetime.fromisoformat(rec["date_utc"])
+    assert when.utcoffset() == datetime.timedelta(0)
+    assert abs((datetime.datetime.now(datetime.timezone.utc) - when).total_seconds()) < 3600
+    text = (out / "report.md").read_text()
+    for item in (f"| calibration ID | {cid} |", f"| bayesmag version | {bayesmag.__version__} |",
+                 "| device under test | Acme AMR-3 s/n 0042 |",
+                 "| reference instrument | Fluxgate FG-1 s/n 7, cert. 2025-17 |", f"`{digest}`"):
+        assert item in text, item
+
+
+def test_calibration_id_depends_on_config_and_data(tmp_path):
+    from bayesmag._src.app.report import certificate_record
+    raw = _raw(tmp_path, dut="a")
+    data = bayesmag.load_csv(raw["data"]["path"])
+    a = certificate_record(config_from_dict(raw), data)["calibration_id"]
+    assert certificate_record(config_from_dict(raw), data)["calibration_id"] == a          # reproducible
+    assert certificate_record(config_from_dict({**raw, "certificate": {"dut": "b"}}), data)["calibration_id"] != a
+
+
+@pytest.mark.parametrize("cert, match", [({"dut": "two\nlines"}, "certificate.dut"),
+                                         ({"reference": 3}, "certificate.reference"),
+                                         ({"serial": "x"}, "certificate.serial"),
+                                         ({"operator": "x" * 201}, "certificate.operator")])
+def test_certificate_keys_are_validated_at_load(cert, match):
+    with pytest.raises(bayesmag.ConfigError, match=match):
+        config_from_dict({"data": {"source": "simulated"}, "certificate": cert})
+
+
+def test_model_section_states_t0_and_s_o_with_u(run):
+    out, _, _ = run
+    params = json.loads((out / "params.json").read_text())
+    text = (out / "report.md").read_text()
+    t0 = params["model"]["terms"][0]["t0"]
+    assert f"**T0 = {t0:.6g} C**" in text and "B_cal = (S + Ks (T - T0)) B_meas + O + Ko (T - T0)" in text
+    rows = {ln.split("|")[1].strip(): [c.strip() for c in ln.strip().strip("|").split("|")[1:]]
+            for ln in text.split("| S (1) |")[1].split("\n\n")[0].splitlines()[2:]}
+    for i, a in enumerate("xyz"):
+        for j, b in enumerate("xyz"):
+            v, u = params["axes"][a]["values"][f"S_{b}"], params["axes"][a]["std"][f"S_{b}"]
+            vs, us = rows[a][j].split(" ± ")
+            assert float(us) == pytest.approx(u, rel=0.05) and len(us.lstrip("0.").replace(".", "")) == 2
+            assert float(vs) == pytest.approx(v, abs=0.51 * 10 ** Decimal(us).as_tuple().exponent)
+    o = params["axes"]["y"]["values"]["O"]
+    assert f"| y | {gum_format(o, params['axes']['y']['std']['O'])} |" in text
+    assert not re.search(r"\d\.\d{5,}e-0\d \|", text)              # no six-figure uncertainties anywhere
+
+
+def test_transfer_term_gives_same_and_new_session_U():
+    m = {"uq": {"level": 0.95, "mean_aleatoric": dict.fromkeys("xyz", 0.06), "residual_term": dict.fromkeys("xyz", 0.02),
+                "mean_epistemic": dict.fromkeys("xyz", 0.01), "sigma_in_sd": {"bx": 0.05}, "sigma_in_source": "auto"},
+         "split": {"n_train": 500}, "transfer": {"method": "leave_one_run_out", "sd": {"x": 0.05, "y": 0.0, "z": 0.1}}}
+    params = {"n_rows": 500, "model": {"param_names": list("abcdefgh")}}
+    ex = expanded_uncertainties(m, params)
+    same = math.sqrt(0.06**2 + 0.02**2 + 0.01**2)
+    nu = welch_satterthwaite([0.06, 0.02, 0.01], [499, 492, 492])
+    assert ex["same_session"]["x"]["U"] == pytest.approx(stats.t.ppf(0.975, nu) * same, rel=1e-12)
+    for a, tau in (("x", 0.05), ("y", 0.0), ("z", 0.1)):
+        uc = math.sqrt(same**2 + tau**2)
+        nu_new = welch_satterthwaite([0.06, 0.02, 0.01, tau], [499, 492, 492, math.inf])
+        assert ex["new_session"][a]["U"] == pytest.approx(stats.t.ppf(0.975, nu_new) * uc, rel=1e-12)
+    assert ex["new_session"]["y"]["U"] == pytest.approx(ex["same_session"]["y"]["U"], rel=1e-12)
+
+
+def test_report_budget_states_which_U_applies(run):
+    out, _, _ = run
+    text = (out / "report.md").read_text()
+    m = json.loads((out / "metrics.json").read_text())
+    row = next(ln for ln in text.splitlines() if ln.startswith("| transfer (between sessions"))
+    assert [c.strip() for c in row.strip("|").split("|")][3:6] == [f"{m['transfer']['sd'][a]:.2g}" for a in "xyz"]
+    assert "U same session" in text and "U new session" in text and "in the field" in text
+
+
+class _Checker(HTMLParser):
+    VOID = {"meta", "img", "br", "hr"}
+
+    def __init__(self):
+        super().__init__()
+        self.stack, self.tags, self.imgs, self.cells = [], [], [], 0
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append(tag)
+        if tag == "img":
+            self.imgs.append(dict(attrs)["src"])
+        if tag in ("td", "th"):
+            self.cells += 1
+        if tag not in self.VOID:
+            self.stack.append(tag)
+
+    def handle_endtag(self, tag):
+        assert self.stack and self.stack.pop() == tag, f"unbalanced </{tag}>"
+
+
+def test_report_html_has_the_same_content_and_embedded_figures(run):
+    import base64
+    out, _, _ = run
+    md = (out / "report.md").read_text()
+    page = (out / "report.html").read_text()
+    chk = _Checker()
+    chk.feed(page)
+    assert chk.stack == []                                                   # every element closed
+    figs = sorted(p.name for p in out.glob("*.png"))
+    assert len(chk.imgs) == len(figs) >= 6
+    for src, name in zip(chk.imgs, figs):
+        assert src.startswith("data:image/png;base64,")
+        assert base64.b64decode(src.split(",", 1)[1]) == (out / name).read_bytes()
+    md_cells = sum(len(ln.strip().strip("|").split("|")) for ln in md.splitlines()
+                   if ln.startswith("|") and not re.fullmatch(r"\|[-|: ]+\|?", ln.strip()))
+    assert chk.cells == md_cells
+    assert chk.tags.count("h2") == md.count("\n## ")
+    for phrase in ("Uncertainty budget", "Acme AMR-3 s/n 0042", "U new session"):
+        assert phrase in page
+    assert "<script" not in page
+
+
+def test_render_html_escapes_and_handles_missing_figures(tmp_path):
+    page = render_html("# T\n\na <b> & `x<y`\n\n![f.png](f.png)\n", tmp_path)
+    assert "a &lt;b&gt; &amp; <code>x&lt;y</code>" in page and "[figure f.png not found]" in page
+
+
+def test_one_t0_recommendation(belsten):
+    fit = bayesmag.fit_physics(belsten)
+    note = next(n for n in fit.design_notes if "only in run(s) [6]" in n)
+    assert '[physics] t0 = "mean"' in note and not re.search(r"t0 = \d", note)
+
+
+# --------------------------------------------------------------------------- field metrics (item 12)
+
+
+def test_heading_error_by_hand():
+    # reference headings 0, 90, 200 and 330 degrees (x forward, y right: B = H (cos psi, -sin psi, .))
+    psi = np.array([0.0, 90.0, 200.0, 330.0])
+    H = 20.0
+    ref = np.column_stack([H * np.cos(np.radians(psi)), -H * np.sin(np.radians(psi)), np.full(4, 40.0)])
+    # calibrated headings off by +1.5, -2, +3 (wraps through 0 / 360 at 330 + 3 = 333: no wrap) and -179.5
+    err = np.array([1.5, -2.0, 3.0, -179.5])
+    p2 = psi + err
+    cal = np.column_stack([H * np.cos(np.radians(p2)), -H * np.sin(np.radians(p2)), np.full(4, 40.0)])
+    np.testing.assert_allclose(M.heading_deg(ref), psi, atol=1e-12)
+    np.testing.assert_allclose(M.heading_error_deg(cal, ref), err, atol=1e-9)
+    # wrap across north: 359 vs 1 degree is -2 / +2, not 358
+    a = np.array([[np.cos(np.radians(359)), -np.sin(np.radians(359)), 0.0]]) * H
+    b = np.array([[np.cos(np.radians(1)), -np.sin(np.radians(1)), 0.0]]) * H
+    assert M.heading_error_deg(a, b)[0] == pytest.approx(-2.0) and M.heading_error_deg(b, a)[0] == pytest.approx(2.0)
+
+
+def test_field_metrics_by_hand():
+    r = np.random.default_rng(3)
+    ref = r.uniform(-40, 40, (300, 3))
+    ref[:10, :2] = 1.0                                     # horizontal 1.4 uT: no heading
+    cal = ref * 1.01                                       # |B| off by 1 %, heading exact
+    run = np.repeat([4, 7, 9], 100)
+    f = M.field_metrics(cal, ref, run)
+    dm = 0.01 * np.sqrt((ref**2).sum(1))
+    assert f["magnitude"]["rms"] == pytest.approx(np.sqrt(np.mean(dm**2)), rel=1e-12)
+    assert f["magnitude"]["mean"] == pytest.approx(dm.mean(), rel=1e-12)
+    assert f["magnitude"]["per_run"]["7"]["max_abs"] == pytest.approx(dm[100:200].max(), rel=1e-12)
+    weak = np.sqrt(ref[:, 0] ** 2 + ref[:, 1] ** 2) < 5.0
+    assert weak[:10].all() and f["heading"]["max_abs"] < 1e-9 and f["heading"]["n_excluded"] == weak.sum()
+    assert f["heading"]["n_rows"] == 300 - weak.sum() and f["heading"]["per_run"]["4"]["n_rows"] == 100 - weak[:100].sum()
+    # rotate run 9 by 2 degrees about z: its heading error is -2 (the field turns the other way)
+    c, s = np.cos(np.radians(2)), np.sin(np.radians(2))
+    rot = ref.copy()
+    rot[200:, :2] = ref[200:, :2] @ np.array([[c, s], [-s, c]]).T
+    g = M.field_metrics(rot, ref, run)
+    assert g["heading"]["per_run"]["9"]["rms"] == pytest.approx(2.0, rel=1e-9)
+    assert g["heading"]["per_run"]["4"]["rms"] < 1e-9 and g["magnitude"]["max_abs"] < 1e-9
+
+
+def test_field_metrics_in_metrics_json_and_report(run):
+    out, _, _ = run
+    m = json.loads((out / "metrics.json").read_text())
+    rows = list(__import__("csv").DictReader(open(out / "predictions.csv")))
+    ref = np.array([[float(r[f"{a}_reference"]) for a in "xyz"] for r in rows])
+    pred = np.array([[float(r[f"{a}_predicted"]) for a in "xyz"] for r in rows])
+    runs = np.array([int(r["run"]) for r in rows])
+    h = np.degrees(np.arctan2(-pred[:, 1], pred[:, 0]) - np.arctan2(-ref[:, 1], ref[:, 0]))
+    h = (h + 180) % 360 - 180
+    keep = np.hypot(ref[:, 0], ref[:, 1]) >= 5.0
+    assert m["field"]["physics"]["heading"]["rms"] == pytest.approx(np.sqrt(np.mean(h[keep] ** 2)), rel=1e-5)
+    dm = np.linalg.norm(pred, axis=1) - np.linalg.norm(ref, axis=1)
+    assert m["field"]["physics"]["magnitude"]["rms"] == pytest.approx(np.sqrt(np.mean(dm**2)), rel=1e-5)
+    assert set(m["field"]["physics"]["heading"]["per_run"]) == {str(r) for r in np.unique(runs)}
+    assert m["field"]["raw"]["heading"]["rms"] > 10 * m["field"]["physics"]["heading"]["rms"]
+    text = (out / "report.md").read_text()
+    assert "## Field metrics (test rows)" in text
+    assert f"| physics | {m['field']['physics']['magnitude']['mean']:+.3g} |" in text
+
+
+# --------------------------------------------------------------------------- figures (items 13-15)
+
+
+def test_residual_interval_figure_counts_coverage(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+    from bayesmag._src.app import plots
+    saved = []
+    monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    r = np.random.default_rng(0)
+    ref = r.uniform(-50, 50, (1000, 3))
+    pred = ref + 0.03 * r.standard_normal((1000, 3))
+    half = np.array([0.0588, 0.03, 0.1])                    # x: 1.96 sd (95 %), y: 1 sd (68 %), z: 3.33 sd
+    cov = plots.residual_interval_figure(tmp_path / "c.png", ref, pred, pred - half, pred + half, max_points=200)
+    by_hand = [np.mean(np.abs(pred[:, a] - ref[:, a]) <= half[a]) for a in range(3)]
+    assert cov == pytest.approx(np.mean(by_hand))
+    fig = saved[0]
+    for a, ax in enumerate(fig.axes):
+        assert f"{by_hand[a]:.1%} covered" in ax.get_title()
+        assert ax.get_ylabel() == f"calibrated - reference B{'xyz'[a]} (uT)"
+        lim = ax.get_ylim()
+        assert lim[1] - lim[0] < 1.0                        # error axes, not +-50 uT field axes
+
+
+def test_time_figure_shows_train_and_test_from_the_run_start():
+    from bayesmag._src.app import plots
+    t = np.arange(40) * 0.5
+    run = np.repeat([1, 2], 20)
+    test_rows = np.r_[10:14, 30:34]                          # test blocks in the middle of each run
+    train_rows = np.setdiff1d(np.arange(40), test_rows)
+    res = np.zeros((40, 3))
+    fig = plots.residuals_vs_time(t[test_rows], run[test_rows], res[test_rows], np.ones((8, 3)),
+                                  train=(t[train_rows], run[train_rows], res[train_rows]))
+    ax = fig.axes[1]                                         # run 2, x axis: run 2 starts at t = 10 s (a train row)
+    xs = np.concatenate([c.get_offsets()[:, 0] for c in ax.collections if len(c.get_offsets())])
+    assert xs.min() == pytest.approx(0.0) and xs.max() == pytest.approx(9.5)
+    assert sum(len(c.get_offsets()) for c in ax.collections if c.get_label() == "train rows") == 16
+
+
+def test_physics_calibration_curve_matches_the_metric(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+    from bayesmag._src.app import plots
+    from bayesmag.likelihoods import Gaussian
+    saved = []
+    monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    r = np.random.default_rng(1)
+    y = 1.3 * r.standard_normal((500, 3))
+    dist = Gaussian(np.zeros((500, 3)), np.ones((500, 3)))   # too narrow: under-covers
+    plots.calibration_curve_figure(tmp_path / "c.png", {"physics": M.pit(dist, y)})
+    nominal, observed = M.calibration_curve(dist, y)
+    line = saved[0].axes[2].lines[1]
+    np.testing.assert_allclose(line.get_xdata(), nominal)
+    np.testing.assert_allclose(line.get_ydata(), observed[:, 2])
+
+
+def test_job_draws_the_physics_calibration_and_pit(run):
+    out, _, _ = run
+    for f in ("calibration.png", "physics_calibration.png", "physics_pit.png", "physics_residuals_vs_time.png"):
+        assert (out / f).stat().st_size > 10_000, f
