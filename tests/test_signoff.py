@@ -334,3 +334,39 @@ def test_job_draws_the_physics_calibration_and_pit(run):
     out, _, _ = run
     for f in ("calibration.png", "physics_calibration.png", "physics_pit.png", "physics_residuals_vs_time.png"):
         assert (out / f).stat().st_size > 10_000, f
+
+
+# --------------------------------------------------------------------------- NUTS (item 16)
+
+
+def test_trace_shows_the_worst_r_hat_parameters():
+    import pandas as pd
+    from bayesmag._src.pipeline.nuts.plots import trace_parameters
+    df = pd.DataFrame({"axis": list("xxxyyy") + ["x"], "parameter": ["S_x", "S_y", "O", "S_x", "Ko", "O", "sigma"],
+                       "r_hat": [1.001, 1.09, 1.002, 1.03, 1.002, 1.2, 1.5],
+                       "ess_bulk": [100.0, 900.0, 50.0, 800.0, 60.0, 700.0, 10.0],
+                       "lm_sd": [1.0] * 6 + [np.nan]})
+    top = trace_parameters(df, 3)
+    # by R-hat, not by ESS (the lowest-ESS O/x and Ko/y are not the ones that make a verdict inconclusive);
+    # the noise scale (no LM sd) is drawn separately
+    assert list(zip(top.axis, top.parameter)) == [("y", "O"), ("x", "S_y"), ("y", "S_x")]
+    tie = trace_parameters(df.assign(r_hat=1.0), 2)                       # ties: the lowest bulk ESS first
+    assert list(tie.parameter) == ["O", "Ko"]
+
+
+@pytest.mark.slow                      # ~35 s (NUTS compile); the job test in test_nuts.py checks the same quickly
+def test_nuts_stage_warnings_once_and_not_as_python_warnings(tmp_path):
+    import warnings
+    from bayesmag._src.app.nuts_stage import check_nuts_config, run_nuts_stage
+    from bayesmag._src.core.simulate import simulate_from_config
+    train = simulate_from_config({"design": "campaign", "n": 120, "seed": 5, "noise_sd": 0.05})
+    fit = bayesmag.fit_physics(train)
+    cfg = config_from_dict({"data": {"source": "simulated"},
+                            "nuts": {"enabled": True, "chains": 1, "warmup": 30, "draws": 30}})
+    priors = check_nuts_config(cfg, fit.param_names)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = run_nuts_stage(cfg, fit, train, priors)
+    assert [str(w.message) for w in caught if issubclass(w.category, (UserWarning, RuntimeWarning))] == []
+    assert len(res.warnings) >= 1 and len(set(res.warnings)) == len(res.warnings)
+    assert any("chain" in w for w in res.warnings)                       # one chain: R-hat cannot be judged
