@@ -370,3 +370,53 @@ def test_nuts_stage_warnings_once_and_not_as_python_warnings(tmp_path):
     assert [str(w.message) for w in caught if issubclass(w.category, (UserWarning, RuntimeWarning))] == []
     assert len(res.warnings) >= 1 and len(set(res.warnings)) == len(res.warnings)
     assert any("chain" in w for w in res.warnings)                       # one chain: R-hat cannot be judged
+
+
+# --------------------------------------------------------------------------- finding your way (items 17, 18)
+
+
+def test_every_config_key_has_a_unit_and_meaning():
+    from bayesmag._src.app.config import Config
+    from bayesmag._src.app.config_docs import KEY_DOCS, config_keys
+    keys = [k for k, _ in config_keys(Config())]
+    assert sorted(keys) == sorted(KEY_DOCS)                       # none missing, none stale
+    assert all(meaning for _, meaning in KEY_DOCS.values())
+
+
+def test_config_list_and_show(capsys):
+    from pathlib import Path
+    from bayesmag._src.app.cli import main, packaged_configs_dir
+    assert main(["config", "list"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [ln.split()[0] for ln in out] == sorted(p.stem for p in Path(packaged_configs_dir()).glob("*.toml"))
+    assert main(["config", "show", "quickstart"]) == 0
+    text = capsys.readouterr().out
+    line = next(ln for ln in text.splitlines() if ln.startswith("split.kind "))
+    assert '*"time_blocks"' in line and 'default "random"' in line              # changed from the default
+    assert next(ln for ln in text.splitlines() if ln.startswith("uq.seed ")).split()[1] == "0"   # unchanged, no *
+    assert "[C]" in next(ln for ln in text.splitlines() if ln.startswith("physics.t0 "))
+    assert main(["config", "show", "no_such_config"]) == 2
+
+
+def test_every_subcommand_help_has_a_description():
+    from bayesmag._src.app.cli import build_parser
+    sub = next(a for a in build_parser()._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert set(sub.choices) >= {"run", "apply", "study", "report", "export", "discover", "data", "config"}
+    for name, sp in sub.choices.items():
+        assert sp.description and len(sp.description) > 30, name
+        assert sp.description.split()[0] in sp.format_help(), name
+
+
+def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
+    import sys
+    from bayesmag._src.app.cli import main
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[data]\nsource = "simulated"\n[data.simulate]\ndesign = "campaign"\nn = 600\nseed = 1\n'
+                   '[split]\nkind = "time_blocks"\ntest_fraction = 0.2\n[physics]\nt0 = "mean"\n'
+                   '[uq]\nmethod = "analytic"\ntransfer = "off"\n[output]\nfigures = false\n')
+    assert main(["run", str(cfg), "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "\r" not in err and "physics UQ" not in err                   # captured stderr is not a terminal
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "b")]) == 0
+    assert "physics UQ" in capsys.readouterr().err                        # on a terminal the bar is drawn
