@@ -104,7 +104,7 @@ def test_units_on_every_parameter_and_nuts_and_hybrid_sections():
     table = [ln for ln in text.splitlines() if re.match(r"\| (S|Ks|O|Ko)", ln)]
     assert len(table) == 24 and all(ln.split("|")[4].strip() in ("1", "1/C", "uT", "uT/C") for ln in table)
     assert "| x | agrees with LM | 1.0010 | 2100 | 1800 | 0 |" in text
-    assert "| x | S_x | 1 | 0.01 | 1.0004 | 2500 | 2000 |" in text
+    assert "| x | S_x | 1.000 | 0.010 | 1.0004 | 2500 | 2000 |" in text          # mean and sd GUM-rounded
     assert "| gaussian | x | 0.01 | 5.000 | 1e-06 | 0.200 |" in text
     assert "| gaussian | x | 120 | 70 | -1.5 |" in text
     assert "interval scale" not in text and "conformal scale" not in text     # no conformal scale, no column

@@ -302,7 +302,9 @@ def _nuts_section(m: dict, nuts_rows: list[dict] | None) -> list[str]:
         lines += ["", "| axis | parameter | mean | sd | R-hat | ESS bulk | ESS tail |", "|---|---|---|---|---|---|---|"]
         for r in nuts_rows:
             f = lambda k, spec: format(float(r[k]), spec) if r.get(k) not in (None, "") else "-"  # noqa: E731
-            lines.append(f"| {r.get('axis', '')} | {r.get('parameter', '')} | {f('mean', '.6g')} | {f('sd', '.3g')} | "
+            has = r.get("sd") not in (None, "") and r.get("mean") not in (None, "")
+            mean, sd = gum_round(float(r["mean"]), float(r["sd"])) if has else (f("mean", ".6g"), f("sd", ".2g"))
+            lines.append(f"| {r.get('axis', '')} | {r.get('parameter', '')} | {mean} | {sd} | "
                          f"{f('r_hat', '.4f')} | {f('ess_bulk', '.0f')} | {f('ess_tail', '.0f')} |")
     th = nuts.get("thresholds", {})
     if th:
@@ -478,7 +480,8 @@ def _field_section(c: ReportContext) -> list[str]:
                      f"{fmt(mg, 'max_abs', '.3g')} | {fmt(hd, 'rms', '.3g')} | {fmt(hd, 'p95_abs', '.3g')} | "
                      f"{fmt(hd, 'max_abs', '.3g')} |")
     stages = [s for s in f if s != "raw"]
-    lines += ["", "Per run (heading error RMS / max abs in degrees; magnitude residual RMS in uT):", "",
+    lines += ["", "Per run (heading error RMS / max abs in degrees, '-' where no row of the run has a defined "
+              "heading; magnitude residual RMS in uT):", "",
               "| run | rows | " + " | ".join(f"{s}: heading RMS / max | {s}: magnitude RMS" for s in stages) + " |",
               "|---|---|" + "---|---|" * len(stages)]
     for r in f[stages[0]]["heading"]["per_run"]:
@@ -590,10 +593,10 @@ def transfer_section(m: dict) -> list[str]:
         return lines + ["Transfer uncertainty is off (`[uq] transfer = \"off\"`): intervals for new recordings "
                         "hold within-session parts only and will be too narrow if the sensor changes between "
                         "sessions.", ""]
-    lines.append(f"This calibration transfers to a new session with +/- {z * sd['x']:.3g} / {z * sd['y']:.3g} / "
-                 f"{z * sd['z']:.3g} uT (x / y / z; 1.96 x the between-session sd {sd['x']:.3g} / {sd['y']:.3g} / "
-                 f"{sd['z']:.3g} uT), added in quadrature to every prediction of a new recording (`bayesmag apply`; "
-                 f"column `transfer`).")
+    lines.append(f"This calibration transfers to a new session with +/- {_u2(z * sd['x'])} / {_u2(z * sd['y'])} / "
+                 f"{_u2(z * sd['z'])} uT (x / y / z; 1.96 x the between-session sd {_u2(sd['x'])} / {_u2(sd['y'])} / "
+                 f"{_u2(sd['z'])} uT), added in quadrature to every prediction of a new recording (`bayesmag apply`; "
+                 f"column `transfer`); the budget above combines it with the within-session parts (U new session).")
     if tr["method"] == "leave_one_run_out":
         rows = [(r, v) for r, v in tr["per_run"].items()]
         lines += ["Estimated by leaving each training run out (rows inside the other runs' value domain):", "",
