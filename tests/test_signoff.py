@@ -16,7 +16,7 @@ from scipy import stats
 
 import bayesmag
 from bayesmag._src.app.config import config_from_dict, to_toml
-from bayesmag._src.app.report import (expanded_uncertainties, gum_format, gum_round, render_html, render_report,
+from bayesmag._src.app.report import (expanded_uncertainties, gum_format, gum_round, render_html,
                                       welch_satterthwaite)
 from bayesmag._src.core import metrics as M
 
@@ -420,3 +420,41 @@ def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
     assert main(["run", str(cfg), "--out", str(tmp_path / "b")]) == 0
     assert "physics UQ" in capsys.readouterr().err                        # on a terminal the bar is drawn
+
+
+# --------------------------------------------------------------------------- the walkthrough notebook (item 19)
+
+
+def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, monkeypatch, capsys):
+    """examples/signoff_notebook.py (jupytext percent format) end to end: pandas load, Calibrator fit,
+    certificate numbers and figures, PX4 export; its rows are the loader's rows."""
+    import runpy
+    from pathlib import Path
+    monkeypatch.setenv("BAYESMAG_EXAMPLE_OUT", str(tmp_path / "nb"))
+    ns = runpy.run_path(str(Path(__file__).parents[1] / "examples" / "signoff_notebook.py"), run_name="notebook")
+    df = ns["df"]
+    np.testing.assert_allclose(df[["bx_meas", "by_meas", "bz_meas"]].to_numpy(), belsten.b_meas)
+    np.testing.assert_array_equal(df["run"].to_numpy(), belsten.run)                 # same campaigns as load_belsten
+    np.testing.assert_allclose(df["time"].to_numpy(), belsten.time, atol=1e-9)
+    run_dir = ns["run_dir"]
+    assert (run_dir / "report.html").exists() and (run_dir / "calibration.params").exists()
+    assert "Honeywell HMC1053" in (run_dir / "report.md").read_text()
+    out = capsys.readouterr().out
+    assert "U new_session" in out and "heading error RMS" in out and "CAL_MAG0_XOFF" in out
+    assert all(ns["m"]["physics"]["rmse"][a] < 0.1 for a in "xyz")
+
+
+def test_figure_worker_does_not_rerun_an_unguarded_script(monkeypatch):
+    """A user's script without a __main__ guard that runs a job: the figure process must not run it again
+    (multiprocessing's spawn re-runs __main__.__file__ unless it is hidden while the process starts)."""
+    import multiprocessing.spawn
+    import sys
+    import types
+    from bayesmag._src.app.plots import _main_not_reimported
+    script = types.ModuleType("__main__")
+    script.__file__, script.__spec__ = "/home/user/my_calibration.py", None
+    monkeypatch.setitem(sys.modules, "__main__", script)
+    assert multiprocessing.spawn.get_preparation_data("w")["init_main_from_path"].endswith("my_calibration.py")
+    with _main_not_reimported():
+        assert "init_main_from_path" not in multiprocessing.spawn.get_preparation_data("w")
+    assert script.__file__ == "/home/user/my_calibration.py"                  # restored

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+import sys
 import tempfile
 import multiprocessing
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -237,6 +239,24 @@ def residual_histogram_figure(out: Path, result, columns: dict) -> None:
     residual_histograms(out / "residual_histograms.png", res)
 
 
+@contextlib.contextmanager
+def _main_not_reimported():
+    """While the worker process starts: hide ``__main__.__file__`` so that the spawned interpreter does not
+    run the caller's script again (a script without an ``if __name__ == "__main__"`` guard would run its
+    whole job a second time there and break the pool). The tasks are bayesmag functions; the worker never
+    needs ``__main__``."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    hide = path is not None and getattr(main, "__spec__", None) is None
+    if hide:
+        del main.__file__
+    try:
+        yield
+    finally:
+        if hide:
+            main.__file__ = path
+
+
 def _ready() -> None:
     """:meth:`FigureWorker.warm`'s task: nothing (unpickling it imports this module, matplotlib included)."""
 
@@ -265,12 +285,14 @@ class FigureWorker:
     def warm(self) -> None:
         """Start the process now (interpreter, imports) rather than at the first figure."""
         if self._pool is not None:
-            self._futures.append(self._pool.submit(_ready))
+            with _main_not_reimported():
+                self._futures.append(self._pool.submit(_ready))
 
     def submit(self, draw: Callable[..., object], *args, **kwargs) -> None:
         """Queue ``draw(folder, *args, **kwargs)``; nothing when the worker is disabled."""
         if self._pool is not None:
-            self._futures.append(self._pool.submit(draw, self._tmp, *args, **kwargs))
+            with _main_not_reimported():            # the process starts at the first submit
+                self._futures.append(self._pool.submit(draw, self._tmp, *args, **kwargs))
 
     def finish(self, out: Path) -> list[str]:
         """Wait for every queued figure, raise the first error, move the files into ``out``; their names."""
