@@ -184,23 +184,128 @@ def test_extra_terms_are_named_as_dropped():
     assert "axis_quadratic" in E.limitations("json", ex)[0]
 
 
-def test_export_cli_on_a_run_measures_the_loss(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
     raw = {"data": {"source": "simulated", "simulate": {"design": "campaign", "n": 1200, "seed": 1, "noise_sd": 0.05}},
            "split": {"kind": "time_blocks", "test_fraction": 0.2}, "uq": {"method": "analytic"},
            "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}}
-    out = tmp_path / "run"
+    out = tmp_path_factory.mktemp("export") / "run"
     bayesmag.run_job(config_from_dict(raw), out)
+    return out
+
+
+def test_export_cli_on_a_run_measures_the_loss_on_held_out_rows(run_dir, capsys):
+    out = run_dir
     for fmt in E.FORMATS:
         assert main(["export", str(out), "--format", fmt]) == 0
         assert (out / f"calibration{E.FORMATS[fmt]}").exists()
     text = capsys.readouterr().out
-    assert text.count("On the 960 training rows") == len(E.FORMATS)
+    assert text.count("On the 240 held-out (test) rows") == len(E.FORMATS)
     doc = json.loads((out / "calibration.json").read_text())               # the artifact is untouched
     assert doc["format"] == "bayesmag.calibration"
-    assert json.loads((out / "calibration.export.json").read_text())["format"] == "bayesmag.export"
+    ex = json.loads((out / "calibration.export.json").read_text())
+    assert ex["format"] == "bayesmag.export"
+    # the exact form's error against the reference is the job's own physics test RMSE: the same held-out rows
+    m = json.loads((out / "metrics.json").read_text())
+    assert ex["accuracy"]["rows"] == "held-out (test) rows" and ex["accuracy"]["n_rows"] == m["split"]["n_test"]
+    for a in "xyz":
+        assert ex["accuracy"]["formats"]["json"]["vs_reference"][a] == pytest.approx(m["physics"]["rmse"][a], rel=1e-6)
     assert bayesmag.load(out).theta.shape == (3, 8)
     from bayesmag._src.app.outdir import check_out
     check_out(out)                     # the exports are listed in the run's marker: the folder may be re-run
+
+
+def test_json_export_holds_covariance_and_U(run_dir):
+    from bayesmag._src.app.report import expanded_uncertainties
+    E.export_run(run_dir, "json")
+    doc = json.loads((run_dir / "calibration.export.json").read_text())
+    cal = bayesmag.load(run_dir)
+    params = json.loads((run_dir / "params.json").read_text())
+    assert doc["covariance"]["parameters"] == ["S_x", "S_y", "S_z", "Ks_x", "Ks_y", "Ks_z", "O", "Ko"]
+    for i, a in enumerate("xyz"):
+        c = np.array(doc["covariance"]["per_axis"][a])
+        np.testing.assert_allclose(c, cal.cov[i], rtol=1e-12)
+        np.testing.assert_allclose(np.sqrt(np.diag(c)), [params["axes"][a]["std"][n] for n in doc["covariance"]
+                                                        ["parameters"]], rtol=1e-9)   # the certificate's u
+    U = doc["expanded_uncertainty"]
+    want = expanded_uncertainties(json.loads((run_dir / "metrics.json").read_text()), params)
+    assert U["unit"] == "uT" and U["level"] == 0.95
+    for a in "xyz":
+        assert U["same_session"][a] == pytest.approx(want["same_session"][a]["U"], rel=1e-12)
+        assert U["new_session"][a] > U["same_session"][a]                 # the transfer term adds
+    report = (run_dir / "report.md").read_text()
+    row = next(ln for ln in report.splitlines() if ln.startswith("| **expanded uncertainty U = k u_c, new session"))
+    assert [c.strip() for c in row.strip("|").split("|")][3:6] == [f"{U['new_session'][a]:.2g}" for a in "xyz"]
+
+
+def test_px4_file_has_device_placeholders_and_instructions(run_dir):
+    text = E.render("px4", E.build_export(bayesmag.load(run_dir), None))
+    active = _parse_px4(text)
+    for name in ("CAL_MAG0_ID", "TC_M0_ID", "CAL_MAG0_ROT", "CAL_MAG0_PRIO"):
+        assert name not in active                                          # nothing device-specific is loaded ...
+        assert any(ln.startswith("# 1\t1\t" + name + "\t") for ln in text.splitlines())   # ... but a placeholder is
+    assert "# 1\t1\tCAL_MAG0_ID\t<DEVICE_ID>\t6" in text and "only to the magnetometer whose device id" in text
+    assert "PX4 applies it after this calibration" in text
+
+
+def test_ardupilot_file_states_the_frame_and_units(run_dir):
+    text = E.render("ardupilot", E.build_export(bayesmag.load(run_dir), None))
+    active = [ln.split(",")[0] for ln in text.splitlines() if ln and not ln.startswith("#")]
+    assert "COMPASS_DEV_ID" not in active and "# COMPASS_DEV_ID,<DEVICE_ID>" in text
+    assert "body frame" in text and "COMPASS_ORIENT" in text and "must equal bx_meas x 10" in text
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler (cc) on this machine")
+def test_c_header_float_variant_domain_check_and_test_vector(run_dir, tmp_path):
+    from bayesmag._src.core.domain import REASON_CODES
+    cal = bayesmag.load(run_dir)
+    E.export_run(run_dir, "c-header", tmp_path / "cal.h")
+    header = (tmp_path / "cal.h").read_text()
+    d = cal.domain
+    lo, hi = np.asarray(d.low), np.asarray(d.high)
+    x = lo + np.random.default_rng(8).uniform(0.02, 0.98, (30, 4)) * (hi - lo)       # inside the domain
+    rows = CalibrationData(x[:, :3], x[:, 3], None)
+    # domain probes: inside, field out (x), temperature out, field rate out (z), temperature rate out, all
+    mid = 0.5 * (lo + hi)
+    rate_ok, rate_hi = 0.5 * np.asarray(d.rate_high), 1.5 * np.asarray(d.rate_high)
+    probes = [(mid, rate_ok), (np.r_[hi[0] + 1, mid[1:]], rate_ok), (np.r_[mid[:3], lo[3] - 1], rate_ok),
+              (mid, np.r_[rate_ok[:2], rate_hi[2], rate_ok[3]]), (mid, np.r_[rate_ok[:3], rate_hi[3]]),
+              (hi + 1, rate_hi)]
+    want = [0, REASON_CODES["field_range"], REASON_CODES["temperature"], REASON_CODES["field_rate"],
+            REASON_CODES["temperature_rate"], 15]
+    c_rows = "\n".join(f"{{ double b[3] = {{{r[0]:.17g}, {r[1]:.17g}, {r[2]:.17g}}}, o[3]; "
+                        f"float bf[3] = {{{r[0]:.9g}f, {r[1]:.9g}f, {r[2]:.9g}f}}, of[3]; "
+                        f"bayesmag_calibrate(b, {t:.17g}, o); bayesmag_calibrate_f(bf, {t:.9g}f, of); "
+                        f'printf("%.17g %.17g %.17g %.9g %.9g %.9g\\n", o[0], o[1], o[2], (double)of[0], (double)of[1], '
+                        f"(double)of[2]); }}" for r, t in zip(rows.b_meas, rows.temperature))
+    c_probes = "\n".join(f"{{ double b[3] = {{{p[0]:.17g}, {p[1]:.17g}, {p[2]:.17g}}}, r[3] = {{{q[0]:.17g}, "
+                          f'{q[1]:.17g}, {q[2]:.17g}}}; printf("%d\\n", bayesmag_in_domain(b, {p[3]:.17g}, r, '
+                          f"{q[3]:.17g})); }}" for p, q in probes)
+    (tmp_path / "main.c").write_text('#include <stdio.h>\n#include "cal.h"\nint main(void) {\n'
+                                     f'{c_rows}\n{c_probes}\nprintf("%d\\n", bayesmag_self_test());\nreturn 0; }}\n')
+    # -Wdouble-promotion: the float variant does no double arithmetic (what a Cortex-M4F needs)
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", "-Wfloat-conversion",
+                    "-o", str(tmp_path / "m"), str(tmp_path / "main.c")], check=True, cwd=tmp_path)
+    lines = subprocess.run([str(tmp_path / "m")], capture_output=True, text=True, check=True).stdout.splitlines()
+    out = np.array([[float(v) for v in ln.split()] for ln in lines[:30]])
+    phys = _physics(cal, rows)
+    np.testing.assert_allclose(out[:, :3], phys, atol=1e-9)                  # double: exact
+    err_f = np.abs(out[:, 3:] - phys).max()
+    assert err_f < E.TEST_TOL_F and err_f > 0                               # float: rounding only, well below 1e-3 uT
+    assert [int(v) for v in lines[30:36]] == want
+    assert lines[36] == "0"                                                # the header's own self-test passes
+    # the test vector in the header is the model's output (computed here independently)
+    vec_in = np.array(eval(header.split("BAYESMAG_TEST_IN[BAYESMAG_N_TEST][4] = ")[1].split(";")[0]
+                           .replace("{", "[").replace("}", "]")))
+    vec_out = np.array(eval(header.split("BAYESMAG_TEST_OUT[BAYESMAG_N_TEST][3] = ")[1].split(";")[0]
+                            .replace("{", "[").replace("}", "]")))
+    np.testing.assert_allclose(vec_out, _physics(cal, CalibrationData(vec_in[:, :3], vec_in[:, 3], None)), atol=1e-12)
+    assert not Domain(tuple(d.low), tuple(d.high)).outside(CalibrationData(vec_in[:, :3], vec_in[:, 3], None)).any()
+    m = json.loads((run_dir / "metrics.json").read_text())
+    from bayesmag._src.app.report import expanded_uncertainties
+    U = expanded_uncertainties(m, json.loads((run_dir / "params.json").read_text()))
+    same = [float(v) for v in header.split("BAYESMAG_U_SAME_SESSION[3] = {")[1].split("}")[0].split(",")]
+    np.testing.assert_allclose(same, [U["same_session"][a]["U"] for a in "xyz"], rtol=1e-5)
 
 
 def test_unknown_format_is_an_error_naming_the_valid_ones(tmp_path):

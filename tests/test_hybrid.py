@@ -128,6 +128,9 @@ def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
         assert m["network"]["training"][name]["y"]["epochs_run"] >= 1
     # the likelihoods give different scores
     assert m["hybrid"]["gaussian"]["nll"]["x"] != m["hybrid"]["laplace"]["nll"]["x"]
+    # field metrics per stage (issue 26): the hybrid's heading error is below the physics stage's
+    assert set(m["field"]) == {"raw", "physics", "hybrid (gaussian)", "hybrid (laplace)"}
+    assert m["field"]["hybrid (gaussian)"]["heading"]["rms"] < m["field"]["physics"]["heading"]["rms"]
     assert m["hybrid"]["gaussian"]["crps"]["x"] != m["hybrid"]["laplace"]["crps"]["x"]
 
     records = json.loads((out / "likelihood_comparison.json").read_text())
@@ -136,7 +139,7 @@ def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     md = (out / "likelihood_comparison.md").read_text()
     assert "| Likelihood | Axis | RMSE (uT) | MAE (uT) | Coverage (%) | NLL | CRPS (uT) |" in md
     assert md.count("| laplace |") == 3
-    for fig in ("hybrid_predicted_vs_reference.png", "hybrid_uncertainty_vs_temperature.png",
+    for fig in ("hybrid_residuals_vs_reference.png", "hybrid_uncertainty_vs_temperature.png",
                 "hybrid_calibration.png", "hybrid_pit.png"):
         assert (out / fig).stat().st_size > 10_000
 

@@ -10,7 +10,8 @@ from scipy import stats
 
 import bayesmag
 from bayesmag._src.app.config import config_from_dict
-from bayesmag._src.app.report import (coverage_factor, parameter_unit, render_report, welch_satterthwaite)
+from bayesmag._src.app.report import (coverage_factor, expanded_uncertainties, parameter_unit, render_report,
+                                      welch_satterthwaite)
 
 
 def test_welch_satterthwaite_hand_computed():
@@ -65,17 +66,19 @@ def test_budget_combines_with_reference_and_reports_k_and_U():
     m, params = _metrics_params()
     text = render_report(m, params, reference_sd=0.05)
     ref = _row(text, "reference magnetometer")
-    assert ref[1:6] == ["B", "inf", "0.05", "0.05", "0.05"]
+    assert ref[1:6] == ["B", "inf", "0.050", "0.050", "0.050"]                 # two significant figures
     assert _row(text, "aleatoric")[1:3] == ["A", "999"] and _row(text, "epistemic")[1:3] == ["A", "992"]
     uc = math.sqrt(0.06**2 + 0.08**2 + 0.01**2 + 0.05**2)
-    assert float(_row(text, "**combined u_c")[3]) == pytest.approx(uc, rel=1e-3)
     nu = welch_satterthwaite([0.06, 0.08, 0.01, 0.05], [999, 992, 992, math.inf])
     k = stats.t.ppf(0.975, nu)
-    assert float(_row(text, "coverage factor k")[3]) == pytest.approx(k, abs=1e-4)
-    assert float(_row(text, "**expanded uncertainty")[3]) == pytest.approx(k * uc, rel=1e-3)
+    ex = expanded_uncertainties(m, params, reference_sd=0.05)["same_session"]["x"]
+    assert ex["u_c"] == pytest.approx(uc, rel=1e-12) and ex["U"] == pytest.approx(k * uc, rel=1e-12)
+    assert _row(text, "**combined u_c, same session")[3] == f"{uc:.2g}" == "0.11"
+    assert float(_row(text, "coverage factor k (95%), same session")[3]) == pytest.approx(k, abs=1e-3)
+    assert _row(text, "**expanded uncertainty U = k u_c, same session")[3] == f"{k * uc:.2g}" == "0.22"
     # without the reference the combined uncertainty is smaller
-    assert float(_row(render_report(m, params), "**combined u_c")[3]) == pytest.approx(
-        math.sqrt(uc**2 - 0.05**2), rel=1e-3)
+    assert expanded_uncertainties(m, params)["same_session"]["x"]["u_c"] == pytest.approx(
+        math.sqrt(uc**2 - 0.05**2), rel=1e-12)
 
 
 def test_fit_statistics_block():
@@ -101,10 +104,10 @@ def test_units_on_every_parameter_and_nuts_and_hybrid_sections():
     table = [ln for ln in text.splitlines() if re.match(r"\| (S|Ks|O|Ko)", ln)]
     assert len(table) == 24 and all(ln.split("|")[4].strip() in ("1", "1/C", "uT", "uT/C") for ln in table)
     assert "| x | agrees with LM | 1.0010 | 2100 | 1800 | 0 |" in text
-    assert "| x | S_x | 1 | 0.01 | 1.0004 | 2500 | 2000 |" in text
+    assert "| x | S_x | 1.000 | 0.010 | 1.0004 | 2500 | 2000 |" in text          # mean and sd GUM-rounded
     assert "| gaussian | x | 0.01 | 5.000 | 1e-06 | 0.200 |" in text
     assert "| gaussian | x | 120 | 70 | -1.5 |" in text
-    assert "interval scale" not in text                  # no conformal scale, no column
+    assert "interval scale" not in text and "conformal scale" not in text     # no conformal scale, no column
 
 
 def test_hybrid_section_reports_the_conformal_scale_and_its_folds():
@@ -116,6 +119,7 @@ def test_hybrid_section_reports_the_conformal_scale_and_its_folds():
     text = render_report(m, params)
     assert "| gaussian | x | 120 | 70 | -1.5 | 1.234 |" in text and "| gaussian | y | 90 | 40 | -1 | 1.000 |" in text
     assert "cross-conformal over 3 time-block folds, each one block of 0.25 of every run's training rows" in text
+    assert "| conformal scale c |" in text and "interval scale k" not in text   # not confused with coverage k
     assert "2880 rows scored" in text and "(17 / 17 / 16 MC passes)" in text
 
 
@@ -125,8 +129,8 @@ def test_report_of_a_run_uses_reference_sd_from_the_config(tmp_path):
            "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}}
     bayesmag.run_job(config_from_dict(raw), tmp_path / "run")
     text = (tmp_path / "run" / "report.md").read_text()
-    assert _row(text, "reference magnetometer")[1:6] == ["B", "inf", "0.02", "0.02", "0.02"]
-    assert "## Fit statistics" in text and "expanded uncertainty U = k u_c" in text
+    assert _row(text, "reference magnetometer")[1:6] == ["B", "inf", "0.020", "0.020", "0.020"]
+    assert "## Fit statistics" in text and "expanded uncertainty U = k u_c, new session" in text
 
 
 def test_reference_sd_is_validated():

@@ -12,6 +12,9 @@ Commands::
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
     bayesmag data list
+    bayesmag config list | show NAME
+
+Progress bars are drawn only when stderr is a terminal (a log file gets none).
 
 Expected errors (bad config, data, calibration or output path; any OSError) print one line on
 stderr and exit with status 2; output folders follow the rules in ``outdir`` (never replace a
@@ -37,7 +40,7 @@ def _cmd_run(args) -> int:
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
-        result = run_job(cfg, out, progress=not args.no_progress)
+        result = run_job(cfg, out, progress=None if _progress(args) else False)   # None: [output] progress
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")
@@ -144,7 +147,7 @@ def _cmd_apply(args) -> int:
     summary = apply_calibration(args.model, args.data, args.out, level=args.level, method=args.uq,
                                 n_params=args.n_params, n_qmc=args.n_qmc, temperature_unit=args.temperature_unit,
                                 field_unit=args.field_unit, columns=_parse_columns(args.columns),
-                                progress=not args.no_progress)
+                                progress=_progress(args))
     print(f"bayesmag: calibrated {summary['n_valid']} of {summary['n_rows']} rows -> {args.out} "
           f"({summary['seconds']:.2f} s)")
     for w in summary["warnings"]:
@@ -200,7 +203,7 @@ def _cmd_study(args) -> int:
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):
-        res = run_study(cfg, out, progress=not args.no_progress)
+        res = run_study(cfg, out, progress=_progress(args) and cfg.output.progress)
     print(f"bayesmag: wrote {out}/ ({res['seconds_total']:.0f} s, peak memory {res['peak_rss_gb']:.2f} GB)")
     print((out / "simulation_study.md").read_text())
     return 0
@@ -218,6 +221,40 @@ def _cmd_export(args) -> int:
     for line in limitations(args.format, ex):
         print(f"  {line}")
     return 0
+
+
+def _progress(args) -> bool:
+    """Progress bars unless ``--no-progress`` or stderr is not a terminal (no carriage returns in logs)."""
+    return not args.no_progress and sys.stderr.isatty()
+
+
+def _cmd_config(args) -> int:
+    from bayesmag._src.app.config_docs import list_configs, show_config
+
+    if args.action == "list":
+        print(list_configs(packaged_configs_dir()), end="")
+        return 0
+    if not args.name:
+        print("bayesmag config show: name a config, e.g. `bayesmag config show quickstart`", file=sys.stderr)
+        return 2
+    print(show_config(_resolve_config(args.name)), end="")
+    return 0
+
+
+#: The ``--help`` description of every subcommand.
+DESCRIPTIONS = {
+    "run": "Run a calibration job from a TOML config: fit, uncertainty, optional network and NUTS; writes the run "
+           "folder (metrics.json, params.json, predictions.csv, calibration.json, report.md, report.html, figures).",
+    "apply": "Apply a saved calibration to a recording: calibrated field with intervals, the transfer part for a new "
+             "session, and the training-domain flag per row; scores it when reference columns are present.",
+    "study": "The paper's simulation study: one simulated data set per size, the full job on each.",
+    "report": "(Re)write the certificate report.md and report.html of a run folder from its files.",
+    "export": "Write a run's calibration for firmware or another tool (json, c-header, ardupilot, px4, magcal) and "
+              "print what the target cannot hold, with the accuracy lost on the run's held-out rows.",
+    "discover": "Find physics missing from the calibration model (bayesmag discover --help for its options).",
+    "data": "Named datasets: list them, or fetch one (sha256 verified).",
+    "config": "The packaged configs: list them, or show one's keys with values, defaults, units and meaning.",
+}
 
 
 def _cmd_report(args) -> int:
@@ -301,6 +338,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("name", nargs="?")
     d.add_argument("--force", action="store_true", help="download again even if present")
     d.set_defaults(func=_cmd_data)
+
+    cf = sub.add_parser("config", help="packaged configs: list, show NAME (keys, defaults, units, meaning)")
+    cf.add_argument("action", choices=["list", "show"])
+    cf.add_argument("name", nargs="?", help="config name (e.g. quickstart) or file, for show")
+    cf.set_defaults(func=_cmd_config)
+    for name, sp in sub.choices.items():
+        sp.description = sp.description or DESCRIPTIONS[name]
     return p
 
 

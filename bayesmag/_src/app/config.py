@@ -24,6 +24,7 @@ from bayesmag._src.core.network import ACTIVATIONS, VALIDATION_KINDS, NetworkSpe
 
 __all__ = ["Config", "ConfigError", "load_config", "config_from_dict", "apply_overrides", "to_toml",
            "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig", "NutsConfig",
+           "CertificateConfig",
            "config_error"]
 
 
@@ -141,6 +142,15 @@ class StudyConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class CertificateConfig:
+    """``[certificate]``: who and what the certificate (``report.md``) names; one line of text each."""
+
+    dut: str = ""                       # device under test: make, model, serial number
+    reference: str = ""                 # reference instrument: make, model, serial, its own certificate
+    operator: str = ""                  # who ran the calibration (optional)
+
+
+@dataclasses.dataclass(frozen=True)
 class OutputConfig:
     figures: bool = True
     progress: bool = True
@@ -161,6 +171,7 @@ class Config:
     discover: dict = dataclasses.field(default_factory=dict)   # validated by bayesmag discover (DiscoverOptions)
     study: StudyConfig = dataclasses.field(default_factory=StudyConfig)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
+    certificate: CertificateConfig = dataclasses.field(default_factory=CertificateConfig)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -326,6 +337,11 @@ def _check_semantics(cfg: Config) -> None:
     if isinstance(s, list) and not (len(s) == 4 and (all(isinstance(v, (int, float)) for v in s)
                                                      or all(isinstance(r, list) and len(r) == 4 for r in s))):
         raise ConfigError("Config key 'uq.sigma_in' must be 4 standard deviations [Bx, By, Bz, T] or a 4x4 matrix.")
+    for key in ("dut", "reference", "operator"):
+        v = getattr(cfg.certificate, key)
+        if "\n" in v or "\r" in v or len(v) > 200:
+            raise ConfigError(f"Config key 'certificate.{key}' = {v[:60]!r}... must be one line of at most 200 "
+                              f"characters (e.g. \"Acme AMR-3 s/n 0042\").")
     r = cfg.uq.reference_sd
     if not (isinstance(r, (int, float)) and r >= 0 or isinstance(r, list) and len(r) == 3
             and all(isinstance(v, (int, float)) and v >= 0 for v in r)):

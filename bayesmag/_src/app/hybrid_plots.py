@@ -1,7 +1,8 @@
 """Figures of the hybrid stage (matplotlib, Agg backend, PNG files).
 
-* ``hybrid_predicted_vs_reference.png``: hybrid prediction against the reference, coloured by
-  the total predictive sd (the paper's Fig. 3);
+* ``hybrid_residuals_vs_reference.png``: hybrid error (calibrated - reference) against the
+  reference, each row with its prediction interval as a bar (the paper's Fig. 3 plots the
+  prediction itself, on axes where 0.03 uT errors cannot be seen);
 * ``hybrid_uncertainty_vs_temperature.png``: physics aleatoric, physics epistemic, NN
   aleatoric, NN epistemic and total sd against temperature (Fig. 4);
 * ``hybrid_calibration.png``: observed against nominal coverage of central intervals, per
@@ -24,27 +25,8 @@ from bayesmag._src.core import metrics as M  # noqa: E402
 from bayesmag._src.core.data import AXES  # noqa: E402
 from bayesmag._src.core.likelihoods import Likelihood  # noqa: E402
 
-__all__ = ["predicted_vs_reference", "uncertainty_vs_temperature", "calibration_curves", "pit_histograms",
+__all__ = ["uncertainty_vs_temperature", "calibration_curves", "pit_histograms",
            "hybrid_figures"]
-
-
-def predicted_vs_reference(path: Path, reference: np.ndarray, predicted: np.ndarray, total: np.ndarray,
-                           title: str = "Hybrid prediction vs reference (colour: total predictive sd)") -> None:
-    """Per axis: hybrid prediction against the reference, coloured by the total sd (uT)."""
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.3))
-    for a, ax in enumerate(axes):
-        r = reference[:, a]
-        lim = [float(r.min()), float(r.max())]
-        ax.plot(lim, lim, color="0.6", lw=1, zorder=0)
-        sc = ax.scatter(r, predicted[:, a], c=total[:, a], s=8, cmap="viridis")
-        fig.colorbar(sc, ax=ax, label="total sd (uT)")
-        ax.set_xlabel(f"reference B{AXES[a]} (uT)")
-        ax.set_ylabel(f"hybrid B{AXES[a]} (uT)")
-        ax.set_title(f"{AXES[a]} axis")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def uncertainty_vs_temperature(path: Path, temperature: np.ndarray, components: dict[str, np.ndarray],
@@ -112,8 +94,10 @@ def hybrid_figures(out: Path, columns: dict[str, np.ndarray], temperature: np.nd
     """All hybrid-stage figures into ``out`` (columns of the primary likelihood, all ``dists``)."""
     out = Path(out)
     y = columns["reference"]
-    predicted_vs_reference(out / "hybrid_predicted_vs_reference.png", y, columns["hybrid_predicted"],
-                           columns["hybrid_total"])
+    from bayesmag._src.app.plots import residual_interval_figure
+    residual_interval_figure(out / "hybrid_residuals_vs_reference.png", y, columns["hybrid_predicted"],
+                             columns["hybrid_lower"], columns["hybrid_upper"], level=level,
+                             title="Hybrid: calibrated - reference, with the prediction interval")
     uncertainty_vs_temperature(out / "hybrid_uncertainty_vs_temperature.png", temperature, {
         "physics aleatoric": columns["aleatoric_physics"], "physics epistemic": columns["epistemic_physics"],
         "NN aleatoric": columns["aleatoric_nn"], "NN epistemic": columns["epistemic_nn"],

@@ -244,6 +244,10 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         "split": split.as_dict(),
         "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs]},
     }
+    metrics["field"] = {"raw": M.field_metrics(test.b_meas, y, test.run),
+                        "physics": M.field_metrics(ps.prediction.mean, y, test.run)}
+    from bayesmag._src.app.report import certificate_record
+    metrics["certificate"] = certificate_record(cfg, data)
     metrics["domain"] = domain.summary(test, uq.mean)
     metrics["transfer"] = {**ps.transfer.as_dict(), "n_test_rows_new_session": int(ps.new_session.sum())}
     warnings_ = [w for w in [domain.warning(test, uq.mean), ps.transfer.warning] if w]
@@ -265,7 +269,9 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
     if cfg.output.figures:
         from bayesmag._src.app.plots import physics_figures
         physics_figure_task = (physics_figures, test, {k: columns[k] for k in ("measured", "predicted", "reference",
-                                                                               "total")})
+                                                                               "total", "lower", "upper")},
+                               {"train": train, "train_residual": resid_train,
+                                "pit": M.pit(ps.prediction.dist, y), "level": level})
 
     writers: list = []              # (name, writer(staging_dir)) for stage files, called in the staging folder
     hs = None
@@ -282,6 +288,8 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         if physics_figure_task:
             figs.submit(*physics_figure_task)
         metrics.update(hybrid_metrics(hs, y, uq.mean, level, cfg.network.mc_passes))
+        metrics["field"].update({f"hybrid ({name})": M.field_metrics(p.mean, y, test.run)
+                                 for name, p in hs.predictions.items()})
         columns = {**columns, **hybrid_columns(hs, y, level)}
         result.update(networks=hs.networks, hybrid=hs.predictions, primary_likelihood=hs.primary,
                       predictor=hs.predictors[hs.primary])
@@ -294,7 +302,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         timings["nuts"] = time.perf_counter() - t
         result["nuts"] = res
         metrics["nuts"] = res.metrics()
-        metrics["warnings"].extend(res.warnings)
+        metrics["warnings"].extend(w for w in res.warnings if w not in metrics["warnings"])   # each once
         figures = cfg.output.figures
         writers.append(lambda staging: write_nuts_outputs(res, staging, figures=figures))
     result["writers"] = writers

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+import sys
 import tempfile
 import multiprocessing
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -17,24 +19,85 @@ import numpy as np  # noqa: E402
 
 from bayesmag._src.core.data import AXES  # noqa: E402
 
-__all__ = ["calibration_scatter", "residual_histograms", "residuals_vs", "residuals_vs_time", "residual_figures",
-           "physics_figures", "residual_histogram_figure", "FigureWorker"]
+__all__ = ["residual_interval_figure", "residual_histograms", "residuals_vs",
+           "residuals_vs_time", "residual_figures", "physics_figures", "residual_histogram_figure",
+           "calibration_curve_figure", "pit_figure", "FigureWorker"]
 
 
-def calibration_scatter(path: Path, measured: np.ndarray, calibrated: np.ndarray, reference: np.ndarray,
-                        title: str = "Measured and calibrated vs reference") -> None:
-    """Per axis: measured and calibrated field against the reference, with the identity line."""
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+def residual_interval_figure(path: Path, reference: np.ndarray, predicted: np.ndarray, lower: np.ndarray,
+                             upper: np.ndarray, *, level: float = 0.95, max_points: int = 600, seed: int = 0,
+                             title: str = "Calibrated - reference, with the prediction interval") -> float:
+    """Per axis: error ``predicted - reference`` (uT) against the reference, each row with its central
+    interval as a bar (``[lower, upper] - reference``): a bar that crosses 0 covers the reference.
+
+    At most ``max_points`` rows are drawn (a seeded random subset, the same for every axis); each
+    panel's title gives the coverage of all rows. Returns the mean coverage over the axes.
+    """
+    reference, predicted = np.asarray(reference), np.asarray(predicted)
+    n = len(reference)
+    pick = np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False)) if n > max_points else np.arange(n)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.3))
+    covs = []
     for a, ax in enumerate(axes):
-        r = reference[:, a]
-        lim = [float(min(r.min(), measured[:, a].min())), float(max(r.max(), measured[:, a].max()))]
-        ax.plot(lim, lim, color="0.6", lw=1, zorder=0, label="identity")
-        ax.scatter(r, measured[:, a], s=6, alpha=0.5, label="measured (raw)")
-        ax.scatter(r, calibrated[:, a], s=6, alpha=0.7, label="calibrated")
+        r, e = reference[:, a], predicted[:, a] - reference[:, a]
+        lo, hi = np.asarray(lower)[:, a] - reference[:, a], np.asarray(upper)[:, a] - reference[:, a]
+        cov = (lo <= 0) & (hi >= 0)
+        covs.append(cov.mean())
+        for mask, colour, lab in ((cov[pick], "C0", "interval covers the reference"),
+                                  (~cov[pick], "C3", "interval misses")):
+            idx = pick[mask]
+            if idx.size:
+                ax.errorbar(r[idx], e[idx], yerr=[e[idx] - lo[idx], hi[idx] - e[idx]], fmt="o", ms=2, lw=0.6,
+                            alpha=0.6, color=colour, label=f"{lab} ({idx.size} drawn)")
+        ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel(f"reference B{AXES[a]} (uT)")
-        ax.set_ylabel(f"B{AXES[a]} (uT)")
+        ax.set_ylabel(f"calibrated - reference B{AXES[a]} (uT)")
+        ax.set_title(f"{AXES[a]} axis: RMSE {np.sqrt(np.mean(e**2)):.3g} uT, {cov.mean():.1%} covered", fontsize=9)
+    axes[0].legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"{title} ({level:.0%}; {min(n, max_points)} of {n} test rows drawn)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return float(np.mean(covs))
+
+
+def calibration_curve_figure(path: Path, pits: dict[str, np.ndarray],
+                             title: str = "Calibration of central intervals (test rows)") -> None:
+    """Per axis: observed against nominal coverage of central intervals, from PIT values ``(n, 3)`` per name
+    (``y`` is in the central interval of level l iff ``|PIT - 1/2| <= l/2``)."""
+    from bayesmag._src.core.metrics import DEFAULT_LEVELS
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.0))
+    for a, ax in enumerate(axes):
+        ax.plot([0, 1], [0, 1], color="0.6", lw=1)
+        for name, u in pits.items():
+            obs = [np.mean(np.abs(np.asarray(u)[:, a] - 0.5) <= lv / 2) for lv in DEFAULT_LEVELS]
+            ax.plot(DEFAULT_LEVELS, obs, marker="o", ms=3, label=name)
+        ax.set_xlabel("nominal level")
+        ax.set_ylabel("observed coverage")
         ax.set_title(f"{AXES[a]} axis")
-    axes[0].legend(loc="upper left", fontsize=8)
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def pit_figure(path: Path, pits: dict[str, np.ndarray], bins: int = 10,
+               title: str = "PIT histograms (flat = calibrated)") -> None:
+    """Rows: names; columns: axes; histogram of PIT values ``(n, 3)``, dashed line the uniform density."""
+    names = list(pits)
+    fig, axes = plt.subplots(len(names), 3, figsize=(12, 2.8 * len(names) + 0.4), squeeze=False)
+    for i, name in enumerate(names):
+        for a in range(3):
+            ax = axes[i, a]
+            ax.hist(np.asarray(pits[name])[:, a], bins=bins, range=(0, 1), density=True, alpha=0.8)
+            ax.axhline(1.0, color="k", ls="--", lw=0.8)
+            ax.set_title(f"{name}, {AXES[a]} axis", fontsize=9)
+            ax.set_xlim(0, 1)
+            ax.set_xlabel("PIT value F(y)")
+            ax.set_ylabel("density")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -91,21 +154,35 @@ def residuals_vs(x: np.ndarray, residual: np.ndarray, sd: np.ndarray, *, xlabels
 
 
 def residuals_vs_time(time: np.ndarray, run: np.ndarray, residual: np.ndarray, sd: np.ndarray, *,
-                      max_runs: int = 8, title: str = "Physics residuals vs time, per run"):
-    """Residual against time since the start of each run: rows axes, columns runs (first ``max_runs``)."""
-    runs = np.unique(run)[:max_runs]
+                      train: tuple | None = None, max_runs: int = 8,
+                      title: str = "Physics residuals vs time, per run"):
+    """Residual against time since the start of each run (its first row, train or test): rows axes,
+    columns runs (first ``max_runs``). Test rows with the +-2 sd band; ``train = (time, run, residual)``
+    adds the run's training rows, marked (grey crosses), so every row of the run is shown."""
+    t_tr, r_tr, e_tr = (np.asarray(x) for x in train) if train is not None else (np.empty(0), np.empty(0),
+                                                                                 np.empty((0, 3)))
+    all_runs = np.unique(np.concatenate([np.asarray(run), r_tr]))
+    runs = all_runs[:max_runs]
     fig, axes = plt.subplots(3, len(runs), figsize=(3.2 * len(runs) + 0.8, 8.4), squeeze=False, sharey="row")
     for j, r in enumerate(runs):
-        sel = run == r
-        t = time[sel] - time[sel].min()
+        sel, sel_tr = run == r, r_tr == r
+        start = min(np.min(time[sel]) if sel.any() else np.inf, np.min(t_tr[sel_tr]) if sel_tr.any() else np.inf)
         for a in range(3):
             ax = axes[a, j]
-            inside = _band_panel(ax, t, residual[sel, a], sd[sel, a])
-            ax.set_title(f"run {int(r)}, {AXES[a]}: {inside:.0%} in band", fontsize=8)
+            if sel_tr.any():
+                ax.scatter(t_tr[sel_tr] - start, e_tr[sel_tr, a], s=4, marker="x", lw=0.5, color="0.55", alpha=0.6,
+                           label="train rows", zorder=1)
+            if sel.any():
+                inside = _band_panel(ax, time[sel] - start, residual[sel, a], sd[sel, a])
+                ax.set_title(f"run {int(r)}, {AXES[a]}: test {inside:.0%} in band", fontsize=8)
+            else:
+                ax.set_title(f"run {int(r)}, {AXES[a]}: no test rows", fontsize=8)
             ax.set_xlabel("time since run start (s)")
             if j == 0:
                 ax.set_ylabel(f"residual B{AXES[a]} (uT)")
-    fig.suptitle(title + ("" if len(np.unique(run)) <= max_runs else f" (first {max_runs} runs)"))
+    axes[0, 0].legend(fontsize=6, loc="upper right", markerscale=2)
+    fig.suptitle(title + " (test rows: dots with +-2 sd band; train rows: crosses)"
+                 + ("" if len(all_runs) <= max_runs else f" (first {max_runs} runs)"))
     fig.tight_layout()
     return fig
 
@@ -115,25 +192,43 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def residual_figures(out: Path, data, predicted: np.ndarray, sd: np.ndarray, *, stage: str = "physics") -> list[str]:
+def residual_figures(out: Path, data, predicted: np.ndarray, sd: np.ndarray, *, stage: str = "physics",
+                     train: tuple | None = None) -> list[str]:
     """Belsten-style residual diagnostics of the rows in ``data`` (with reference): vs temperature, vs time per
-    run, vs each reference field component, each with the +-2 sd band of the predictive uncertainty."""
+    run (with the training rows ``train = (time, run, residual)`` marked), vs each reference field component,
+    each with the +-2 sd band of the predictive uncertainty."""
     r = data.b_ref - predicted
     files = [f"{stage}_residuals_vs_temperature.png", f"{stage}_residuals_vs_time.png",
              f"{stage}_residuals_vs_reference.png"]
     _save(residuals_vs(data.temperature, r, sd, xlabels=["temperature (C)"],
                        title=f"{stage.capitalize()} residuals vs temperature (test rows)"), out / files[0])
-    _save(residuals_vs_time(data.time, data.run, r, sd, title=f"{stage.capitalize()} residuals vs time, per run"),
-          out / files[1])
+    _save(residuals_vs_time(data.time, data.run, r, sd, train=train,
+                            title=f"{stage.capitalize()} residuals vs time, per run"), out / files[1])
     _save(residuals_vs(data.b_ref, r, sd, xlabels=[f"reference B{a} (uT)" for a in AXES],
                        title=f"{stage.capitalize()} residuals vs the reference field (test rows)"), out / files[2])
     return files
 
 
-def physics_figures(out: Path, test, columns: dict) -> None:
-    """The physics stage's figures of a job: calibration scatter and residual diagnostics of the test rows."""
-    calibration_scatter(out / "calibration.png", columns["measured"], columns["predicted"], columns["reference"])
-    residual_figures(out, test, columns["predicted"], columns["total"])
+def physics_figures(out: Path, test, columns: dict, extra: dict | None = None) -> None:
+    """The physics stage's figures of a job: error with interval bars against the reference, residual
+    diagnostics of the test rows (training rows marked on the time axis), and, given the PIT values,
+    the physics calibration curve and PIT histograms.
+
+    ``extra``: ``train`` (CalibrationData) and ``train_residual`` (n_train, 3), ``pit`` (n_test, 3), ``level``.
+    """
+    extra = extra or {}
+    level = extra.get("level", 0.95)
+    residual_interval_figure(out / "calibration.png", columns["reference"], columns["predicted"], columns["lower"],
+                             columns["upper"], level=level,
+                             title="Physics: calibrated - reference, with the prediction interval")
+    tr = extra.get("train")
+    train = (tr.time, tr.run, extra["train_residual"]) if tr is not None else None
+    residual_figures(out, test, columns["predicted"], columns["total"], train=train)
+    if extra.get("pit") is not None:
+        pits = {"physics": np.asarray(extra["pit"])}
+        calibration_curve_figure(out / "physics_calibration.png", pits,
+                                 title="Physics stage: calibration of central intervals (test rows)")
+        pit_figure(out / "physics_pit.png", pits, title="Physics stage: PIT histograms (flat = calibrated)")
 
 
 def residual_histogram_figure(out: Path, result, columns: dict) -> None:
@@ -142,6 +237,24 @@ def residual_histogram_figure(out: Path, result, columns: dict) -> None:
     if "hybrid_predicted" in columns:
         res["hybrid"] = columns["reference"] - columns["hybrid_predicted"]
     residual_histograms(out / "residual_histograms.png", res)
+
+
+@contextlib.contextmanager
+def _main_not_reimported():
+    """While the worker process starts: hide ``__main__.__file__`` so that the spawned interpreter does not
+    run the caller's script again (a script without an ``if __name__ == "__main__"`` guard would run its
+    whole job a second time there and break the pool). The tasks are bayesmag functions; the worker never
+    needs ``__main__``."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    hide = path is not None and getattr(main, "__spec__", None) is None
+    if hide:
+        del main.__file__
+    try:
+        yield
+    finally:
+        if hide:
+            main.__file__ = path
 
 
 def _ready() -> None:
@@ -172,12 +285,14 @@ class FigureWorker:
     def warm(self) -> None:
         """Start the process now (interpreter, imports) rather than at the first figure."""
         if self._pool is not None:
-            self._futures.append(self._pool.submit(_ready))
+            with _main_not_reimported():
+                self._futures.append(self._pool.submit(_ready))
 
     def submit(self, draw: Callable[..., object], *args, **kwargs) -> None:
         """Queue ``draw(folder, *args, **kwargs)``; nothing when the worker is disabled."""
         if self._pool is not None:
-            self._futures.append(self._pool.submit(draw, self._tmp, *args, **kwargs))
+            with _main_not_reimported():            # the process starts at the first submit
+                self._futures.append(self._pool.submit(draw, self._tmp, *args, **kwargs))
 
     def finish(self, out: Path) -> list[str]:
         """Wait for every queued figure, raise the first error, move the files into ``out``; their names."""

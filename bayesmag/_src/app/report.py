@@ -1,23 +1,37 @@
-r"""A calibration certificate a metrologist can read: ``report.md`` from a run folder's files.
+r"""A calibration certificate a metrologist can read: ``report.md`` (and ``report.html``) from a run folder.
 
-Besides accuracy and coverage it holds, in the manner of the GUM (JCGM 100:2008): units on
-every parameter; fit statistics (n, p, chi-square, AIC/BIC, solver iterations); and an
-uncertainty budget with Type A / Type B labels, degrees of freedom per component, the
-effective degrees of freedom (Welch-Satterthwaite, GUM G.4.1), the coverage factor
-:math:`k = t_{(1+p)/2}(\nu_{\mathrm{eff}})` and the expanded uncertainty :math:`U = k\,u_c` per
-axis, including the reference magnetometer's own uncertainty (``[uq] reference_sd``).
+Besides accuracy and coverage it holds, in the manner of the GUM (JCGM 100:2008): the
+identity of the calibration (ID, date, bayesmag version, data file sha256, device under test
+and reference instrument from ``[certificate]``); the model equation with its reference
+temperature :math:`T_0` and S, Ks, O, Ko as matrices/vectors with standard uncertainties;
+units on every parameter; every uncertainty rounded to two significant figures with its value
+rounded to match (:func:`gum_round`); fit statistics (n, p, chi-square, AIC/BIC, solver
+iterations); and an uncertainty budget with Type A / Type B labels, degrees of freedom per
+component, the effective degrees of freedom (Welch-Satterthwaite, GUM G.4.1), the coverage
+factor :math:`k = t_{(1+p)/2}(\nu_{\mathrm{eff}})` and the expanded uncertainty :math:`U = k\,u_c`
+per axis, for the same session and for a new session (with the between-session transfer term).
+
+The certificate is a sequence of sections (:data:`SECTIONS`): each a function of a
+:class:`ReportContext` returning Markdown lines; a new section is one more function in the
+tuple (``render_report(..., sections=SECTIONS + (my_section,))``).
 """
 
 from __future__ import annotations
 
+import base64
+import dataclasses
+import hashlib
+import html
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_report", "render_report", "welch_satterthwaite", "coverage_factor", "parameter_unit",
-           "uncertainty_budget", "fit_statistics"]
+__all__ = ["write_report", "render_report", "render_html", "welch_satterthwaite", "coverage_factor",
+           "parameter_unit", "uncertainty_budget", "fit_statistics", "gum_round", "gum_format",
+           "expanded_uncertainties", "certificate_record", "ReportContext", "SECTIONS"]
 
 AXES = ("x", "y", "z")
 
@@ -53,17 +67,61 @@ def coverage_factor(nu_eff: float, level: float) -> float:
     return float(stats.norm.ppf(q) if not math.isfinite(nu_eff) else stats.t.ppf(q, nu_eff))
 
 
-def _fmt(v: float) -> str:
-    return f"{v:.6g}"
+def _digits(x: float, d: int, fixed: bool) -> str:
+    """``x`` written with its last digit at the decimal place ``10**d`` (fixed, or scientific)."""
+    if fixed:
+        return f"{x:.{max(0, -d)}f}"
+    e = int(math.floor(math.log10(abs(x)))) if x != 0 else d
+    return f"{x:.{max(0, e - d)}e}"
+
+
+def gum_round(value: float, u: float, sig: int = 2) -> tuple[str, str]:
+    """``(value, u)`` as strings: ``u`` to ``sig`` significant figures, ``value`` rounded to the same
+    decimal place (GUM 7.2.6). Non-finite or zero ``u``: value to 6 significant figures.
+
+    Example:
+        >>> gum_round(1.00213456, 4.90148e-05)
+        ('1.002135', '0.000049')
+        >>> gum_round(-3.2e-05, 4.87e-07)
+        ('-3.200e-05', '4.9e-07')
+    """
+    value, u = float(value), abs(float(u))
+    if not math.isfinite(value):
+        return str(value), str(u)
+    if not math.isfinite(u) or u == 0:
+        return f"{value:.6g}", ("0" if u == 0 else str(u))
+    d = int(math.floor(math.log10(u))) - (sig - 1)
+    ur = round(u, -d)
+    if ur >= 10 ** (d + sig):                   # 9.96e-05 -> 1.0e-04: one place to the left
+        d += 1
+        ur = round(u, -d)
+    vr = round(value, -d)
+    if vr == 0:
+        vr = 0.0                                 # no "-0.000"
+    fixed = -6 <= d and max(abs(vr), ur) < 1e6      # one notation for the pair
+    return _digits(vr, d, fixed), _digits(ur, d, fixed)
+
+
+def gum_format(value: float, u: float, unit: str = "") -> str:
+    """``value ± u`` rounded by :func:`gum_round`, e.g. ``1.002135 ± 0.000049``; a unit is appended."""
+    v, e = gum_round(value, u)
+    return f"{v} ± {e}" + (f" {unit}" if unit and unit != "1" else "")
+
+
+def _u2(x: float) -> str:
+    """A standard or expanded uncertainty to two significant figures."""
+    return gum_round(x, x)[1] if x and math.isfinite(x) else ("0" if x == 0 else str(x))
 
 
 def _param_table(ax: str, p: dict, corr_threshold: float) -> list[str]:
     vals, sds, names = p["values"], p["std"], list(p["values"])
-    lines = [f"### Axis {ax}", "", "| parameter | value | std. uncertainty | unit | relative |", "|---|---|---|---|---|"]
+    lines = [f"### Axis {ax}", "", "| parameter | value | std. uncertainty u | unit | relative u |",
+             "|---|---|---|---|---|"]
     for n in names:
         v, s = vals[n], sds[n]
         rel = f"{abs(s / v) * 100:.2g}%" if v != 0 else "-"
-        lines.append(f"| {n} | {_fmt(v)} | {_fmt(s)} | {parameter_unit(n)} | {rel} |")
+        vs, us = gum_round(v, s)
+        lines.append(f"| {n} | {vs} | {us} | {parameter_unit(n)} | {rel} |")
     corr = np.asarray(p["correlation"])
     pairs = [(names[i], names[j], corr[i, j]) for i in range(len(names)) for j in range(i + 1, len(names))
              if abs(corr[i, j]) > corr_threshold]
@@ -75,7 +133,7 @@ def _param_table(ax: str, p: dict, corr_threshold: float) -> list[str]:
     advice = ("well conditioned" if cond < 1e3 else
               "moderately ill-conditioned: some parameters trade off against each other" if cond < 1e6 else
               "ill-conditioned: individual parameters are poorly determined even though the predictions are fine; "
-              "see the design notes, and consider [physics] t0 = \"mean\"")
+              f"{T0_ADVICE}")
     lines += ["", f"Condition number (correlation-scaled): {cond:.3g} - {advice}.",
               f"Residual sd {p['residual_std']:.4g} uT; residual lag-1 autocorrelation "
               f"{p['lag1_autocorrelation']:.2f}" + (" (the white covariance understates the standard errors; use "
@@ -85,21 +143,23 @@ def _param_table(ax: str, p: dict, corr_threshold: float) -> list[str]:
     return lines
 
 
+#: The one reference-temperature recommendation (also in the fit's design note, core/fit.py).
+T0_ADVICE = 'set [physics] t0 = "mean" (the training mean temperature), which removes the S-Ks and O-Ko correlations'
+
+
 def _per_axis_sd(reference_sd) -> dict:
     r = reference_sd if isinstance(reference_sd, (list, tuple)) else [reference_sd] * 3
     return {a: float(v) for a, v in zip(AXES, r)}
 
 
-def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None, reference_sd=0.0) -> list[str]:
-    """The uncertainty-budget section: components with Type A/B and dof, u_c, nu_eff, k and U per axis."""
+def _components(m: dict, params: dict, reference_sd) -> list[tuple]:
+    """(label, per-axis u, type, dof, evaluation) of the within-session budget."""
     u = m["uq"]
-    level = u["level"]
     n = int(params.get("n_rows") or m["split"]["n_train"])
     p = len(params["model"]["param_names"])
     auto = str(u.get("sigma_in_source", "")).startswith("auto")
     ref = _per_axis_sd(reference_sd)
-    # (label, values per axis, type, degrees of freedom, how it was evaluated)
-    comps = [
+    return [
         ("aleatoric (input noise through the model)", u["mean_aleatoric"], "A" if auto else "B",
          n - 1 if auto else math.inf, "noise sd estimated from the training rows" if auto else "noise sd from the config"),
         ("residual (scatter the model does not explain)", u.get("residual_term", {a: 0.0 for a in AXES}), "A", n - p,
@@ -108,33 +168,82 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
         ("reference magnetometer (`[uq] reference_sd`)", ref, "B", math.inf,
          "stated by the user (certificate of the reference)" if any(ref.values()) else "not given (0)"),
     ]
+
+
+def _transfer_sd(m: dict) -> dict:
+    tr = m.get("transfer") or {}
+    sd = tr.get("sd") if tr.get("method") not in (None, "off") else None
+    return {a: float(sd[a]) if sd else 0.0 for a in AXES}
+
+
+def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0) -> dict:
+    """Combined ``u_c``, ``nu_eff``, ``k`` and ``U = k u_c`` per axis for a same-session and a new-session
+    recording (the latter with the between-session transfer sd in quadrature, counted with infinite dof:
+    it is already an upper confidence bound over the training runs, ``core/predictor.estimate_transfer``).
+
+    Returns ``{"level", "same_session": {axis: {u_c, nu_eff, k, U}}, "new_session": {...}, "transfer_sd"}``.
+    """
+    level = m["uq"]["level"]
+    comps = _components(m, params, reference_sd)
+    tau = _transfer_sd(m)
+    out = {"level": level, "transfer_sd": tau, "same_session": {}, "new_session": {}}
+    for a in AXES:
+        us, nus = [c[1][a] for c in comps], [c[3] for c in comps]
+        for key, extra_u in (("same_session", []), ("new_session", [tau[a]])):
+            uu, nn = us + extra_u, nus + [math.inf] * len(extra_u)
+            uc = math.sqrt(sum(x * x for x in uu))
+            nu = welch_satterthwaite(uu, nn)
+            k = coverage_factor(nu, level)
+            out[key][a] = {"u_c": uc, "nu_eff": nu, "k": k, "U": k * uc}
+    return out
+
+
+def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None, reference_sd=0.0) -> list[str]:
+    """The uncertainty-budget section: components with Type A/B and dof, u_c, nu_eff, k and U per axis,
+    for the same session and for a new session (transfer term)."""
+    level = m["uq"]["level"]
+    comps = _components(m, params, reference_sd)
+    ex = expanded_uncertainties(m, params, reference_sd)
+    tr = m.get("transfer") or {}
     lines = ["## Uncertainty budget (standard uncertainties, mean over test rows, uT)", "",
              "| component | type | dof | x | y | z | evaluation |", "|---|---|---|---|---|---|---|"]
     dof = lambda v: "inf" if not math.isfinite(v) else f"{v:.0f}"  # noqa: E731
     for label, vals, typ, nu, how in comps:
-        lines.append(f"| {label} | {typ} | {dof(nu)} | " + " | ".join(f"{vals[a]:.4g}" for a in AXES) + f" | {how} |")
-    combined = {}
-    for a in AXES:
-        us = [c[1][a] for c in comps]
-        nus = [c[3] for c in comps]
-        uc = math.sqrt(sum(x * x for x in us))
-        nu_eff = welch_satterthwaite(us, nus)
-        k = coverage_factor(nu_eff, level)
-        combined[a] = (uc, nu_eff, k, k * uc)
-    lines.append("| **combined u_c (physics)** | | | " + " | ".join(f"{combined[a][0]:.4g}" for a in AXES) + " | "
-                 "root sum of squares |")
-    lines.append("| effective dof nu_eff | | | " + " | ".join(dof(combined[a][1]) for a in AXES)
-                 + " | Welch-Satterthwaite |")
-    lines.append(f"| coverage factor k ({level:.0%}) | | | " + " | ".join(f"{combined[a][2]:.4f}" for a in AXES)
-                 + " | Student t(nu_eff) |")
-    lines.append("| **expanded uncertainty U = k u_c** | | | " + " | ".join(f"{combined[a][3]:.4g}" for a in AXES)
-                 + " | |")
+        lines.append(f"| {label} | {typ} | {dof(nu)} | " + " | ".join(_u2(vals[a]) for a in AXES) + f" | {how} |")
+
+    def block(key, name):
+        c = ex[key]
+        return [f"| **combined u_c, {name}** | | | " + " | ".join(_u2(c[a]["u_c"]) for a in AXES)
+                + " | root sum of squares |",
+                f"| effective dof nu_eff, {name} | | | " + " | ".join(dof(c[a]["nu_eff"]) for a in AXES)
+                + " | Welch-Satterthwaite |",
+                f"| coverage factor k ({level:.0%}), {name} | | | " + " | ".join(f"{c[a]['k']:.3f}" for a in AXES)
+                + " | Student t(nu_eff) |",
+                f"| **expanded uncertainty U = k u_c, {name}** | | | " + " | ".join(_u2(c[a]["U"]) for a in AXES)
+                + " | |"]
+    lines += block("same_session", "same session")
+    tau = ex["transfer_sd"]
+    if tr.get("method") in (None, "off"):
+        how = "off (`[uq] transfer = \"off\"`): not estimated" if tr.get("method") == "off" else "not estimated"
+    else:
+        how = (f"{tr['method'].replace('_', ' ')} over the training runs; already an upper confidence bound, so "
+               "counted with infinite dof")
+    lines.append("| transfer (between sessions; new session only) | A | inf | "
+                 + " | ".join(_u2(tau[a]) for a in AXES) + f" | {how} |")
+    lines += block("new_session", "new session")
     dom = {a: max(comps, key=lambda c: c[1][a])[0].split(" (")[0] for a in AXES}
+    same, new = ex["same_session"], ex["new_session"]
+    lines += ["", f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y / z) "
+              "holds for rows of the recording session this calibration was fitted on (same mounting, same "
+              "power-up, the conditions of the test rows above); **U new session** "
+              f"({' / '.join(_u2(new[a]['U']) for a in AXES)} uT) holds for any later recording, i.e. in the field "
+              "(`bayesmag apply` adds the transfer term to every row of a new recording; column `transfer`). "
+              "Inside the calibration domain only (section Calibration domain)."]
     if network_parts:
         lines += ["", "Hybrid stage (residual network), for comparison:", "",
                   "| component | type | x | y | z |", "|---|---|---|---|---|"]
         for k_, v in network_parts.items():
-            lines.append(f"| {k_} | A | " + " | ".join(f"{v[a]:.4g}" for a in AXES) + " |")
+            lines.append(f"| {k_} | A | " + " | ".join(_u2(v[a]) for a in AXES) + " |")
         if m.get("network", {}).get("fusion", "moment_match") == "paper":
             lines += ["", "With the residual network (fusion `paper`), the hybrid's total variance is the paper's "
                       "root-sum-of-squares of physics aleatoric, physics epistemic, network aleatoric and network "
@@ -144,12 +253,14 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                       "aleatoric + network epistemic + physics epistemic: the network learned its aleatoric part "
                       "from residuals that already contain the propagated input noise and the unexplained scatter, "
                       "so the physics aleatoric and residual parts are not added again."]
+    u = m["uq"]
     lines += ["", "Type A: evaluated statistically from the calibration data; Type B: from other information "
-              "(JCGM 100:2008, 4.2-4.3). The reference's uncertainty enters the budget only: the job's intervals "
+              "(JCGM 100:2008, 4.2-4.3). Uncertainties are given to two significant figures, values rounded to "
+              "match (GUM 7.2.6). The reference's uncertainty enters the budget only: the job's intervals "
               "and coverage figures do not include it.",
               "Dominant physics part per axis: " + ", ".join(f"{a}: {dom[a]}" for a in AXES) + ".",
               "Input noise sd (Bx, By, Bz in uT, T in C): "
-              + ", ".join(f"{k_} {v:.3g}" for k_, v in u["sigma_in_sd"].items()) + f" ({u['sigma_in_source']}).", ""]
+              + ", ".join(f"{k_} {_u2(v)}" for k_, v in u["sigma_in_sd"].items()) + f" ({u['sigma_in_source']}).", ""]
     return lines
 
 
@@ -191,7 +302,9 @@ def _nuts_section(m: dict, nuts_rows: list[dict] | None) -> list[str]:
         lines += ["", "| axis | parameter | mean | sd | R-hat | ESS bulk | ESS tail |", "|---|---|---|---|---|---|---|"]
         for r in nuts_rows:
             f = lambda k, spec: format(float(r[k]), spec) if r.get(k) not in (None, "") else "-"  # noqa: E731
-            lines.append(f"| {r.get('axis', '')} | {r.get('parameter', '')} | {f('mean', '.6g')} | {f('sd', '.3g')} | "
+            has = r.get("sd") not in (None, "") and r.get("mean") not in (None, "")
+            mean, sd = gum_round(float(r["mean"]), float(r["sd"])) if has else (f("mean", ".6g"), f("sd", ".2g"))
+            lines.append(f"| {r.get('axis', '')} | {r.get('parameter', '')} | {mean} | {sd} | "
                          f"{f('r_hat', '.4f')} | {f('ess_bulk', '.0f')} | {f('ess_tail', '.0f')} |")
     th = nuts.get("thresholds", {})
     if th:
@@ -219,7 +332,7 @@ def _hybrid_section(m: dict) -> list[str]:
     if train:
         scaled = any("interval_scale" in axes.get(a, {}) for axes in train.values() for a in AXES)
         lines += ["| likelihood | axis | epochs run | best epoch | best validation loss |"
-                  + (" interval scale k |" if scaled else ""), "|---|---|---|---|---|" + ("---|" if scaled else "")]
+                  + (" conformal scale c |" if scaled else ""), "|---|---|---|---|---|" + ("---|" if scaled else "")]
         for lik, axes in train.items():
             for a in AXES:
                 if a in axes:
@@ -232,29 +345,101 @@ def _hybrid_section(m: dict) -> list[str]:
         for lik, axes in train.items():
             c = axes.get("conformal")
             if c:
-                lines += [f"Interval scale k ({lik}): cross-conformal over {c['folds']} time-block folds, each one block "
+                lines += [f"Conformal scale c ({lik}): cross-conformal over {c['folds']} time-block folds, each one block "
                           f"of {c.get('block_fraction', float('nan')):.3g} of every run's training rows (the network's "
                           f"validation fraction, or as long as the job's test blocks if longer), {c['rows']} rows "
-                          f"scored, each by the fold network that did not see it; k multiplies the sd of the hybrid's intervals (floored at 1), and the "
+                          f"scored, each by the fold network that did not see it; c multiplies the sd of the hybrid's intervals "
+                          f"(floored at 1; not the coverage factor k of the budget), and the "
                           f"{c['folds']} fold networks predict together as an ensemble "
                           f"({' / '.join(map(str, c.get('ensemble_passes', [])))} MC passes).", ""]
     return lines
 
 
-def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_threshold: float = 0.9,
-                  network_parts: dict | None = None, reference_sd=0.0, nuts_rows: list[dict] | None = None) -> str:
-    m = metrics
+
+
+def _thermo(params: dict) -> dict | None:
+    terms = params["model"].get("terms") or []
+    return terms[0] if terms and terms[0].get("name") == "thermo_affine" else None
+
+
+def certificate_record(cfg, data) -> dict:
+    """The identity block of ``metrics.json``: calibration ID, UTC date, bayesmag version, data sha256,
+    device under test, reference instrument and operator (``[certificate]``).
+
+    The data hash is the file's sha256 (a CSV path or a named dataset, whose pinned hash was
+    verified at load); for simulated data, the sha256 of the generated arrays. The calibration ID is
+    the first 16 hex digits of sha256(resolved config TOML + data hash): the same config and data
+    give the same ID.
+    """
+    import datetime
+
+    from bayesmag import __version__
+    from bayesmag._src.app.config import to_toml
+
+    d = cfg.data
+    if d.path is not None:
+        from bayesmag._src.core.datasets import sha256_of
+        digest, what = sha256_of(Path(d.path)), f"file {Path(d.path).name}"
+    elif d.source not in (None, "simulated"):
+        from bayesmag._src.core.datasets import DATASETS
+        ds = DATASETS[d.source]
+        digest, what = ds.sha256, f"dataset {d.source} (file {ds.filename}, verified at load)"
+    else:
+        h = hashlib.sha256()
+        for arr in (data.b_meas, data.temperature, data.b_ref, data.time, data.run):
+            if arr is not None:
+                h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+        digest, what = h.hexdigest(), "simulated (sha256 of the generated arrays, float64)"
+    conf = to_toml(cfg.to_dict())
+    cid = hashlib.sha256((conf + digest).encode()).hexdigest()[:16]
+    c = cfg.certificate
+    return {"calibration_id": cid, "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(
+            timespec="seconds"), "bayesmag_version": __version__, "data": what, "data_sha256": digest,
+            "dut": c.dut, "reference": c.reference, "operator": c.operator}
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportContext:
+    """What every section of the certificate may read."""
+
+    metrics: dict
+    params: dict
+    figures: tuple = ()
+    corr_threshold: float = 0.9
+    network_parts: dict | None = None
+    reference_sd: float | list = 0.0
+    nuts_rows: list | None = None
+
+
+def _identity_section(c: ReportContext) -> list[str]:
+    m = c.metrics
+    rec = m.get("certificate") or {}
+    unset = lambda v, key: v or f"not stated (set `[certificate] {key} = \"...\"`)"  # noqa: E731
     lines = ["# Calibration report (certificate)", "",
-             f"Data: {m['data']['source']} ({m['data']['n_rows']} rows, runs {m['data']['runs']}). "
-             f"Split: {m['split']['description']} ({m['split']['n_train']} train / {m['split']['n_test']} test rows).",
-             f"Covariance: {params.get('covariance_method', '')}. Physics model parameters: "
-             f"{', '.join(params['model']['param_names'])}.", ""]
+             "| item | value |", "|---|---|",
+             f"| calibration ID | {rec.get('calibration_id', 'not recorded (run written before bayesmag 0.1 certificates)')} |",
+             f"| date (UTC) | {rec.get('date_utc', 'not recorded')} |",
+             f"| bayesmag version | {rec.get('bayesmag_version', 'not recorded')} |",
+             f"| device under test | {unset(rec.get('dut'), 'dut')} |",
+             f"| reference instrument | {unset(rec.get('reference'), 'reference')} |"]
+    if rec.get("operator"):
+        lines.append(f"| operator | {rec['operator']} |")
+    lines += [f"| data | {m['data']['source']}: {rec.get('data', '')} |",
+              f"| data sha256 | `{rec.get('data_sha256', 'not recorded')}` |", "",
+              f"Data: {m['data']['n_rows']} rows, runs {m['data']['runs']}. "
+              f"Split: {m['split']['description']} ({m['split']['n_train']} train / {m['split']['n_test']} test rows).",
+              f"Covariance: {c.params.get('covariance_method', '')}. Physics model parameters: "
+              f"{', '.join(c.params['model']['param_names'])}.", ""]
     for w in m.get("warnings", []):
         lines += [f"> **Warning.** {w}", ""]
-    for note in params.get("design_notes", []):
+    for note in c.params.get("design_notes", []):
         lines += [f"> **Design note.** {note}", ""]
-    lines += ["## Accuracy and coverage (test rows)", "",
-              "| stage | metric | x | y | z |", "|---|---|---|---|---|"]
+    return lines
+
+
+def _accuracy_section(c: ReportContext) -> list[str]:
+    m = c.metrics
+    lines = ["## Accuracy and coverage (test rows)", "", "| stage | metric | x | y | z |", "|---|---|---|---|---|"]
 
     def row(stage, key, block, pct=False):
         vals = [block[key][a] * (100 if pct else 1) for a in AXES]
@@ -272,25 +457,128 @@ def render_report(metrics: dict, params: dict, figures: list[str] = (), corr_thr
         if "coverage" in block:
             row(f"hybrid ({name})", "coverage", block, pct=True)
     level = m["uq"]["level"]
-    lines += ["", f"Coverage is of central {level:.0%} intervals; a trustworthy model is close to {level:.0%}.", ""]
-    lines += uncertainty_budget(m, params, network_parts, reference_sd)
-    lines += fit_statistics(m, params, reference_sd)
-    lines += transfer_section(m)
-    d = m.get("domain")
-    if d:
-        lines += ["## Calibration domain", "",
-                  "Training ranges (with margin): " + "; ".join(f"{k} [{lo:.3g}, {hi:.3g}]"
-                                                                for k, (lo, hi) in d["training_ranges"].items()) + ".",
-                  f"Test rows outside it: {d['n_outside']} of {d['n_rows']}.", ""]
-    lines += _hybrid_section(m) + _nuts_section(m, nuts_rows)
-    lines += ["## Physics parameters", ""]
+    return lines + ["", f"Coverage is of central {level:.0%} intervals; a trustworthy model is close to {level:.0%}.",
+                    ""]
+
+
+def _field_section(c: ReportContext) -> list[str]:
+    f = c.metrics.get("field")
+    if not f:
+        return []
+    h0 = next(iter(f.values()))["heading"]
+    lines = ["## Field metrics (test rows)", "",
+             "What a compass or drone engineer signs off on: the magnitude residual |B_cal| - |B_ref| (uT) and the "
+             "heading error (degrees; heading = atan2(-By, Bx) of a level sensor, x forward, y right, from the "
+             f"horizontal components; rows with a horizontal reference field below {h0['min_horizontal_uT']:g} uT "
+             f"have no defined heading and are left out: {h0['n_excluded']} rows).", "",
+             "| stage | magnitude residual mean (uT) | sd | RMS | max abs | heading error RMS (deg) | 95% abs | max abs |",
+             "|---|---|---|---|---|---|---|---|"]
+    fmt = lambda d, k, spec: format(d[k], spec) if k in d else "-"  # noqa: E731
+    for stage, b in f.items():
+        mg, hd = b["magnitude"], b["heading"]
+        lines.append(f"| {stage} | {fmt(mg, 'mean', '+.3g')} | {fmt(mg, 'sd', '.3g')} | {fmt(mg, 'rms', '.3g')} | "
+                     f"{fmt(mg, 'max_abs', '.3g')} | {fmt(hd, 'rms', '.3g')} | {fmt(hd, 'p95_abs', '.3g')} | "
+                     f"{fmt(hd, 'max_abs', '.3g')} |")
+    stages = [s for s in f if s != "raw"]
+    lines += ["", "Per run (heading error RMS / max abs in degrees, '-' where no row of the run has a defined "
+              "heading; magnitude residual RMS in uT):", "",
+              "| run | rows | " + " | ".join(f"{s}: heading RMS / max | {s}: magnitude RMS" for s in stages) + " |",
+              "|---|---|" + "---|---|" * len(stages)]
+    for r in f[stages[0]]["heading"]["per_run"]:
+        cells = []
+        for s in stages:
+            hd, mg = f[s]["heading"]["per_run"][r], f[s]["magnitude"]["per_run"][r]
+            cells += [f"{fmt(hd, 'rms', '.3g')} / {fmt(hd, 'max_abs', '.3g')}", fmt(mg, "rms", ".3g")]
+        lines.append(f"| {r} | {f[stages[0]]['magnitude']['per_run'][r]['n_rows']} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+def _model_section(c: ReportContext) -> list[str]:
+    """The model equation with T0, S and Ks as 3x3 matrices, O and Ko as vectors, each value +- u."""
+    th = _thermo(c.params)
+    if th is None:
+        return []
+    ax = c.params["axes"]
+    v = lambda a, n: (ax[a]["values"][n], ax[a]["std"][n])  # noqa: E731
+    temp = th.get("temperature", True)
+    lines = ["## Calibration model", "",
+             "    B_cal = (S + Ks (T - T0)) B_meas + O + Ko (T - T0)" if temp else "    B_cal = S B_meas + O", "",
+             f"with B_meas and B_cal column vectors (x, y, z) in uT, T the sensor temperature in C and "
+             f"**T0 = {th['t0']:.6g} C** (the reference temperature of this fit; `params.json` model.terms[0].t0). "
+             "Row i of S is output axis i. Values +- standard uncertainty u (k = 1):", "",
+             "| S (1) | B_x | B_y | B_z |", "|---|---|---|---|"]
+    for a in AXES:
+        lines.append(f"| {a} | " + " | ".join(gum_format(*v(a, f"S_{b}")) for b in AXES) + " |")
+    if temp:
+        lines += ["", "| Ks (1/C) | B_x | B_y | B_z |", "|---|---|---|---|"]
+        for a in AXES:
+            lines.append(f"| {a} | " + " | ".join(gum_format(*v(a, f"Ks_{b}")) for b in AXES) + " |")
+    lines += ["", "| axis | O (uT) | " + ("Ko (uT/C) |" if temp else ""), "|---|---|" + ("---|" if temp else "")]
+    for a in AXES:
+        lines.append(f"| {a} | {gum_format(*v(a, 'O'))} | " + (f"{gum_format(*v(a, 'Ko'))} |" if temp else ""))
+    extra = [n for n in c.params["model"]["param_names"]
+             if n not in ("S_x", "S_y", "S_z", "Ks_x", "Ks_y", "Ks_z", "O", "Ko")]
+    if extra:
+        lines += ["", f"Further terms ({', '.join(t['name'] for t in c.params['model']['terms'][1:])}; "
+                  f"parameters {', '.join(extra)}) are in the per-axis tables of section Physics parameters."]
+    return lines + [""]
+
+
+def _budget_section(c: ReportContext) -> list[str]:
+    return uncertainty_budget(c.metrics, c.params, c.network_parts, c.reference_sd)
+
+
+def _fit_section(c: ReportContext) -> list[str]:
+    return fit_statistics(c.metrics, c.params, c.reference_sd)
+
+
+def _transfer_section(c: ReportContext) -> list[str]:
+    return transfer_section(c.metrics)
+
+
+def _domain_section(c: ReportContext) -> list[str]:
+    d = c.metrics.get("domain")
+    if not d:
+        return []
+    lines = ["## Calibration domain", "",
+             "Training ranges (with margin): " + "; ".join(f"{k} [{lo:.3g}, {hi:.3g}]"
+                                                           for k, (lo, hi) in d["training_ranges"].items()) + "."]
+    if d.get("training_rate_limits"):
+        lines.append("Largest rates seen in training (with margin): " + "; ".join(
+            f"{k} {v:.3g}" for k, v in d["training_rate_limits"].items()) + " (uT/s, C/s).")
+    return lines + [f"Test rows outside it: {d['n_outside']} of {d['n_rows']}.", ""]
+
+
+def _hybrid_nuts_section(c: ReportContext) -> list[str]:
+    return _hybrid_section(c.metrics) + _nuts_section(c.metrics, c.nuts_rows)
+
+
+def _parameters_section(c: ReportContext) -> list[str]:
+    lines = ["## Physics parameters", ""]
     for ax in AXES:
-        lines += _param_table(ax, params["axes"][ax], corr_threshold)
-    if figures:
-        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
-    t = m.get("timings", {})
+        lines += _param_table(ax, c.params["axes"][ax], c.corr_threshold)
+    return lines
+
+
+def _figures_section(c: ReportContext) -> list[str]:
+    lines = (["## Figures", ""] + [f"![{f}]({f})" for f in c.figures] + [""]) if c.figures else []
+    t = c.metrics.get("timings", {})
     if t:
         lines += ["Timings (s): " + ", ".join(f"{k} {v:.3g}" for k, v in t.items()) + "."]
+    return lines
+
+
+#: The certificate's sections, in order: each ``f(ReportContext) -> list[str]`` of Markdown lines.
+SECTIONS = (_identity_section, _model_section, _accuracy_section, _field_section, _budget_section, _fit_section,
+            _transfer_section, _domain_section, _hybrid_nuts_section, _parameters_section, _figures_section)
+
+
+def render_report(metrics: dict, params: dict, figures=(), corr_threshold: float = 0.9,
+                  network_parts: dict | None = None, reference_sd=0.0, nuts_rows: list[dict] | None = None,
+                  sections=SECTIONS) -> str:
+    """The certificate as Markdown: every function of ``sections`` applied to one :class:`ReportContext`."""
+    ctx = ReportContext(metrics, params, tuple(figures), corr_threshold, network_parts, reference_sd, nuts_rows)
+    lines = [ln for sec in sections for ln in sec(ctx)]
     return "\n".join(lines) + "\n"
 
 
@@ -305,10 +593,10 @@ def transfer_section(m: dict) -> list[str]:
         return lines + ["Transfer uncertainty is off (`[uq] transfer = \"off\"`): intervals for new recordings "
                         "hold within-session parts only and will be too narrow if the sensor changes between "
                         "sessions.", ""]
-    lines.append(f"This calibration transfers to a new session with +/- {z * sd['x']:.3g} / {z * sd['y']:.3g} / "
-                 f"{z * sd['z']:.3g} uT (x / y / z; 1.96 x the between-session sd {sd['x']:.3g} / {sd['y']:.3g} / "
-                 f"{sd['z']:.3g} uT), added in quadrature to every prediction of a new recording (`bayesmag apply`; "
-                 f"column `transfer`).")
+    lines.append(f"This calibration transfers to a new session with +/- {_u2(z * sd['x'])} / {_u2(z * sd['y'])} / "
+                 f"{_u2(z * sd['z'])} uT (x / y / z; 1.96 x the between-session sd {_u2(sd['x'])} / {_u2(sd['y'])} / "
+                 f"{_u2(sd['z'])} uT), added in quadrature to every prediction of a new recording (`bayesmag apply`; "
+                 f"column `transfer`); the budget above combines it with the within-session parts (U new session).")
     if tr["method"] == "leave_one_run_out":
         rows = [(r, v) for r, v in tr["per_run"].items()]
         lines += ["Estimated by leaving each training run out (rows inside the other runs' value domain):", "",
@@ -345,8 +633,102 @@ def _network_parts(path: Path) -> dict | None:
     return out
 
 
+
+_INLINE = [(re.compile(r"\*\*(.+?)\*\*"), r"<strong>\1</strong>"), (re.compile(r"`([^`]+)`"), r"<code>\1</code>")]
+_CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;line-height:1.4}"
+        "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 6px;"
+        "font-size:0.9em}th{background:#eee}blockquote{border-left:4px solid #c90;margin:0.5em 0;"
+        "padding:0.2em 0.8em;background:#fff8e8}pre{background:#f4f4f4;padding:0.5em}img{max-width:100%}")
+
+
+def _inline(text: str) -> str:
+    out = html.escape(text, quote=False)
+    for pat, rep in _INLINE:
+        out = pat.sub(rep, out)
+    return out
+
+
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def render_html(markdown: str, folder: str | Path | None = None, title: str = "Calibration certificate") -> str:
+    """``report.md``'s content as one self-contained HTML page, figures embedded as base64 PNG.
+
+    Handles the Markdown the certificate uses: ``#`` headings, pipe tables, ``>`` quotes, ``-``
+    lists, indented code, ``![alt](file.png)`` images (read from ``folder``), ``**bold**`` and
+    ``code``. Only the standard library: no dependency.
+    """
+    folder = Path(folder) if folder is not None else None
+    lines = markdown.splitlines()
+    out = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+           f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>"]
+    i, para = 0, []
+
+    def flush():
+        if para:
+            out.append("<p>" + " ".join(_inline(p) for p in para) + "</p>")
+            para.clear()
+
+    while i < len(lines):
+        ln = lines[i]
+        img = re.fullmatch(r"!\[([^\]]*)\]\(([^)]+)\)", ln.strip())
+        if not ln.strip():
+            flush()
+        elif ln.startswith("#"):
+            flush()
+            level = len(ln) - len(ln.lstrip("#"))
+            out.append(f"<h{level}>{_inline(ln[level:].strip())}</h{level}>")
+        elif ln.startswith("|") and i + 1 < len(lines) and re.fullmatch(r"\|[-|: ]+\|?", lines[i + 1].strip()):
+            flush()
+            head = _cells(ln)
+            out.append("<table><thead><tr>" + "".join(f"<th>{_inline(h)}</th>" for h in head) + "</tr></thead><tbody>")
+            i += 2
+            while i < len(lines) and lines[i].startswith("|"):
+                out.append("<tr>" + "".join(f"<td>{_inline(x)}</td>" for x in _cells(lines[i])) + "</tr>")
+                i += 1
+            out.append("</tbody></table>")
+            continue
+        elif ln.startswith(">"):
+            flush()
+            out.append(f"<blockquote>{_inline(ln.lstrip('>').strip())}</blockquote>")
+        elif ln.startswith("- "):
+            flush()
+            out.append("<ul>")
+            while i < len(lines) and lines[i].startswith("- "):
+                out.append(f"<li>{_inline(lines[i][2:])}</li>")
+                i += 1
+            out.append("</ul>")
+            continue
+        elif ln.startswith("    "):
+            flush()
+            code = []
+            while i < len(lines) and lines[i].startswith("    "):
+                code.append(html.escape(lines[i][4:]))
+                i += 1
+            out.append("<pre>" + "\n".join(code) + "</pre>")
+            continue
+        elif img:
+            flush()
+            alt, src = img.groups()
+            path = folder / src if folder is not None else None
+            if path is not None and path.is_file():
+                data = base64.b64encode(path.read_bytes()).decode("ascii")
+                out.append(f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+                           f"<figcaption>{html.escape(alt)}</figcaption></figure>")
+            else:
+                out.append(f"<p>[figure {html.escape(src)} not found]</p>")
+        else:
+            para.append(ln)
+        i += 1
+    flush()
+    out.append("</body></html>")
+    return "\n".join(out) + "\n"
+
+
 def write_report(run_dir: str | Path) -> Path:
-    """(Re)write ``report.md`` in a run folder from its metrics.json and params.json."""
+    """(Re)write ``report.md`` and ``report.html`` (figures embedded) in a run folder from its metrics.json
+    and params.json; returns the path of ``report.md``."""
     run_dir = Path(run_dir)
     for f in ("metrics.json", "params.json"):
         if not (run_dir / f).exists():
@@ -355,15 +737,23 @@ def write_report(run_dir: str | Path) -> Path:
     params = json.loads((run_dir / "params.json").read_text())
     figs = sorted(p.name for p in run_dir.glob("*.png"))
     out = run_dir / "report.md"
-    reference_sd = 0.0
-    if (run_dir / "calibration.json").exists():
-        cfg = json.loads((run_dir / "calibration.json").read_text()).get("config", {})
-        reference_sd = cfg.get("uq", {}).get("reference_sd", 0.0)
     nuts_rows = None
     if (run_dir / "nuts_summary.csv").exists():
         import csv
         with open(run_dir / "nuts_summary.csv", newline="") as f:
             nuts_rows = list(csv.DictReader(f))
-    out.write_text(render_report(metrics, params, figs, network_parts=_network_parts(run_dir / "predictions.csv"),
-                                 reference_sd=reference_sd, nuts_rows=nuts_rows))
+    text = render_report(metrics, params, figs, network_parts=_network_parts(run_dir / "predictions.csv"),
+                         reference_sd=run_reference_sd(run_dir), nuts_rows=nuts_rows)
+    out.write_text(text)
+    (run_dir / "report.html").write_text(render_html(text, run_dir))
+    from bayesmag._src.app.export import _register
+    _register(run_dir, run_dir / "report.html")       # a folder written before report.html may still be re-run
     return out
+
+
+def run_reference_sd(run_dir: Path):
+    """``[uq] reference_sd`` of the run's saved config (0 when absent)."""
+    if (Path(run_dir) / "calibration.json").exists():
+        cfg = json.loads((Path(run_dir) / "calibration.json").read_text()).get("config", {})
+        return cfg.get("uq", {}).get("reference_sd", 0.0)
+    return 0.0

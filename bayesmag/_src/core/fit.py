@@ -337,9 +337,9 @@ def _design_notes(data, model: PhysicsModel) -> tuple[str, ...]:
                 f"Temperature varies only in run(s) {varying.tolist()}, and there the measured field is held near "
                 f"({mean[0]:.1f}, {mean[1]:.1f}, {mean[2]:.1f}) uT. The data then identify only the total thermal "
                 f"slope Ks_x*{mean[0]:.1f} + Ks_y*{mean[1]:.1f} + Ks_z*{mean[2]:.1f} + Ko per axis; the individual "
-                f"Ks and Ko, and S with O at the reference temperature, are near-collinear. A reference temperature "
-                f"T0 inside the data (e.g. [physics] t0 = {data.temperature.mean():.1f}) removes the S-Ks and O-Ko "
-                f"correlations; separating Ks_j needs temperature varied while field axis j is swept."
+                f"Ks and Ko, and S with O at the reference temperature, are near-collinear. Set [physics] t0 = \"mean\" "
+                f"(the training mean temperature, {data.temperature.mean():.1f} C here): it removes the S-Ks and "
+                f"O-Ko correlations; separating Ks_j needs temperature varied while field axis j is swept."
             )
         elif held.any():
             ax = [AXES[i] for i in np.flatnonzero(held)]

@@ -26,7 +26,8 @@ from bayesmag._src.core.likelihoods import Likelihood
 
 __all__ = ["rmse", "mae", "coverage", "interval_width", "nll", "crps", "pit",
            "calibration_curve", "paired_test", "score", "score_per_axis", "summarize", "SCORE_KEYS",
-           "DEFAULT_LEVELS"]
+           "DEFAULT_LEVELS", "magnitude_residual", "heading_deg", "heading_error_deg", "field_metrics",
+           "MIN_HORIZONTAL_UT"]
 
 #: Default nominal levels of :func:`calibration_curve`: 0.05, 0.10, ..., 0.95 and 0.99.
 DEFAULT_LEVELS = np.append(np.linspace(0.05, 0.95, 19), 0.99)
@@ -215,3 +216,67 @@ def summarize(y: Any, dist: Likelihood, level: float = 0.95,
     names = {"mean_width": "width"}
     order = ("rmse", "mae", "coverage", "mean_width", "nll", "crps")
     return {ax: {names.get(k, k): float(per[k][i]) for k in order} for i, ax in enumerate(axes)}
+
+
+# --------------------------------------------------------------------------- field metrics
+
+#: Rows whose horizontal reference field is weaker than this (uT) have no usable heading.
+MIN_HORIZONTAL_UT = 5.0
+
+
+def magnitude_residual(b_cal: Any, b_ref: Any) -> np.ndarray:
+    r"""Per row :math:`|B_{\mathrm{cal}}| - |B_{\mathrm{ref}}|` (uT) of ``(n, 3)`` fields."""
+    b_cal, b_ref = _f64(b_cal), _f64(b_ref)
+    _same_shape(b_cal=b_cal, b_ref=b_ref)
+    return np.linalg.norm(b_cal, axis=-1) - np.linalg.norm(b_ref, axis=-1)
+
+
+def heading_deg(b: Any) -> np.ndarray:
+    r"""Compass heading (degrees, [0, 360)) of a level sensor, x forward, y right, z down:
+    :math:`\psi = \mathrm{atan2}(-B_y, B_x)`; only the horizontal components count."""
+    b = _f64(b)
+    return np.mod(np.degrees(np.arctan2(-b[..., 1], b[..., 0])), 360.0)
+
+
+def heading_error_deg(b_cal: Any, b_ref: Any) -> np.ndarray:
+    """Per row heading(calibrated) - heading(reference), wrapped into [-180, 180) degrees."""
+    d = heading_deg(b_cal) - heading_deg(b_ref)
+    return np.mod(d + 180.0, 360.0) - 180.0
+
+
+def _summary(v: np.ndarray) -> dict[str, float]:
+    a = np.abs(v)
+    if v.size == 0:
+        return {"n_rows": 0}
+    return {"n_rows": int(v.size), "mean": float(v.mean()), "sd": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+            "rms": float(np.sqrt(np.mean(v**2))), "p95_abs": float(np.quantile(a, 0.95)), "max_abs": float(a.max())}
+
+
+def field_metrics(b_cal: Any, b_ref: Any, run: Any, *, min_horizontal: float = MIN_HORIZONTAL_UT) -> dict:
+    r"""What a compass or drone engineer signs off on: the field magnitude residual
+    :math:`|B_{\mathrm{cal}}| - |B_{\mathrm{ref}}|` (uT) and the heading error (degrees, from the
+    horizontal components, :func:`heading_error_deg`), overall and per run.
+
+    Rows whose horizontal reference field is below ``min_horizontal`` uT are left out of the
+    heading error (a heading of a near-vertical field is undefined) and counted.
+
+    Returns:
+        ``{"magnitude": {...}, "heading": {...}}``, each with ``n_rows``, ``mean``, ``sd``, ``rms``,
+        ``p95_abs``, ``max_abs`` and ``per_run`` (the same per run); heading also ``n_excluded`` and
+        ``min_horizontal_uT``.
+
+    Example:
+        >>> ref = np.array([[20.0, 0.0, 40.0]]); cal = np.array([[20.0, -20.0 * np.tan(np.radians(1)), 40.0]])
+        >>> round(field_metrics(cal, ref, [1])["heading"]["max_abs"], 6)
+        1.0
+    """
+    b_cal, b_ref, run = _f64(b_cal), _f64(b_ref), np.asarray(run)
+    _same_shape(b_cal=b_cal, b_ref=b_ref)
+    dm = magnitude_residual(b_cal, b_ref)
+    ok = np.hypot(b_ref[:, 0], b_ref[:, 1]) >= min_horizontal
+    dh = heading_error_deg(b_cal, b_ref)
+    runs = [r for r in np.unique(run)]
+    mag = {**_summary(dm), "per_run": {str(int(r)): _summary(dm[run == r]) for r in runs}}
+    head = {**_summary(dh[ok]), "n_excluded": int((~ok).sum()), "min_horizontal_uT": float(min_horizontal),
+            "per_run": {str(int(r)): _summary(dh[ok & (run == r)]) for r in runs}}
+    return {"magnitude": mag, "heading": head}

@@ -11,15 +11,15 @@ calibration cannot drift apart.
 Composition (:func:`compose`), per row and axis, with physics aleatoric / epistemic sds
 :math:`a_p, e_p` (PS-QMC), residual sd :math:`r` (training scatter beyond the propagated input
 noise), network aleatoric / epistemic sds :math:`a, e` (MC DropConnect) and transfer sd
-:math:`\tau` (between-session variation, :func:`estimate_transfer`), and interval scale :math:`k`
+:math:`\tau` (between-session variation, :func:`estimate_transfer`), and conformal scale :math:`c`
 (conformal factor on held-out time: :func:`conformal_scale`, or pooled over the job's cross-conformal
 time-block folds with :func:`conformal_ratios` / :func:`conformal_quantile`; 1 when absent):
 
-* physics only: :math:`N(\bar y_{phys},\; k^2 (a_p^2 + r^2 + e_p^2) + \tau^2)`;
+* physics only: :math:`N(\bar y_{phys},\; c^2 (a_p^2 + r^2 + e_p^2) + \tau^2)`;
 * network, ``fusion = "moment_match"``: mean :math:`\bar y_{phys} + \mu_{NN}`, variance
-  :math:`k^2 (a^2 + e^2 + e_p^2) + \tau^2`, the network's likelihood family moment-matched to it
+  :math:`c^2 (a^2 + e^2 + e_p^2) + \tau^2`, the network's likelihood family moment-matched to it
   (the network learned :math:`a^2` from residuals that already hold :math:`a_p^2` and :math:`r^2`);
-* network, ``fusion = "paper"``: Gaussian with :math:`k^2 (a_p^2 + a^2 + e^2 + e_p^2) + \tau^2`
+* network, ``fusion = "paper"``: Gaussian with :math:`c^2 (a_p^2 + a^2 + e^2 + e_p^2) + \tau^2`
   (Shetty & Marndi 2026, sec. 2.5).
 
 The transfer part enters only rows of a *new session* (``new_session``: a recording that is not

@@ -1,7 +1,8 @@
 """Figures of the NUTS cross-check (matplotlib, Agg backend, PNG files).
 
-* ``nuts_trace.png`` -- trace and rank plots of the parameters with the lowest bulk ESS
-  (plus the noise scales), in LM-standardised units :math:`(\\theta - \\hat\\theta)/\\hat s`.
+* ``nuts_trace.png`` -- trace and rank plots of the parameters with the largest R-hat (the
+  ones that decide an "inconclusive" verdict; ties by the lowest bulk ESS), plus the noise
+  scales, in LM-standardised units :math:`(\\theta - \\hat\\theta)/\\hat s`.
 * ``nuts_pair.png`` -- per axis, the most correlated parameter pair: NUTS draws with the LM
   1/2/3-sigma ellipses, in raw units (top) and in the LM-whitened coordinates of the pair
   (bottom; the LM ellipses become circles, so a shape mismatch is visible).
@@ -19,7 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["trace_rank_plot", "pair_plot", "forest_plot", "nuts_figures"]
+__all__ = ["trace_parameters", "trace_rank_plot", "pair_plot", "forest_plot", "nuts_figures"]
 
 
 def _standardised(res, ax: str, name: str) -> np.ndarray:
@@ -29,10 +30,17 @@ def _standardised(res, ax: str, name: str) -> np.ndarray:
     return (res.idata.posterior.theta.sel(axis=ax, parameter=name).values - m) / s
 
 
+def trace_parameters(summary, n_params: int = 6):
+    """The ``n_params`` physics parameters (rows of the NUTS summary) with the largest R-hat, ties broken by
+    the lowest bulk ESS: the ones a verdict of "inconclusive" is about."""
+    theta = summary[summary.lm_sd.notna()]
+    return theta.sort_values(["r_hat", "ess_bulk"], ascending=[False, True], na_position="first").head(n_params)
+
+
 def trace_rank_plot(path: Path, res, *, n_params: int = 6) -> None:
-    """Traces (left) and per-chain rank histograms (right) of the least efficient parameters."""
+    """Traces (left) and per-chain rank histograms (right) of the parameters with the largest R-hat."""
     df = res.summary
-    theta = df[df.lm_sd.notna()].sort_values("ess_bulk").head(n_params)
+    theta = trace_parameters(df, n_params)
     rows = [(r.axis, r.parameter, True) for r in theta.itertuples()]
     rows += [(ax, "sigma", False) for ax in res.axes]
     post = res.idata.posterior
@@ -56,7 +64,8 @@ def trace_rank_plot(path: Path, res, *, n_params: int = 6) -> None:
             axs[k, 1].step(bins[:-1], h, where="post", lw=0.8)
         axs[k, 1].axhline(D / 20, color="k", lw=0.6, ls="--")
         axs[k, 1].set_yticks([])
-    axs[0, 0].set_title("traces (one colour per chain" + (f", every {max(1, D // 500)}th draw)" if D > 500 else ")"))
+    axs[0, 0].set_title("largest R-hat first; traces (one colour per chain"
+                        + (f", every {max(1, D // 500)}th draw)" if D > 500 else ")"))
     axs[0, 1].set_title("rank histograms (flat = mixed)")
     axs[-1, 0].set_xlabel("draw")
     axs[-1, 1].set_xlabel("rank")
