@@ -55,7 +55,7 @@ import scipy.stats
 from bayesmag._src.core.physics import AXES, inputs_from_data
 
 __all__ = ["DEFAULT_EFFECTS", "TAU_PRIOR_SCALE", "SIGMA_PRIOR_SCALE", "RunStats", "SessionPosterior", "run_stats",
-           "fit_laplace", "fit_nuts", "fit_sessions", "run_loglik", "loro_elpd", "whitened_gram"]
+           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "run_loglik", "loro_elpd", "whitened_gram"]
 
 #: Parameters with per-session random effects (the others are shared by all sessions).
 DEFAULT_EFFECTS = ("O", "S_x", "S_y", "S_z")
@@ -152,7 +152,7 @@ def _unpack(h, q):
     return jnp.exp(h[:q]), jnp.exp(h[q]), jnp.tanh(h[q + 1])
 
 
-def _collapsed(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale):
+def _collapsed(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
     """Log posterior of ``h = (log tau (q), log sigma, atanh rho)`` with ``mu`` (flat) and the effects
     integrated out, Jacobians of the transforms included; also ``mu_hat`` and its covariance."""
     q = effects.shape[0]
@@ -176,7 +176,7 @@ def _collapsed(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale):
     ch = jnp.linalg.cholesky(H)
     w = jax.scipy.linalg.solve_triangular(ch, g, lower=True)
     mu = jax.scipy.linalg.cho_solve((ch, True), g)
-    lp = consts.sum() - 0.5 * (c - w @ w) - jnp.sum(jnp.log(jnp.diag(ch))) + 0.5 * p * jnp.log(2 * jnp.pi)
+    lp = consts.sum() - 0.5 * (c - w @ w) + reml * (0.5 * p * jnp.log(2 * jnp.pi) - jnp.sum(jnp.log(jnp.diag(ch))))
     # priors: half-normal tau, sigma (+ log Jacobians), uniform rho on (-1, 1) (+ atanh Jacobian)
     lp += jnp.sum(-0.5 * (tau / tau_scale) ** 2 + h[:q]) - 0.5 * (sigma / sigma_scale) ** 2 + h[q]
     lp += jnp.log1p(-rho**2)
@@ -185,14 +185,14 @@ def _collapsed(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale):
 
 
 @functools.partial(jax.jit, static_argnums=())
-def _neg_lp_and_grad(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale):
-    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale)[0]  # noqa: E731
+def _neg_lp_and_grad(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
+    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml)[0]  # noqa: E731
     return jax.value_and_grad(f)(h)
 
 
 @jax.jit
-def _hessian(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale):
-    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale)[0]  # noqa: E731
+def _hessian(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
+    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml)[0]  # noqa: E731
     return jax.hessian(f)(h)
 
 
@@ -255,6 +255,12 @@ class SessionPosterior:
         """(n, 3) transfer sd: the equivalent new-session variance less the mean within-session noise."""
         _, _, noise = self.variance_moments(J)
         return np.sqrt(np.maximum(self.new_session_variance(J, level) - noise, 0.0))
+
+    def transfer_sd_for(self, fit, data) -> np.ndarray:
+        """(n, 3) transfer sd of every row of ``data`` for the physics ``fit`` (its Jacobian at ``fit.theta``)."""
+        if data.n == 0:
+            return np.zeros((0, 3))
+        return self.transfer_sd(_jacobian(fit, data))
 
     def as_arrays(self) -> dict:
         return {"w_mean": self.w_mean, "w_cov": self.w_cov, "mu_cov": self.mu_cov, "scale": self.scale,
@@ -385,14 +391,46 @@ def fit_nuts(stats: RunStats, names, fit, *, level: float = 0.95, tau_scale: flo
     return (post, raw) if return_draws else post
 
 
+#: A random effect is kept only if at least this many runs inform it on their own (:func:`select_effects`).
+MIN_INFORMING_RUNS = 3
+#: A run informs a parameter if its Jacobian column varies within the run by more than this share of the
+#: column's RMS over all rows (else the run sees it only as a constant, confounded with the offset).
+INFORM_FRACTION = 0.1
+
+
+def select_effects(train, fit, effects: Sequence[str] = DEFAULT_EFFECTS,
+                   min_runs: int = MIN_INFORMING_RUNS) -> tuple[tuple[str, ...], dict]:
+    """The candidate ``effects`` that at least ``min_runs`` runs inform on their own, and the dropped ones
+    with their counts: a session's change of a gain is only seen in runs that sweep that field axis (the
+    offset ``O``, a constant column, is informed by every run). Counted on the x axis's Jacobian (the
+    same design for every axis of the paper's model).
+    """
+    names = list(fit.model.param_names)
+    J = _jacobian(fit, train)[0]
+    rms = np.sqrt(np.mean(J**2, axis=0))
+    keep, dropped = [], {}
+    for e in effects:
+        if e not in names:
+            continue
+        j = names.index(e)
+        col = J[:, j]
+        const = np.ptp(col) <= 1e-12 * max(rms[j], 1e-300)
+        count = sum(bool(const or col[train.run == r].std() > INFORM_FRACTION * rms[j]) for r in np.unique(train.run))
+        (keep.append(e) if count >= min_runs else dropped.__setitem__(e, count))
+    return tuple(keep), dropped
+
+
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
                  level: float = 0.95, seed: int = 0, **kw) -> SessionPosterior:
-    """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``."""
+    """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
+    effects are the ``effects`` that enough runs inform (:func:`select_effects`)."""
     runs = np.unique(train.run)
     if runs.size < 2:
         raise ValueError(f"the hierarchical transfer model needs at least 2 training runs (sessions); the "
                          f"training data hold {runs.size}. Use [uq] transfer = \"loro\" or \"off\".")
-    eff = tuple(e for e in effects if e in fit.model.param_names)
+    eff, _ = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
+    if not eff:
+        eff = ("O",) if "O" in fit.model.param_names else ()
     stats = run_stats(train, fit, eff)
     if method == "laplace":
         return fit_laplace(stats, fit.model.param_names, level=level, seed=seed, **kw)
@@ -503,3 +541,69 @@ def _elpd_none(tr: RunStats, te: RunStats) -> np.ndarray:
                                         sigma**2, rho)))
         res[a] = np.logaddexp.reduce(lps) - np.log(R)
     return res
+
+
+#: Fewer training runs than this leave the between-session sds mostly to their prior: the job warns.
+FEW_RUNS = 6
+
+
+def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
+                          effects: Sequence[str] = DEFAULT_EFFECTS):
+    """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
+
+    The estimate's ``sd`` is the root-mean-square row-dependent transfer sd over the training rows (a
+    summary for reports; predictions use the rows' own). With fewer than 2 runs it falls back to
+    :func:`~bayesmag._src.core.predictor.estimate_transfer` (its warning) and no session model.
+    """
+    from bayesmag._src.core.predictor import TransferEstimate, estimate_transfer
+
+    runs = np.unique(train.run)
+    if runs.size < 2:
+        return estimate_transfer(train, fit), None
+    post = fit_sessions(train, fit, method=method, effects=effects, level=level, seed=seed)
+    sd = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
+    warning = None
+    if runs.size < FEW_RUNS:
+        warning = (f"The training data hold {runs.size} runs (sessions): the between-session sds of the hierarchical "
+                   f"transfer model are then set largely by their prior (half-normal, scale {TAU_PRIOR_SCALE} uT), "
+                   f"and new-session intervals are wide. Record at least {FEW_RUNS} sessions.")
+    summary = {**post.as_dict(), "dropped_effects_informing_runs": select_effects(train, fit, effects)[1]}
+    return TransferEstimate(sd, f"hierarchical_{post.method}", {"model": summary}, warning), post
+
+
+def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> SessionPosterior:
+    """The :class:`SessionPosterior` a calibration saved (``meta``: its JSON table, ``arrays``: ``sessions/*``
+    without the prefix), every field checked; ValueError names the field, the bad value and that the file is damaged."""
+    if not isinstance(meta, dict):
+        raise ValueError(f"field 'sessions' must be a table; got {meta!r}.")
+    p = len(param_names)
+    effects = meta.get("effects")
+    if not isinstance(effects, list) or not effects or any(e not in param_names for e in effects):
+        raise ValueError(f"field 'sessions.effects' = {effects!r} must name parameters of the model {list(param_names)}.")
+    q = len(effects)
+    level, n_runs = meta.get("level"), meta.get("n_runs")
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
+        raise ValueError(f"field 'sessions.level' = {level!r} must be a number in (0, 1).")
+    if isinstance(n_runs, bool) or not isinstance(n_runs, int) or n_runs < 2:
+        raise ValueError(f"field 'sessions.n_runs' = {n_runs!r} must be an integer >= 2.")
+    if meta.get("method") not in ("laplace", "nuts"):
+        raise ValueError(f"field 'sessions.method' = {meta.get('method')!r} must be 'laplace' or 'nuts'.")
+    shapes = {"w_mean": (3, q + 1), "w_cov": (3, q + 1, q + 1), "mu_cov": (3, p, p), "scale": (3, p), "mu": (3, p)}
+    out = {}
+    for k, shape in shapes.items():
+        if k not in arrays:
+            raise ValueError(f"array 'sessions/{k}' is missing.")
+        v = np.asarray(arrays[k])
+        if v.shape != shape or v.dtype.kind != "f" or not np.isfinite(v).all():
+            raise ValueError(f"array 'sessions/{k}' must be finite floats of shape {shape}; got {v.dtype} {v.shape}.")
+        out[k] = v.astype(np.float64)
+    if (out["w_mean"] < 0).any() or (out["scale"] <= 0).any():
+        raise ValueError("array 'sessions/w_mean' or 'sessions/scale' is negative (variances and scales are >= 0).")
+    for k in ("w_cov", "mu_cov"):
+        m = out[k]
+        if not np.allclose(m, np.swapaxes(m, 1, 2), rtol=1e-8, atol=1e-300) or \
+                (np.linalg.eigvalsh(m).min(axis=1) < -1e-8 * np.abs(m).max(axis=(1, 2))).any():
+            raise ValueError(f"array 'sessions/{k}' is not a stack of symmetric positive semi-definite matrices.")
+    idx = tuple(list(param_names).index(e) for e in effects)
+    return SessionPosterior(out["w_mean"], out["w_cov"], out["mu_cov"], out["scale"], tuple(effects), float(level),
+                            int(n_runs), meta["method"], out["mu"], effect_index=idx)
