@@ -167,20 +167,24 @@ def pooling(args):
         st = H.run_stats(d, fit, eff)
         elpd = {m: H.loro_elpd(st, model.param_names, pooling=m) for m in ("complete", "none", "partial")}
         print(f"\n### {label}: {st.n.size} runs, random effects {list(eff)}\n")
+        print("LORO log predictive density per run (x | y | z):\n")
+        for m, v in elpd.items():
+            print(f"- {m}: " + " | ".join(" ".join(f"{x:.1f}" for x in v[:, a]) for a in range(3)))
+        print()
         for a, ax in enumerate("xyz"):
             comp = {}
+            import xarray as xr
             for m, v in elpd.items():
-                li = v[:, a]
-                comp[m] = az.ELPDData(data=[li.sum(), np.sqrt(li.size * np.var(li)), 0.0, 1, li.size, False,
-                                            li, np.zeros_like(li), "log"],
+                li = xr.DataArray(v[:, a], dims=["run"])
+                comp[m] = az.ELPDData(data=[float(li.sum()), float(np.sqrt(li.size * np.var(li.values))), 0.0, 1,
+                                            li.size, False, li, xr.zeros_like(li), "log"],
                                       index=["elpd_loo", "se", "p_loo", "n_samples", "n_data_points", "warning",
                                              "loo_i", "pareto_k", "scale"])
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 table = az.compare(comp, ic="loo", method="stacking")
             print(f"axis {ax}:\n")
-            print(table[["rank", "elpd_loo", "elpd_diff", "weight", "se", "dse"]].round(2).to_markdown()
-                  if hasattr(table, "to_markdown") else table[["rank", "elpd_loo", "elpd_diff", "se", "dse"]].round(2))
+            print(table[["rank", "elpd_loo", "elpd_diff", "weight", "se", "dse"]].round(2).to_string())
             print()
 
 

@@ -81,10 +81,10 @@ def test_recovers_a_simulated_between_session_sd():
     model = bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature)))
     fit = bayesmag.fit_physics(d, model)
     post = H.fit_sessions(d, fit)
-    assert post.effects == ("O", "S_x", "S_y", "S_z")
+    assert post.effects == ("O", "Ko", "S_x", "S_y", "S_z")
     tau = post.tau
     assert np.all((tau[:, 0] > 0.18) & (tau[:, 0] < 0.45)), tau
-    assert np.all(np.diag(tau[:, 1:]) < 0.03), tau
+    assert np.all(np.diag(tau[:, 2:]) < 0.03), tau
 
 
 def test_effects_that_too_few_runs_inform_are_dropped():
@@ -94,7 +94,7 @@ def test_effects_that_too_few_runs_inform_are_dropped():
     d = load_dataset("belsten2023")
     fit = bayesmag.fit_physics(d, bayesmag.PhysicsModel.paper())
     keep, dropped = H.select_effects(d, fit)
-    assert keep == ("O",) and set(dropped) == {"S_x", "S_y", "S_z"} and max(dropped.values()) < 3
+    assert keep == ("O",) and set(dropped) == {"Ko", "S_x", "S_y", "S_z"} and max(dropped.values()) < 3
 
 
 @pytest.mark.slow

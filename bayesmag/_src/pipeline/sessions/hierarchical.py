@@ -10,8 +10,9 @@ Model, per output axis, run :math:`r` and row :math:`t` of that run (rows in tim
 with :math:`J` the physics model's Jacobian at the LM estimate (its design matrix for the paper's
 affine model, so exact there), each column scaled to unit RMS over the training rows (so the
 effect of a parameter is in uT at a typical input), and :math:`E` the columns of the parameters
-that move between sessions (:data:`DEFAULT_EFFECTS`: offset and the three gain / cross-axis terms
-of the axis). Priors: :math:`\tau_j \sim \mathrm{HalfNormal}(s_\tau)`, :math:`s_\tau` =
+that move between sessions (:data:`DEFAULT_EFFECTS`: offset, thermal offset slope and the three gain /
+cross-axis terms of the axis, of which :func:`select_effects` keeps those that at least three runs
+inform on their own). Priors: :math:`\tau_j \sim \mathrm{HalfNormal}(s_\tau)`, :math:`s_\tau` =
 :data:`TAU_PRIOR_SCALE` = 0.5 uT (a session-to-session change of an RMS-input effect below 1 uT
 with 95 % prior probability: weakly informative for fluxgate / AMR sensors whose session shifts
 are tenths of a uT); :math:`\sigma \sim \mathrm{HalfNormal}(`:data:`SIGMA_PRIOR_SCALE`:math:`)`;
@@ -58,7 +59,7 @@ __all__ = ["DEFAULT_EFFECTS", "TAU_PRIOR_SCALE", "SIGMA_PRIOR_SCALE", "RunStats"
            "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "run_loglik", "loro_elpd", "whitened_gram"]
 
 #: Parameters with per-session random effects (the others are shared by all sessions).
-DEFAULT_EFFECTS = ("O", "S_x", "S_y", "S_z")
+DEFAULT_EFFECTS = ("O", "Ko", "S_x", "S_y", "S_z")
 #: Half-normal prior scale of every random-effect sd, uT of effect at an RMS input.
 TAU_PRIOR_SCALE = 0.5
 #: Half-normal prior scale of the AR(1) innovation sd, uT.
