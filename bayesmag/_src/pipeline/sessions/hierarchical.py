@@ -502,7 +502,7 @@ def _fold_lp(hs, m0, m1, m2, first, n, effects, ts, ss, t0, t1, t2, tf, tn):
 def _elpd_none(tr: RunStats, te: RunStats) -> np.ndarray:
     """No pooling: per-session effects fitted freely (shared parameters and AR(1) noise by GLS at the
     complete-pooling noise estimate); the new session's density is the mean over the training sessions'
-    fitted effects (plus the shared parameters' uncertainty)."""
+    fitted effects, all plugged in (their estimation uncertainty is left out: no pooling has no model of it)."""
     res = np.zeros(3)
     q = tr.effects.size
     R = tr.n.size
