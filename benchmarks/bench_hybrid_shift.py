@@ -1,6 +1,6 @@
 """Benchmark: hybrid + transfer intervals on simulated sessions, leaving each session out.
 
-Run:  python benchmarks/bench_hybrid_shift.py [--sessions 8] [--rows 600] [--seeds 0 1 2]
+Run:  python benchmarks/bench_hybrid_shift.py [--sessions 8] [--rows 600] [--seeds 0 1 2] [--transfer hierarchical]
 
 An independent check of the whole default pipeline (physics + residual network + conformal scale +
 transfer) on data it was not designed on: ``--sessions`` simulated campaigns, each a session with
@@ -42,9 +42,10 @@ def sessions(n: int, rows: int, seed: int) -> bayesmag.CalibrationData:
                     effects=[get_effect("axis_quadratic", out="y", inp="x", coeff=0.001)])
 
 
-def leave_one_out(path: Path, run: int, out: Path) -> dict:
+def leave_one_out(path: Path, run: int, out: Path, transfer: str = "loro") -> dict:
     raw = {"name": "hybrid_shift", "data": {"path": str(path)}, "split": {"kind": "by_run", "test_runs": [run]},
-           "physics": {"t0": "mean"}, "uq": {"method": "psqmc", "n_params": 100, "n_qmc": 128, "seed": 0},
+           "physics": {"t0": "mean"}, "uq": {"method": "psqmc", "n_params": 100, "n_qmc": 128, "seed": 0,
+                                             "transfer": transfer},
            "network": {"enabled": True, "learning_rate": 1e-3, "batch_size": 64, "max_epochs": 200, "patience": 20,
                        "mc_passes": 50, "seed": 0},
            "output": {"figures": False, "progress": False}}
@@ -66,10 +67,11 @@ def main(argv=None) -> int:
     ap.add_argument("--sessions", type=int, default=8)
     ap.add_argument("--rows", type=int, default=600)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--transfer", default="loro", help="[uq] transfer of every job (loro, hierarchical, ...)")
     a = ap.parse_args(argv)
     f = lambda v: " / ".join("-" if np.isnan(x) else f"{100 * x:.1f}" for x in v)   # noqa: E731
     print(f"## `python benchmarks/bench_hybrid_shift.py --sessions {a.sessions} --rows {a.rows} --seeds "
-          f"{' '.join(map(str, a.seeds))}`\n")
+          f"{' '.join(map(str, a.seeds))}{'' if a.transfer == 'loro' else ' --transfer ' + a.transfer}`\n")
     print("| seed | left-out session | rows in domain (%) | hybrid in-domain coverage x / y / z (%) | rows covered or "
           "flagged x / y / z (%) | physics in-domain coverage (%) | transfer sd x / y / z (uT) |")
     print("|---|---|---|---|---|---|---|")
@@ -79,7 +81,7 @@ def main(argv=None) -> int:
         for seed in a.seeds:
             write_csv(sessions(a.sessions, a.rows, seed), tmp / f"s{seed}.csv")
             for run in range(1, a.sessions + 1):
-                r = leave_one_out(tmp / f"s{seed}.csv", run, tmp / f"o{seed}_{run}")
+                r = leave_one_out(tmp / f"s{seed}.csv", run, tmp / f"o{seed}_{run}", a.transfer)
                 allr.append(r)
                 print(f"| {seed} | {run} | {100 * r['in_domain']:.1f} | {f(r['hybrid'])} | {f(r['flagged_or_covered'])} | "
                       f"{f(r['physics'])} | {' / '.join(f'{x:.3g}' for x in r['tau'])} |", flush=True)

@@ -95,6 +95,7 @@ class Calibration:
     s2: np.ndarray | None = None
     transfer_sd: np.ndarray | None = None    # (3,) between-session sd added for new recordings
     interval_scale: np.ndarray | None = None  # (3,) conformal interval factor of the hybrid prediction
+    sessions: Any = None                      # hierarchical session posterior (row-dependent transfer sd) or None
 
     @property
     def param_names(self):
@@ -121,7 +122,7 @@ class Calibration:
         return Predictor(fit=self.physics_fit(), sigma_in=self.sigma_in, residual_sd=self.residual_sd, network=net,
                          passes=passes, network_seed=nseed, fusion=fusion, transfer_sd=self.transfer_sd,
                          scale=self.interval_scale, domain=self.domain,
-                         uq=UQOptions(method, n_params, n_qmc, seed, chunk_size))
+                         uq=UQOptions(method, n_params, n_qmc, seed, chunk_size), sessions=self.sessions)
 
     @frame_io    # a pandas DataFrame in, a DataFrame out (frames.py); CalibrationData in, the dict below out
     def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
@@ -188,6 +189,11 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
         arrays["transfer_sd"] = np.asarray(predictor.transfer_sd, np.float64)
     if predictor.scale is not None:
         arrays["interval_scale"] = np.asarray(predictor.scale, np.float64)
+    sessions_meta = None
+    if getattr(predictor, "sessions", None) is not None:      # hierarchical transfer model (docs/sessions.md)
+        sessions_meta = predictor.sessions.meta()
+        for k, v in predictor.sessions.as_arrays().items():
+            arrays[f"sessions/{k}"] = np.asarray(v, np.float64)
     meta_net, version = None, FORMAT_VERSION
     if predictor.network is not None:
         network = network_to_artifact(predictor.network, passes=predictor.passes, seed=predictor.network_seed,
@@ -202,6 +208,7 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
         "model": model_to_json(fit.model), "param_names": list(fit.model.param_names),
         "axes": list(AXES), "likelihood": predictor.family, "level": level,
         "domain": dataclasses.asdict(predictor.domain), "config": config, "network": meta_net,
+        **({"sessions": sessions_meta} if sessions_meta is not None else {}),
         "arrays": {"file": "calibration.npz", "keys": sorted(arrays)},
         "units": {"field": "uT", "temperature": "C", "time": "s"},
     }
@@ -354,13 +361,21 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
                             f"{sorted(net_arrays)[:3]}...; the files are inconsistent.")
     if meta is not None:
         network = _check_network(meta, net_arrays, where)
+    ses_arrays = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("sessions/")}
+    sessions = None
+    if doc.get("sessions") is not None or ses_arrays:
+        from bayesmag._src.pipeline.sessions.hierarchical import posterior_from_artifact
+        try:
+            sessions = posterior_from_artifact(doc.get("sessions"), ses_arrays, model.param_names)
+        except ValueError as e:
+            raise ArtifactError(f"{where}: {e} The calibration is damaged.") from None
     return Calibration(model=model, theta=theta, cov=cov, sigma_in=sigma_in, residual_sd=residual_sd,
                        domain=Domain(tuple(low.tolist()), tuple(high.tolist()), margin,
                                      None if out_lo is None else tuple(out_lo.tolist()),
                                      None if out_hi is None else tuple(out_hi.tolist()),
                                      None if rate_hi is None else tuple(rate_hi.tolist())),
                        likelihood=likelihood, level=float(level), config=doc.get("config", {}), network=network,
-                       package_version=doc.get("package_version", ""), s2=s2, **extra)
+                       package_version=doc.get("package_version", ""), s2=s2, sessions=sessions, **extra)
 
 
 def _check_network(meta, arrays: dict, where: str) -> dict:

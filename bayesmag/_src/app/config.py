@@ -70,7 +70,7 @@ class UQConfig:
     seed: int = 0
     chunk_size: int = 256
     residual_term: bool = True          # add the fit's unexplained residual variance (false = the paper's total)
-    transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "off"
+    transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" (per-run random effects, Laplace; docs/sessions.md) | "hierarchical_nuts" (the same by NUTS) | "off"
     reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
 
 
@@ -187,7 +187,7 @@ _CHOICES = {
     "uq.method": ("psqmc", "mc", "analytic"),
     "data.temperature_unit": ("C", "K"),
     "network.interval_calibration": ("conformal", "none"),
-    "uq.transfer": ("loro", "off"),
+    "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
 }
 
 

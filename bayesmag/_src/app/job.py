@@ -154,14 +154,20 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
     timings["physics_uq"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    sessions = None
     if cfg.uq.transfer == "loro":
         tr = estimate_transfer(train, fit)       # leave-one-run-out folds in one compiled fit
+    elif cfg.uq.transfer.startswith("hierarchical"):
+        from bayesmag._src.pipeline.sessions import hierarchical_transfer
+        tr, sessions = hierarchical_transfer(train, fit, method="nuts" if cfg.uq.transfer.endswith("nuts") else
+                                             "laplace", level=cfg.uq.level, seed=cfg.uq.seed)
     else:
         tr = TransferEstimate(np.zeros(3), "off", {})
-    predictor = dataclasses.replace(predictor, transfer_sd=tr.sd)
+    predictor = dataclasses.replace(predictor, transfer_sd=None if sessions is not None else tr.sd,
+                                    sessions=sessions)
     timings["transfer"] = time.perf_counter() - t
     new = ~np.isin(test.run, train.run)
-    comp = Components(uq)
+    comp = Components(uq, None, predictor.transfer_part(test))
     paper = dataclasses.replace(predictor, residual_sd=np.zeros(3), transfer_sd=None)
     return PhysicsStage(fit, sigma_in, sigma_src, np.sqrt(resid_var), predictor, uq,
                         predictor.compose(comp, new_session=new), paper.compose(comp), tr, new)

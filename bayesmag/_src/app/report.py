@@ -604,6 +604,13 @@ def transfer_section(m: dict) -> list[str]:
         for r, v in rows:
             rm = " / ".join(f"{v['rmse'][a]:.3g}" for a in AXES) if v["rmse"] else "not refitted"
             lines.append(f"| {r} | {v['n_in_domain']} | {rm} |")
+    elif tr["method"].startswith("hierarchical"):
+        lines[-1] = lines[-1].replace("the between-session sd", "the root-mean-square between-session sd over "
+                                      "the training rows")
+        lines.append("The between-session sd depends on the row (hierarchical model of per-run parameter changes, "
+                     "docs/sessions.md): each row of a new recording gets its own (column `transfer`).")
+        if tr.get("warning"):
+            lines.append(f"> **Warning.** {tr['warning']}")
     else:
         lines.append(f"> **Warning.** {tr['warning']}")
     n_new = tr.get("n_test_rows_new_session", 0)

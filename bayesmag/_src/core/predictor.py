@@ -66,10 +66,12 @@ class UQOptions:
 
 
 class Components(NamedTuple):
-    """The separately computed pieces of a prediction: physics UQ and (optional) MC network output."""
+    """The separately computed pieces of a prediction: physics UQ, (optional) MC network output and
+    (optional) row-dependent transfer sd ``(n, 3)`` of a hierarchical session model."""
 
     physics: Any                 # PhysicsUQ
     nn: Any = None               # MCPrediction or None
+    transfer: Any = None         # (n, 3) transfer sd from Predictor.sessions, or None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,7 +174,10 @@ class Predictor:
     pooled over all passes) or None, predicted with ``passes`` MC passes from ``network_seed``; ``fusion``: one of
     :data:`FUSIONS`; ``transfer_sd``: (3,) between-session sd or None; ``scale``: (3,) interval
     factor (:func:`conformal_scale`) or None; ``domain``: the
-    training :class:`~bayesmag._src.core.domain.Domain` or None; ``uq``: physics UQ settings.
+    training :class:`~bayesmag._src.core.domain.Domain` or None; ``uq``: physics UQ settings;
+    ``sessions``: a hierarchical session posterior (``transfer_sd(fit, data) -> (n, 3)``, e.g.
+    :class:`~bayesmag._src.pipeline.sessions.SessionPosterior`) whose row-dependent transfer sd
+    replaces ``transfer_sd``, or None.
     """
 
     fit: Any
@@ -186,6 +191,7 @@ class Predictor:
     scale: np.ndarray | None = None
     domain: Any = None
     uq: UQOptions = UQOptions()
+    sessions: Any = None
 
     def __post_init__(self):
         if self.fusion not in FUSIONS:
@@ -222,15 +228,27 @@ class Predictor:
                                              for k in pieces[0].shape})
 
     def components(self, data, *, progress: bool = False) -> Components:
-        """Physics UQ and the MC network output for every row of ``data``."""
-        return Components(self.physics_part(data, progress=progress), self.network_part(data))
+        """Physics UQ, the MC network output and the row-dependent transfer sd for every row of ``data``."""
+        return Components(self.physics_part(data, progress=progress), self.network_part(data),
+                          self.transfer_part(data))
+
+    def transfer_part(self, data):
+        """Row-dependent transfer sd ``(n, 3)`` of the hierarchical session model (None without one)."""
+        return None if self.sessions is None else self.sessions.transfer_sd_for(self.fit, data)
 
     def compose(self, c: Components, *, fusion: str | None = None, new_session=True) -> Prediction:
         """The prediction from already computed components (``fusion`` overrides the predictor's;
         ``new_session``: bool or (n,) mask of rows from sessions the calibration was not fitted on)."""
         spec = None if self.network is None else self.network.spec
+        transfer = self.transfer_sd
+        if self.sessions is not None:
+            if c.transfer is None and np.any(new_session):
+                raise ValueError("this predictor's transfer sd depends on the rows (hierarchical session model): "
+                                 "build the components with Predictor.components(data) or Components(..., "
+                                 "transfer=Predictor.transfer_part(data)).")
+            transfer = c.transfer
         return compose(c.physics, c.nn, residual_sd=self.residual_sd, fusion=fusion or self.fusion,
-                       family=self.family, fixed_shape=None if spec is None else spec.fixed_shape, transfer_sd=self.transfer_sd,
+                       family=self.family, fixed_shape=None if spec is None else spec.fixed_shape, transfer_sd=transfer,
                        scale=self.scale, new_session=new_session)
 
     def predict(self, data, *, new_session=True, progress: bool = False) -> Prediction:

@@ -338,7 +338,7 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
                 pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(nets)),
                                          scale=np.maximum(conformal_quantile(np.concatenate(ratios), cfg.uq.level), 1.0))
             t = time.perf_counter()
-            comp = Components(uq, pr.network_part(test))
+            comp = Components(uq, pr.network_part(test), pr.transfer_part(test))
             pred = pr.compose(comp, new_session=new_session)
             timings["hybrid_inference"] += time.perf_counter() - t
 

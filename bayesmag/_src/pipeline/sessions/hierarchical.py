@@ -1,0 +1,610 @@
+r"""Between-session (per-run) random effects: a hierarchical Gaussian model with AR(1) noise within runs.
+
+Model, per output axis, run :math:`r` and row :math:`t` of that run (rows in time order):
+
+.. math::
+    y_{rt} = J_{rt}^\top(\mu + E\,u_r) + \varepsilon_{rt}, \qquad u_r \sim N(0, \mathrm{diag}(\tau^2)),\\
+    \varepsilon_{rt} = \rho\,\varepsilon_{r,t-1} + \eta_{rt}, \quad \eta \sim N(0, \sigma^2), \quad
+    \varepsilon_{r1} \sim N(0, \sigma^2 / (1-\rho^2)),
+
+with :math:`J` the physics model's Jacobian at the LM estimate (its design matrix for the paper's
+affine model, so exact there), each column scaled to unit RMS over the training rows (so the
+effect of a parameter is in uT at a typical input), and :math:`E` the columns of the parameters
+that move between sessions (:data:`DEFAULT_EFFECTS`: offset, thermal offset slope and the three gain /
+cross-axis terms of the axis, of which :func:`select_effects` keeps those that at least three runs
+inform on their own). Priors: :math:`\tau_j \sim \mathrm{HalfNormal}(s_\tau)`, :math:`s_\tau` =
+:data:`TAU_PRIOR_SCALE` = 0.5 uT (a session-to-session change of an RMS-input effect below 1 uT
+with 95 % prior probability: weakly informative for fluxgate / AMR sensors whose session shifts
+are tenths of a uT); :math:`\sigma \sim \mathrm{HalfNormal}(`:data:`SIGMA_PRIOR_SCALE`:math:`)`;
+:math:`\rho \sim U(-1, 1)`; :math:`\mu` flat (Laplace path: integrated out exactly, i.e. REML) or
+:math:`N(\hat\theta_{LM}, (10\,\mathrm{uT})^2)` in scaled units (NUTS).
+
+Everything the likelihood needs is four :math:`(p+1)\times(p+1)` lag-moment matrices per run
+(:func:`run_stats`): the AR(1) Prais-Winsten whitened Gram matrix of :math:`[J, y]` is
+:math:`M_0 - \rho (M_1 + M_1^\top) + \rho^2 M_2 + (1-\rho^2) F`, so a fit costs the same for
+3 000 or 300 000 rows. The random effects and :math:`\mu` are integrated out in closed form
+(Woodbury), which leaves :math:`q + 2` hyperparameters per axis.
+
+Two posteriors of the hyperparameters :math:`h = (\log\tau, \log\sigma, \operatorname{atanh}\rho)`:
+
+* :func:`fit_laplace` -- the mode of the collapsed posterior (BFGS on JAX gradients) and the inverse
+  Hessian there, sampled (default path, well under a second);
+* :func:`fit_nuts` -- NumPyro NUTS on the *non-centred* model with explicit per-run effects
+  :math:`u_r = \tau \odot z_r`, :math:`z_r \sim N(0, I)`, initialised at the LM fit.
+
+Either gives a :class:`SessionPosterior`: the new-session predictive at a row with scaled Jacobian
+:math:`f` is the scale mixture :math:`N(\bar y, v)`, :math:`v = \sum_j \tau_j^2 f_{E,j}^2 + f^\top C f +
+\sigma^2/(1-\rho^2)` over the posterior of :math:`(\tau, \sigma, \rho)` (:math:`C`: posterior covariance
+of :math:`\mu`). Few runs leave :math:`\tau` uncertain and the mixture heavy-tailed; it is matched, row
+by row, to a Student-t by the first two moments of :math:`v` (a scaled inverse chi-square mixing law
+has :math:`\mathrm{Var}\,v / (\mathrm E v)^2 = 2/(\nu - 4)`), and :meth:`SessionPosterior.transfer_sd`
+returns the Gaussian sd with the same central ``level`` interval, less the within-session noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+from bayesmag._src.core.physics import AXES, inputs_from_data
+
+__all__ = ["DEFAULT_EFFECTS", "TAU_PRIOR_SCALE", "SIGMA_PRIOR_SCALE", "RunStats", "SessionPosterior", "run_stats",
+           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "run_loglik", "loro_elpd", "whitened_gram"]
+
+#: Parameters with per-session random effects (the others are shared by all sessions).
+DEFAULT_EFFECTS = ("O", "Ko", "S_x", "S_y", "S_z")
+#: Half-normal prior scale of every random-effect sd, uT of effect at an RMS input.
+TAU_PRIOR_SCALE = 0.5
+#: Half-normal prior scale of the AR(1) innovation sd, uT.
+SIGMA_PRIOR_SCALE = 1.0
+#: Posterior draws of the hyperparameters kept for the predictive moments.
+N_DRAWS = 400
+
+
+class RunStats(NamedTuple):
+    """Per-run, per-axis lag moments of ``z = [J / scale, y]`` (rows in time order): arrays (3, R, p+1, p+1)."""
+
+    m0: np.ndarray      # sum_{t>=2} z_t z_t^T
+    m1: np.ndarray      # sum_{t>=2} z_t z_{t-1}^T
+    m2: np.ndarray      # sum_{t>=2} z_{t-1} z_{t-1}^T
+    first: np.ndarray   # z_1 z_1^T
+    n: np.ndarray       # (R,) rows per run
+    scale: np.ndarray   # (3, p) column RMS of J
+    effects: np.ndarray  # (q,) indices of the parameters with random effects
+    runs: np.ndarray    # (R,) run ids
+
+    def select(self, keep: np.ndarray) -> "RunStats":
+        """The stats of the runs ``keep`` (bool (R,) or indices)."""
+        k = np.asarray(keep)
+        return self._replace(m0=self.m0[:, k], m1=self.m1[:, k], m2=self.m2[:, k], first=self.first[:, k],
+                             n=self.n[k], runs=self.runs[k])
+
+
+def _jacobian(fit, data) -> np.ndarray:
+    """(3, n, p) Jacobian of the physics prediction at the fit's parameters (the design matrix if linear)."""
+    from bayesmag._src.core.fit import _jac_jit, _Problem
+    return np.asarray(_jac_jit(_Problem(fit.model), jnp.asarray(fit.theta), inputs_from_data(data)))
+
+
+def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.ndarray | None = None) -> RunStats:
+    """Lag-moment matrices of every run of ``data`` (with a reference) for :class:`~bayesmag.PhysicsFit` ``fit``.
+
+    ``y`` is linearised at the fit: ``y - f(theta) + J theta`` (equal to ``y`` for a linear model).
+    ``scale``: column scales to reuse (default: the RMS of each Jacobian column over ``data``).
+    """
+    names = list(fit.model.param_names)
+    missing = [e for e in effects if e not in names]
+    if missing:
+        raise ValueError(f"random effects {missing} are not parameters of the model {names}.")
+    J = _jacobian(fit, data)                                               # (3, n, p)
+    pred = np.asarray(fit.predict(inputs_from_data(data)))
+    y = np.asarray(data.b_ref) - pred + np.einsum("anp,ap->na", J, np.asarray(fit.theta))
+    if scale is None:
+        scale = np.sqrt(np.mean(J**2, axis=1))
+        scale = np.where(scale > 0, scale, 1.0)
+    z = np.concatenate([J / scale[:, None, :], y.T[:, :, None]], axis=2)   # (3, n, p+1)
+    order = np.lexsort((data.time, data.run))
+    z, run = z[:, order], np.asarray(data.run)[order]
+    runs, first_idx = np.unique(run, return_index=True)
+    onehot = (run[None, :] == runs[:, None]).astype(np.float64)            # (R, n)
+    same = np.r_[False, run[1:] == run[:-1]]                               # row t has a predecessor in its run
+    zp = np.concatenate([np.zeros_like(z[:, :1]), z[:, :-1]], axis=1)
+    w = onehot * same[None, :]
+    m0 = np.einsum("rn,ani,anj->arij", w, z, z)
+    m1 = np.einsum("rn,ani,anj->arij", w, z, zp)
+    m2 = np.einsum("rn,ani,anj->arij", w, zp, zp)
+    zf = z[:, first_idx]
+    first = np.einsum("ari,arj->arij", zf, zf)
+    return RunStats(m0, m1, m2, first, onehot.sum(1), scale, np.array([names.index(e) for e in effects], int), runs)
+
+
+def whitened_gram(m0, m1, m2, first, rho):
+    """AR(1)-whitened Gram matrix of ``[J, y]`` of one run: ``M0 - rho (M1 + M1^T) + rho^2 M2 + (1-rho^2) F``."""
+    return m0 - rho * (m1 + jnp.swapaxes(m1, -1, -2)) + rho**2 * m2 + (1 - rho**2) * first
+
+
+def run_loglik(G, n, mu, L, sigma2, rho):
+    r"""Log density of one run's rows, the random effect :math:`u = L z`, :math:`z \sim N(0, I)` integrated out.
+
+    ``G``: whitened Gram (p+1, p+1) of ``[J, y]``; ``mu``: (p,) centre; ``L``: (p, k) factor of the
+    random-effect covariance (k = 0: none). Woodbury with :math:`P = I + L^\top G_{XX} L / \sigma^2`.
+    """
+    p = mu.shape[0]
+    gxx, gxy, gyy = G[:p, :p], G[:p, p], G[p, p]
+    rr = gyy - 2 * mu @ gxy + mu @ gxx @ mu
+    out = -0.5 * n * jnp.log(2 * jnp.pi * sigma2) + 0.5 * jnp.log1p(-rho**2) - 0.5 * rr / sigma2
+    if L.shape[1] == 0:
+        return out
+    b = L.T @ (gxy - gxx @ mu)
+    P = jnp.eye(L.shape[1]) + L.T @ gxx @ L / sigma2
+    c = jnp.linalg.cholesky(P)
+    v = jax.scipy.linalg.solve_triangular(c, b, lower=True)
+    return out - jnp.sum(jnp.log(jnp.diag(c))) + 0.5 * (v @ v) / sigma2**2
+
+
+def _unpack(h, q):
+    return jnp.exp(h[:q]), jnp.exp(h[q]), jnp.tanh(h[q + 1])
+
+
+def _collapsed(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
+    """Log posterior of ``h = (log tau (q), log sigma, atanh rho)`` with ``mu`` (flat) and the effects
+    integrated out, Jacobians of the transforms included; also ``mu_hat`` and its covariance."""
+    q = effects.shape[0]
+    p = m0.shape[-1] - 1
+    tau, sigma, rho = _unpack(h, q)
+    s2 = sigma**2
+    G = whitened_gram(m0, m1, m2, first, rho)                              # (R, p+1, p+1)
+    E = jnp.zeros((p, q)).at[effects, jnp.arange(q)].set(tau)             # (p, q) = E diag(tau)
+
+    def per_run(Gr, nr):
+        # whitened V = s2 I + B B^T, B = W J E: V^{-1} = (I - B P^{-1} B^T / s2) / s2, P = I + B^T B / s2
+        P = jnp.eye(q) + E.T @ Gr[:p, :p] @ E / s2
+        c = jnp.linalg.cholesky(P)
+        A = jax.scipy.linalg.solve_triangular(c, E.T @ Gr[:p, :], lower=True)      # (q, p+1)
+        const = -0.5 * nr * jnp.log(2 * jnp.pi * s2) + 0.5 * jnp.log1p(-rho**2) - jnp.sum(jnp.log(jnp.diag(c)))
+        return (Gr - A.T @ A / s2) / s2, const
+
+    Vinv, consts = jax.vmap(per_run)(G, n)
+    S = Vinv.sum(0)
+    H, g, c = S[:p, :p], S[:p, p], S[p, p]
+    ch = jnp.linalg.cholesky(H)
+    w = jax.scipy.linalg.solve_triangular(ch, g, lower=True)
+    mu = jax.scipy.linalg.cho_solve((ch, True), g)
+    lp = consts.sum() - 0.5 * (c - w @ w) + reml * (0.5 * p * jnp.log(2 * jnp.pi) - jnp.sum(jnp.log(jnp.diag(ch))))
+    # priors: half-normal tau, sigma (+ log Jacobians), uniform rho on (-1, 1) (+ atanh Jacobian)
+    lp += jnp.sum(-0.5 * (tau / tau_scale) ** 2 + h[:q]) - 0.5 * (sigma / sigma_scale) ** 2 + h[q]
+    lp += jnp.log1p(-rho**2)
+    cov = jax.scipy.linalg.cho_solve((ch, True), jnp.eye(p))
+    return lp, mu, cov
+
+
+@functools.partial(jax.jit, static_argnums=())
+def _neg_lp_and_grad(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
+    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml)[0]  # noqa: E731
+    return jax.value_and_grad(f)(h)
+
+
+@jax.jit
+def _hessian(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
+    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml)[0]  # noqa: E731
+    return jax.hessian(f)(h)
+
+
+_mu_cov = jax.jit(jax.vmap(lambda h, m0, m1, m2, first, n, effects, ts, ss:
+                           _collapsed(h, m0, m1, m2, first, n, effects, ts, ss)[1:],
+                           in_axes=(0, None, None, None, None, None, None, None, None)))
+
+
+@dataclasses.dataclass(frozen=True)
+class SessionPosterior:
+    """What a new session's predictive needs, per axis: moments of the variance parts and the mean's covariance.
+
+    ``w_mean`` (3, q+1) / ``w_cov`` (3, q+1, q+1): posterior mean / covariance of
+    ``(tau_1^2..tau_q^2, sigma^2/(1-rho^2))``; ``mu_cov`` (3, p, p): posterior covariance of ``mu``
+    (scaled units); ``scale`` (3, p): Jacobian column scales; ``effects``: names with random effects;
+    ``level``: the central level the equivalent sd is matched at; ``n_runs``: training runs;
+    ``method``: "laplace" or "nuts"; ``mu`` (3, p): posterior mean of ``mu`` in model units.
+    """
+
+    w_mean: np.ndarray
+    w_cov: np.ndarray
+    mu_cov: np.ndarray
+    scale: np.ndarray
+    effects: tuple
+    level: float
+    n_runs: int
+    method: str
+    mu: np.ndarray
+    effect_index: tuple = ()
+
+    @property
+    def tau(self) -> np.ndarray:
+        """(3, q) posterior root-mean-square random-effect sd, uT at an RMS input."""
+        return np.sqrt(np.maximum(self.w_mean[:, :-1], 0))
+
+    def variance_moments(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per row and axis: mean and variance of the new-session variance ``v``, and the noise part's mean.
+
+        ``J``: (3, n, p) Jacobian in model units. Returns three (n, 3) arrays.
+        """
+        return _moments(np.asarray(J) / self.scale[:, None, :], self.w_mean, self.w_cov, self.mu_cov,
+                        np.asarray(self.effect_index, int))
+
+    def predictive_t(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Row-wise Student-t of the new-session error: ``(df, scale)`` (n, 3) each (moment matched)."""
+        m, v, _ = self.variance_moments(J)
+        ratio = v / np.maximum(m, 1e-300) ** 2
+        df = 4.0 + 2.0 / np.maximum(ratio, 1e-12)
+        df = np.minimum(df, 1e6)
+        return df, np.sqrt(m * (df - 2) / df)
+
+    def new_session_variance(self, J: np.ndarray, level: float | None = None) -> np.ndarray:
+        """(n, 3) Gaussian variance with the same central ``level`` interval as the new-session predictive."""
+        level = self.level if level is None else level
+        df, s = self.predictive_t(J)
+        u = 0.5 + level / 2
+        return (scipy.stats.t.ppf(u, df) * s / scipy.stats.norm.ppf(u)) ** 2
+
+    def transfer_sd(self, J: np.ndarray, level: float | None = None) -> np.ndarray:
+        """(n, 3) transfer sd: the equivalent new-session variance less the mean within-session noise."""
+        _, _, noise = self.variance_moments(J)
+        return np.sqrt(np.maximum(self.new_session_variance(J, level) - noise, 0.0))
+
+    def transfer_sd_for(self, fit, data) -> np.ndarray:
+        """(n, 3) transfer sd of every row of ``data`` for the physics ``fit`` (its Jacobian at ``fit.theta``)."""
+        if data.n == 0:
+            return np.zeros((0, 3))
+        return self.transfer_sd(_jacobian(fit, data))
+
+    def as_arrays(self) -> dict:
+        return {"w_mean": self.w_mean, "w_cov": self.w_cov, "mu_cov": self.mu_cov, "scale": self.scale,
+                "mu": self.mu}
+
+    def meta(self) -> dict:
+        return {"effects": list(self.effects), "effect_index": list(map(int, self.effect_index)),
+                "level": float(self.level), "n_runs": int(self.n_runs), "method": self.method}
+
+    def as_dict(self) -> dict:
+        """JSON summary: per axis the random-effect sds and the noise sd (posterior root means)."""
+        return {"method": self.method, "n_runs": int(self.n_runs), "effects": list(self.effects),
+                "tau": {ax: dict(zip(self.effects, map(float, self.tau[a]))) for a, ax in enumerate(AXES)},
+                "noise_sd": {ax: float(np.sqrt(self.w_mean[a, -1])) for a, ax in enumerate(AXES)}}
+
+
+def _moments(f, w_mean, w_cov, mu_cov, eidx):
+    """Mean / variance of ``v = sum_j tau_j^2 f_j^2 + noise + f^T C f`` per row: (n, 3) each, plus noise mean."""
+    fe2 = f[:, :, eidx] ** 2                                                # (3, n, q)
+    wvec = np.concatenate([fe2, np.ones(fe2.shape[:2] + (1,))], axis=2)     # (3, n, q+1)
+    m = np.einsum("anq,aq->na", wvec, w_mean) + np.einsum("anp,apk,ank->na", f, mu_cov, f)
+    v = np.einsum("anq,aqk,ank->na", wvec, w_cov, wvec)
+    return m, np.maximum(v, 0.0), np.broadcast_to(w_mean[:, -1], m.shape).copy()
+
+
+def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level, method) -> SessionPosterior:
+    w = np.concatenate([tau2, noise[..., None]], axis=-1)                   # (3, K, q+1)
+    w_mean = w.mean(1)
+    w_cov = np.einsum("aki,akj->aij", w - w_mean[:, None], w - w_mean[:, None]) / max(w.shape[1] - 1, 1)
+    return SessionPosterior(w_mean, w_cov, mu_draws_cov, stats.scale, tuple(names[i] for i in stats.effects),
+                            float(level), int(stats.n.size), method, mu_mean / stats.scale,
+                            effect_index=tuple(int(i) for i in stats.effects))
+
+
+def _init_h(stats: RunStats, a: int, tau_scale: float) -> np.ndarray:
+    q = stats.effects.size
+    g = stats.m0[a].sum(0) + stats.first[a].sum(0)
+    p = g.shape[0] - 1
+    beta = np.linalg.lstsq(g[:p, :p], g[:p, p], rcond=None)[0]
+    rss = max(g[p, p] - beta @ g[:p, p], 1e-12)
+    s2 = rss / max(stats.n.sum() - p, 1)
+    return np.r_[np.full(q, np.log(0.2 * tau_scale)), 0.5 * np.log(s2 * 0.3), np.arctanh(0.8)]
+
+
+def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
+                sigma_scale: float = SIGMA_PRIOR_SCALE, draws: int = N_DRAWS, seed: int = 0,
+                return_modes: bool = False) -> SessionPosterior:
+    """Laplace approximation of the collapsed hyperparameter posterior (module docstring), per axis.
+
+    The mode by BFGS (JAX gradients), the covariance the inverse Hessian there; ``draws`` draws of
+    ``h`` from it give the variance moments and, averaged, the covariance of ``mu``.
+    """
+    rng = np.random.default_rng(seed)
+    q = stats.effects.size
+    eff = jnp.asarray(stats.effects)
+    tau2, noise, covs, mus, modes = [], [], [], [], []
+    for a in range(3):
+        args = (jnp.asarray(stats.m0[a]), jnp.asarray(stats.m1[a]), jnp.asarray(stats.m2[a]),
+                jnp.asarray(stats.first[a]), jnp.asarray(stats.n), eff, tau_scale, sigma_scale)
+
+        def fg(h):
+            v, g = _neg_lp_and_grad(jnp.asarray(h), *args)
+            v, g = float(v), np.asarray(g, np.float64)
+            return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
+
+        res = scipy.optimize.minimize(fg, _init_h(stats, a, tau_scale), jac=True, method="BFGS",
+                                      options={"gtol": 1e-6, "maxiter": 500})
+        h0 = res.x
+        Hh = np.asarray(_hessian(jnp.asarray(h0), *args))
+        w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
+        cov_h = (V / np.maximum(w, 1e-8)) @ V.T
+        hs = rng.multivariate_normal(h0, cov_h, size=draws, method="eigh")
+        tau2.append(np.exp(2 * hs[:, :q]))
+        rho = np.tanh(hs[:, q + 1])
+        noise.append(np.exp(2 * hs[:, q]) / (1 - rho**2))
+        mu_k, cov_k = _mu_cov(jnp.asarray(hs), *args)
+        mu_k, cov_k = np.asarray(mu_k), np.asarray(cov_k)
+        ok = np.isfinite(mu_k).all(1) & np.isfinite(cov_k).all((1, 2))
+        covs.append(cov_k[ok].mean(0) + np.cov(mu_k[ok].T))       # law of total covariance over h
+        mus.append(mu_k[ok].mean(0))
+        modes.append(h0)
+    post = _summarise(np.stack(tau2), np.stack(noise), np.stack(covs), np.stack(mus), stats, names, level, "laplace")
+    return (post, np.stack(modes)) if return_modes else post
+
+
+def _nuts_model(m0, m1, m2, first, n, effects, mu0, tau_scale, sigma_scale):
+    """The non-centred hierarchical model of one axis in NumPyro (explicit per-run effects)."""
+    import numpyro
+    import numpyro.distributions as dist
+
+    R, q = m0.shape[0], effects.shape[0]
+    p = m0.shape[-1] - 1
+    mu = numpyro.sample("mu", dist.Normal(mu0, 10.0).to_event(1))
+    tau = numpyro.sample("tau", dist.HalfNormal(tau_scale * jnp.ones(q)).to_event(1))
+    sigma = numpyro.sample("sigma", dist.HalfNormal(sigma_scale))
+    rho = numpyro.sample("rho", dist.Uniform(-1.0, 1.0))
+    z = numpyro.sample("z", dist.Normal(jnp.zeros((R, q)), 1.0).to_event(2))
+    theta = mu[None, :] + jnp.zeros((R, p)).at[:, effects].set(tau * z)    # (R, p)
+    G = whitened_gram(m0, m1, m2, first, rho)
+    ll = jax.vmap(lambda Gr, nr, th: run_loglik(Gr, nr, th, jnp.zeros((p, 0)), sigma**2, rho))(G, n, theta)
+    numpyro.factor("runs", ll.sum())
+
+
+def fit_nuts(stats: RunStats, names, fit, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
+             sigma_scale: float = SIGMA_PRIOR_SCALE, warmup: int = 500, samples: int = 500, seed: int = 0,
+             return_draws: bool = False):
+    """NUTS (NumPyro) on the non-centred model, one chain per axis, initialised at the LM fit."""
+    from numpyro.infer import MCMC, NUTS, init_to_value
+
+    q = stats.effects.size
+    tau2, noise, covs, mus, raw = [], [], [], [], []
+    for a in range(3):
+        args = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n))
+        mu0 = jnp.asarray(np.asarray(fit.theta[a]) * stats.scale[a])
+        h = _init_h(stats, a, tau_scale)
+        init = {"mu": mu0, "tau": jnp.exp(jnp.asarray(h[:q])), "sigma": float(np.exp(h[q])),
+                "rho": float(np.tanh(h[q + 1])), "z": jnp.zeros((stats.n.size, q))}
+        kernel = NUTS(_nuts_model, init_strategy=init_to_value(values=init), target_accept_prob=0.9)
+        mcmc = MCMC(kernel, num_warmup=warmup, num_samples=samples, progress_bar=False)
+        mcmc.run(jax.random.PRNGKey(seed + a), *args, jnp.asarray(stats.effects), mu0, tau_scale, sigma_scale)
+        s = {k: np.asarray(v) for k, v in mcmc.get_samples().items()}
+        tau2.append(s["tau"] ** 2)
+        noise.append(s["sigma"] ** 2 / (1 - s["rho"] ** 2))
+        covs.append(np.cov(s["mu"].T))
+        mus.append(s["mu"].mean(0))
+        raw.append(s)
+    post = _summarise(np.stack(tau2), np.stack(noise), np.stack(covs), np.stack(mus), stats, names, level, "nuts")
+    return (post, raw) if return_draws else post
+
+
+#: A random effect is kept only if at least this many runs inform it on their own (:func:`select_effects`).
+MIN_INFORMING_RUNS = 3
+#: A run informs a parameter if its Jacobian column varies within the run by more than this share of the
+#: column's RMS over all rows (else the run sees it only as a constant, confounded with the offset).
+INFORM_FRACTION = 0.1
+
+
+def select_effects(train, fit, effects: Sequence[str] = DEFAULT_EFFECTS,
+                   min_runs: int = MIN_INFORMING_RUNS) -> tuple[tuple[str, ...], dict]:
+    """The candidate ``effects`` that at least ``min_runs`` runs inform on their own, and the dropped ones
+    with their counts: a session's change of a gain is only seen in runs that sweep that field axis (the
+    offset ``O``, a constant column, is informed by every run). Counted on the x axis's Jacobian (the
+    same design for every axis of the paper's model).
+    """
+    names = list(fit.model.param_names)
+    J = _jacobian(fit, train)[0]
+    rms = np.sqrt(np.mean(J**2, axis=0))
+    keep, dropped = [], {}
+    for e in effects:
+        if e not in names:
+            continue
+        j = names.index(e)
+        col = J[:, j]
+        const = np.ptp(col) <= 1e-12 * max(rms[j], 1e-300)
+        count = sum(bool(const or col[train.run == r].std() > INFORM_FRACTION * rms[j]) for r in np.unique(train.run))
+        (keep.append(e) if count >= min_runs else dropped.__setitem__(e, count))
+    return tuple(keep), dropped
+
+
+def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
+                 level: float = 0.95, seed: int = 0, **kw) -> SessionPosterior:
+    """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
+    effects are the ``effects`` that enough runs inform (:func:`select_effects`)."""
+    runs = np.unique(train.run)
+    if runs.size < 2:
+        raise ValueError(f"the hierarchical transfer model needs at least 2 training runs (sessions); the "
+                         f"training data hold {runs.size}. Use [uq] transfer = \"loro\" or \"off\".")
+    eff, _ = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
+    if not eff:
+        eff = ("O",) if "O" in fit.model.param_names else ()
+    stats = run_stats(train, fit, eff)
+    if method == "laplace":
+        return fit_laplace(stats, fit.model.param_names, level=level, seed=seed, **kw)
+    if method == "nuts":
+        return fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, **kw)
+    raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
+
+
+def loro_elpd(stats: RunStats, names, *, pooling: str = "partial", seed: int = 0,
+              tau_scale: float = TAU_PRIOR_SCALE) -> np.ndarray:
+    """Leave-one-run-out log predictive density of every run's rows (jointly, AR(1) and effects integrated), (R, 3).
+
+    ``pooling``: ``"partial"`` (the hierarchical model), ``"complete"`` (no random effects: one set of
+    parameters for every session) or ``"none"`` (every session its own effects, unconstrained; a new
+    session is predicted by the empirical mixture of the training sessions' fitted effects).
+    Each fold refits on the other runs (Laplace; ``mu`` and the effects integrated, the hyperparameters
+    by the mean density over the Laplace draws).
+    """
+    R = stats.n.size
+    out = np.zeros((R, 3))
+    q = stats.effects.size
+    for k in range(R):
+        keep = np.arange(R) != k
+        tr, te = stats.select(keep), stats.select(np.array([k]))
+        sub = tr if pooling != "complete" else tr._replace(effects=stats.effects[:0])
+        if pooling == "none":
+            out[k] = _elpd_none(tr, te)
+            continue
+        post, modes = fit_laplace(sub, names, seed=seed, return_modes=True, draws=200, tau_scale=tau_scale)
+        out[k] = _elpd_fold(sub, te, modes, seed)
+    return out
+
+
+def _elpd_fold(tr: RunStats, te: RunStats, modes, seed) -> np.ndarray:
+    """log mean over Laplace draws of p(y_left | h): mu ~ N(mu_hat(h), C(h)) and the effects integrated."""
+    rng = np.random.default_rng(seed)
+    q = tr.effects.size
+    res = np.zeros(3)
+    for a in range(3):
+        args = (jnp.asarray(tr.m0[a]), jnp.asarray(tr.m1[a]), jnp.asarray(tr.m2[a]), jnp.asarray(tr.first[a]),
+                jnp.asarray(tr.n), jnp.asarray(tr.effects), TAU_PRIOR_SCALE, SIGMA_PRIOR_SCALE)
+        Hh = np.asarray(_hessian(jnp.asarray(modes[a]), *args))
+        w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
+        hs = rng.multivariate_normal(modes[a], (V / np.maximum(w, 1e-8)) @ V.T, size=200, method="eigh")
+        lp = np.asarray(_fold_lp(jnp.asarray(hs), *args, jnp.asarray(te.m0[a, 0]), jnp.asarray(te.m1[a, 0]),
+                                 jnp.asarray(te.m2[a, 0]), jnp.asarray(te.first[a, 0]), float(te.n[0])))
+        lp = lp[np.isfinite(lp)]
+        res[a] = np.logaddexp.reduce(lp) - np.log(lp.size)
+    return res
+
+
+@jax.jit
+def _fold_lp(hs, m0, m1, m2, first, n, effects, ts, ss, t0, t1, t2, tf, tn):
+    q = effects.shape[0]
+    p = m0.shape[-1] - 1
+
+    def one(h):
+        _, mu, cov = _collapsed(h, m0, m1, m2, first, n, effects, ts, ss)
+        tau, sigma, rho = _unpack(h, q)
+        re = jnp.zeros((p, p)).at[effects, effects].set(tau**2)
+        L = jnp.linalg.cholesky(cov + re + 1e-12 * jnp.eye(p))
+        G = whitened_gram(t0, t1, t2, tf, rho)
+        return run_loglik(G, tn, mu, L, sigma**2, rho)
+
+    return jax.vmap(one)(hs)
+
+
+def _elpd_none(tr: RunStats, te: RunStats) -> np.ndarray:
+    """No pooling: per-session effects fitted freely (shared parameters and AR(1) noise by GLS at the
+    complete-pooling noise estimate); the new session's density is the mean over the training sessions'
+    fitted effects, all plugged in (their estimation uncertainty is left out: no pooling has no model of it)."""
+    res = np.zeros(3)
+    q = tr.effects.size
+    R = tr.n.size
+    for a in range(3):
+        sub = tr._replace(effects=tr.effects[:0])
+        _, modes = fit_laplace(sub, (), draws=50, return_modes=True)
+        h = modes[a]
+        sigma, rho = float(np.exp(h[0])), float(np.tanh(h[1]))
+        G = np.asarray(whitened_gram(tr.m0[a], tr.m1[a], tr.m2[a], tr.first[a], rho))      # (R, p+1, p+1)
+        p = G.shape[-1] - 1
+        # joint GLS: shared theta (p) and free effects (R x q), with the effects' mean fixed at 0 by
+        # the constraint sum_r u_r = 0 (their mean is part of the shared theta)
+        eidx = tr.effects
+        dim = p + R * q
+        A = np.zeros((dim, dim))
+        b = np.zeros(dim)
+        for r in range(R):
+            gxx, gxy = G[r, :p, :p], G[r, :p, p]
+            sl = slice(p + r * q, p + (r + 1) * q)
+            Sx = np.zeros((p, dim))
+            Sx[:, :p] = np.eye(p)
+            Sx[eidx, sl] = np.eye(q)
+            A += Sx.T @ gxx @ Sx
+            b += Sx.T @ gxy
+        C = np.zeros((q, dim))
+        for r in range(R):
+            C[:, p + r * q:p + (r + 1) * q] = np.eye(q)
+        KKT = np.block([[A, C.T], [C, np.zeros((q, q))]])
+        sol = np.linalg.lstsq(KKT, np.r_[b, np.zeros(q)], rcond=None)[0][:dim]
+        theta, u = sol[:p], sol[p:].reshape(R, q)
+        Gt = np.asarray(whitened_gram(te.m0[a, 0], te.m1[a, 0], te.m2[a, 0], te.first[a, 0], rho))
+        lps = []
+        for r in range(R):
+            th = theta.copy()
+            th[eidx] += u[r]
+            lps.append(float(run_loglik(jnp.asarray(Gt), float(te.n[0]), jnp.asarray(th), jnp.zeros((p, 0)),
+                                        sigma**2, rho)))
+        res[a] = np.logaddexp.reduce(lps) - np.log(R)
+    return res
+
+
+#: Fewer training runs than this leave the between-session sds mostly to their prior: the job warns.
+FEW_RUNS = 6
+
+
+def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
+                          effects: Sequence[str] = DEFAULT_EFFECTS):
+    """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
+
+    The estimate's ``sd`` is the root-mean-square row-dependent transfer sd over the training rows (a
+    summary for reports; predictions use the rows' own). With fewer than 2 runs it falls back to
+    :func:`~bayesmag._src.core.predictor.estimate_transfer` (its warning) and no session model.
+    """
+    from bayesmag._src.core.predictor import TransferEstimate, estimate_transfer
+
+    runs = np.unique(train.run)
+    if runs.size < 2:
+        return estimate_transfer(train, fit), None
+    post = fit_sessions(train, fit, method=method, effects=effects, level=level, seed=seed)
+    sd = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
+    warning = None
+    if runs.size < FEW_RUNS:
+        warning = (f"The training data hold {runs.size} runs (sessions): the between-session sds of the hierarchical "
+                   f"transfer model are then set largely by their prior (half-normal, scale {TAU_PRIOR_SCALE} uT), "
+                   f"and new-session intervals are wide. Record at least {FEW_RUNS} sessions.")
+    summary = {**post.as_dict(), "dropped_effects_informing_runs": select_effects(train, fit, effects)[1]}
+    return TransferEstimate(sd, f"hierarchical_{post.method}", {"model": summary}, warning), post
+
+
+def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> SessionPosterior:
+    """The :class:`SessionPosterior` a calibration saved (``meta``: its JSON table, ``arrays``: ``sessions/*``
+    without the prefix), every field checked; ValueError names the field, the bad value and that the file is damaged."""
+    if not isinstance(meta, dict):
+        raise ValueError(f"field 'sessions' must be a table; got {meta!r}.")
+    p = len(param_names)
+    effects = meta.get("effects")
+    if not isinstance(effects, list) or not effects or any(e not in param_names for e in effects):
+        raise ValueError(f"field 'sessions.effects' = {effects!r} must name parameters of the model {list(param_names)}.")
+    q = len(effects)
+    level, n_runs = meta.get("level"), meta.get("n_runs")
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
+        raise ValueError(f"field 'sessions.level' = {level!r} must be a number in (0, 1).")
+    if isinstance(n_runs, bool) or not isinstance(n_runs, int) or n_runs < 2:
+        raise ValueError(f"field 'sessions.n_runs' = {n_runs!r} must be an integer >= 2.")
+    if meta.get("method") not in ("laplace", "nuts"):
+        raise ValueError(f"field 'sessions.method' = {meta.get('method')!r} must be 'laplace' or 'nuts'.")
+    shapes = {"w_mean": (3, q + 1), "w_cov": (3, q + 1, q + 1), "mu_cov": (3, p, p), "scale": (3, p), "mu": (3, p)}
+    out = {}
+    for k, shape in shapes.items():
+        if k not in arrays:
+            raise ValueError(f"array 'sessions/{k}' is missing.")
+        v = np.asarray(arrays[k])
+        if v.shape != shape or v.dtype.kind != "f" or not np.isfinite(v).all():
+            raise ValueError(f"array 'sessions/{k}' must be finite floats of shape {shape}; got {v.dtype} {v.shape}.")
+        out[k] = v.astype(np.float64)
+    if (out["w_mean"] < 0).any() or (out["scale"] <= 0).any():
+        raise ValueError("array 'sessions/w_mean' or 'sessions/scale' is negative (variances and scales are >= 0).")
+    for k in ("w_cov", "mu_cov"):
+        m = out[k]
+        if not np.allclose(m, np.swapaxes(m, 1, 2), rtol=1e-8, atol=1e-300) or \
+                (np.linalg.eigvalsh(m).min(axis=1) < -1e-8 * np.abs(m).max(axis=(1, 2))).any():
+            raise ValueError(f"array 'sessions/{k}' is not a stack of symmetric positive semi-definite matrices.")
+    idx = tuple(list(param_names).index(e) for e in effects)
+    return SessionPosterior(out["w_mean"], out["w_cov"], out["mu_cov"], out["scale"], tuple(effects), float(level),
+                            int(n_runs), meta["method"], out["mu"], effect_index=idx)
