@@ -181,3 +181,15 @@ def test_parameter_coverage_20_campaigns(kind, kw):
     """20 campaigns per kind: coverage of the identified invariants in [0.90, 0.99] (declared)."""
     cov = _coverage(kind, range(200, 220), Scalar(), **kw)
     assert 0.90 <= cov <= 0.99
+
+
+@pytest.mark.slow
+def test_nuts_agrees_with_the_laplace_posterior():
+    """NUTS on the same likelihood and priors: means within 0.5 NUTS sd, sds within 25 % (about 90 s loaded)."""
+    from bayesmag._src.pipeline.field_nuts import field_nuts
+    c = simulate_field("two_temperature", n=1000, seed=0)
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar())
+    r = field_nuts(f, d.b_meas, d.temperature, c.f_ref, chains=2, warmup=200, draws=200)
+    assert r["max_rhat"] < 1.05 and r["min_ess"] > 100
+    assert r["max_mean_shift_sd"] < 0.5 and 0.75 < r["sd_ratio_min"] and r["sd_ratio_max"] < 1.25
