@@ -15,6 +15,7 @@ from bayesmag._src.core.simulate import (
     simulate,
     simulate_from_config,
 )
+from bayesmag._src.core.field_sim import FieldCampaign, FieldTruth, MOTIONS, simulate_field
 
 __all__ = [
     "TrueParams",
@@ -26,4 +27,8 @@ __all__ = [
     "Effect",
     "get_effect",
     "EFFECTS",
+    "simulate_field",
+    "FieldCampaign",
+    "FieldTruth",
+    "MOTIONS",
 ]

@@ -24,7 +24,7 @@ from bayesmag._src.core.network import ACTIVATIONS, VALIDATION_KINDS, NetworkSpe
 
 __all__ = ["Config", "ConfigError", "load_config", "config_from_dict", "apply_overrides", "to_toml",
            "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig", "NutsConfig",
-           "CertificateConfig",
+           "CertificateConfig", "MeasurementConfig",
            "config_error"]
 
 
@@ -158,6 +158,22 @@ class OutputConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class MeasurementConfig:
+    """``[measurement]``: what the recording knows about the true field (docs/field.md). ``kind = "vector"``
+    is the reference-magnetometer calibration; ``scalar`` and ``constant`` run the field calibration."""
+
+    kind: str = "vector"                # vector | scalar | constant
+    field: Union[float, str] = "free"   # constant: the site's field magnitude in uT (e.g. IGRF/WMM), or "free"
+    temperature_terms: Union[bool, str] = "auto"   # "auto": on when the training temperature spans >= 1 C
+    covariance: str = "white"           # white | ar1 (residual autocorrelation)
+    min_magnitude: float = 0.0          # drop rows whose reference magnitude is below this (a scalar sensor's range), uT
+    heading_check: bool = True          # simulated campaigns: heading error on the level test rows
+    compare_vector: bool = True         # with a vector reference in the data: compare the 18 invariants
+    exports: list = dataclasses.field(default_factory=lambda: ["json", "c-header", "magcal", "px4", "ardupilot"])
+    simulate: dict = dataclasses.field(default_factory=dict)   # data.source = "field_simulated": simulate_field args
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """A whole job: data, split, physics, uncertainty, network and output settings."""
 
@@ -172,6 +188,7 @@ class Config:
     study: StudyConfig = dataclasses.field(default_factory=StudyConfig)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
     certificate: CertificateConfig = dataclasses.field(default_factory=CertificateConfig)
+    measurement: MeasurementConfig = dataclasses.field(default_factory=MeasurementConfig)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -188,6 +205,8 @@ _CHOICES = {
     "data.temperature_unit": ("C", "K"),
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
+    "measurement.kind": ("vector", "scalar", "constant"),
+    "measurement.covariance": ("white", "ar1"),
 }
 
 
@@ -316,8 +335,25 @@ def _check_numbers(cfg: Config) -> None:
                 raise ConfigError(f"Config key '{key}' = {value!r} must be at least {lo}.")
 
 
+def _check_measurement(m: MeasurementConfig) -> None:
+    if isinstance(m.field, str) and m.field != "free":
+        raise ConfigError(f"Config key 'measurement.field' = {m.field!r} must be a magnitude in uT or \"free\".")
+    if not isinstance(m.field, str) and not 0 < m.field < 1e6:
+        raise ConfigError(f"Config key 'measurement.field' = {m.field!r} must be a positive magnitude in uT.")
+    if isinstance(m.temperature_terms, str) and m.temperature_terms != "auto":
+        raise ConfigError(f"Config key 'measurement.temperature_terms' = {m.temperature_terms!r} must be true, "
+                          "false or \"auto\".")
+    if m.min_magnitude < 0:
+        raise ConfigError(f"Config key 'measurement.min_magnitude' = {m.min_magnitude} must be >= 0 uT.")
+    from bayesmag._src.app.export import FORMATS
+    bad = [f for f in m.exports if f not in FORMATS]
+    if bad:
+        raise ConfigError(f"Config key 'measurement.exports' has unknown format(s) {bad}; valid: {list(FORMATS)}.")
+
+
 def _check_semantics(cfg: Config) -> None:
     _check_numbers(cfg)
+    _check_measurement(cfg.measurement)
     d = cfg.data
     if d.source is not None and d.path is not None:
         raise ConfigError("[data] names both 'source' and 'path'; give one.")

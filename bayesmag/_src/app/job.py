@@ -196,6 +196,9 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
 
 def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None) -> JobResult:
     progress = cfg.output.progress if progress is None else progress
+    if cfg.measurement.kind != "vector" or cfg.data.source == "field_simulated":   # field calibration (docs/field.md)
+        from bayesmag._src.app.field_job import run_field_job
+        return JobResult(run_field_job(cfg, out, progress=progress))
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
 

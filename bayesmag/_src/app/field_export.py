@@ -1,0 +1,66 @@
+"""Firmware exports of a field calibration: the same targets as a vector calibration (docs/export.md).
+
+A field fit is the thermo-affine model, so every target of :mod:`bayesmag._src.app.export` applies:
+the fit is wrapped as a calibration-like object and the same writers render it. A magnitude fit's
+coefficients are in its gauge frame (M upper-triangular): each file says so, because the rotation
+between that frame and the vehicle's body frame is not in the data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+
+from bayesmag._src.app.export import FORMATS, build_export, render
+from bayesmag._src.core.data import CalibrationData
+from bayesmag._src.core.field import FieldFit, gauge_text
+from bayesmag._src.core.physics import PhysicsModel
+
+__all__ = ["FieldCalibration", "field_export_texts"]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Box:
+    low: np.ndarray
+    high: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldCalibration:
+    """The parts of a :class:`~bayesmag.Calibration` the exporters read, from a :class:`FieldFit`."""
+
+    model: PhysicsModel
+    theta: np.ndarray
+    domain: _Box
+    network: None = None
+
+    @classmethod
+    def from_fit(cls, fit: FieldFit, train: CalibrationData) -> "FieldCalibration":
+        S, Ks, O, Ko, _ = fit.matrices()
+        theta = np.column_stack([S, Ks, O, Ko])                       # (3, 8): paper order per axis
+        x = np.column_stack([train.b_meas, train.temperature])
+        return cls(PhysicsModel.paper(t0=fit.model.t0, temperature=True), theta, _Box(x.min(0), x.max(0)))
+
+
+def field_export_texts(fit: FieldFit, train: CalibrationData, formats=tuple(FORMATS)) -> dict[str, str]:
+    """``{format: file text}`` for a field calibration (no reference: the accuracy table is against the model)."""
+    cal = FieldCalibration.from_fit(fit, train)
+    rows = CalibrationData(train.b_meas, train.temperature, None, train.time, train.run, source="training rows")
+    ex = build_export(cal, rows)
+    note = (f"Field calibration ({fit.model.measurement.name} measurement model); gauge: "
+            f"{gauge_text(fit.model.measurement)}.")
+    out = {}
+    for fmt in formats:
+        text = render(fmt, ex)
+        if fmt in ("json", "magcal"):
+            doc = json.loads(text)
+            doc["field_calibration"] = note
+            text = json.dumps(doc, indent=2) + "\n"
+        elif fmt == "c-header":
+            text = f"/* {note} */\n" + text
+        else:
+            text = f"# {note}\n" + text
+        out[fmt] = text
+    return out

@@ -1,0 +1,221 @@
+"""The field-calibration job: ``[measurement] kind = "scalar" | "constant"`` (or a simulated field campaign).
+
+Writes into the output folder, atomically (staging folder renamed at the end): ``field_params.json``,
+``metrics.json``, ``predictions.csv`` (held-out magnitudes with intervals), ``report.md`` (the
+certificate, with the field section), the exports listed in ``[measurement] exports`` and figures.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.stats
+
+from bayesmag._src.app.config import Config, ConfigError, to_toml
+from bayesmag._src.core.data import DataError, make_split
+from bayesmag._src.core.field import INVARIANT_NAMES, gauge_text
+from bayesmag._src.core.measurement import measurement_from_spec
+
+__all__ = ["run_field_job", "field_report_lines", "load_field_data", "print_summary"]
+
+
+def print_summary(m: dict) -> int:
+    """The CLI's summary lines of a field run; returns the exit status 0."""
+    import sys
+    f = m["field"]
+    s = f["scores"]
+    print(f"  held-out magnitude RMSE {s['rmse']:.4g} uT, {s['level']:.0%} coverage {s['coverage']:.1%}, "
+          f"CRPS {s['crps']:.4g} uT")
+    if f.get("heading"):
+        h = f["heading"]
+        print(f"  heading error RMSE {h['rmse_deg']:.3g} deg on {h['n']} level rows, coverage {h['coverage']:.1%}")
+    if f.get("vector_comparison"):
+        c = f["vector_comparison"]["counts"]
+        print(f"  vs vector fit: {c['agree']} agree, {c['disagree']} disagree, {c['not identified']} not identified")
+    for w in m.get("warnings", []):
+        print(f"  note: {w}", file=sys.stderr)
+    return 0
+
+
+def load_field_data(cfg: Config):
+    """``(data, f_ref, campaign)``: a simulated field campaign, or the recording the config names."""
+    if cfg.data.source == "field_simulated":
+        from bayesmag._src.core.field_sim import field_campaign_from_config
+        try:
+            c = field_campaign_from_config(dict(cfg.measurement.simulate))
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"[measurement.simulate]: {e}") from None
+        return c.data, c.f_ref, c
+    from bayesmag._src.app.job import load_data
+    return load_data(cfg), None, None
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.6g}"
+
+
+def field_report_lines(m: dict, params: dict) -> list[str]:
+    """The field calibration section of the certificate (markdown lines)."""
+    f = m["field"]
+    L = ["## Field calibration", "",
+         f"- Measurement model: **{params['measurement']['name']}**"
+         + (f" (field {params['measurement'].get('field')} uT)" if params["measurement"]["name"] == "constant" else ""),
+         f"- Gauge: {params['gauge']}.",
+         f"- T0 = {params['t0']:.4g} C; temperature terms: {params['temperature_terms']}; covariance: "
+         f"{params['covariance']} (lag-1 autocorrelation {params['rho1']:.3f}, inflation {params['inflation']:.3g}).",
+         f"- Rows: {f['n_train']} training, {f['n_test']} held out ({m['split']['description']})"
+         + (f"; {f['dropped_low_magnitude']} rows dropped below the minimum magnitude {f['min_magnitude']} uT"
+            if f["dropped_low_magnitude"] else "") + ".",
+         f"- Residual sd (reading units): {np.sqrt(params['s2']):.4g} uT.", "",
+         "### Held-out magnitude", "",
+         "| RMSE (uT) | coverage | mean width (uT) | NLL | CRPS (uT) |", "|---|---|---|---|---|",
+         f"| {_fmt(f['scores']['rmse'])} | {f['scores']['coverage']:.3f} (nominal {f['scores']['level']:g}) | "
+         f"{_fmt(f['scores']['mean_width'])} | {_fmt(f['scores']['nll'])} | {_fmt(f['scores']['crps'])} |", ""]
+    L += ["### Gauge-free quantities (at T0)", "",
+          "Q = S^T S (scale and non-orthogonality), dQ/dT, d = S^-1 O (offset in the sensor frame, uT), dd/dT (uT/C).",
+          "", "| quantity | value | sd | prior sd | identified |", "|---|---|---|---|---|"]
+    for name in INVARIANT_NAMES:
+        r = params["invariants"][name]
+        L.append(f"| {name} | {_fmt(r['value'])} | {_fmt(r['sd'])} | {_fmt(r['prior_sd'])} | "
+                 + ("yes" if r["identified"] else f"no: {r['why_not']}") + " |")
+    L += ["", "### Parameters (gauge frame)", "", "| parameter | value | sd |", "|---|---|---|"]
+    L += [f"| {n} | {_fmt(v)} | {_fmt(s)} |" for n, v, s in zip(params["param_names"], params["theta"], params["std"])]
+    cov = params["direction_coverage"]
+    L += ["", "### Direction coverage", "",
+          "Eigenvalues of the covariance of the field direction B/|B| (a full tumble: about 0.33 each; below 0.01 = "
+          "not visited): " + ", ".join(f"{w:.3g}" for w in cov["eigenvalues"]) + ".",
+          f"Temperature bands (5 C) with spread directions: {cov['bands_spread']} of {len(cov['bands'])}.", ""]
+    L += ["### Identifiability notes", ""] + ([f"- {n}" for n in params["notes"]] or ["- none: every quantity identified"])
+    hd = f.get("heading")
+    L += ["", "### Heading check", ""]
+    if hd:
+        L += [f"- {hd['n']} level held-out rows: heading error RMSE {hd['rmse_deg']:.3f} deg (max {hd['max_abs_deg']:.3f}); "
+              f"{hd['level']:g} intervals cover {hd['coverage']:.3f} (parameters only: {hd['coverage_params_only']:.3f}); "
+              f"mean sd {hd['mean_sd_deg']:.3f} deg (parameters {hd['mean_sd_params_deg']:.3f}, noise "
+              f"{hd['mean_sd_noise_deg']:.3f}).",
+              f"- Conditional on {hd['conditional_on']}: a magnitude calibration cannot see the rotation between its "
+              "gauge frame and the body frame; it needs known attitudes, gravity or a heading reference."]
+    else:
+        L += ["- not checked: the recording has no level segments with known heading (simulated attitudes or a "
+              "heading reference)."]
+    vc = f.get("vector_comparison")
+    if vc:
+        c = vc["counts"]
+        L += ["", "### Against a vector fit of the same rows", "",
+              f"The vector reference was withheld from the field fit; the vector model fitted to the same training rows "
+              f"(T0 = {vc['t0']:.4g} C, covariance {vc['vector_covariance']}) gives: {c['agree']} agree (|z| <= 2), "
+              f"{c['disagree']} disagree, {c['not identified']} not identified by these recordings.", "",
+              "| quantity | field fit | sd | vector fit | sd | z | status |", "|---|---|---|---|---|---|---|"]
+        L += [f"| {r['name']} | {_fmt(r['magnitude_fit'])} | {_fmt(r['magnitude_sd'])} | {_fmt(r['vector_fit'])} | "
+              f"{_fmt(r['vector_sd'])} | {r['z']:+.2f} | {r['status']} |" for r in vc["rows"]]
+    nuts = f.get("nuts")
+    if nuts:
+        L += ["", "### NUTS cross-check", "",
+              f"{nuts['chains']} chains x {nuts['draws']} draws; max R-hat {nuts['max_rhat']:.3f}, min ESS "
+              f"{nuts['min_ess']:.0f}; largest |Laplace - NUTS| mean / NUTS sd: {nuts['max_mean_shift_sd']:.2f}; "
+              f"sd ratio Laplace/NUTS in [{nuts['sd_ratio_min']:.2f}, {nuts['sd_ratio_max']:.2f}]."]
+    if f.get("exports"):
+        L += ["", "### Exports", "", "Written: " + ", ".join(f["exports"]) + " (coefficients in the gauge frame)."]
+    return L
+
+
+def _write_predictions(path: Path, test, rows, y, pred, level):
+    k = scipy.stats.norm.ppf(0.5 + level / 2)
+    lo, hi = pred["mean"] - k * pred["total"], pred["mean"] + k * pred["total"]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["row", "time", "run", "temperature", "reference_magnitude", "predicted_magnitude", "epistemic",
+                    "noise", "total", "lower", "upper", "covered"])
+        for i in range(test.n):
+            w.writerow([int(rows[i]), f"{test.time[i]:.6f}", int(test.run[i]), f"{test.temperature[i]:.6g}",
+                        f"{y[i]:.8g}", f"{pred['mean'][i]:.8g}", f"{pred['epistemic'][i]:.6g}", f"{pred['noise'][i]:.6g}",
+                        f"{pred['total'][i]:.6g}", f"{lo[i]:.8g}", f"{hi[i]:.8g}", bool(lo[i] <= y[i] <= hi[i])])
+
+
+def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> dict:
+    """Run the field calibration the config describes and write its outputs into ``out``."""
+    from bayesmag._src.app.field_export import field_export_texts
+    from bayesmag._src.app.outdir import staging_dir
+    from bayesmag._src.pipeline.field_stage import run_field_stage
+
+    mc = cfg.measurement
+    timings: dict[str, float] = {}
+    t_all = t = time.perf_counter()
+    try:
+        meas = measurement_from_spec(mc.kind, mc.field)
+    except ValueError as e:
+        raise ConfigError(f"[measurement]: {e}") from None
+    data, f_ref, campaign = load_field_data(cfg)
+    if data.b_ref is None and f_ref is None and mc.kind != "constant":
+        raise DataError(f"The {mc.kind} measurement model needs a reference (columns bx_ref, by_ref, bz_ref); "
+                        "the recording has none. Use [measurement] kind = \"constant\" with the site's field.")
+    mag = f_ref if f_ref is not None else (np.linalg.norm(data.b_ref, axis=1) if data.b_ref is not None else None)
+    keep = np.ones(data.n, bool) if mag is None else mag >= mc.min_magnitude
+    dropped = int((~keep).sum())
+    idx_all = np.flatnonzero(keep)
+    data = data.subset(idx_all)
+    f_ref = None if f_ref is None else f_ref[idx_all]
+    try:
+        split = make_split(data, kind=cfg.split.kind, test_fraction=cfg.split.test_fraction, seed=cfg.split.seed,
+                           test_runs=cfg.split.test_runs, n_blocks=cfg.split.n_blocks)
+    except ValueError as e:
+        raise ConfigError(f"[split]: {e}") from None
+    train, test = data.subset(split.train), data.subset(split.test)
+    timings["load"] = time.perf_counter() - t
+    heading = None
+    if campaign is not None and mc.heading_check:
+        tr = campaign.truth
+        full = idx_all[split.test]
+        lv = tr.level[full]
+        heading = None if not lv.any() else {"rows": lv, "true": tr.heading[full][lv], "alignment": tr.alignment(test.temperature[lv])}
+    fs = run_field_stage(train, test, meas, f_ref_train=None if f_ref is None else f_ref[split.train],
+                         f_ref_test=None if f_ref is None else f_ref[split.test], t0=cfg.physics.t0,
+                         temperature_terms=mc.temperature_terms, covariance=mc.covariance, level=cfg.uq.level,
+                         heading=heading, compare_vector=mc.compare_vector)
+    timings.update(fs.timings)
+    if not fs.fit.converged:
+        from bayesmag._src.app.job import JobError
+        raise JobError("The field fit did not converge; check the data for outliers.")
+    params = fs.fit.to_json()
+    field_m = {"n_train": int(train.n), "n_test": int(test.n), "dropped_low_magnitude": dropped,
+               "min_magnitude": mc.min_magnitude, "scores": fs.scores,
+               "heading": None if fs.heading is None else {k: v for k, v in fs.heading.items()
+                                                           if not isinstance(v, np.ndarray)},
+               "vector_comparison": fs.vector, "exports": list(mc.exports)}
+    if campaign is not None:
+        inv, truth = fs.fit.invariants(), campaign.truth.invariants(fs.fit.model.t0)
+        z = (inv["value"] - truth) / np.maximum(inv["sd"], 1e-300)
+        k = scipy.stats.norm.ppf(0.5 + cfg.uq.level / 2)
+        ok = inv["identified"]
+        field_m["truth_check"] = {"identified": int(ok.sum()),
+                                  "coverage_identified": float(np.mean(np.abs(z[ok]) <= k)) if ok.any() else None,
+                                  "abs_z": {n: float(abs(v)) for n, v in zip(INVARIANT_NAMES, z)}}
+    metrics = {"field": field_m, "split": split.as_dict(),
+               "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs]},
+               "warnings": [n for n in fs.fit.notes]}
+    with staging_dir(Path(out)) as tmp:
+        t = time.perf_counter()
+        (tmp / "field_params.json").write_text(json.dumps(params, indent=2))
+        (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
+        _write_predictions(tmp / "predictions.csv", test, split.test, fs.target_test, fs.prediction, cfg.uq.level)
+        for fmt, text in field_export_texts(fs.fit, train, mc.exports).items():
+            from bayesmag._src.app.export import FORMATS
+            (tmp / f"calibration{FORMATS[fmt]}").write_text(text)
+        figures = []
+        if cfg.output.figures:
+            from bayesmag._src.app.field_plots import field_figures
+            figures = field_figures(tmp, fs)
+        timings["write"] = time.perf_counter() - t
+        timings["total"] = time.perf_counter() - t_all
+        metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
+        lines = [f"# Calibration certificate: {cfg.name}", "",
+                 f"Data: {data.source} ({data.n} rows). Gauge: {gauge_text(meas)}.", ""]
+        lines += field_report_lines(metrics, params)
+        lines += [""] + [f"![{Path(p).stem}]({p})" for p in figures]
+        (tmp / "report.md").write_text("\n".join(lines) + "\n")
+    return {"config": cfg, "stage": fs, "metrics": metrics, "params": params, "campaign": campaign}

@@ -1,0 +1,594 @@
+r"""Field calibration: the thermo-affine sensor model fitted against a measurement model, with honest uncertainty.
+
+Model (the same one as the vector calibration), reading u (uT), :math:`T_c = T - T_0`:
+
+.. math::  B = M(T)\,u + o(T),\quad M = S + K_s T_c,\quad o = O + K_o T_c .
+
+The residual comes from a :class:`~bayesmag._src.core.measurement.MeasurementModel` (vector,
+scalar, constant). For a magnitude model the gauge is M(T) upper-triangular (S and Ks
+upper-triangular: 18 parameters with temperature terms, 9 without), plus ``trace(S) = 3`` when the
+field magnitude is itself fitted.
+
+Estimate: the posterior mode under weak Gaussian priors (:class:`FieldPrior`; they only matter
+where the motion leaves a direction unconstrained) by Levenberg-Marquardt, then the Laplace
+posterior :math:`\Sigma = (J^T J / (s^2 c) + \mathrm{diag}(\tau^{-2}))^{-1}` with :math:`s^2` the
+residual variance and :math:`c = (1+\rho_1)/(1-\rho_1)` for AR(1) residuals (``covariance="ar1"``).
+
+Gauge-free quantities compared between any two fits (:func:`invariants`): :math:`Q = S^T S`,
+:math:`dQ/dT = K_s^T S + S^T K_s`, :math:`d = S^{-1} O`, :math:`dd/dT = S^{-1}(K_o - K_s S^{-1} O)`
+at :math:`T_0`. An invariant is *identified* by a recording when the data shrink its prior standard
+deviation by at least a factor of 2 (:data:`IDENTIFIED_RATIO`); otherwise its answer is the prior's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.stats
+
+from bayesmag._src.core.fit import lag1_autocorrelation, levenberg_marquardt
+from bayesmag._src.core.measurement import Constant, MeasurementModel, Scalar, Vector
+
+__all__ = ["FieldModel", "FieldPrior", "FieldFit", "fit_field", "invariants", "INVARIANT_NAMES",
+           "IDENTIFIED_RATIO", "wrap_deg", "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty",
+           "gaussian_scores", "field_target"]
+
+AXES = ("x", "y", "z")
+#: posterior sd / prior sd above which an invariant counts as not identified by the recording
+IDENTIFIED_RATIO = 0.5
+INVARIANT_NAMES = tuple(
+    [f"Q_{AXES[i]}{AXES[j]}" for i in range(3) for j in range(i, 3)]
+    + [f"dQ/dT_{AXES[i]}{AXES[j]}" for i in range(3) for j in range(i, 3)]
+    + [f"d_{a}" for a in AXES] + [f"dd/dT_{a}" for a in AXES])
+_IU = np.triu_indices(3)
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldPrior:
+    """Standard deviations of the weak Gaussian priors (means: S = I, everything else 0; F: mean |u|).
+
+    Defaults are wide for a magnetometer on a vehicle: gains +-25 %, cross terms 0.1, hard iron
+    100 uT, thermal gain 1 %/C, thermal offset 1 uT/C.
+    """
+
+    s_diag: float = 0.25
+    s_off: float = 0.1
+    ks: float = 0.01
+    o: float = 100.0
+    ko: float = 1.0
+    f_rel: float = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldModel:
+    """Parameter layout of the thermo-affine model under a measurement model's gauge.
+
+    Example:
+      >>> m = FieldModel(Scalar(), t0=20.0)
+      >>> m.n_params, m.param_names[:4]
+      (18, ('S_xx', 'S_xy', 'S_xz', 'S_yy'))
+    """
+
+    measurement: MeasurementModel
+    t0: float = 0.0
+    temperature: bool = True
+
+    @property
+    def mask(self) -> np.ndarray:
+        return np.triu(np.ones((3, 3), bool)) if self.measurement.gauge == "upper" else np.ones((3, 3), bool)
+
+    def _s_idx(self):
+        idx = [(i, j) for i in range(3) for j in range(3) if self.mask[i, j]]
+        if self.measurement.scale_gauge:
+            idx.remove((2, 2))          # S_zz = 3 - S_xx - S_yy
+        return idx
+
+    def _k_idx(self):
+        return [(i, j) for i in range(3) for j in range(3) if self.mask[i, j]]
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        n = [f"S_{AXES[i]}{AXES[j]}" for i, j in self._s_idx()]
+        if self.temperature:
+            n += [f"Ks_{AXES[i]}{AXES[j]}" for i, j in self._k_idx()]
+        n += [f"O_{a}" for a in AXES]
+        if self.temperature:
+            n += [f"Ko_{a}" for a in AXES]
+        return tuple(n) + self.measurement.extra_names()
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def unpack(self, theta):
+        """``(S, Ks, O, Ko, extra)`` from the flat parameter vector."""
+        si, ki = self._s_idx(), self._k_idx()
+        k = 0
+        S = jnp.zeros((3, 3), theta.dtype)
+        for (i, j) in si:
+            S = S.at[i, j].set(theta[k]); k += 1
+        if self.measurement.scale_gauge:
+            S = S.at[2, 2].set(3.0 - S[0, 0] - S[1, 1])
+        Ks = jnp.zeros((3, 3), theta.dtype)
+        if self.temperature:
+            for (i, j) in ki:
+                Ks = Ks.at[i, j].set(theta[k]); k += 1
+        O = theta[k:k + 3]; k += 3
+        Ko = jnp.zeros(3, theta.dtype)
+        if self.temperature:
+            Ko = theta[k:k + 3]; k += 3
+        return S, Ks, O, Ko, theta[k:]
+
+    def pack(self, S, Ks, O, Ko, extra=()) -> np.ndarray:
+        S, Ks = np.asarray(S), np.asarray(Ks)
+        v = [S[i, j] for i, j in self._s_idx()]
+        if self.temperature:
+            v += [Ks[i, j] for i, j in self._k_idx()]
+        v += list(np.asarray(O))
+        if self.temperature:
+            v += list(np.asarray(Ko))
+        return np.asarray(v + list(extra), dtype=np.float64)
+
+    def calibrate(self, theta, u, t):
+        """Calibrated field (n, 3) in the gauge frame."""
+        S, Ks, O, Ko, _ = self.unpack(theta)
+        tc = (t - self.t0)[:, None]
+        return u @ S.T + tc * (u @ Ks.T) + O + tc * Ko
+
+    def residual(self, theta, u, t, target):
+        """Residuals in reading units: a magnitude residual is divided by its noise gain :meth:`gain`."""
+        _, _, _, _, extra = self.unpack(theta)
+        r = self.measurement.residual(self.calibrate(theta, u, t), target, extra)
+        return r if self.measurement.per_row > 1 else r / self.gain(theta, u, t)
+
+    def gain(self, theta, u, t):
+        r"""How reading noise reaches the magnitude, :math:`g = \lVert M(T)^T \hat B\rVert` (n,).
+
+        Least squares on raw magnitude residuals would shrink M where the motion leaves a direction
+        weak (smaller M, smaller noise, smaller cost: the errors-in-variables pull); dividing by g
+        removes that pull. For a vector model g = 1.
+        """
+        if self.measurement.per_row > 1:
+            return jnp.ones(u.shape[:1])
+        S, Ks, _, _, _ = self.unpack(theta)
+        B = self.calibrate(theta, u, t)
+        nb = B / jnp.linalg.norm(B, axis=1, keepdims=True)
+        tc = (t - self.t0)[:, None]
+        g = nb @ S + tc * (nb @ Ks)
+        return jnp.linalg.norm(g, axis=1)
+
+    def prior(self, p: FieldPrior, u) -> tuple[np.ndarray, np.ndarray]:
+        """Prior means and standard deviations (p,)."""
+        mu, sd = [], []
+        for name in self.param_names[:self.n_params - self.measurement.n_extra]:
+            kind, ax = name.split("_")
+            if kind == "S":
+                mu.append(1.0 if ax[0] == ax[1] else 0.0); sd.append(p.s_diag if ax[0] == ax[1] else p.s_off)
+            elif kind == "Ks":
+                mu.append(0.0); sd.append(p.ks)
+            elif kind == "O":
+                mu.append(0.0); sd.append(p.o)
+            elif kind == "Ko":
+                mu.append(0.0); sd.append(p.ko)
+        if self.measurement.n_extra:
+            f = float(np.mean(np.linalg.norm(u, axis=1)))
+            mu.append(f); sd.append(p.f_rel * f)
+        return np.asarray(mu), np.asarray(sd)
+
+
+def gauge_form(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, U)`` with ``M = R U``, R a rotation and U upper-triangular with a positive diagonal (QR).
+
+    Example:
+      >>> R, U = gauge_form(np.diag([2.0, 1.0, 1.0]))
+      >>> np.allclose(R, np.eye(3)), np.allclose(U, np.diag([2, 1, 1]))
+      (True, True)
+    """
+    Q, U = np.linalg.qr(np.asarray(M, dtype=np.float64))
+    s = np.sign(np.diag(U))
+    s[s == 0] = 1
+    return Q * s, U * s[:, None]
+
+
+def invariants(S, Ks, O, Ko):
+    """The 18 gauge-free numbers (:data:`INVARIANT_NAMES`): Q, dQ/dT (upper entries), d, dd/dT at T0."""
+    Q = S.T @ S
+    dQ = Ks.T @ S + S.T @ Ks
+    Si = jnp.linalg.inv(S)
+    d = Si @ O
+    dd = Si @ (Ko - Ks @ d)
+    return jnp.concatenate([Q[_IU], dQ[_IU], d, dd])
+
+
+def field_target(measurement: MeasurementModel, b_ref=None, f_ref=None, n: int | None = None) -> np.ndarray:
+    """What the measurement model compares with: the vector (n, 3), a magnitude (n,), or the field F (n,).
+
+    A vector reference given to a magnitude model is withheld down to its magnitude.
+    """
+    if isinstance(measurement, Vector):
+        if b_ref is None:
+            raise ValueError("the vector measurement model needs the reference field columns bx_ref, by_ref, bz_ref.")
+        return np.asarray(b_ref, np.float64)
+    if isinstance(measurement, Scalar):
+        if f_ref is not None:
+            return np.asarray(f_ref, np.float64).reshape(-1)
+        if b_ref is None:
+            raise ValueError("the scalar measurement model needs a reference magnitude column f_ref "
+                             "(or reference field columns, whose magnitude is used).")
+        return np.linalg.norm(np.asarray(b_ref, np.float64), axis=1)
+    m = n if n is not None else len(b_ref if b_ref is not None else f_ref)
+    f = measurement.field if measurement.field is not None else 1.0
+    return np.full(m, float(f))
+
+
+# --------------------------------------------------------------------------- the fit
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _solve(model: FieldModel, theta0, u, t, target, mu, w):
+    def r(th):
+        return jnp.concatenate([model.residual(th, u, t, target), w * (th - mu)])
+    return levenberg_marquardt(r, theta0, max_steps=2000)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _jac_resid(model: FieldModel, theta, u, t, target):
+    f = lambda th: model.residual(th, u, t, target)
+    return f(theta), jax.jacfwd(f)(theta)
+
+
+def _init(model: FieldModel, u, t, target) -> np.ndarray:
+    """Algebraic start: |M u + o|^2 = F^2 solved linearly for (Q, M^T o, |o|^2) at constant temperature."""
+    meas = model.measurement
+    p = model.n_params
+    if isinstance(meas, Vector):
+        X = np.column_stack([u, np.ones(len(u))])
+        coef, *_ = np.linalg.lstsq(X, target, rcond=None)
+        S, O = coef[:3].T, coef[3]
+        return model.pack(S, np.zeros((3, 3)), O, np.zeros(3))
+    f = target if meas.n_extra == 0 else np.ones(len(u))
+    x, y, z = u.T
+    D = np.column_stack([x * x, 2 * x * y, 2 * x * z, y * y, 2 * y * z, z * z, 2 * x, 2 * y, 2 * z, np.ones(len(u))])
+    try:                                                 # a weak ridge (towards a sphere) for degenerate motions
+        cn = np.linalg.norm(D, axis=0)
+        lam = np.concatenate([1e-3 * cn[:6], 1e-6 * cn[6:]])
+        v_prior = np.array([1, 0, 0, 1, 0, 1, 0, 0, 0, 0], float) * np.mean(f**2) / np.mean(np.sum(u * u, axis=1))
+        v, *_ = np.linalg.lstsq(np.vstack([D, np.diag(lam)]), np.concatenate([f**2, lam * v_prior]), rcond=None)
+        Q = np.array([[v[0], v[1], v[2]], [v[1], v[3], v[4]], [v[2], v[4], v[5]]])
+        U = np.linalg.cholesky(Q).T                      # Q = U^T U, U upper
+        O = np.linalg.solve(U.T, v[6:9])
+        if meas.n_extra:                                 # scale gauge: trace(S) = 3, F in those units
+            k = 3.0 / np.trace(U)
+            U, O = U * k, O * k
+        ok = np.all(np.isfinite(U)) and np.all(np.isfinite(O))
+    except np.linalg.LinAlgError:
+        ok = False
+    if not ok:
+        U, O = np.eye(3), -np.mean(u, axis=0)
+    extra = []
+    if meas.n_extra:
+        extra = [float(np.mean(np.linalg.norm(u @ U.T + O, axis=1)))]
+    th = model.pack(U, np.zeros((3, 3)), O, np.zeros(3), extra)
+    assert th.shape == (p,)
+    return th
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldFit:
+    """A fitted field calibration: posterior mode, Laplace covariance and diagnostics."""
+
+    model: FieldModel
+    theta: np.ndarray
+    cov: np.ndarray
+    prior_mean: np.ndarray
+    prior_sd: np.ndarray
+    s2: float
+    rho1: float
+    inflation: float
+    n: int
+    converged: bool
+    n_steps: int
+    covariance_method: str
+    coverage: dict
+    notes: tuple[str, ...]
+
+    @property
+    def param_names(self):
+        return self.model.param_names
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.cov), 0, None))
+
+    @property
+    def corr(self) -> np.ndarray:
+        s = self.std
+        return self.cov / np.outer(s, s)
+
+    def matrices(self, theta=None):
+        """``(S, Ks, O, Ko, extra)`` as NumPy arrays (gauge frame)."""
+        th = jnp.asarray(self.theta if theta is None else theta)
+        return tuple(np.asarray(a) for a in self.model.unpack(th))
+
+    def calibrate(self, u, t) -> np.ndarray:
+        return np.asarray(self.model.calibrate(jnp.asarray(self.theta), jnp.asarray(u, jnp.float64),
+                                               jnp.asarray(t, jnp.float64)))
+
+    def invariants(self) -> dict:
+        """Gauge-free quantities with posterior and prior standard deviations and an identified flag."""
+        g = lambda th: invariants(*self.model.unpack(th)[:4])
+        val = np.asarray(g(jnp.asarray(self.theta)))
+        G = np.asarray(jax.jacfwd(g)(jnp.asarray(self.theta)))
+        cov = G @ self.cov @ G.T
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        prior_sd = np.sqrt(np.clip(np.diag(G @ np.diag(self.prior_sd**2) @ G.T), 0, None))
+        ident = sd < IDENTIFIED_RATIO * np.maximum(prior_sd, 1e-300)
+        why = np.where(ident, "", "posterior sd > %g x prior sd" % IDENTIFIED_RATIO).astype(object)
+        thermal = np.array([n.startswith(("dQ/dT", "dd/dT")) for n in INVARIANT_NAMES])
+        if not self.model.temperature:
+            ident, why = ident & ~thermal, np.where(thermal, "no temperature terms fitted", why)
+        elif self.coverage and self.coverage.get("bands_spread", 2) < 2:
+            ident = ident & ~thermal
+            why = np.where(thermal, "directions spread at fewer than two temperatures", why)
+        if self.coverage and self.coverage.get("missing_directions"):
+            # a planar (or narrower) set of field directions is a conic, not a quadric: Q and d are not determined
+            ident = np.zeros_like(ident)
+            why = np.where(why == "", "field directions did not span 3-D (see direction coverage)", why)
+        return {"names": INVARIANT_NAMES, "value": val, "sd": sd, "cov": cov, "prior_sd": prior_sd,
+                "identified": ident, "why": why}
+
+    def magnitude(self, u, t) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted magnitude (n,) and its parameter (epistemic) standard deviation (n,)."""
+        return _magnitude(self.model, jnp.asarray(self.theta), jnp.asarray(self.cov), jnp.asarray(u, jnp.float64),
+                          jnp.asarray(t, jnp.float64))
+
+    def predict_magnitude(self, u, t) -> dict:
+        """Predictive distribution of the reference magnitude: mean, epistemic, noise and total sd."""
+        mean, epi = (np.asarray(a) for a in self.magnitude(u, t))
+        g = np.asarray(self.model.gain(jnp.asarray(self.theta), jnp.asarray(u, jnp.float64), jnp.asarray(t, jnp.float64)))
+        noise = math.sqrt(self.s2) * g
+        return {"mean": mean, "epistemic": epi, "noise": noise, "total": np.sqrt(epi**2 + noise**2)}
+
+    def to_json(self) -> dict:
+        inv = self.invariants()
+        return {
+            "measurement": self.model.measurement.describe(), "t0": self.model.t0,
+            "temperature_terms": self.model.temperature,
+            "gauge": gauge_text(self.model.measurement),
+            "param_names": list(self.param_names), "theta": self.theta.tolist(), "std": self.std.tolist(),
+            "prior_sd": self.prior_sd.tolist(),
+            "s2": self.s2, "rho1": self.rho1, "inflation": self.inflation, "n": self.n,
+            "converged": self.converged, "n_steps": self.n_steps, "covariance": self.covariance_method,
+            "invariants": {n: {"value": float(v), "sd": float(s), "prior_sd": float(p), "identified": bool(i),
+                               "why_not": str(w)}
+                           for n, v, s, p, i, w in zip(inv["names"], inv["value"], inv["sd"], inv["prior_sd"],
+                                                       inv["identified"], inv["why"])},
+            "direction_coverage": self.coverage, "notes": list(self.notes),
+        }
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _magnitude(model: FieldModel, theta, cov, u, t):
+    def mag(th):
+        return jnp.linalg.norm(model.calibrate(th, u, t), axis=1)
+    m = mag(theta)
+    G = jax.jacfwd(mag)(theta)
+    var = jnp.sum((G @ cov) * G, axis=1)
+    return m, jnp.sqrt(jnp.maximum(var, 0.0))
+
+
+def gauge_text(meas: MeasurementModel) -> str:
+    if meas.gauge == "none":
+        return "none: a vector reference observes every entry of S and Ks"
+    txt = ("S and Ks upper-triangular (M(T) = R U(T): the rotation R, 3 degrees of freedom, is invisible to a "
+           "magnitude; the calibrated field is in the sensor's gauge frame, whose x axis is the sensor's x axis "
+           "and whose y axis lies in the sensor's x-y plane)")
+    if meas.scale_gauge:
+        txt += "; trace(S) = 3 because the field magnitude was fitted too (magnitudes are relative, directions absolute)"
+    return txt
+
+
+def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = "mean",
+              temperature_terms: bool | str = "auto", covariance: str = "white", run=None,
+              prior: FieldPrior = FieldPrior()) -> FieldFit:
+    """Fit the thermo-affine model to what ``measurement`` knows per row.
+
+    Args:
+      u: (n, 3) raw readings, uT. t: (n,) temperature, C.
+      target: the measurement model's data (:func:`field_target`).
+      t0: reference temperature, or ``"mean"``.
+      temperature_terms: True/False, or ``"auto"`` (on when the temperature spans >= 1 C).
+      covariance: ``"white"`` or ``"ar1"`` (the white precision deflated by :math:`(1-\rho_1)/(1+\rho_1)`).
+      run: (n,) run ids (AR(1) lags stay inside runs).
+    Returns:
+      :class:`FieldFit`.
+
+    Example:
+      >>> rng = np.random.default_rng(0); d = rng.normal(size=(400, 3)); d /= np.linalg.norm(d, axis=1)[:, None]
+      >>> u = 50 * d @ np.diag([1.1, 0.9, 1.0]) + [3.0, -2.0, 1.0]
+      >>> f = fit_field(u, np.full(400, 20.0), np.full(400, 50.0), Constant(50.0))
+      >>> bool(np.allclose(f.invariants()["value"][:6], [1 / 1.1**2, 0, 0, 1 / 0.9**2, 0, 1], atol=1e-6))
+      True
+    """
+    if covariance not in ("white", "ar1"):
+        raise ValueError(f"field covariance {covariance!r} is not known; it must be 'white' or 'ar1'.")
+    u = np.asarray(u, np.float64)
+    t = np.asarray(t, np.float64).reshape(-1)
+    target = np.asarray(target, np.float64)
+    if temperature_terms == "auto":
+        temperature_terms = bool(np.ptp(t) >= 1.0)
+    t0v = float(np.mean(t)) if t0 == "mean" else float(t0)
+    model = FieldModel(measurement, t0=t0v, temperature=bool(temperature_terms))
+    theta0 = _init(model, u, t, target)
+    mu, sd = model.prior(prior, u)
+    uj, tj, yj = jnp.asarray(u), jnp.asarray(t), jnp.asarray(target)
+    r0, _ = _jac_resid(model, jnp.asarray(theta0), uj, tj, yj)
+    sig = max(float(np.sqrt(np.mean(np.asarray(r0) ** 2))), 1e-6)
+    infl, rho, steps, ok = 1.0, 0.0, 0, True
+    theta = theta0
+    for _ in range(2):                       # second pass: prior weights with the fitted noise level
+        sol = _solve(model, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd))
+        theta = np.asarray(sol.theta)
+        steps += int(sol.n_steps)
+        ok = int(sol.result) == 0
+        r, J = (np.asarray(a) for a in _jac_resid(model, jnp.asarray(theta), uj, tj, yj))
+        s2 = float(r @ r / max(len(r) - model.n_params, 1))
+        if covariance == "ar1":
+            rr = r.reshape(len(u), -1)
+            rho = float(np.mean([lag1_autocorrelation(rr[:, k], run) for k in range(rr.shape[1])]))
+            infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99))
+        sig = math.sqrt(s2 * infl)
+    P = J.T @ J / (s2 * infl) + np.diag(1.0 / sd**2)
+    cov = np.linalg.inv(P)
+    cov = 0.5 * (cov + cov.T)
+    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, len(u), ok, steps, covariance, {}, ())
+    cov_diag = direction_coverage(fit0.calibrate(u, t), t)
+    fit1 = dataclasses.replace(fit0, coverage=cov_diag)
+    return dataclasses.replace(fit1, notes=tuple(identifiability_notes(fit1, cov_diag)))
+
+
+# --------------------------------------------------------------------------- diagnostics
+
+#: covariance eigenvalue of the unit field direction below which a direction counts as not visited (sd < 0.1)
+DIRECTION_MIN = 0.01
+
+
+def _dir_eigs(B):
+    n = B / np.linalg.norm(B, axis=1, keepdims=True)
+    C = np.cov(n.T) if len(n) > 1 else np.zeros((3, 3))
+    w, V = np.linalg.eigh(C)
+    return w, V
+
+
+def direction_coverage(B: np.ndarray, t: np.ndarray, *, band_width: float = 5.0) -> dict:
+    """Which field directions the recording visited, overall and per temperature band.
+
+    The eigenvalues of the covariance of the unit field direction B/|B| (gauge frame): a full
+    tumble gives about 1/3 each; an eigenvalue < :data:`DIRECTION_MIN` means the direction barely
+    changed along that eigenvector (e.g. the vertical during level turns). Bands are ``band_width`` C wide.
+    """
+    B, t = np.asarray(B), np.asarray(t)
+    w, V = _dir_eigs(B)
+    lo, hi = float(np.min(t)), float(np.max(t))
+    nb = max(1, int(math.ceil((hi - lo) / band_width - 1e-9)))
+    edges = np.linspace(lo, hi, nb + 1)
+    bands = []
+    for k in range(nb):
+        m = (t >= edges[k]) & ((t <= edges[k + 1]) if k == nb - 1 else (t < edges[k + 1]))
+        if m.sum() < 10:
+            continue
+        wb, _ = _dir_eigs(B[m])
+        bands.append({"t_lo": float(edges[k]), "t_hi": float(edges[k + 1]), "rows": int(m.sum()),
+                      "eigenvalues": wb.tolist(), "spread": bool(wb[0] >= DIRECTION_MIN)})
+    missing = [V[:, k].round(3).tolist() for k in range(3) if w[k] < DIRECTION_MIN]
+    return {"eigenvalues": w.tolist(), "eigenvectors": V.T.round(4).tolist(), "missing_directions": missing,
+            "temperature_range": [lo, hi], "bands": bands,
+            "bands_spread": int(sum(b["spread"] for b in bands))}
+
+
+def _axis_name(v) -> str:
+    v = np.abs(np.asarray(v))
+    k = int(np.argmax(v))
+    return AXES[k] if v[k] > 0.9 else "(" + ", ".join(f"{x:.2f}" for x in np.asarray(v)) + ")"
+
+
+def identifiability_notes(fit: FieldFit, cov_diag: dict) -> list[str]:
+    """Plain-language notes: unvisited directions, thermal terms without spread, invariants not identified."""
+    notes = []
+    for v in cov_diag["missing_directions"]:
+        ax = _axis_name(v)
+        notes.append(f"the field direction barely changed along sensor axis {ax}: the scale along {ax} is not "
+                     f"separated from the offset along {ax}, nor the cross terms with {ax}; tilt or tumble the "
+                     f"sensor so the field sweeps along {ax} (e.g. pitch and roll by +-60 degrees, or a full dance)")
+    if fit.model.temperature and cov_diag["bands_spread"] < 2:
+        notes.append("the field directions were spread at fewer than two temperatures (5 C bands): the thermal gain "
+                     "Ks is not separated from the thermal offset Ko; repeat the motion at a second temperature")
+    if fit.model.measurement.scale_gauge:
+        notes.append("the field magnitude was fitted (constant, free): the overall scale is a gauge (trace(S) = 3)")
+    inv = fit.invariants()
+    bad = {}
+    for n, i, w in zip(inv["names"], inv["identified"], inv["why"]):
+        if not i:
+            bad.setdefault(w, []).append(n)
+    for w, names_ in bad.items():
+        notes.append(f"not identified by this recording ({w}): " + ", ".join(names_))
+    C = fit.corr
+    names = fit.param_names
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            if abs(C[i, j]) > 0.99:
+                notes.append(f"{names[i]} and {names[j]} are correlated {C[i, j]:+.3f}: this motion hardly separates them")
+    return notes
+
+
+# --------------------------------------------------------------------------- scores and heading
+
+
+def gaussian_scores(y, mean, sd, level: float = 0.95) -> dict:
+    """Coverage, mean NLL and mean CRPS of Gaussian predictions (closed forms; Gneiting & Raftery 2007)."""
+    y, mean, sd = (np.asarray(a, np.float64) for a in (y, mean, sd))
+    z = (y - mean) / sd
+    k = scipy.stats.norm.ppf(0.5 + level / 2)
+    nll = 0.5 * np.log(2 * np.pi * sd**2) + 0.5 * z**2
+    crps = sd * (z * (2 * scipy.stats.norm.cdf(z) - 1) + 2 * scipy.stats.norm.pdf(z) - 1 / np.sqrt(np.pi))
+    return {"coverage": float(np.mean(np.abs(z) <= k)), "nll": float(np.mean(nll)), "crps": float(np.mean(crps)),
+            "rmse": float(np.sqrt(np.mean((y - mean) ** 2))), "mean_width": float(np.mean(2 * k * sd)),
+            "level": level, "n": int(y.size)}
+
+
+def heading(B) -> np.ndarray:
+    """Magnetic heading in degrees of a level sensor, body frame x forward, y right, z down:
+    ``atan2(-B_y, B_x)`` (0 = north, 90 = east)."""
+    B = np.asarray(B)
+    return np.degrees(np.arctan2(-B[..., 1], B[..., 0]))
+
+
+def wrap_deg(a):
+    return (np.asarray(a) + 180.0) % 360.0 - 180.0
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _heading_jac(model: FieldModel, theta, u, t, R):
+    def h(th, uu):
+        B = jnp.einsum("nij,nj->ni", R, model.calibrate(th, uu, t))
+        return jnp.arctan2(-B[:, 1], B[:, 0])
+    val = h(theta, u)
+    Gt = jax.jacfwd(h, argnums=0)(theta, u)                        # (n, p)
+    return val, Gt
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _heading_row_grad(model: FieldModel, theta, u, t, R):
+    def one(uk, tk, Rk):
+        B = Rk @ model.calibrate(theta, uk[None], tk[None])[0]
+        return jnp.arctan2(-B[1], B[0])
+    return jax.vmap(jax.grad(one))(u, t, R)
+
+
+def heading_with_uncertainty(fit: FieldFit, u, t, R=None, *, noise_sd: float | None = None) -> dict:
+    """Heading (degrees) of the calibrated field rotated into the body frame by ``R``, with standard deviations.
+
+    ``R`` (3, 3) or (n, 3, 3) maps the gauge frame to the body frame. A magnitude calibration cannot
+    know it (the gauge): it needs a second vector (known attitudes, gravity, or a heading reference),
+    so the intervals are conditional on ``R``; ``R=None`` takes the gauge frame as the body frame.
+    Returns ``heading``, ``sd_params`` (from the parameter posterior), ``sd_noise`` (the reading's noise,
+    ``noise_sd`` per axis, default the fit's residual sd) and ``sd`` (both).
+    """
+    u = jnp.asarray(u, jnp.float64)
+    t = jnp.asarray(t, jnp.float64)
+    n = u.shape[0]
+    R = jnp.broadcast_to(jnp.eye(3) if R is None else jnp.asarray(R, jnp.float64), (n, 3, 3))
+    val, Gt = _heading_jac(fit.model, jnp.asarray(fit.theta), u, t, R)
+    Gt = np.asarray(Gt)
+    var_p = np.sum((Gt @ fit.cov) * Gt, axis=1)
+    gu = np.asarray(_heading_row_grad(fit.model, jnp.asarray(fit.theta), u, t, R))
+    ns = math.sqrt(fit.s2) if noise_sd is None else float(noise_sd)
+    var_n = ns**2 * np.sum(gu**2, axis=1)
+    deg = 180.0 / np.pi
+    return {"heading": np.degrees(np.asarray(val)), "sd_params": deg * np.sqrt(var_p), "sd_noise": deg * np.sqrt(var_n),
+            "sd": deg * np.sqrt(var_p + var_n)}

@@ -1,0 +1,191 @@
+r"""Simulated field campaigns with ground truth: a magnetometer turned around in the Earth's field.
+
+The Earth field in the local north-east-down frame is ``F (cos I cos D, cos I sin D, sin I)``
+(inclination I, declination D). A body attitude :math:`C_k` (NED -> body) gives the true field
+in the body frame :math:`B_k = C_k B_{ned}`. The sensor (gain, cross-axis, misalignment, thermal
+terms) and the vehicle (hard iron h, symmetric soft iron :math:`S_v`) fold into one thermo-affine
+calibration, exactly:
+
+.. math::  B = S_v^{-1}\big(M_s(T) u + o_s(T) - h\big) = M(T)\,u + o(T),
+
+so the reading is :math:`u = M(T)^{-1}(B - o(T)) + \varepsilon`, :math:`\varepsilon \sim N(0, \sigma^2 I)`.
+A scalar reference reads :math:`F_{ref} = \lVert B\rVert + N(0, \sigma_{ref}^2)`.
+
+Motions (:data:`MOTIONS`): ``dance`` (tumbled by hand through all directions), ``level_turns``
+(yaw turns with a few degrees of tilt), ``two_temperature`` (a level turn, a pitch turn and a roll
+turn at each of two temperatures), ``few_orientations`` (a few static attitudes).
+
+Example:
+  >>> c = simulate_field("dance", n=500, seed=1)
+  >>> c.data.n, round(float(np.median(np.linalg.norm(c.truth.b_body, axis=1))), 1)
+  (500, 50.0)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from bayesmag._src.core.data import CalibrationData
+from bayesmag._src.core.field import gauge_form, heading, invariants
+
+__all__ = ["FieldTruth", "FieldCampaign", "simulate_field", "MOTIONS", "field_campaign_from_config"]
+
+MOTIONS = ("dance", "level_turns", "two_temperature", "few_orientations")
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldTruth:
+    """Ground truth of a field campaign: the total calibration (body frame) and every part of it."""
+
+    S: np.ndarray
+    Ks: np.ndarray
+    O: np.ndarray
+    Ko: np.ndarray
+    t0: float
+    sensor: dict
+    vehicle: dict
+    earth_ned: np.ndarray
+    attitude: np.ndarray      # (n, 3, 3) NED -> body
+    b_body: np.ndarray        # (n, 3) true field in the body frame
+    level: np.ndarray         # (n,) bool: tilt below 5 degrees
+
+    def M(self, t):
+        return self.S + self.Ks * (np.asarray(t) - self.t0)[..., None, None]
+
+    def o(self, t):
+        return self.O + self.Ko * (np.asarray(t) - self.t0)[..., None]
+
+    def invariants(self, t0: float | None = None) -> np.ndarray:
+        """The 18 gauge-free numbers at ``t0`` (default the truth's)."""
+        dt = 0.0 if t0 is None else t0 - self.t0
+        return np.asarray(invariants(self.S + self.Ks * dt, self.Ks, self.O + self.Ko * dt, self.Ko))
+
+    def alignment(self, t) -> np.ndarray:
+        """(n, 3, 3) rotation from the gauge frame (M upper-triangular) to the body frame, per temperature."""
+        return np.stack([gauge_form(m)[0] for m in self.M(np.asarray(t))])
+
+    @property
+    def heading(self) -> np.ndarray:
+        return heading(self.b_body)
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldCampaign:
+    """A simulated campaign: the recording (``data.b_ref`` is the true body field), ``f_ref`` and the truth."""
+
+    kind: str
+    data: CalibrationData
+    f_ref: np.ndarray
+    truth: FieldTruth
+    settings: dict
+
+
+def _attitudes(kind: str, n: int, rng, *, tilt_deg: float, n_orient: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3, 3) NED->body attitudes and (n,) segment index (0/1 for the two temperatures)."""
+    seg = np.zeros(n, dtype=int)
+    if kind == "dance":
+        key = Rotation.random(24, random_state=rng)
+        s = Slerp(np.linspace(0, 1, 24), key)
+        R = s(np.linspace(0, 1, n))
+    elif kind == "level_turns":
+        k = np.linspace(0, 1, n)
+        yaw = 360.0 * 3 * k + rng.uniform(0, 360)
+        roll = tilt_deg * np.sin(2 * np.pi * 7.3 * k + rng.uniform(0, 6.3))
+        pitch = tilt_deg * np.sin(2 * np.pi * 5.1 * k + rng.uniform(0, 6.3))
+        R = Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]), degrees=True)
+    elif kind == "two_temperature":
+        half = [n // 2, n - n // 2]
+        parts = []
+        for h in half:
+            m = [h // 3, h // 3, h - 2 * (h // 3)]
+            ang = [np.linspace(0, 360, mm, endpoint=False) + rng.uniform(0, 360) for mm in m]
+            parts += [Rotation.from_euler("Z", ang[0][:, None], degrees=True),      # a level turn, then a
+                      Rotation.from_euler("Y", ang[1][:, None], degrees=True),      # pitch and a roll turn
+                      Rotation.from_euler("X", ang[2][:, None], degrees=True)]
+        R = Rotation.concatenate(parts)
+        seg[n // 2:] = 1
+    elif kind == "few_orientations":
+        key = Rotation.random(n_orient, random_state=rng)
+        idx = np.minimum(np.arange(n) * n_orient // n, n_orient - 1)
+        R = key[idx]
+    else:
+        raise ValueError(f"field motion {kind!r} is not known; it must be one of {list(MOTIONS)}.")
+    # scipy's Rotation maps body -> world; the attitude NED -> body is its inverse
+    return R.inv().as_matrix(), seg
+
+
+def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: float = 50.0,
+                   inclination: float = 60.0, declination: float = 0.0, noise_sd: float = 0.05,
+                   ref_sd: float = 0.01, temperature: tuple[float, float] = (20.0, 20.0),
+                   temperatures: tuple[float, float] = (15.0, 40.0), t0: float = 25.0, vehicle: bool = True,
+                   tilt_deg: float = 3.0, n_orient: int = 12, field_variation: float = 0.0,
+                   sample_rate: float = 10.0) -> FieldCampaign:
+    """One simulated field campaign (all draws from ``seed``).
+
+    Args:
+      kind: one of :data:`MOTIONS`.
+      n: rows. field: Earth field magnitude, uT. inclination, declination: degrees.
+      noise_sd: sensor noise per axis, uT. ref_sd: scalar reference noise, uT.
+      temperature: (start, end) of a linear temperature ramp, C (``two_temperature`` uses ``temperatures``).
+      t0: the truth's reference temperature. vehicle: add hard and soft iron.
+      tilt_deg: tilt amplitude of level turns. n_orient: attitudes of ``few_orientations``.
+      field_variation: relative amplitude of a slow change of the field magnitude along the path
+        (a scalar reference sees it; a ``constant`` model does not).
+    """
+    rng = np.random.default_rng(seed)
+    S_s = np.eye(3) + np.diag(rng.normal(0, 0.03, 3)) + rng.normal(0, 0.01, (3, 3)) * (1 - np.eye(3))
+    Ks_s = rng.normal(0, 2e-4, (3, 3))
+    O_s = rng.normal(0, 2.0, 3)
+    Ko_s = rng.normal(0, 0.02, 3)
+    if vehicle:
+        h = rng.normal(0, 10.0, 3)
+        A = rng.normal(0, 0.03, (3, 3))
+        Sv = np.eye(3) + 0.5 * (A + A.T)
+    else:
+        h, Sv = np.zeros(3), np.eye(3)
+    Svi = np.linalg.inv(Sv)
+    S, Ks, O, Ko = Svi @ S_s, Svi @ Ks_s, Svi @ (O_s - h), Svi @ Ko_s
+    C, seg = _attitudes(kind, n, rng, tilt_deg=tilt_deg, n_orient=n_orient)
+    I, D = np.radians(inclination), np.radians(declination)
+    e_ned = field * np.array([np.cos(I) * np.cos(D), np.cos(I) * np.sin(D), np.sin(I)])
+    k = np.linspace(0, 1, n)
+    scale = 1.0 + field_variation * np.sin(2 * np.pi * 1.5 * k + rng.uniform(0, 6.3))
+    B = np.einsum("nij,j->ni", C, e_ned) * scale[:, None]
+    if kind == "two_temperature":
+        t = np.where(seg == 0, temperatures[0], temperatures[1]).astype(float)
+    else:
+        t = np.linspace(temperature[0], temperature[1], n)
+    t = t + rng.normal(0, 0.05, n)
+    tc = t - t0
+    M = S + Ks * tc[:, None, None]
+    o = O + Ko * tc[:, None]
+    u = np.linalg.solve(M, (B - o)[..., None])[..., 0] + rng.normal(0, noise_sd, (n, 3))
+    f_ref = np.linalg.norm(B, axis=1) + rng.normal(0, ref_sd, n)
+    tilt = np.degrees(np.arccos(np.clip(C[:, 2, 2], -1, 1)))        # angle between body z and down
+    truth = FieldTruth(S, Ks, O, Ko, t0, {"S": S_s, "Ks": Ks_s, "O": O_s, "Ko": Ko_s}, {"hard_iron": h, "soft_iron": Sv},
+                       e_ned, C, B, tilt < 5.0)
+    time = np.arange(n) / sample_rate
+    run = seg.astype(np.int64)
+    data = CalibrationData(u, t, B, time, run, source=f"simulated field campaign: {kind}, seed {seed}")
+    settings = dict(kind=kind, n=n, seed=seed, field=field, inclination=inclination, declination=declination,
+                    noise_sd=noise_sd, ref_sd=ref_sd, temperature=list(temperature), temperatures=list(temperatures),
+                    t0=t0, vehicle=vehicle, tilt_deg=tilt_deg, n_orient=n_orient, field_variation=field_variation)
+    return FieldCampaign(kind, data, f_ref, truth, settings)
+
+
+def field_campaign_from_config(d: dict) -> FieldCampaign:
+    """A campaign from a config table (``[data.field_simulate]``): keys as :func:`simulate_field`'s arguments."""
+    d = dict(d)
+    kind = d.pop("kind", "dance")
+    for key in ("temperature", "temperatures"):
+        if key in d:
+            d[key] = tuple(float(x) for x in d[key])
+    known = set(simulate_field.__code__.co_varnames[:simulate_field.__code__.co_argcount
+                                                   + simulate_field.__code__.co_kwonlyargcount])
+    bad = sorted(set(d) - known)
+    if bad:
+        raise ValueError(f"unknown field simulation key(s) {bad}; valid keys: {sorted(known)}.")
+    return simulate_field(kind, **d)

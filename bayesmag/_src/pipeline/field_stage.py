@@ -1,0 +1,138 @@
+"""The field-calibration stage: fit a magnitude (or vector) measurement model, score held-out rows,
+check heading and compare with a vector fit of the same rows where a vector reference exists.
+
+Pure computation on arrays and :class:`~bayesmag.CalibrationData`; the job (:mod:`bayesmag._src.app.field_job`)
+reads the config and writes the files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from bayesmag._src.core.data import CalibrationData
+from bayesmag._src.core.field import (INVARIANT_NAMES, FieldFit, FieldPrior, fit_field, field_target,
+                                      gaussian_scores, heading_with_uncertainty, invariants, wrap_deg)
+from bayesmag._src.core.measurement import MeasurementModel, Vector
+
+__all__ = ["FieldStage", "run_field_stage", "vector_comparison", "heading_check"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldStage:
+    """What the field stage computed."""
+
+    fit: FieldFit
+    train: CalibrationData
+    test: CalibrationData
+    target_test: np.ndarray
+    prediction: dict           # predictive distribution of the test magnitudes
+    scores: dict               # coverage / NLL / CRPS / RMSE of the test magnitudes
+    heading: dict | None       # heading check (None when heading cannot be checked)
+    vector: dict | None        # comparison with a vector fit (None without a vector reference)
+    timings: dict
+
+
+def heading_check(fit: FieldFit, data: CalibrationData, rows: np.ndarray, true_heading: np.ndarray,
+                  alignment: np.ndarray, level: float = 0.95) -> dict:
+    """Heading error (degrees) of the calibrated field on ``rows`` against ``true_heading``, with intervals.
+
+    ``alignment`` (n_rows, 3, 3) maps the gauge frame to the body frame (known attitudes): the
+    intervals are conditional on it (a magnitude calibration cannot see that rotation).
+    """
+    import scipy.stats
+    h = heading_with_uncertainty(fit, data.b_meas[rows], data.temperature[rows], alignment)
+    err = wrap_deg(h["heading"] - true_heading)
+    k = scipy.stats.norm.ppf(0.5 + level / 2)
+    return {"n": int(rows.sum() if rows.dtype == bool else len(rows)), "rmse_deg": float(np.sqrt(np.mean(err**2))),
+            "max_abs_deg": float(np.max(np.abs(err))), "mean_sd_deg": float(np.mean(h["sd"])),
+            "mean_sd_params_deg": float(np.mean(h["sd_params"])), "mean_sd_noise_deg": float(np.mean(h["sd_noise"])),
+            "coverage": float(np.mean(np.abs(err) <= k * h["sd"])),
+            "coverage_params_only": float(np.mean(np.abs(err) <= k * np.sqrt(h["sd_params"]**2 + 1e-30))),
+            "level": level, "conditional_on": "the gauge-to-body rotation (from the known attitudes)",
+            "error": err, "sd": h["sd"]}
+
+
+def vector_comparison(fit: FieldFit, train: CalibrationData, *, covariance: str = "white") -> dict:
+    """Fit the vector model to the same rows (same T0) and compare the 18 gauge-free invariants.
+
+    Each invariant the magnitude fit identifies is ``agree`` when
+    :math:`|z| = |\\Delta| / \\sqrt{sd_m^2 + sd_v^2} \\le 2`, else ``disagree``; the others are
+    ``not identified``. The vector fit's covariance is per axis (as :func:`~bayesmag.fit_physics`).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from bayesmag._src.core.fit import fit_physics
+    from bayesmag._src.core.physics import PhysicsModel
+
+    temp = fit.model.temperature
+    vf = fit_physics(train, PhysicsModel.paper(t0=fit.model.t0, temperature=temp),
+                     covariance_method="ar1" if covariance == "ar1" else "white")
+    th = np.asarray(vf.theta)
+    p = th.shape[1]
+    cov = np.zeros((3 * p, 3 * p))
+    for a in range(3):
+        cov[a * p:(a + 1) * p, a * p:(a + 1) * p] = vf.cov[a]
+
+    def inv_of(flat):
+        t3 = flat.reshape(3, p)
+        if temp:
+            return invariants(t3[:, 0:3], t3[:, 3:6], t3[:, 6], t3[:, 7])
+        return invariants(t3[:, 0:3], jnp.zeros((3, 3)), t3[:, 3], jnp.zeros(3))
+
+    flat = jnp.asarray(th.reshape(-1))
+    v_val = np.asarray(inv_of(flat))
+    G = np.asarray(jax.jacfwd(inv_of)(flat))
+    v_sd = np.sqrt(np.clip(np.diag(G @ cov @ G.T), 0, None))
+    m = fit.invariants()
+    rows = []
+    for k, name in enumerate(INVARIANT_NAMES):
+        sd = float(np.hypot(m["sd"][k], v_sd[k]))
+        z = float((m["value"][k] - v_val[k]) / sd) if sd > 0 else float("nan")
+        status = ("not identified" if not m["identified"][k] else "agree" if abs(z) <= 2 else "disagree")
+        rows.append({"name": name, "magnitude_fit": float(m["value"][k]), "magnitude_sd": float(m["sd"][k]),
+                     "vector_fit": float(v_val[k]), "vector_sd": float(v_sd[k]), "z": z, "status": status,
+                     "why_not": str(m["why"][k])})
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("agree", "disagree", "not identified")}
+    return {"rows": rows, "counts": counts, "t0": fit.model.t0, "vector_covariance": vf.covariance_method}
+
+
+def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: MeasurementModel, *,
+                    f_ref_train=None, f_ref_test=None, t0="mean", temperature_terms="auto", covariance="white",
+                    level: float = 0.95, prior: FieldPrior = FieldPrior(), heading: dict | None = None,
+                    compare_vector: bool = True) -> FieldStage:
+    """Fit on ``train`` (the vector reference withheld down to what ``measurement`` sees), score ``test``.
+
+    ``heading`` = ``{"rows": bool mask of test rows, "true": degrees, "alignment": (k, 3, 3)}`` when heading
+    can be checked (simulated attitudes, or a heading reference).
+    """
+    timings = {}
+    t = time.perf_counter()
+    y_tr = field_target(measurement, b_ref=train.b_ref, f_ref=f_ref_train, n=train.n)
+    fit = fit_field(train.b_meas, train.temperature, y_tr, measurement, t0=t0, temperature_terms=temperature_terms,
+                    covariance=covariance, run=train.run, prior=prior)
+    timings["field_fit"] = time.perf_counter() - t
+    t = time.perf_counter()
+    pred = fit.predict_magnitude(test.b_meas, test.temperature)
+    y_te = field_target(measurement, b_ref=test.b_ref, f_ref=f_ref_test, n=test.n)
+    if isinstance(measurement, Vector):
+        y_mag = np.linalg.norm(y_te, axis=1)
+    else:
+        _, _, _, _, extra = fit.matrices()
+        y_mag = np.asarray(measurement.magnitude(y_te, extra))
+    scores = gaussian_scores(y_mag, pred["mean"], pred["total"], level)
+    timings["field_predict"] = time.perf_counter() - t
+    hd = None
+    if heading is not None and np.any(heading["rows"]):
+        t = time.perf_counter()
+        hd = heading_check(fit, test, heading["rows"], heading["true"], heading["alignment"], level)
+        timings["heading"] = time.perf_counter() - t
+    vec = None
+    if compare_vector and train.has_reference and not isinstance(measurement, Vector):
+        t = time.perf_counter()
+        vec = vector_comparison(fit, train, covariance=covariance)
+        timings["vector_comparison"] = time.perf_counter() - t
+    return FieldStage(fit, train, test, y_mag, pred, scores, hd, vec, timings)

@@ -1,0 +1,186 @@
+"""Field calibration vs peers on simulated campaigns (docs/field.md tables).
+
+Peers, written here from the published algorithms (``magyc`` pins jax<0.5 / numpy<2 and does not install
+beside bayesmag):
+
+* sphere fit: |u - c|^2 = r^2 by linear least squares (hard iron only), B = (u - c) F / r;
+* ellipsoid fit: the algebraic 9-coefficient quadric fit (Petrov's MATLAB ``ellipsoid_fit``, the one magyc
+  ports), B = F sqrtm(A') (u - c) with the symmetric square-root gauge;
+* TWOSTEP (Alonso & Shuster 2002, J. Astronaut. Sci. 50(4)): a centred linear estimate, then Gauss-Newton
+  on the squared-magnitude residuals |W (u - c)|^2 - F^2 with W symmetric (unweighted: a simplification).
+
+Every method fits the same training rows (time blocks; 20 % held out) and is scored on the held-out rows:
+magnitude RMSE (uT), heading RMSE on level rows (deg; peers get the best rotation to the body frame from the
+truth, bayesmag the truth's gauge rotation), offset error |d - d_true| (uT, d = S^-1 O in reading units),
+and for bayesmag the coverage of its 95 % intervals (identified invariants, heading, held-out magnitude).
+
+Run (about 1 GB per process): ``nice python benchmarks/bench_field.py --seeds 20 --out benchmarks/field_results.json``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import scipy.linalg
+import scipy.stats
+
+from bayesmag._src.core.field import (Constant, Scalar, field_target, fit_field, heading, heading_with_uncertainty,
+                                      wrap_deg)
+from bayesmag.simulate import simulate_field
+
+F = 50.0
+K95 = scipy.stats.norm.ppf(0.975)
+
+
+def sphere_fit(u):
+    A = np.column_stack([2 * u, np.ones(len(u))])
+    v, *_ = np.linalg.lstsq(A, np.sum(u * u, axis=1), rcond=None)
+    c = v[:3]
+    r = np.sqrt(v[3] + c @ c)
+    return np.eye(3) * F / r, c
+
+
+def ellipsoid_fit(u):
+    x, y, z = u.T
+    D = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, 2 * x, 2 * y, 2 * z])
+    v, *_ = np.linalg.lstsq(D, np.ones(len(u)), rcond=None)
+    A = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
+    c = -np.linalg.solve(A, v[6:9])
+    A = A / (1 + c @ A @ c)
+    w, V = np.linalg.eigh(A)
+    W = V @ np.diag(np.sqrt(np.abs(w))) @ V.T * F
+    return W, c
+
+
+def twostep(u, iters=20):
+    W, c = ellipsoid_fit(u)                                  # centred linear estimate (step 1)
+    iu = np.triu_indices(3)
+    p = np.concatenate([W[iu], c])
+
+    def unpack(p):
+        W = np.zeros((3, 3)); W[iu] = p[:6]; W = W + np.triu(W, 1).T
+        return W, p[6:]
+
+    for _ in range(iters):                                   # Gauss-Newton (step 2), numerical Jacobian
+        W, c = unpack(p)
+        r = np.sum(((u - c) @ W.T) ** 2, axis=1) - F**2
+        J = np.empty((len(u), 9))
+        for k in range(9):
+            q = p.copy(); q[k] += 1e-6
+            Wq, cq = unpack(q)
+            J[:, k] = (np.sum(((u - cq) @ Wq.T) ** 2, axis=1) - F**2 - r) / 1e-6
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        p = p + step
+        if np.linalg.norm(step) < 1e-10:
+            break
+    return unpack(p)
+
+
+def kabsch(Bm, Bt):
+    U, _, Vt = np.linalg.svd(Bm.T @ Bt)
+    d = np.sign(np.linalg.det(U @ Vt))
+    return (U @ np.diag([1, 1, d]) @ Vt).T                   # R with Bt ~ Bm R^T
+
+
+def run_one(kind, seed, temperature, n_orient):
+    kw = dict(n=2000, seed=seed, n_orient=n_orient)
+    if kind != "two_temperature":
+        kw["temperature"] = temperature
+    c = simulate_field(kind, **kw)
+    d, tr = c.data, c.truth
+    test = np.zeros(d.n, bool)
+    for b in range(4):                                       # 4 held-out blocks of 5 %
+        s = int((0.1 + 0.22 * b) * d.n)
+        test[s:s + d.n // 20] = True
+    train = ~test
+    u, t = d.b_meas, d.temperature
+    B_true = tr.b_body
+    res = {}
+    t1 = time.perf_counter()
+    f = fit_field(u[train], t[train], field_target(Constant(F), n=int(train.sum())), Constant(F))
+    pm = f.predict_magnitude(u[test], t[test])
+    y = np.linalg.norm(B_true[test], axis=1)
+    inv, truth = f.invariants(), tr.invariants(f.model.t0)
+    ok = inv["identified"]
+    d_true = truth[12:15]                                     # at the fit's T0
+    d_hat = inv["value"][12:15]
+    r = {"mag_rmse": float(np.sqrt(np.mean((pm["mean"] - y) ** 2))),
+         "mag_cov": float(np.mean(np.abs(pm["mean"] - y) <= K95 * pm["total"])),
+         "offset_err": float(np.linalg.norm(d_hat - d_true)),
+         "inv_hits": int(np.sum(np.abs(inv["value"][ok] - truth[ok]) <= K95 * inv["sd"][ok])), "inv_n": int(ok.sum()),
+         "time_s": time.perf_counter() - t1}
+    lv = tr.level & test
+    if lv.sum() > 10:
+        h = heading_with_uncertainty(f, u[lv], t[lv], tr.alignment(t[lv]))
+        e = wrap_deg(h["heading"] - tr.heading[lv])
+        r.update(head_rmse=float(np.sqrt(np.mean(e**2))), head_cov=float(np.mean(np.abs(e) <= K95 * h["sd"])))
+    res["bayesmag"] = r
+    d_true = tr.invariants(float(np.mean(t[train])))[12:15]  # peers: no temperature model, mean training T
+    for name, fn in [("sphere", sphere_fit), ("ellipsoid", ellipsoid_fit), ("twostep", twostep)]:
+        try:
+            W, cc = fn(u[train])
+            Bh = (u - cc) @ W.T
+            r = {"mag_rmse": float(np.sqrt(np.mean((np.linalg.norm(Bh[test], axis=1) - y) ** 2))),
+                 "offset_err": float(np.linalg.norm(cc + d_true))}      # the centre is the reading at B = 0: -d
+            if lv.sum() > 10:
+                R = kabsch(Bh[train], B_true[train])
+                e = wrap_deg(heading(Bh[lv] @ R.T) - tr.heading[lv])
+                r["head_rmse"] = float(np.sqrt(np.mean(e**2)))
+        except (np.linalg.LinAlgError, ValueError):
+            r = {"mag_rmse": float("nan"), "offset_err": float("nan")}
+        res[name] = r
+    return res
+
+
+CAMPAIGNS = [("dance", "many orientations, 20 C", (20.0, 20.0), 12),
+             ("dance", "many orientations, 15->40 C ramp", (15.0, 40.0), 12),
+             ("level_turns", "level turns, 20 C", (20.0, 20.0), 12),
+             ("two_temperature", "turns at 15 and 40 C", None, 12),
+             ("few_orientations", "12 orientations, 20 C", (20.0, 20.0), 12),
+             ("few_orientations", "12 orientations, 15->40 C ramp", (15.0, 40.0), 12)]
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--speed", action="store_true", help="time a 10,000-row fit with its uncertainty, warm")
+    a = ap.parse_args()
+    if a.speed:
+        c = simulate_field("dance", n=10000, seed=0, temperature=(15.0, 40.0))
+        d = c.data
+        times = []
+        for _ in range(3):                                   # the first call compiles (cold)
+            t1 = time.perf_counter()
+            f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar())
+            f.invariants(); f.predict_magnitude(d.b_meas, d.temperature)
+            times.append(time.perf_counter() - t1)
+        print(f"10,000 rows, scalar model, 18 parameters + posterior + magnitude intervals: cold {times[0]:.2f} s, "
+              f"warm {min(times[1:]):.2f} / {max(times[1:]):.2f} s", flush=True)
+        return
+    table = {}
+    for kind, label, temp, no in CAMPAIGNS:
+        runs = [run_one(kind, s, temp, no) for s in range(a.seeds)]
+        row = {}
+        for m in runs[0]:
+            keys = runs[0][m].keys()
+            row[m] = {k: float(np.nanmean([r[m].get(k, np.nan) for r in runs])) for k in keys if k not in ("inv_hits", "inv_n")}
+            if m == "bayesmag":
+                n = sum(r[m]["inv_n"] for r in runs)
+                row[m]["inv_cov"] = sum(r[m]["inv_hits"] for r in runs) / n if n else None
+                row[m]["inv_n"] = n
+        table[label] = row
+        print(f"## {label} ({a.seeds} seeds)")
+        for m, v in row.items():
+            print("  " + m.ljust(10) + "  ".join(f"{k} {x:.4g}" if isinstance(x, float) else f"{k} {x}" for k, x in v.items()),
+                  flush=True)
+    if a.out:
+        with open(a.out, "w") as fh:
+            json.dump({"seeds": a.seeds, "table": table}, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,200 @@
+"""Field calibration (core/measurement.py, core/field.py, core/field_sim.py) against simulated ground truth.
+
+Tolerances: invariants within 4 posterior sd of the truth and within a stated absolute bound;
+heading RMSE below 0.3 degrees at 0.05 uT noise in a 25 uT horizontal field (0.05/25 rad = 0.11 deg per
+row); coverage over seeds inside a declared band (the quick test 6 seeds, the slow one 20).
+"""
+
+import numpy as np
+import pytest
+import scipy.stats
+from scipy.spatial.transform import Rotation
+
+import jax.numpy as jnp
+
+from bayesmag.field import (INVARIANT_NAMES, Constant, Scalar, Vector, fit_field, field_target, gauge_form,
+                            heading, heading_with_uncertainty, invariants, measurement_from_spec)
+from bayesmag.simulate import simulate_field
+from bayesmag._src.core.field import wrap_deg
+
+
+# --------------------------------------------------------------------------- measurement models
+
+
+@pytest.mark.parametrize("meas, target, extra, want", [
+    (Scalar(), [5.5], [], [-0.5]),
+    (Constant(4.0), [0.0], [], [1.0]),
+    (Constant(None), [0.0], [6.0], [-1.0]),
+])
+def test_magnitude_residuals_closed_form(meas, target, extra, want):
+    B = jnp.array([[3.0, 4.0, 0.0]])
+    r = meas.residual(B, jnp.asarray(target), jnp.asarray(extra, dtype=float))
+    assert np.allclose(np.asarray(r), want)
+
+
+def test_vector_residual_is_componentwise():
+    B, ref = jnp.array([[1.0, 2.0, 3.0]]), jnp.array([[0.5, 2.0, 4.0]])
+    assert np.allclose(np.asarray(Vector().residual(B, ref, jnp.zeros(0))), [0.5, 0.0, -1.0])
+
+
+@pytest.mark.parametrize("kind, field, msg", [("magnitude", None, "not known"), ("constant", -5.0, "positive")])
+def test_measurement_spec_errors_name_the_value(kind, field, msg):
+    with pytest.raises(ValueError, match=msg):
+        measurement_from_spec(kind, field)
+
+
+# --------------------------------------------------------------------------- the gauge
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_gauge_form_is_rotation_times_upper(seed):
+    M = np.eye(3) + 0.2 * np.random.default_rng(seed).normal(size=(3, 3))
+    R, U = gauge_form(M)
+    assert np.allclose(R @ U, M) and np.allclose(R.T @ R, np.eye(3)) and np.allclose(np.tril(U, -1), 0)
+    assert np.all(np.diag(U) > 0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_invariants_do_not_see_a_rotation(seed):
+    rng = np.random.default_rng(seed)
+    S, Ks = np.eye(3) + 0.1 * rng.normal(size=(3, 3)), 1e-3 * rng.normal(size=(3, 3))
+    O, Ko = rng.normal(size=3), 0.01 * rng.normal(size=3)
+    R = Rotation.random(random_state=seed).as_matrix()
+    a = np.asarray(invariants(S, Ks, O, Ko))
+    b = np.asarray(invariants(R @ S, R @ Ks, R @ O, R @ Ko))
+    assert np.allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_magnitude_fit_is_in_the_gauge_and_ignores_a_rotated_reference():
+    """A scalar fit is upper-triangular, and rotating the reference field changes nothing it can see."""
+    c = simulate_field("dance", n=1200, seed=3, vehicle=True)
+    d = c.data
+    R = Rotation.random(random_state=1).as_matrix()
+    f1 = fit_field(d.b_meas, d.temperature, field_target(Scalar(), b_ref=d.b_ref), Scalar(), temperature_terms=False)
+    f2 = fit_field(d.b_meas, d.temperature, field_target(Scalar(), b_ref=d.b_ref @ R.T), Scalar(),
+                   temperature_terms=False)
+    S1 = f1.matrices()[0]
+    assert np.allclose(np.tril(S1, -1), 0)
+    assert np.allclose(f1.theta, f2.theta, atol=1e-9)
+    v = fit_field(d.b_meas, d.temperature, d.b_ref, Vector(), temperature_terms=False)   # sees every entry
+    Rv, Uv = gauge_form(v.matrices()[0])
+    assert np.allclose(Uv, S1, atol=5e-3)          # the vector fit's S is the rotation times the gauge form
+
+
+# --------------------------------------------------------------------------- recovery of the truth
+
+
+@pytest.mark.parametrize("meas", [Constant(50.0), Scalar()], ids=["constant", "scalar"])
+def test_dance_with_temperature_ramp_recovers_every_invariant(meas):
+    c = simulate_field("dance", n=2000, seed=11, temperature=(15.0, 40.0))
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, field_target(meas, b_ref=d.b_ref, f_ref=c.f_ref, n=d.n), meas)
+    inv, truth = f.invariants(), c.truth.invariants(f.model.t0)
+    assert f.converged and inv["identified"].all(), f.notes
+    z = (inv["value"] - truth) / inv["sd"]
+    assert np.all(np.abs(z) < 4), dict(zip(INVARIANT_NAMES, np.round(z, 2)))
+    err = np.abs(inv["value"] - truth)
+    assert err[:6].max() < 2e-3 and err[12:15].max() < 0.05      # Q (1) and d (uT)
+    # held-out-free check of the magnitude: residual sd close to the simulated noise (0.05 uT per axis)
+    assert 0.04 < np.sqrt(f.s2) < 0.065
+
+
+def test_free_field_fixes_the_scale_and_keeps_the_shape():
+    c = simulate_field("dance", n=1500, seed=5)
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, field_target(Constant(None), n=d.n), Constant(None), temperature_terms=False)
+    S, _, _, _, extra = f.matrices()
+    assert abs(np.trace(S) - 3.0) < 1e-12
+    inv, truth = f.invariants()["value"], c.truth.invariants(f.model.t0)
+    assert np.allclose(inv[:6] / inv[0], truth[:6] / truth[0], atol=2e-3)     # the shape of Q
+    k = 50.0 / extra[0]                                                        # the scale the gauge took
+    assert np.allclose(inv[12:15] , truth[12:15], atol=0.05)                  # d is in reading units: no scale
+    assert np.allclose(k**2 * inv[:6], truth[:6], atol=2e-3)
+
+
+def test_heading_error_on_level_turns_is_small_and_covered():
+    c = simulate_field("level_turns", n=2000, seed=2)
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, field_target(Constant(50.0), n=d.n), Constant(50.0))
+    lv = c.truth.level
+    h = heading_with_uncertainty(f, d.b_meas[lv], d.temperature[lv], c.truth.alignment(d.temperature[lv]))
+    e = wrap_deg(h["heading"] - c.truth.heading[lv])
+    assert np.sqrt(np.mean(e**2)) < 0.3
+    assert 0.9 <= np.mean(np.abs(e) <= 1.96 * h["sd"]) <= 1.0
+
+
+def test_heading_convention():
+    assert np.allclose(heading(np.array([[20.0, 0, 40], [0, -20.0, 40], [0, 20.0, 40]])), [0, 90, -90])
+
+
+# --------------------------------------------------------------------------- identifiability naming
+
+
+def test_level_turns_name_the_vertical_and_identify_nothing_in_3d():
+    c = simulate_field("level_turns", n=1500, seed=4)
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, field_target(Constant(50.0), n=d.n), Constant(50.0))
+    assert any("sensor axis z" in n and "tilt" in n for n in f.notes), f.notes
+    assert not f.invariants()["identified"].any()
+
+
+def test_one_heated_orientation_separates_no_thermal_terms():
+    """A dance at one temperature, then a static heated hold: Ks and Ko are named not separable."""
+    a = simulate_field("dance", n=1200, seed=6, temperature=(20.0, 20.0))
+    b = simulate_field("few_orientations", n=600, seed=6, n_orient=1, temperature=(25.0, 45.0))
+    # same sensor and vehicle (same seed draws them first); stack the two recordings
+    u = np.vstack([a.data.b_meas, b.data.b_meas])
+    t = np.concatenate([a.data.temperature, b.data.temperature])
+    f = fit_field(u, t, np.full(len(t), 50.0), Constant(50.0), temperature_terms=True)
+    inv = f.invariants()
+    thermal = np.array([n.startswith(("dQ", "dd")) for n in INVARIANT_NAMES])
+    assert not inv["identified"][thermal].any() and inv["identified"][~thermal].all()
+    assert any("second temperature" in n for n in f.notes), f.notes
+
+
+# --------------------------------------------------------------------------- coverage over seeds
+
+
+def _coverage(kind, seeds, meas, n=1500, **kw):
+    k = scipy.stats.norm.ppf(0.975)
+    hits = []
+    for s in seeds:
+        c = simulate_field(kind, n=n, seed=s, **kw)
+        d = c.data
+        f = fit_field(d.b_meas, d.temperature, field_target(meas, b_ref=d.b_ref, f_ref=c.f_ref, n=d.n), meas)
+        inv, truth = f.invariants(), c.truth.invariants(f.model.t0)
+        ok = inv["identified"]
+        hits.append(np.abs(inv["value"][ok] - truth[ok]) <= k * inv["sd"][ok])
+    return float(np.mean(np.concatenate(hits)))
+
+
+def test_parameter_coverage_quick():
+    """4 dance campaigns x 18 invariants: 95 % intervals cover at least 85 % (below the binomial 3-sd band at n=72)."""
+    cov = _coverage("dance", range(100, 104), Constant(50.0), n=1000, temperature=(15.0, 40.0))
+    assert 0.85 <= cov <= 1.0
+
+
+_SHORT = pytest.mark.xfail(reason="known shortfall (docs/field.md): the Laplace posterior is too narrow where the "
+                                  "motion only just identifies a quantity; bench_field.py measured 0.88-0.89 (10 seeds)", strict=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, kw", [("dance", {"temperature": (15.0, 40.0)}),
+                                      pytest.param("two_temperature", {}, marks=_SHORT),
+                                      pytest.param("few_orientations", {}, marks=_SHORT)])
+def test_parameter_coverage_20_campaigns(kind, kw):
+    """20 campaigns per kind: coverage of the identified invariants in [0.90, 0.99] (declared)."""
+    cov = _coverage(kind, range(200, 220), Scalar(), **kw)
+    assert 0.90 <= cov <= 0.99
+
+
+@pytest.mark.slow
+def test_nuts_agrees_with_the_laplace_posterior():
+    """NUTS on the same likelihood and priors: means within 0.5 NUTS sd, sds within 25 % (about 90 s loaded)."""
+    from bayesmag._src.pipeline.field_nuts import field_nuts
+    c = simulate_field("two_temperature", n=1000, seed=0)
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar())
+    r = field_nuts(f, d.b_meas, d.temperature, c.f_ref, chains=2, warmup=200, draws=200)
+    assert r["max_rhat"] < 1.05 and r["min_ess"] > 100
+    assert r["max_mean_shift_sd"] < 0.5 and 0.75 < r["sd_ratio_min"] and r["sd_ratio_max"] < 1.25
