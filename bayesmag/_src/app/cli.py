@@ -256,6 +256,8 @@ DESCRIPTIONS = {
               "print what the target cannot hold, with the accuracy lost on the run's held-out rows.",
     "discover": "Find physics missing from the calibration model (bayesmag discover --help for its options).",
     "data": "Named datasets: list them, or fetch one (sha256 verified).",
+    "fleet": "Calibrate many sensors in one compiled batch: a calibration folder per sensor, fleet.json, verdicts "
+             "against the [fleet.limits] and robust outliers against the fleet (docs/fleet.md).",
     "config": "The packaged configs: list them, or show one's keys with values, defaults, units and meaning.",
 }
 

@@ -34,7 +34,8 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "uq.seed": ("", "seed of the uncertainty draws"),
     "uq.chunk_size": ("rows", "rows per compiled chunk of the uncertainty computation"),
     "uq.residual_term": ("", "add the fit's unexplained residual variance (false: the paper's total)"),
-    "uq.transfer": ("", 'between-session sd for new recordings: "loro" (leave one run out) | "off"'),
+    "uq.transfer": ("", 'between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" '
+                        '(random-effects model, Laplace; docs/sessions.md) | "hierarchical_nuts" | "off"'),
     "uq.reference_sd": ("uT", "standard uncertainty of the reference magnetometer (one value or per axis)"),
     "network.enabled": ("", "train the residual network (hybrid stage)"),
     "network.likelihoods": ("", "likelihood families, one network each (the first is the primary)"),
@@ -79,6 +80,17 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "output.figures": ("", "draw the PNG figures"),
     "output.progress": ("", "progress bars (off anyway when the output is not a terminal)"),
     "output.compile_cache": ("", "JAX persistent compilation cache in the user cache folder"),
+    "measurement.kind": ("", 'what the reference gives: "vector" (reference magnetometer) | "scalar" (a magnitude per '
+                         'row) | "constant" (one field magnitude for the recording); docs/field.md'),
+    "measurement.field": ("uT", 'constant: the site field magnitude (e.g. from IGRF/WMM), or "free"'),
+    "measurement.temperature_terms": ("", 'thermal terms in the field fit: true | false | "auto" (on when the '
+                                      'training temperature spans >= 1 C)'),
+    "measurement.covariance": ("", 'field fit parameter covariance: "white" | "ar1" (autocorrelated residuals)'),
+    "measurement.min_magnitude": ("uT", "drop rows whose reference magnitude is below this (a scalar sensor's range)"),
+    "measurement.heading_check": ("", "simulated campaigns: report the heading error on the level test rows"),
+    "measurement.compare_vector": ("", "with a vector reference in the data: compare the scalar fit's invariants"),
+    "measurement.exports": ("", "firmware exports written by a field run (json, c-header, magcal, px4, ardupilot)"),
+    "measurement.simulate": ("", 'data.source = "field_simulated": the simulate_field arguments (motion, seed, ...)'),
     "certificate.dut": ("", "device under test on the certificate: make, model, serial number"),
     "certificate.reference": ("", "reference instrument on the certificate: make, model, serial, its certificate"),
     "certificate.operator": ("", "who ran the calibration (optional)"),
