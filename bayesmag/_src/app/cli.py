@@ -44,7 +44,7 @@ def _cmd_run(args) -> int:
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")
-    if "field" in m:                                # a field calibration (app/field_job.py)
+    if "scores" in m.get("field", {}):              # a field calibration (app/field_job.py); vector runs have field metrics
         from bayesmag._src.app.field_job import print_summary
         return print_summary(m)
     print("  test RMSE (uT)      " + "  ".join(f"{ax}: {m['raw']['rmse'][ax]:.4g} raw -> {m['physics']['rmse'][ax]:.4g} physics"
