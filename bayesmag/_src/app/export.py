@@ -273,7 +273,8 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
     ap = ardupilot_params(rows.b_meas, phys)
     k = len(cal.model.terms[0].param_names())
     names = tuple(cal.model.param_names[:k])
-    cov = np.asarray(cal.cov, np.float64)[:, :k, :k]
+    cal_cov = getattr(cal, "cov", None)      # a field calibration has its covariance in another parametrisation
+    cov = None if cal_cov is None else np.asarray(cal_cov, np.float64)[:, :k, :k]
     ex = Export(coef, t_ref, t_range, A, b, px4, ap, tuple(dropped_components(cal)), cal.network is not None, None,
                 source, names, cov, uncertainty, cal.domain)
     if train is not None:

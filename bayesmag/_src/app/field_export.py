@@ -25,6 +25,7 @@ __all__ = ["FieldCalibration", "field_export_texts"]
 class _Box:
     low: np.ndarray
     high: np.ndarray
+    rate_high: None = None        # rates are not checked for a field calibration's export
 
 
 @dataclasses.dataclass(frozen=True)
