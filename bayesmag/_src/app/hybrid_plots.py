@@ -50,22 +50,8 @@ def uncertainty_vs_temperature(path: Path, temperature: np.ndarray, components: 
 def calibration_curves(path: Path, dists: dict[str, Likelihood], y: np.ndarray,
                        title: str = "Calibration of central intervals (test rows)") -> None:
     """Per axis: observed against nominal coverage, one line per predictive distribution."""
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.0))
-    curves = {name: M.calibration_curve(d, y) for name, d in dists.items()}
-    for a, ax in enumerate(axes):
-        ax.plot([0, 1], [0, 1], color="0.6", lw=1)
-        for name, (nominal, observed) in curves.items():
-            ax.plot(nominal, observed[:, a], marker="o", ms=3, label=name)
-        ax.set_xlabel("nominal level")
-        ax.set_ylabel("observed coverage")
-        ax.set_title(f"{AXES[a]} axis")
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1)
-    axes[0].legend(fontsize=8)
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from bayesmag._src.app.plots import draw_calibration_curves
+    draw_calibration_curves(path, {name: M.calibration_curve(d, y) for name, d in dists.items()}, title)
 
 
 def pit_histograms(path: Path, dists: dict[str, Likelihood], y: np.ndarray, bins: int = 10,

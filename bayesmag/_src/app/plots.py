@@ -66,12 +66,19 @@ def calibration_curve_figure(path: Path, pits: dict[str, np.ndarray],
     """Per axis: observed against nominal coverage of central intervals, from PIT values ``(n, 3)`` per name
     (``y`` is in the central interval of level l iff ``|PIT - 1/2| <= l/2``)."""
     from bayesmag._src.core.metrics import DEFAULT_LEVELS
+    levels = np.asarray(DEFAULT_LEVELS)
+    curves = {name: (levels, np.stack([np.mean(np.abs(np.asarray(u) - 0.5) <= lv / 2, axis=0) for lv in levels]))
+              for name, u in pits.items()}
+    draw_calibration_curves(path, curves, title)
+
+
+def draw_calibration_curves(path: Path, curves: dict[str, tuple[np.ndarray, np.ndarray]], title: str) -> None:
+    """Per axis: observed ``(L, 3)`` against nominal ``(L,)`` coverage, one line per name; written to ``path``."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.0))
     for a, ax in enumerate(axes):
         ax.plot([0, 1], [0, 1], color="0.6", lw=1)
-        for name, u in pits.items():
-            obs = [np.mean(np.abs(np.asarray(u)[:, a] - 0.5) <= lv / 2) for lv in DEFAULT_LEVELS]
-            ax.plot(DEFAULT_LEVELS, obs, marker="o", ms=3, label=name)
+        for name, (nominal, observed) in curves.items():
+            ax.plot(nominal, observed[:, a], marker="o", ms=3, label=name)
         ax.set_xlabel("nominal level")
         ax.set_ylabel("observed coverage")
         ax.set_title(f"{AXES[a]} axis")
