@@ -7,6 +7,9 @@ import numpy as np
 import pytest
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# The persistent compilation cache stays off in the tests whatever the caller's environment
+# (a cache read crashed CI with SIGSEGV; tests of the cache itself run in subprocesses).
+os.environ["BAYESMAG_COMPILE_CACHE"] = "0"
 
 import bayesmag  # noqa: E402,F401  (enables float64)
 

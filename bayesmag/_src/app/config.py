@@ -154,7 +154,7 @@ class CertificateConfig:
 class OutputConfig:
     figures: bool = True
     progress: bool = True
-    compile_cache: bool = True          # JAX persistent compilation cache in the user cache folder (cache.py)
+    compile_cache: bool = False         # JAX persistent compilation cache in the user cache folder (opt-in, cache.py)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -181,14 +181,12 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     network, else after the training (whose threads keep the cores busy) while this process draws
     the hybrid stage's. The output folder is swapped in only after they are all drawn.
     """
-    import contextlib
-
-    from bayesmag._src.core.cache import compile_cache_off
+    from bayesmag._src.core.cache import compile_cache
     from bayesmag._src.app.outdir import reserve
     from bayesmag._src.app.plots import FigureWorker
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
-        # [output] compile_cache = false: off for this job only (bayesmag switches it on at import)
-        with compile_cache_off() if not cfg.output.compile_cache else contextlib.nullcontext():
+        # [output] compile_cache: on or off for this job only (the environment variable wins)
+        with compile_cache(cfg.output.compile_cache):
             with FigureWorker(enabled=cfg.output.figures) as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)

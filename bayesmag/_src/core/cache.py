@@ -2,8 +2,11 @@
 
 Most of a job's first-run time is XLA compilation. With the cache on, a second run of the same
 job (same shapes, same jax/jaxlib, same device) loads the compiled executables from disk
-instead. It is on by default and switched off by ``[output] compile_cache = false`` or the
-environment variable ``BAYESMAG_COMPILE_CACHE=0``; ``BAYESMAG_COMPILE_CACHE=/some/dir`` moves it.
+instead. It is **off by default**: reading entries back crashed the interpreter (SIGSEGV inside
+``jax._src.compilation_cache.get_executable_and_time``, jax/jaxlib 0.10.2 on CPU) in our CI, and a
+calibration tool must not crash to save ten seconds. Opt in with ``[output] compile_cache = true``
+(for that job) or the environment variable ``BAYESMAG_COMPILE_CACHE=1`` (every job and every
+import); ``BAYESMAG_COMPILE_CACHE=/some/dir`` opts in with another folder, ``=0`` forces it off.
 The folder is ``$XDG_CACHE_HOME/bayesmag/jax`` (``~/.cache/bayesmag/jax``) on Linux,
 ``~/Library/Caches/bayesmag/jax`` on macOS and ``%LOCALAPPDATA%\\bayesmag\\jax`` on Windows.
 
@@ -17,7 +20,8 @@ import os
 import sys
 from pathlib import Path
 
-__all__ = ["ENV_VAR", "default_cache_dir", "cache_dir_from_env", "configure_compile_cache", "compile_cache_off"]
+__all__ = ["ENV_VAR", "default_cache_dir", "cache_dir_from_env", "configure_compile_cache", "compile_cache_off",
+           "compile_cache"]
 
 ENV_VAR = "BAYESMAG_COMPILE_CACHE"
 _OFF = ("0", "off", "false", "no")
@@ -35,28 +39,34 @@ def default_cache_dir() -> Path:
 
 
 def cache_dir_from_env(environ: dict | None = None) -> Path | None:
-    """The cache folder ``BAYESMAG_COMPILE_CACHE`` asks for: None when it switches the cache off."""
+    """The cache folder ``BAYESMAG_COMPILE_CACHE`` asks for: None when unset, empty or off."""
     value = (os.environ if environ is None else environ).get(ENV_VAR, "").strip()
-    if value.lower() in _OFF:
+    if value.lower() in _OFF or not value:
         return None
-    if value.lower() in ("", "1", "on", "true", "yes"):
+    if value.lower() in ("1", "on", "true", "yes"):
         return default_cache_dir()
     return Path(value).expanduser()
+
+
+def _env_setting() -> str:
+    value = os.environ.get(ENV_VAR, "").strip().lower()
+    return "" if not value else ("off" if value in _OFF else "on")
 
 
 def configure_compile_cache(enabled: bool = True, directory: str | Path | None = None) -> Path | None:
     """Switch JAX's persistent compilation cache on (in ``directory`` or the default) or off.
 
-    The environment variable wins over ``enabled=True`` (so ``BAYESMAG_COMPILE_CACHE=0`` turns it
-    off for every job). Returns the folder in use, or None when off. Every compiled executable
-    is cached, however quick it was to compile: a job compiles many small ones.
+    A set environment variable wins over ``enabled`` both ways (``BAYESMAG_COMPILE_CACHE=0`` keeps
+    it off for every job, ``=1`` or a folder keeps it on). Returns the folder in use, or None when
+    off. Every compiled executable is cached, however quick it was to compile: a job compiles many
+    small ones.
     """
     import jax
 
-    env_dir = cache_dir_from_env()
+    env = _env_setting()
     path = None
-    if enabled and (ENV_VAR not in os.environ or env_dir is not None):
-        path = Path(directory).expanduser() if directory is not None else (env_dir or default_cache_dir())
+    if env == "on" or (enabled and env == ""):
+        path = Path(directory).expanduser() if directory is not None else (cache_dir_from_env() or default_cache_dir())
         try:
             path.mkdir(parents=True, exist_ok=True)
         except OSError:                     # read-only home etc.: run without the cache, never fail a job
@@ -76,15 +86,20 @@ _CACHE_KEYS = ("jax_enable_compilation_cache", "jax_compilation_cache_dir")
 
 
 @contextlib.contextmanager
-def compile_cache_off():
-    """The persistent compilation cache off inside the block, the process's setting restored after
-    (a job with ``[output] compile_cache = false`` run from Python leaves the caller's cache alone)."""
+def compile_cache(enabled: bool):
+    """The persistent compilation cache on or off inside the block (the environment variable still
+    wins), the process's setting restored after: a job run from Python leaves the caller's alone."""
     import jax
 
     before = {k: jax.config.values[k] for k in _CACHE_KEYS}
-    configure_compile_cache(False)
+    configure_compile_cache(enabled)
     try:
         yield
     finally:
         for k, v in before.items():
             jax.config.update(k, v)
+
+
+def compile_cache_off():
+    """The persistent compilation cache off inside the block (see :func:`compile_cache`)."""
+    return compile_cache(False)
