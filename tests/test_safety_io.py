@@ -1,0 +1,293 @@
+"""Issue 21 (items 1-4, 16-18) and issue 22.4: nothing overwritten, nothing unusable written, nothing left running.
+
+Every case works in temporary folders; the signal cases start ``python -m bayesmag`` as a real
+child process and send it real signals.
+"""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from bayesmag import CalibrationData, write_csv
+from bayesmag._src import job as job_module
+from bayesmag._src.cli import main
+from bayesmag._src.outdir import MARKER, OutputError, marker_status, recover, staging_dir
+from bayesmag.simulate import simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CONFIG = """name = "t"
+[data]
+path = "{data}"
+[split]
+kind = "random"
+test_fraction = 0.2
+[uq]
+method = "analytic"
+n_params = 10
+n_qmc = 16
+[output]
+figures = false
+progress = false
+"""
+
+
+def _recording(path: Path, n=200, seed=0) -> Path:
+    write_csv(simulate(n, design="iid", seed=seed), path)
+    return path
+
+
+def _config(folder: Path, data: Path, text: str = CONFIG) -> Path:
+    p = folder / "cfg.toml"
+    p.write_text(text.format(data=data))
+    return p
+
+
+def _err(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def _tree(folder: Path) -> dict:
+    """Every entry below ``folder`` (links not followed): path -> ('file', bytes) | ('link', target) | ('dir',)."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            rel = p.relative_to(folder).as_posix()
+            if p.is_symlink():
+                out[rel] = ("link", os.readlink(p))
+            elif p.is_dir():
+                out[rel] = ("dir",)
+            else:
+                out[rel] = ("file", p.read_bytes())
+    return out
+
+
+def _dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Fail loudly if the computation starts: refusals must come before it."""
+    def boom(*a, **k):
+        raise AssertionError("the job started computing")
+    monkeypatch.setattr(job_module, "_run_job", boom)
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    """One finished physics run folder (copied by the tests that change it)."""
+    folder = tmp_path_factory.mktemp("model")
+    rec = _recording(folder / "rec.csv")
+    assert main(["run", str(_config(folder, rec)), "--out", str(folder / "run"), "--no-progress"]) == 0
+    return folder / "run"
+
+
+def _copy(model: Path, tmp_path: Path) -> tuple[Path, Path]:
+    """A copy of the run folder and a config to re-run it (the recording outside the folder)."""
+    run = tmp_path / "run"
+    shutil.copytree(model, run, symlinks=True)
+    return run, _config(tmp_path, _recording(tmp_path / "rec.csv"))
+
+
+# --------------------------------------------------------------------------- item 2: a marker read in full or "not ours"
+
+
+def _truncate(m: Path):
+    m.write_bytes(m.read_bytes()[: len(m.read_bytes()) // 2])
+
+
+def _no_files(m: Path):
+    doc = json.loads(m.read_text())
+    del doc["files"]
+    m.write_text(json.dumps(doc))
+
+
+def _px4(m: Path):            # what `bayesmag export R --format px4 --out R/.bayesmag-run` did before item 1
+    m.write_text("# PX4 parameters\n1\t1\tCAL_MAG0_XOFF\t0.1\t9\n")
+
+
+def _files_not_a_list(m: Path):
+    doc = json.loads(m.read_text())
+    doc["files"] = "calibration.json"
+    m.write_text(json.dumps(doc))
+
+
+def _not_utf8(m: Path):
+    m.write_bytes(b"\xff\xfe\x00garbage")
+
+
+@pytest.mark.parametrize("damage", [_truncate, _no_files, _px4, _files_not_a_list, _not_utf8])
+def test_a_marker_that_cannot_be_read_in_full_means_not_ours(tmp_path, capsys, model, no_work, damage):
+    run, cfg = _copy(model, tmp_path)
+    (run / "notes.txt").write_text("my notes")
+    damage(run / MARKER)
+    before = _tree(run)
+    rc = main(["run", str(cfg), "--out", str(run), "--no-progress"])
+    err = _err(capsys)
+    assert rc == 2 and err.count("\n") == 1 and "not its own" in err and MARKER in err, err
+    assert _tree(run) == before                           # a refused run changes nothing
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".run.")]
+
+
+# --------------------------------------------------------------------------- item 3: only listed paths are removed
+
+
+@pytest.mark.parametrize("extra", ["empty_dir", "symlink_file", "symlink_dir", "marker_bak", "nested_file"])
+def test_rerun_refuses_anything_the_marker_does_not_list(tmp_path, capsys, model, no_work, extra):
+    run, cfg = _copy(model, tmp_path)
+    outside = tmp_path / "outside.txt"
+    outside.write_text("keep")
+    if extra == "empty_dir":
+        (run / "my_empty").mkdir()
+    elif extra == "symlink_file":
+        (run / "link.txt").symlink_to(outside)
+    elif extra == "symlink_dir":
+        (run / "linkdir").symlink_to(tmp_path)
+    elif extra == "marker_bak":
+        shutil.copy(run / MARKER, run / (MARKER + ".bak"))
+    else:
+        (run / "sub").mkdir()
+        (run / "sub" / "data.csv").write_text("x")
+    before = _tree(run)
+    rc = main(["run", str(cfg), "--out", str(run), "--no-progress"])
+    assert rc == 2 and "did not write" in _err(capsys)
+    assert _tree(run) == before and outside.read_text() == "keep"
+
+
+def test_rerun_of_a_clean_run_folder_still_replaces_it(tmp_path, capsys, model):
+    run, cfg = _copy(model, tmp_path)
+    old = json.loads((run / MARKER).read_text())["written"]
+    assert main(["run", str(cfg), "--out", str(run), "--no-progress"]) == 0
+    mark = marker_status(run)
+    assert mark["complete"] and "calibration.json" in mark["files"] and isinstance(mark["dirs"], list)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["run", "rec.csv", "cfg.toml"]), old
+
+
+_NAMES = st.sampled_from(["a", "b.txt", "notes.md", MARKER + ".bak", ".hidden", "figure.png", "x y"])
+
+
+@st.composite
+def _user_entries(draw):
+    """User additions to a bayesmag folder: files, empty folders, symlinks; and maybe a damaged marker."""
+    entries = draw(st.lists(st.tuples(st.sampled_from(["file", "dir", "link", "nested"]), _NAMES), max_size=4))
+    damage = draw(st.sampled_from([None, None, "truncate", "no_files", "not_json", "incomplete", "remove_listed"]))
+    return entries, damage
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_user_entries())
+def test_property_whatever_the_marker_does_not_list_survives_a_rerun(case):
+    """Any folder contents: the rerun either replaces only what the marker listed, or is refused and changes nothing."""
+    entries, damage = case
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        out = d / "out"
+        with staging_dir(out) as tmp:                    # a genuine bayesmag folder: two files, one subfolder
+            (tmp / "calibration.json").write_text("{}")
+            (tmp / "sub").mkdir()
+            (tmp / "sub" / "fig.png").write_text("png")
+        listed = set(marker_status(out)["files"]) | {MARKER, "sub"}
+        target = d / "target.txt"
+        target.write_text("outside")
+        for kind, name in entries:
+            p = out / name
+            if p.exists() or p.is_symlink():
+                continue
+            if kind == "file":
+                p.write_text("user " + name)
+            elif kind == "dir":
+                p.mkdir()
+            elif kind == "link":
+                p.symlink_to(target)
+            else:
+                (out / "sub" / name).write_text("user nested")
+        m = out / MARKER
+        if damage == "truncate":
+            m.write_text(m.read_text()[:20])
+        elif damage == "no_files":
+            doc = json.loads(m.read_text())
+            del doc["files"]
+            m.write_text(json.dumps(doc))
+        elif damage == "not_json":
+            m.write_text("# not json")
+        elif damage == "incomplete":
+            doc = json.loads(m.read_text())
+            doc["complete"] = False
+            m.write_text(json.dumps(doc))
+        elif damage == "remove_listed":
+            (out / "calibration.json").unlink()         # fewer files than listed is still ours
+        before = _tree(out)
+        unlisted = {k: v for k, v in before.items() if k not in listed and not k.startswith("sub/fig.png")}
+        try:
+            with staging_dir(out) as tmp:
+                (tmp / "new.json").write_text("{}")
+        except OutputError:
+            assert _tree(out) == before                   # refused: nothing changed
+            assert unlisted or damage not in (None, "remove_listed")
+        else:
+            assert not unlisted and damage in (None, "remove_listed")
+            assert (out / "new.json").exists()
+        assert target.read_text() == "outside"
+        assert sorted(p.name for p in d.iterdir()) == ["out", "target.txt"]    # no staging, .old or lock left
+
+
+# --------------------------------------------------------------------------- item 18: partial files of dead processes
+
+
+def test_partial_files_of_dead_processes_are_removed_by_the_next_apply(tmp_path, capsys, model):
+    rec = _recording(tmp_path / "rec.csv")
+    dead, live = _dead_pid(), os.getppid()
+    stale = tmp_path / f".calibrated.csv.partial-{dead}"
+    stale.write_text("time,run\n" * 1000)                 # what a killed apply left
+    alive = tmp_path / f".calibrated.csv.partial-{live}"
+    alive.write_text("another process is writing")
+    user_dir = tmp_path / f".thesis.partial-{dead}"      # a folder of that name without a marker: not ours
+    user_dir.mkdir()
+    assert main(["apply", "--model", str(model), "--data", str(rec), "--out", str(tmp_path / "calibrated.csv"),
+                 "--no-progress"]) == 0
+    assert not stale.exists() and alive.exists() and user_dir.is_dir()
+    assert (tmp_path / "calibrated.csv").exists()
+
+
+def test_partial_files_of_dead_processes_are_removed_by_the_next_run(tmp_path, capsys, model):
+    run, cfg = _copy(model, tmp_path)
+    dead = _dead_pid()
+    beside = tmp_path / f".calibrated.csv.partial-{dead}"
+    beside.write_text("x")
+    inside = run / f".report.md.partial-{dead}"          # a killed `bayesmag report` into the run folder
+    inside.write_text("x")
+    live = run / f".report.md.partial-{os.getppid()}"
+    live.write_text("x")
+    assert main(["run", str(cfg), "--out", str(run), "--no-progress"]) == 2      # the live one is not ours
+    assert live.exists() and inside.exists() is False and beside.exists() is False
+    live.unlink()
+    assert main(["run", str(cfg), "--out", str(run), "--no-progress"]) == 0
+
+
+def test_recover_removes_dead_partial_files_only(tmp_path):
+    dead = _dead_pid()
+    (tmp_path / f".out.csv.partial-{dead}").write_text("x")
+    (tmp_path / f".out.csv.partial-{os.getpid()}").write_text("mine")
+    (tmp_path / f"out.csv.partial-{dead}").write_text("no leading dot: a user's name")
+    (tmp_path / f".link.partial-{dead}").symlink_to(tmp_path / f"out.csv.partial-{dead}")
+    done = recover(tmp_path)
+    assert done == [f"removed stale .out.csv.partial-{dead}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f".out.csv.partial-{os.getpid()}",
+                                                                 f"out.csv.partial-{dead}", f".link.partial-{dead}"])
