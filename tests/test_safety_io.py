@@ -291,3 +291,94 @@ def test_recover_removes_dead_partial_files_only(tmp_path):
     assert done == [f"removed stale .out.csv.partial-{dead}"]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f".out.csv.partial-{os.getpid()}",
                                                                  f"out.csv.partial-{dead}", f".link.partial-{dead}"])
+
+
+# --------------------------------------------------------------------------- item 1: export --out
+
+
+def _export(run, fmt, out=None, *extra):
+    return main(["export", str(run), "--format", fmt] + (["--out", str(out)] if out is not None else []) + list(extra))
+
+
+@pytest.mark.parametrize("target", ["calibration.json", "calibration.npz", MARKER, "metrics.json", "report.md"])
+def test_export_never_replaces_a_file_of_the_run_folder(tmp_path, capsys, model, target):
+    run, _ = _copy(model, tmp_path)
+    before = _tree(run)
+    for force in ([], ["--force"]):
+        assert _export(run, "px4", run / target, *force) == 2
+        err = _err(capsys)
+        assert err.count("\n") == 1 and str(run / target) in err
+    assert _tree(run) == before
+    assert main(["apply", "--model", str(run), "--data", str(_recording(tmp_path / "r.csv")),
+                 "--out", str(tmp_path / "o.csv"), "--no-progress"]) == 0
+
+
+def test_export_never_replaces_the_training_recording(tmp_path, capsys):
+    rec = _recording(tmp_path / "rec.csv")
+    run = tmp_path / "run"
+    assert main(["run", str(_config(tmp_path, rec)), "--out", str(run), "--no-progress"]) == 0
+    before = rec.read_bytes()
+    for force in ([], ["--force"]):
+        assert _export(run, "c-header", rec, *force) == 2
+        assert "training recording" in _err(capsys)
+    assert rec.read_bytes() == before
+
+
+def test_export_refuses_a_users_file_unless_forced_and_replaces_its_own(tmp_path, capsys, model):
+    run, _ = _copy(model, tmp_path)
+    mine = tmp_path / "params.txt"
+    mine.write_text("my own PX4 parameters\n")
+    assert _export(run, "px4", mine) == 2
+    err = _err(capsys)
+    assert "was not written by `bayesmag export`" in err and "--force" in err
+    assert mine.read_text() == "my own PX4 parameters\n"
+    assert _export(run, "px4", mine, "--force") == 0 and "bayesmag-export" in mine.read_text()
+    for fmt in ("json", "magcal", "c-header", "ardupilot", "px4"):     # bayesmag's own exports: replaced freely
+        out = tmp_path / f"cal{fmt}"
+        assert _export(run, fmt, out) == 0 and _export(run, fmt, out) == 0
+    assert _export(run, "px4", tmp_path) == 2 and "is a folder" in _err(capsys)
+    link = tmp_path / "link.params"
+    link.symlink_to(tmp_path / "calpx4")
+    assert _export(run, "px4", link, "--force") == 2 and "symbolic link" in _err(capsys)
+
+
+def test_export_writes_atomically(tmp_path, capsys, model, monkeypatch):
+    """A write that fails halfway leaves the previous export whole and no temporary file."""
+    run, _ = _copy(model, tmp_path)
+    out = tmp_path / "cal.h"
+    assert _export(run, "c-header", out) == 0
+    before = out.read_bytes()
+    import builtins
+    real_open = builtins.open
+
+    def failing_open(path, mode="r", *a, **k):
+        f = real_open(path, mode, *a, **k)
+        if "w" in mode and ".partial-" in str(path):
+            f.write("/* half")
+            f.flush()
+            raise OSError(28, "No space left on device", str(path))
+        return f
+    monkeypatch.setattr(builtins, "open", failing_open)
+    assert _export(run, "c-header", out) == 2
+    monkeypatch.undo()
+    assert "No space left on device" in _err(capsys)
+    assert out.read_bytes() == before
+    assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
+
+
+# --------------------------------------------------------------------------- item 4: report needs a valid marker
+
+
+def test_report_refuses_a_folder_without_a_valid_marker(tmp_path, capsys, model):
+    run, _ = _copy(model, tmp_path)
+    (run / "report.md").write_text("my edited report")
+    shutil.copy(run / MARKER, tmp_path / "marker")
+    (run / MARKER).unlink()
+    assert main(["report", str(run)]) == 2 and "not a finished bayesmag run folder" in _err(capsys)
+    (run / MARKER).write_text("{")                       # truncated
+    assert main(["report", str(run)]) == 2 and "not a finished bayesmag run folder" in _err(capsys)
+    assert (run / "report.md").read_text() == "my edited report"
+    shutil.copy(tmp_path / "marker", run / MARKER)
+    assert main(["report", str(run)]) == 0 and (run / "report.md").read_text().startswith("#")
+    (run / "report.md").unlink()                         # absent: written and listed, the folder stays re-runnable
+    assert main(["report", str(run)]) == 0 and "report.md" in marker_status(run)["files"]

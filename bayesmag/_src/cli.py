@@ -6,7 +6,7 @@ Commands::
     bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
                    [--columns time=t,bx_meas=X,...] [--field-unit uT|nT|mT|G] [--temperature-unit C|K]
     bayesmag report RUN_DIR
-    bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T]
+    bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T] [--force]
     bayesmag study CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
     bayesmag data fetch NAME [--force]
@@ -151,7 +151,7 @@ def _cmd_export(args) -> int:
     from .export import ExportError, export_run, limitations
 
     try:
-        path, ex = export_run(args.run_dir, args.format, args.out, t_ref=args.temperature)
+        path, ex = export_run(args.run_dir, args.format, args.out, t_ref=args.temperature, force=args.force)
     except ExportError as e:
         print(f"bayesmag: error: {e}", file=sys.stderr)
         return 2
@@ -216,6 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", help="output file (default RUN_DIR/calibration.<ext>)")
     ex.add_argument("--temperature", type=float, default=None,
                     help="reference temperature (C) of the hard/soft-iron and PX4 forms (default: median training temperature)")
+    ex.add_argument("--force", action="store_true",
+                    help="replace an existing --out file that bayesmag export did not write (never a file of a run "
+                         "folder or the training recording)")
     ex.set_defaults(func=_cmd_export)
 
     dc = sub.add_parser("discover", help="find physics missing from the calibration model", add_help=False)

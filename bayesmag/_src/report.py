@@ -345,16 +345,34 @@ def _network_parts(path: Path) -> dict | None:
     return out
 
 
-def write_report(run_dir: str | Path) -> Path:
-    """(Re)write ``report.md`` in a run folder from its metrics.json and params.json."""
+def write_report(run_dir: str | Path, *, require_marker: bool = True) -> Path:
+    """(Re)write ``report.md`` in a run folder from its metrics.json and params.json.
+
+    The folder must hold a valid bayesmag marker (``require_marker``; the job itself writes the
+    report into its staging folder without one), and an existing ``report.md`` must be one the
+    marker lists: a folder or a report that bayesmag did not write is never changed. The new
+    report is written to a temporary sibling, renamed into place and listed in the marker.
+    """
+    from .outdir import MARKER, OutputError, atomic_write_text, marker_problem, marker_status, register
+
     run_dir = Path(run_dir)
+    out = run_dir / "report.md"
+    if require_marker:
+        mark = marker_status(run_dir) if run_dir.is_dir() else None
+        problem = marker_problem(mark)
+        if problem is not None:
+            raise OutputError(f"{run_dir} is not a finished bayesmag run folder ({problem}); `bayesmag report` "
+                              f"writes only into folders written by `bayesmag run`. Give such a folder.")
+        if (out.exists() or out.is_symlink()) and ("report.md" not in mark["files"] or out.is_symlink()
+                                                   or not out.is_file()):
+            raise OutputError(f"{out} was not written by bayesmag (its {MARKER} does not list it); it will not be "
+                              f"replaced. Move it away and retry.")
     for f in ("metrics.json", "params.json"):
         if not (run_dir / f).exists():
             raise FileNotFoundError(f"{run_dir} has no {f}: give a folder written by `bayesmag run`.")
     metrics = json.loads((run_dir / "metrics.json").read_text())
     params = json.loads((run_dir / "params.json").read_text())
     figs = sorted(p.name for p in run_dir.glob("*.png"))
-    out = run_dir / "report.md"
     reference_sd = 0.0
     if (run_dir / "calibration.json").exists():
         cfg = json.loads((run_dir / "calibration.json").read_text()).get("config", {})
@@ -364,6 +382,13 @@ def write_report(run_dir: str | Path) -> Path:
         import csv
         with open(run_dir / "nuts_summary.csv", newline="") as f:
             nuts_rows = list(csv.DictReader(f))
-    out.write_text(render_report(metrics, params, figs, network_parts=_network_parts(run_dir / "predictions.csv"),
-                                 reference_sd=reference_sd, nuts_rows=nuts_rows))
+    text = render_report(metrics, params, figs, network_parts=_network_parts(run_dir / "predictions.csv"),
+                         reference_sd=reference_sd, nuts_rows=nuts_rows)
+    if require_marker:
+        from .outdir import recover
+        recover(run_dir, files_only=True)   # partial reports of killed processes
+        atomic_write_text(out, text)
+        register(run_dir, out)
+    else:
+        out.write_text(text)
     return out
