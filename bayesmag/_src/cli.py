@@ -35,7 +35,7 @@ def _cmd_run(args) -> int:
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
-        result = run_job(cfg, out, progress=not args.no_progress)
+        result = run_job(cfg, out, progress=not args.no_progress, figure_worker=True)
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")
@@ -258,7 +258,28 @@ def _one_line(e: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The console entry point; ``argv`` None (the ``bayesmag`` command) also installs the signal handling.
+
+    Ctrl-C / SIGTERM then print one line and end the process with status 130 / 143 within about
+    a second (:mod:`~bayesmag._src.signals`); a call with ``argv`` from Python leaves signals alone.
+    """
+    console = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
+    if not console:
+        return _main(argv)
+    import os
+
+    from .signals import Interrupted, announce, handling
+    with handling():
+        try:
+            return _main(argv)
+        except Interrupted as e:
+            announce(e.signum)
+            sys.stdout.flush()
+            os._exit(e.code)                # no waiting for training threads to finish their batch
+
+
+def _main(argv: list[str]) -> int:
     from .artifact import ArtifactError
     from .config import ConfigError
     from .data import DataError

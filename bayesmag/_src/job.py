@@ -167,23 +167,26 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
                         predictor.compose(comp, new_session=new), paper.compose(comp), tr, new)
 
 
-def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
+def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figure_worker: bool = False) -> JobResult:
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
 
-    The physics stage's figures are drawn in a background process
-    (:class:`~bayesmag._src.plots.FigureWorker`): right after the physics stage when there is no
-    network, else after the training (whose threads keep the cores busy) while this process draws
-    the hybrid stage's. The output folder is swapped in only after they are all drawn.
+    Figures (``[output] figures``) are drawn in this process by default: a library call spawns
+    nothing and never re-imports the caller's ``__main__``. ``figure_worker=True`` (the command
+    line) draws the physics stage's figures in one child process
+    (:class:`~bayesmag._src.figure_worker.FigureWorker`), which exits when this process does:
+    right after the physics stage when there is no network, else after the training (whose
+    threads keep the cores busy) while this process draws the hybrid stage's. The output folder
+    is swapped in only after they are all drawn.
     """
     import contextlib
 
     from .cache import compile_cache_off
+    from .figure_worker import figures
     from .outdir import reserve
-    from .plots import FigureWorker
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
         # [output] compile_cache = false: off for this job only (bayesmag switches it on at import)
         with compile_cache_off() if not cfg.output.compile_cache else contextlib.nullcontext():
-            with FigureWorker(enabled=cfg.output.figures) as figs:
+            with figures(cfg.output.figures, worker=figure_worker) as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)
 

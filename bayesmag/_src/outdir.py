@@ -35,6 +35,8 @@ import re
 import shutil
 from pathlib import Path
 
+from . import signals
+
 __all__ = ["staging_dir", "reserve", "check_out", "recover", "OutputError", "MARKER", "marker_status",
            "is_staging_name", "marker_problem", "foreign_paths", "remove_listed", "register", "atomic_write_text",
            "partial_name"]
@@ -394,13 +396,16 @@ def reserve(out: str | Path, *, inputs=()):
     check_out(out, inputs=inputs)
     _acquire(out)
     _HELD[key] = 1
+    lock = _lock_path(out)
+    forget = signals.on_abort(lambda: lock.unlink(missing_ok=True))     # an interrupted command releases it too
     try:
         yield out
     finally:
         _HELD[key] -= 1
         if _HELD[key] == 0:
             del _HELD[key]
-            _lock_path(out).unlink(missing_ok=True)
+            lock.unlink(missing_ok=True)
+        forget()
 
 
 @contextlib.contextmanager
@@ -419,6 +424,7 @@ def staging_dir(out: str | Path):
                 raise OutputError(f"{tmp} exists and was not written by bayesmag; move it away and retry.")
             shutil.rmtree(tmp)
         tmp.mkdir()
+        forget = signals.on_abort(lambda: shutil.rmtree(tmp, ignore_errors=True))
         try:
             _write_marker(tmp, complete=False)
             yield tmp
@@ -426,25 +432,30 @@ def staging_dir(out: str | Path):
             check_out(out)                      # the target may have changed during the computation
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
+            forget()
             raise
-        old = old_mark = None
-        if out.exists():
-            old_mark = marker_status(out)
-            if old_mark is None:                # an empty folder (check_out): remove it, never its contents
-                out.rmdir()
-            else:
-                old = out.parent / f".{out.name}.old-{os.getpid()}"
-                out.rename(old)                 # phase 1: the complete old folder under its .old name
-        try:
-            tmp.rename(out)                     # phase 2: the complete new folder under its name
-        except BaseException:
-            if old is not None and not out.exists():
-                old.rename(out)
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        if old is not None:
-            left = remove_listed(old, old_mark)     # only what the old marker lists, never a newer user file
-            if left:
-                import warnings
-                warnings.warn(f"kept {old}: it holds {len(left)} entries bayesmag did not write ({', '.join(left[:3])}"
-                              f"), added while the run computed; move them back by hand.", stacklevel=3)
+        with signals.critical():                # a signal here is acted on after the swap, never inside it
+            old = old_mark = None
+            try:
+                if out.exists():
+                    old_mark = marker_status(out)
+                    if old_mark is None:        # an empty folder (check_out): remove it, never its contents
+                        out.rmdir()
+                    else:
+                        old = out.parent / f".{out.name}.old-{os.getpid()}"
+                        out.rename(old)         # phase 1: the complete old folder under its .old name
+                tmp.rename(out)                 # phase 2: the complete new folder under its name
+            except BaseException:
+                if old is not None and not out.exists():
+                    old.rename(out)
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+            finally:
+                forget()
+            if old is not None:
+                left = remove_listed(old, old_mark)     # only what the old marker lists, never a newer user file
+                if left:
+                    import warnings
+                    warnings.warn(f"kept {old}: it holds {len(left)} entries bayesmag did not write "
+                                  f"({', '.join(left[:3])}), added while the run computed; move them back by hand.",
+                                  stacklevel=3)
