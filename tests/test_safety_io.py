@@ -382,3 +382,169 @@ def test_report_refuses_a_folder_without_a_valid_marker(tmp_path, capsys, model)
     assert main(["report", str(run)]) == 0 and (run / "report.md").read_text().startswith("#")
     (run / "report.md").unlink()                         # absent: written and listed, the folder stays re-runnable
     assert main(["report", str(run)]) == 0 and "report.md" in marker_status(run)["files"]
+
+
+# --------------------------------------------------------------------------- items 16, 17: signals, nothing left running
+
+TRAINING = """name = "long"
+[data]
+source = "simulated"
+[data.simulate]
+design = "campaign"
+n = 2400
+seed = 0
+[split]
+kind = "time_blocks"
+test_fraction = 0.2
+[uq]
+method = "analytic"
+[network]
+enabled = true
+likelihoods = ["gaussian"]
+width = 16
+hidden_layers = 2
+max_epochs = 5000
+patience = 5000
+mc_passes = 5
+conformal_folds = 2
+[output]
+figures = true
+progress = false
+"""
+
+
+def _env():
+    return {**os.environ, "MPLBACKEND": "Agg", "JAX_PLATFORMS": "cpu", "PYTHONUNBUFFERED": "1"}
+
+
+def _children(pid: int) -> list[int]:
+    """Live (not zombie) direct children of ``pid``, from /proc."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.append(int(d.name))
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2:].split()[0] != "Z"
+
+
+def _start_training(tmp_path: Path, out: Path) -> tuple[subprocess.Popen, list[int]]:
+    """``python -m bayesmag run`` of a long training job; returns once its figure worker is up and 3 s more."""
+    cfg = tmp_path / "long.toml"
+    cfg.write_text(TRAINING)
+    p = subprocess.Popen([sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(out), "--no-progress"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=tmp_path)
+    deadline = time.monotonic() + 120
+    kids = []
+    while time.monotonic() < deadline and p.poll() is None and not kids:
+        time.sleep(0.1)
+        kids = _children(p.pid)
+    assert kids, f"no figure worker started: {p.poll()} {p.stderr.read().decode() if p.poll() is not None else ''}"
+    time.sleep(3.0)                                      # into the physics stage / training
+    assert p.poll() is None
+    return p, kids
+
+
+def _fake_old_run(out: Path) -> dict:
+    with staging_dir(out) as tmp:
+        (tmp / "calibration.json").write_text("{\"old\": true}")
+    return _tree(out)
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_interrupt_is_one_line_exit_status_and_a_safe_folder(tmp_path, sig, code):
+    out = tmp_path / "out"
+    before = _fake_old_run(out)
+    p, kids = _start_training(tmp_path, out)
+    t0 = time.monotonic()
+    p.send_signal(sig)
+    stdout, stderr = p.communicate(timeout=30)          # returns: nothing holds the pipes any more
+    took = time.monotonic() - t0
+    err = stderr.decode()
+    assert p.returncode == code, err
+    assert took < 2.0, took
+    assert err.count("\n") == 1 and "interrupted by" in err and "Traceback" not in err, err
+    assert _tree(out) == before                          # the old result, untouched
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["long.toml", "out"]    # no staging, lock or .old
+    time.sleep(1.0)
+    assert not [k for k in kids if _running(k)]
+
+
+def test_no_process_outlives_a_sigkilled_run_and_capture_output_returns(tmp_path):
+    """The issue's case: subprocess.run(capture_output=True) of a SIGKILLed `bayesmag run` returns at once and
+    no child of it (figure worker, resource tracker) survives. SIGTERM: the test above."""
+    import threading
+
+    cfg = tmp_path / "long.toml"
+    cfg.write_text(TRAINING)
+    cmd = [sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]
+    result = {}
+
+    def run():
+        result["r"] = subprocess.run(cmd, capture_output=True, env=_env(), cwd=tmp_path, timeout=120)
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    deadline = time.monotonic() + 120
+    cmd_pid, kids = None, []
+    while time.monotonic() < deadline and not kids:
+        time.sleep(0.1)
+        cmd_pid = next(iter(_children(os.getpid())), None)
+        kids = _children(cmd_pid) if cmd_pid else []
+    assert kids, "no figure worker started"
+    time.sleep(2.0)
+    os.kill(cmd_pid, signal.SIGKILL)
+    t.join(timeout=30)                                   # hung forever before: the worker held the pipes
+    assert not t.is_alive() and result["r"].returncode == -signal.SIGKILL
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and [k for k in kids if _running(k)]:
+        time.sleep(0.1)
+    assert not [k for k in kids if _running(k)], "a child of `bayesmag run` outlived it"
+
+
+# --------------------------------------------------------------------------- issue 22.4: nothing spawned from Python
+
+
+def test_a_script_without_main_guard_fits_once_and_spawns_nothing(tmp_path):
+    script = tmp_path / "user_script.py"
+    script.write_text(textwrap.dedent(f"""
+        import os, sys
+        import bayesmag
+        from bayesmag.simulate import simulate
+        print("script body ran", os.getpid())
+        d = simulate(600, design="campaign", seed=0)
+        cal = bayesmag.Calibrator("paper_physics", overrides=["uq.n_params=20", "uq.n_qmc=32"],
+                                  out={str(tmp_path / 'api')!r}).fit(d)
+        kids = [p for p in os.listdir("/proc") if p.isdigit() and
+                open(f"/proc/{{p}}/stat").read().rsplit(")", 1)[1].split()[1] == str(os.getpid())]
+        print("children", kids)
+        print("multiprocessing", "multiprocessing.resource_tracker" in sys.modules)
+        print("figures", sorted(p.name for p in cal.run_dir_.glob("*.png")))
+    """))
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, timeout=300, env=_env(), cwd=tmp_path)
+    out = r.stdout.decode()
+    assert r.returncode == 0, r.stderr.decode()[-3000:]
+    assert out.count("script body ran") == 1
+    assert "children []" in out and "multiprocessing False" in out
+    assert "calibration.png" in out                      # paper_physics draws figures: here, in this process
+
+
+def test_figure_worker_refuses_functions_of_main():
+    from bayesmag._src.figure_worker import FigureWorker
+
+    def f(folder):
+        pass
+    f.__module__ = "__main__"
+    with FigureWorker() as figs, pytest.raises(ValueError, match="__main__"):
+        figs.submit(f)
