@@ -418,7 +418,8 @@ def _same(a: Path, b) -> bool:
         return False
 
 
-def check_export_out(run_dir: str | Path, out: str | Path, *, inputs=(), force: bool = False) -> Path:
+def check_export_out(run_dir: str | Path, out: str | Path, *, inputs=(), force: bool = False,
+                     suffix: str = ".export") -> Path:
     """Refuse an export target that would destroy something; the rules of ``apply --out`` and more.
 
     Never (even with ``force``): a folder, a symlink, the marker or a file any bayesmag folder's
@@ -429,7 +430,10 @@ def check_export_out(run_dir: str | Path, out: str | Path, *, inputs=(), force: 
     from .outdir import MARKER, marker_problem, marker_status
 
     out, run_dir = Path(out), Path(run_dir)
-    fix = f"Give a new file name, e.g. --out {out.parent / ('my_' + out.name)}."
+    k, stem = 2, out.name.split(".")[0] or "calibration"
+    while (out.parent / f"{stem}_{k}{suffix}").exists():
+        k += 1
+    fix = f"Give a new file name, e.g. --out {out.parent / f'{stem}_{k}{suffix}'}."
     if out.is_dir():
         raise ExportError(f"--out {out} is a folder; give the path of the file to write. {fix}")
     if out.is_symlink():
@@ -471,7 +475,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     cal = load(run_dir)
     out = Path(out) if out else Path(run_dir) / f"calibration{FORMATS[fmt]}"
     data_path = ((cal.config or {}).get("data") or {}).get("path") if isinstance(cal.config, dict) else None
-    check_export_out(run_dir, out, inputs=[data_path], force=force)      # before the (slow) accuracy measurement
+    check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # before the slow part
     train = None
     if measure:
         try:
@@ -481,7 +485,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
             warnings.warn(f"training rows could not be reloaded ({e}); accuracy loss not measured.", stacklevel=2)
     ex = build_export(cal, train, t_ref=t_ref)
     text = render(fmt, ex)
-    check_export_out(run_dir, out, inputs=[data_path], force=force)      # the target may have changed meanwhile
+    check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # changed meanwhile?
     recover(out.parent, files_only=True)        # partial files of killed exports (never a live pid's)
     atomic_write_text(out, text)
     register(Path(run_dir), out)
