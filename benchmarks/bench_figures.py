@@ -1,5 +1,6 @@
-"""Does the command line's figure process still pay? ``run_job`` with the figures drawn in a worker
-process (``figure_worker=True``, what ``bayesmag run`` does) against drawn in-process (the library default).
+"""Does the command line's figure process pay? ``run_job`` with the figures drawn in a worker process
+(``figure_worker=True``, ``bayesmag run`` with ``BAYESMAG_FIGURE_WORKER=1``) against drawn in-process
+(the default of the command line and of library calls).
 
 One Python process runs each config once to compile (not timed), then ``--repeats`` times per mode,
 the modes interleaved so that a machine whose speed drifts compares them fairly. Reported per mode:

@@ -413,8 +413,11 @@ progress = false
 """
 
 
-def _env():
-    return {**os.environ, "MPLBACKEND": "Agg", "JAX_PLATFORMS": "cpu", "PYTHONUNBUFFERED": "1"}
+def _env(worker: bool = True):
+    """The child's environment; ``worker``: the figure worker on (BAYESMAG_FIGURE_WORKER=1), so that the kill
+    tests have a child process to lose."""
+    return {**os.environ, "MPLBACKEND": "Agg", "JAX_PLATFORMS": "cpu", "PYTHONUNBUFFERED": "1",
+            "BAYESMAG_FIGURE_WORKER": "1" if worker else "0"}
 
 
 def _children(pid: int) -> list[int]:
@@ -511,6 +514,23 @@ def test_no_process_outlives_a_sigkilled_run_and_capture_output_returns(tmp_path
     while time.monotonic() < deadline and [k for k in kids if _running(k)]:
         time.sleep(0.1)
     assert not [k for k in kids if _running(k)], "a child of `bayesmag run` outlived it"
+
+
+def test_bayesmag_run_spawns_no_process_by_default(tmp_path):
+    """Without BAYESMAG_FIGURE_WORKER the command draws its figures itself: no child at any time."""
+    cfg = tmp_path / "long.toml"
+    cfg.write_text(TRAINING)
+    p = subprocess.Popen([sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(tmp_path / "out"),
+                          "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env={k: v for k, v in _env().items() if k != "BAYESMAG_FIGURE_WORKER"}, cwd=tmp_path)
+    seen = []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 8 and p.poll() is None:
+        seen += _children(p.pid)
+        time.sleep(0.1)
+    p.send_signal(signal.SIGINT)
+    p.communicate(timeout=30)
+    assert p.returncode == 130 and seen == []
 
 
 # --------------------------------------------------------------------------- issue 22.4: nothing spawned from Python

@@ -35,7 +35,7 @@ def _cmd_run(args) -> int:
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
-        result = run_job(cfg, out, progress=not args.no_progress, figure_worker=True)
+        result = run_job(cfg, out, progress=not args.no_progress, figure_worker=_figure_worker())
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")
@@ -54,6 +54,13 @@ def _cmd_run(args) -> int:
     for w in m.get("warnings", []):
         print(f"  WARNING: {w}", file=sys.stderr)
     return 0
+
+
+def _figure_worker() -> bool:
+    """Draw the physics figures in a worker process? Only with ``BAYESMAG_FIGURE_WORKER=1``: measured on the
+    2-core machine it did not pay (docs/benchmarks.md, ``benchmarks/bench_figures.py``)."""
+    import os
+    return os.environ.get("BAYESMAG_FIGURE_WORKER", "0").strip().lower() in ("1", "true", "yes", "on")
 
 
 def packaged_configs_dir() -> Path:

@@ -72,8 +72,9 @@ class FigureWorker:
 
     A process, not a thread: matplotlib is pure Python and would hold the GIL against the main
     thread's tracing. ``draw`` must be a module-level function of an importable module (never
-    ``__main__``) and its arguments picklable. Used only by the command line; library calls draw
-    in-process (:class:`InlineFigures`).
+    ``__main__``) and its arguments picklable. Used only by the command line, and there only with
+    ``BAYESMAG_FIGURE_WORKER=1`` (it did not pay on the 2-core machine: ``benchmarks/bench_figures.py``);
+    library calls always draw in-process (:class:`InlineFigures`).
     """
 
     def __init__(self, enabled: bool = True):

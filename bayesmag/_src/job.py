@@ -172,7 +172,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
 
     Figures (``[output] figures``) are drawn in this process by default: a library call spawns
     nothing and never re-imports the caller's ``__main__``. ``figure_worker=True`` (the command
-    line) draws the physics stage's figures in one child process
+    line with ``BAYESMAG_FIGURE_WORKER=1``) draws the physics stage's figures in one child process
     (:class:`~bayesmag._src.figure_worker.FigureWorker`), which exits when this process does:
     right after the physics stage when there is no network, else after the training (whose
     threads keep the cores busy) while this process draws the hybrid stage's. The output folder
