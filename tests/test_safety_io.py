@@ -444,7 +444,7 @@ def _running(pid: int) -> bool:
 
 
 def _start_training(tmp_path: Path, out: Path) -> tuple[subprocess.Popen, list[int]]:
-    """``python -m bayesmag run`` of a long training job; returns once its figure worker is up and 3 s more."""
+    """``python -m bayesmag run`` of a long training job; returns once its figure worker is up and 6 s more."""
     cfg = tmp_path / "long.toml"
     cfg.write_text(TRAINING)
     p = subprocess.Popen([sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(out), "--no-progress"],
@@ -455,7 +455,7 @@ def _start_training(tmp_path: Path, out: Path) -> tuple[subprocess.Popen, list[i
         time.sleep(0.1)
         kids = _children(p.pid)
     assert kids, f"no figure worker started: {p.poll()} {p.stderr.read().decode() if p.poll() is not None else ''}"
-    time.sleep(3.0)                                      # into the physics stage / training
+    time.sleep(6.0)                                      # into the training (max_epochs 5000)
     assert p.poll() is None
     return p, kids
 
