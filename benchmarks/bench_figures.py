@@ -19,7 +19,6 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def one(cfg_name: str, mode: str, sets: list[str]) -> dict:

@@ -19,13 +19,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bayesmag import CalibrationData, write_csv
+from bayesmag import write_csv
 from bayesmag._src import job as job_module
 from bayesmag._src.cli import main
 from bayesmag._src.outdir import MARKER, OutputError, marker_status, recover, staging_dir
 from bayesmag.simulate import simulate
 
-ROOT = Path(__file__).resolve().parents[1]
 
 CONFIG = """name = "t"
 [data]
