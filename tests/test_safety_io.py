@@ -567,3 +567,17 @@ def test_figure_worker_refuses_functions_of_main():
     f.__module__ = "__main__"
     with FigureWorker() as figs, pytest.raises(ValueError, match="__main__"):
         figs.submit(f)
+
+
+def test_signal_handlers_are_left_alone_by_import_and_by_calls_from_python(tmp_path):
+    script = textwrap.dedent("""
+        import signal
+        before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), signal.set_wakeup_fd(-1))
+        import bayesmag
+        from bayesmag._src.cli import main
+        main(["report", "/nonexistent"])                 # a call from Python: no handlers, not even briefly kept
+        after = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), signal.set_wakeup_fd(-1))
+        print(before == after, after[0] is signal.default_int_handler, after[1] == signal.SIG_DFL)
+    """)
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120, env=_env(), cwd=tmp_path)
+    assert r.stdout.decode().split() == ["True", "True", "True"], r.stderr.decode()[-2000:]
