@@ -442,19 +442,3 @@ def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, mon
     out = capsys.readouterr().out
     assert "U new_session" in out and "heading error RMS" in out and "CAL_MAG0_XOFF" in out
     assert all(ns["m"]["physics"]["rmse"][a] < 0.1 for a in "xyz")
-
-
-def test_figure_worker_does_not_rerun_an_unguarded_script(monkeypatch):
-    """A user's script without a __main__ guard that runs a job: the figure process must not run it again
-    (multiprocessing's spawn re-runs __main__.__file__ unless it is hidden while the process starts)."""
-    import multiprocessing.spawn
-    import sys
-    import types
-    from bayesmag._src.app.plots import _main_not_reimported
-    script = types.ModuleType("__main__")
-    script.__file__, script.__spec__ = "/home/user/my_calibration.py", None
-    monkeypatch.setitem(sys.modules, "__main__", script)
-    assert multiprocessing.spawn.get_preparation_data("w")["init_main_from_path"].endswith("my_calibration.py")
-    with _main_not_reimported():
-        assert "init_main_from_path" not in multiprocessing.spawn.get_preparation_data("w")
-    assert script.__file__ == "/home/user/my_calibration.py"                  # restored

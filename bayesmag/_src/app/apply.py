@@ -54,7 +54,9 @@ def check_apply_paths(model_dir, data_path, out_path) -> Path:
     parent = out.parent
     if not parent.is_dir():
         raise DataError(f"--out {out}: the folder {parent} does not exist; create it or give another path.")
-    probe = parent / f".{out.name}.partial-{os.getpid()}"
+    from bayesmag._src.app.outdir import partial_name, recover
+    recover(parent, files_only=True)        # partial output files of killed processes (never a live pid's)
+    probe = partial_name(out)
     probe.touch()                           # unwritable, read-only or over-long: OSError now, not after the work
     probe.unlink()
     return out

@@ -6,7 +6,7 @@ Commands::
     bayesmag apply --model RUN_DIR --data FILE.csv --out OUT.csv [--level 0.95] [--uq analytic|psqmc]
                    [--columns time=t,bx_meas=X,...] [--field-unit uT|nT|mT|G] [--temperature-unit C|K]
     bayesmag report RUN_DIR
-    bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T]
+    bayesmag export RUN_DIR --format {json,c-header,ardupilot,px4,magcal} [--out FILE] [--temperature T] [--force]
     bayesmag study CONFIG [--out DIR] [--set key=value]...
     bayesmag fleet CONFIG [--out DIR] [--set key=value]...
     bayesmag discover CONFIG | --data FILE.csv --out DIR
@@ -40,7 +40,8 @@ def _cmd_run(args) -> int:
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
-        result = run_job(cfg, out, progress=None if _progress(args) else False)   # None: [output] progress
+        result = run_job(cfg, out, progress=None if _progress(args) else False,   # None: [output] progress
+                         figure_worker=_figure_worker())
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")
@@ -97,6 +98,11 @@ def _cmd_fleet(args) -> int:
     if gt:
         print(f"  ground truth: planted {sorted(gt['defective'])}; flagged exactly: {gt['exact']}")
     return 0
+def _figure_worker() -> bool:
+    """Draw the physics figures in a worker process? Only with ``BAYESMAG_FIGURE_WORKER=1``: measured on the
+    2-core machine it did not pay (docs/benchmarks.md, ``benchmarks/bench_figures.py``)."""
+    import os
+    return os.environ.get("BAYESMAG_FIGURE_WORKER", "0").strip().lower() in ("1", "true", "yes", "on")
 
 
 def packaged_configs_dir() -> Path:
@@ -216,7 +222,7 @@ def _cmd_export(args) -> int:
     from bayesmag._src.app.export import ExportError, export_run, limitations
 
     try:
-        path, ex = export_run(args.run_dir, args.format, args.out, t_ref=args.temperature)
+        path, ex = export_run(args.run_dir, args.format, args.out, t_ref=args.temperature, force=args.force)
     except ExportError as e:
         print(f"bayesmag: error: {e}", file=sys.stderr)
         return 2
@@ -332,6 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", help="output file (default RUN_DIR/calibration.<ext>)")
     ex.add_argument("--temperature", type=float, default=None,
                     help="reference temperature (C) of the hard/soft-iron and PX4 forms (default: median training temperature)")
+    ex.add_argument("--force", action="store_true",
+                    help="replace an existing --out file that bayesmag export did not write (never a file of a run "
+                         "folder or the training recording)")
     ex.set_defaults(func=_cmd_export)
 
     dc = sub.add_parser("discover", help="find physics missing from the calibration model", add_help=False)
@@ -379,7 +388,28 @@ def _one_line(e: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The console entry point; ``argv`` None (the ``bayesmag`` command) also installs the signal handling.
+
+    Ctrl-C / SIGTERM then print one line and end the process with status 130 / 143 within about
+    a second (:mod:`~bayesmag._src.app.signals`); a call with ``argv`` from Python leaves signals alone.
+    """
+    console = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
+    if not console:
+        return _main(argv)
+    import os
+
+    from bayesmag._src.app.signals import Interrupted, announce, handling
+    with handling():
+        try:
+            return _main(argv)
+        except Interrupted as e:
+            announce(e.signum)
+            sys.stdout.flush()
+            os._exit(e.code)                # no waiting for training threads to finish their batch
+
+
+def _main(argv: list[str]) -> int:
     from bayesmag._src.app.artifact import ArtifactError
     from bayesmag._src.app.config import ConfigError
     from bayesmag._src.core.data import DataError

@@ -173,21 +173,24 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
                         predictor.compose(comp, new_session=new), paper.compose(comp), tr, new)
 
 
-def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> JobResult:
+def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figure_worker: bool = False) -> JobResult:
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
 
-    The physics stage's figures are drawn in a background process
-    (:class:`~bayesmag._src.app.plots.FigureWorker`): right after the physics stage when there is no
-    network, else after the training (whose threads keep the cores busy) while this process draws
-    the hybrid stage's. The output folder is swapped in only after they are all drawn.
+    Figures (``[output] figures``) are drawn in this process by default: a library call spawns
+    nothing and never re-imports the caller's ``__main__``. ``figure_worker=True`` (the command
+    line with ``BAYESMAG_FIGURE_WORKER=1``) draws the physics stage's figures in one child process
+    (:class:`~bayesmag._src.app.figure_worker.FigureWorker`), which exits when this process does:
+    right after the physics stage when there is no network, else after the training (whose
+    threads keep the cores busy) while this process draws the hybrid stage's. The output folder
+    is swapped in only after they are all drawn.
     """
     from bayesmag._src.core.cache import compile_cache
+    from bayesmag._src.app.figure_worker import figures
     from bayesmag._src.app.outdir import reserve
-    from bayesmag._src.app.plots import FigureWorker
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
         # [output] compile_cache: on or off for this job only (the environment variable wins)
         with compile_cache(cfg.output.compile_cache):
-            with FigureWorker(enabled=cfg.output.figures) as figs:
+            with figures(cfg.output.figures, worker=figure_worker) as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)
 
@@ -332,5 +335,5 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
         from bayesmag._src.app.report import write_report
-        write_report(tmp)
+        write_report(tmp, require_marker=False)     # the staging folder: its marker says incomplete
     return result

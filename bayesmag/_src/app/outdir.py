@@ -3,10 +3,13 @@
 One mechanism for every command that writes a folder (``run``, ``study``, ``discover``):
 
 * **Ownership.** Every folder bayesmag writes holds a marker file :data:`MARKER` listing the
-  files it wrote. An existing target may be replaced only if it holds the marker and no other
-  files; any other non-empty target (a folder with a user's files, ``.``, a run folder holding
-  the input recording or a file added later) is refused *before* any computation by
-  :func:`check_out`. Nothing bayesmag did not write is ever deleted.
+  files and subfolders it wrote. An existing target may be replaced only if its marker can be
+  read in full (JSON, ``tool`` bayesmag, ``complete`` true, a list of ``files``) and the folder
+  holds nothing else: no other file, empty subfolder, symlink or ``.bayesmag-run.bak``. Any
+  other non-empty target (a folder with a user's files, ``.``, a damaged or truncated marker, a
+  run folder holding the input recording or a file added later) is refused *before* any
+  computation by :func:`check_out`. Only paths the marker lists are ever removed
+  (:func:`remove_listed`); a refused run changes nothing.
 * **Lock.** :func:`reserve` takes ``.<name>.lock`` beside the target (created exclusively,
   holding the owner's pid) for the whole command; a second process writing the same target
   is refused. A lock whose pid is no longer alive is stale and taken over.
@@ -16,8 +19,9 @@ One mechanism for every command that writes a folder (``run``, ``study``, ``disc
   ``<name>``; (3) delete the old folder. POSIX cannot rename a directory over a non-empty
   one atomically, so between (1) and (2) the complete old folder lives under its ``.old``
   name; :func:`recover`, run at the start of every command writing into the same parent,
-  renames it back if the process died there, deletes ``.old`` folders already superseded,
-  and deletes ``.partial`` folders of dead processes. Each step is one ``rename(2)`` of a
+  renames it back if the process died there, deletes (the listed files of) ``.old`` folders
+  already superseded, and deletes ``.partial`` folders and files of dead processes (an ``apply``
+  or ``export`` output or a staging folder left by a killed process). Each step is one ``rename(2)`` of a
   directory, so at every instant a complete old or new folder exists.
 """
 
@@ -31,8 +35,11 @@ import re
 import shutil
 from pathlib import Path
 
+from bayesmag._src.app import signals
+
 __all__ = ["staging_dir", "reserve", "check_out", "recover", "OutputError", "MARKER", "marker_status",
-           "is_staging_name"]
+           "is_staging_name", "marker_problem", "foreign_paths", "remove_listed", "register", "atomic_write_text",
+           "partial_name"]
 
 #: The marker file in every folder bayesmag writes (JSON: tool, version, complete, written, and the files
 #: it wrote once complete).
@@ -62,9 +69,146 @@ def marker_status(folder: str | Path) -> dict | None:
     return doc if isinstance(doc, dict) else {"complete": False, "damaged": True}
 
 
+def marker_problem(mark: dict | None) -> str | None:
+    """Why a marker does not prove the folder is bayesmag's (None when it does).
+
+    A marker proves ownership only when read in full: a JSON object with ``tool`` bayesmag,
+    ``complete`` true and ``files`` a list of relative paths. Anything less means "not ours".
+    """
+    if mark is None:
+        return f"no {MARKER} marker"
+    if mark.get("damaged"):
+        return f"its {MARKER} marker cannot be read (not JSON, truncated or not text)"
+    if mark.get("tool") != "bayesmag":
+        return f"its {MARKER} marker does not name bayesmag as the writer"
+    if mark.get("complete") is not True:
+        return f"its {MARKER} marker says the folder is incomplete"
+    for key in ("files", "dirs"):
+        v = mark.get(key, [])
+        if key == "files" and key not in mark:
+            return f"its {MARKER} marker lacks the list of files bayesmag wrote"
+        if not isinstance(v, list) or not all(_safe_rel(x) for x in v):
+            return f"its {MARKER} marker has a damaged '{key}' list"
+    return None
+
+
+def _safe_rel(x) -> bool:
+    return (isinstance(x, str) and x not in ("", ".") and not x.startswith("/")
+            and ".." not in x.split("/") and "\0" not in x and x != MARKER)
+
+
+def _walk(folder: Path) -> tuple[dict[str, str], set[str]]:
+    """Every entry below ``folder`` without following links: ({rel: 'file'|'link'|'other'}, {rel dirs})."""
+    files, dirs = {}, set()
+    stack = [(folder, "")]
+    while stack:
+        d, prefix = stack.pop()
+        with os.scandir(d) as it:
+            for e in it:
+                rel = prefix + e.name
+                if e.is_symlink():
+                    files[rel] = "link"
+                elif e.is_dir(follow_symlinks=False):
+                    dirs.add(rel)
+                    stack.append((Path(e.path), rel + "/"))
+                else:
+                    files[rel] = "file" if e.is_file(follow_symlinks=False) else "other"
+    return files, dirs
+
+
 def _files(folder: Path) -> set[str]:
-    return {p.relative_to(folder).as_posix() for p in folder.rglob("*")
-            if not p.is_dir() and not p.name.startswith(MARKER)}
+    """The regular files below ``folder`` (what a marker lists), the marker itself excepted."""
+    files, _ = _walk(folder)
+    return {r for r, kind in files.items() if kind == "file" and r != MARKER}
+
+
+def _listed_dirs(mark: dict) -> set[str]:
+    out = set(mark.get("dirs", []))
+    for f in mark.get("files", []):
+        parts = f.split("/")[:-1]
+        out.update("/".join(parts[:k]) for k in range(1, len(parts) + 1))
+    return out
+
+
+def foreign_paths(folder: str | Path, mark: dict) -> list[str]:
+    """Entries of ``folder`` that its (valid) marker does not list: files, symlinks, empty or extra subfolders.
+
+    A listed name that is now a symlink or a folder counts as foreign too (someone replaced it).
+    """
+    files, dirs = _walk(Path(folder))
+    listed, ldirs = set(mark.get("files", [])), _listed_dirs(mark)
+    out = [r + (" (symlink)" if kind == "link" else "") for r, kind in files.items()
+           if not (r == MARKER and kind == "file") and not (r in listed and kind == "file")]
+    out += [r + "/" for r in dirs if r not in ldirs]
+    return sorted(out)
+
+
+def remove_listed(folder: str | Path, mark: dict) -> list[str]:
+    """Delete the files and (then empty) subfolders ``mark`` lists, the marker, then ``folder`` if empty.
+
+    Never anything else: a regular file is unlinked only at a listed path, a folder only with
+    ``rmdir`` (which cannot delete contents), a symlink never. Returns what is left (normally []).
+    """
+    folder = Path(folder)
+    for rel in mark.get("files", []):
+        p = folder / rel
+        through_link = any((folder / q).is_symlink() for q in Path(rel).parents if str(q) != ".")
+        with contextlib.suppress(OSError):
+            if not through_link and p.is_file() and not p.is_symlink():
+                p.unlink()
+    for rel in sorted(_listed_dirs(mark), key=lambda r: -r.count("/")):
+        p = folder / rel
+        with contextlib.suppress(OSError):
+            if p.is_dir() and not p.is_symlink():
+                p.rmdir()
+    with contextlib.suppress(OSError):
+        (folder / MARKER).unlink()
+    left = []
+    with contextlib.suppress(OSError):
+        left = sorted(os.listdir(folder))
+        if not left:
+            folder.rmdir()
+    return left
+
+
+def partial_name(path: Path) -> Path:
+    """The temporary sibling ``.NAME.partial-PID`` a file is written to before its rename into place."""
+    return path.with_name(f".{path.name}.partial-{os.getpid()}")
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` to a temporary sibling, flush it to disk, then rename it over ``path`` (one ``rename(2)``)."""
+    path = Path(path)
+    tmp = partial_name(path)
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def register(folder: str | Path, path: str | Path) -> bool:
+    """List ``path`` (a file bayesmag just wrote inside ``folder``) in the folder's marker; False if not listed.
+
+    Only a valid marker is updated (rewritten atomically), so a later run may still replace the folder.
+    """
+    folder = Path(folder)
+    mark = marker_status(folder)
+    if marker_problem(mark) is not None:
+        return False
+    try:
+        rel = Path(path).resolve().relative_to(folder.resolve()).as_posix()
+    except ValueError:
+        return False
+    if rel in mark["files"]:
+        return True
+    mark["files"] = sorted(set(mark["files"]) | {rel})
+    atomic_write_text(folder / MARKER, json.dumps(mark) + "\n")
+    return True
 
 
 def _write_marker(folder: Path, complete: bool) -> None:
@@ -72,7 +216,9 @@ def _write_marker(folder: Path, complete: bool) -> None:
     doc = {"tool": "bayesmag", "version": __version__, "complete": complete,
            "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     if complete:
-        doc["files"] = sorted(_files(folder))
+        files, dirs = _walk(folder)
+        doc["files"] = sorted(r for r, kind in files.items() if kind == "file" and r != MARKER)
+        doc["dirs"] = sorted(dirs)
     tmp = folder / (MARKER + ".tmp")
     tmp.write_text(json.dumps(doc) + "\n")
     os.replace(tmp, folder / MARKER)
@@ -126,11 +272,16 @@ def check_out(out: str | Path, *, inputs=()) -> Path:
             raise OutputError(f"--out {out} is an existing folder that bayesmag did not write (no {MARKER} marker) "
                               f"and it is not empty; bayesmag never replaces such a folder. Give a new folder name, "
                               f"e.g. --out {_suggest(out)}.")
+        problem = marker_problem(mark) if mark is not None else None
+        if problem is not None:
+            raise OutputError(f"--out {out}: {problem}, so bayesmag cannot tell which files it wrote and treats the "
+                              f"folder as not its own; it will not be replaced. Give a new folder name, e.g. --out "
+                              f"{_suggest(out)} (or delete the folder yourself).")
         for p in inputs:
             if p is not None and _inside(Path(p), out):
                 raise OutputError(f"--out {out} contains the input {p}; replacing the folder would delete it. "
                                   f"Give a new folder name, e.g. --out {_suggest(out)}.")
-        foreign = sorted(_files(out) - set(mark.get("files", []))) if mark and "files" in mark else []
+        foreign = foreign_paths(out, mark) if mark is not None else []
         if foreign:
             shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
             raise OutputError(f"--out {out} is a bayesmag run folder, but it also holds files bayesmag did not write "
@@ -154,12 +305,15 @@ def check_out(out: str | Path, *, inputs=()) -> Path:
     return out
 
 
-def recover(parent: str | Path) -> list[str]:
+def recover(parent: str | Path, *, files_only: bool = False) -> list[str]:
     """Finish or undo swaps that a killed process left in ``parent``; returns what was done.
 
-    ``.x.old-N`` of a dead process: renamed back to ``x`` if ``x`` is missing (the process died
-    between the two renames), else deleted. ``.x.partial-N`` of a dead process: deleted. Only
-    folders holding :data:`MARKER` are touched.
+    ``.x.old-N`` of a dead process (a complete folder with a valid marker): renamed back to ``x``
+    if ``x`` is missing (the process died between the two renames), else its listed files are
+    deleted. ``.x.partial-N`` folder of a dead process holding a bayesmag marker (a staging
+    folder): deleted. ``.x.partial-N`` regular file of a dead process (an ``apply``/``export``
+    output cut short): deleted. Nothing else is touched; the pid of a live process never.
+    ``files_only``: only the partial files (inside a run folder being replaced).
     """
     parent = Path(parent)
     done = []
@@ -167,15 +321,27 @@ def recover(parent: str | Path) -> list[str]:
         return done
     for p in sorted(parent.iterdir()):
         m = _SIDE.match(p.name)
-        if m is None or not p.is_dir() or p.is_symlink() or _alive(int(m["pid"])):
+        if m is None or p.is_symlink() or _alive(int(m["pid"])):
+            continue
+        if not p.is_dir():
+            if m["kind"] == "partial" and p.is_file():
+                with contextlib.suppress(OSError):
+                    p.unlink()
+                    done.append(f"removed stale {p.name}")
             continue
         mark = marker_status(p)
-        if mark is None:
+        if files_only or mark is None or mark.get("tool") != "bayesmag":
             continue
         target = parent / m["name"]
-        if m["kind"] == "old" and mark.get("complete") and not target.exists():
-            p.rename(target)
-            done.append(f"restored {target} from {p.name}")
+        if m["kind"] == "old":
+            if marker_problem(mark) is not None:
+                continue                        # a complete folder was renamed: anything else is not ours
+            if not target.exists():
+                p.rename(target)
+                done.append(f"restored {target} from {p.name}")
+            else:
+                left = remove_listed(p, mark)
+                done.append(f"removed stale {p.name}" + (f" (kept {len(left)} unlisted entries)" if left else ""))
         else:
             shutil.rmtree(p, ignore_errors=True)
             done.append(f"removed stale {p.name}")
@@ -225,16 +391,21 @@ def reserve(out: str | Path, *, inputs=()):
             _HELD[key] -= 1
         return
     recover(out.parent)
+    if out.is_dir() and not out.is_symlink() and marker_problem(marker_status(out)) is None:
+        recover(out, files_only=True)           # partial files of killed `export`/`report` into the run folder
     check_out(out, inputs=inputs)
     _acquire(out)
     _HELD[key] = 1
+    lock = _lock_path(out)
+    forget = signals.on_abort(lambda: lock.unlink(missing_ok=True))     # an interrupted command releases it too
     try:
         yield out
     finally:
         _HELD[key] -= 1
         if _HELD[key] == 0:
             del _HELD[key]
-            _lock_path(out).unlink(missing_ok=True)
+            lock.unlink(missing_ok=True)
+        forget()
 
 
 @contextlib.contextmanager
@@ -253,6 +424,7 @@ def staging_dir(out: str | Path):
                 raise OutputError(f"{tmp} exists and was not written by bayesmag; move it away and retry.")
             shutil.rmtree(tmp)
         tmp.mkdir()
+        forget = signals.on_abort(lambda: shutil.rmtree(tmp, ignore_errors=True))
         try:
             _write_marker(tmp, complete=False)
             yield tmp
@@ -260,20 +432,30 @@ def staging_dir(out: str | Path):
             check_out(out)                      # the target may have changed during the computation
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
+            forget()
             raise
-        old = None
-        if out.exists():
-            if marker_status(out) is None:      # an empty folder (check_out): remove it, never its contents
-                out.rmdir()
-            else:
-                old = out.parent / f".{out.name}.old-{os.getpid()}"
-                out.rename(old)                 # phase 1: the complete old folder under its .old name
-        try:
-            tmp.rename(out)                     # phase 2: the complete new folder under its name
-        except BaseException:
-            if old is not None and not out.exists():
-                old.rename(out)
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        with signals.critical():                # a signal here is acted on after the swap, never inside it
+            old = old_mark = None
+            try:
+                if out.exists():
+                    old_mark = marker_status(out)
+                    if old_mark is None:        # an empty folder (check_out): remove it, never its contents
+                        out.rmdir()
+                    else:
+                        old = out.parent / f".{out.name}.old-{os.getpid()}"
+                        out.rename(old)         # phase 1: the complete old folder under its .old name
+                tmp.rename(out)                 # phase 2: the complete new folder under its name
+            except BaseException:
+                if old is not None and not out.exists():
+                    old.rename(out)
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+            finally:
+                forget()
+            if old is not None:
+                left = remove_listed(old, old_mark)     # only what the old marker lists, never a newer user file
+                if left:
+                    import warnings
+                    warnings.warn(f"kept {old}: it holds {len(left)} entries bayesmag did not write "
+                                  f"({', '.join(left[:3])}), added while the run computed; move them back by hand.",
+                                  stacklevel=3)

@@ -2,14 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
-import shutil
-import sys
-import tempfile
-import multiprocessing
-from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
-from typing import Callable
 
 import matplotlib
 
@@ -21,7 +14,7 @@ from bayesmag._src.core.data import AXES  # noqa: E402
 
 __all__ = ["residual_interval_figure", "residual_histograms", "residuals_vs",
            "residuals_vs_time", "residual_figures", "physics_figures", "residual_histogram_figure",
-           "calibration_curve_figure", "pit_figure", "FigureWorker"]
+           "calibration_curve_figure", "pit_figure", "draw_calibration_curves", "FigureWorker", "InlineFigures"]
 
 
 def residual_interval_figure(path: Path, reference: np.ndarray, predicted: np.ndarray, lower: np.ndarray,
@@ -246,82 +239,4 @@ def residual_histogram_figure(out: Path, result, columns: dict) -> None:
     residual_histograms(out / "residual_histograms.png", res)
 
 
-@contextlib.contextmanager
-def _main_not_reimported():
-    """While the worker process starts: hide ``__main__.__file__`` so that the spawned interpreter does not
-    run the caller's script again (a script without an ``if __name__ == "__main__"`` guard would run its
-    whole job a second time there and break the pool). The tasks are bayesmag functions; the worker never
-    needs ``__main__``."""
-    main = sys.modules.get("__main__")
-    path = getattr(main, "__file__", None)
-    hide = path is not None and getattr(main, "__spec__", None) is None
-    if hide:
-        del main.__file__
-    try:
-        yield
-    finally:
-        if hide:
-            main.__file__ = path
-
-
-def _ready() -> None:
-    """:meth:`FigureWorker.warm`'s task: nothing (unpickling it imports this module, matplotlib included)."""
-
-
-class FigureWorker:
-    """Draws figures in one background process while this one goes on (a job draws the physics
-    figures there while it draws the hybrid ones itself); :meth:`finish` waits, re-raises the first
-    drawing error and moves the files into the output folder. A process, not a thread: matplotlib is
-    pure Python and would hold the GIL against the main thread's tracing.
-    ``draw`` must be picklable (a module-level function) and its arguments plain data; tasks run one
-    at a time in a spawned interpreter (no fork of a process that runs JAX).
-
-    Example::
-
-        with FigureWorker() as figs:
-            figs.submit(physics_figures, test, columns)   # called as physics_figures(folder, test, columns)
-            ...                                           # the computation goes on meanwhile
-            figs.finish(staging)                          # the PNGs land in staging
-    """
-
-    def __init__(self, enabled: bool = True):
-        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) if enabled else None
-        self._tmp = Path(tempfile.mkdtemp(prefix="bayesmag-figures-")) if enabled else None
-        self._futures: list[Future] = []
-
-    def warm(self) -> None:
-        """Start the process now (interpreter, imports) rather than at the first figure."""
-        if self._pool is not None:
-            with _main_not_reimported():
-                self._futures.append(self._pool.submit(_ready))
-
-    def submit(self, draw: Callable[..., object], *args, **kwargs) -> None:
-        """Queue ``draw(folder, *args, **kwargs)``; nothing when the worker is disabled."""
-        if self._pool is not None:
-            with _main_not_reimported():            # the process starts at the first submit
-                self._futures.append(self._pool.submit(draw, self._tmp, *args, **kwargs))
-
-    def finish(self, out: Path) -> list[str]:
-        """Wait for every queued figure, raise the first error, move the files into ``out``; their names."""
-        if self._pool is None:
-            return []
-        for f in self._futures:
-            f.result()
-        self._futures = []
-        names = sorted(p.name for p in self._tmp.iterdir())
-        for name in names:
-            shutil.move(str(self._tmp / name), str(Path(out) / name))
-        return names
-
-    def close(self) -> None:
-        """Cancel what has not started, wait for what has, remove the private folder."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            self._pool = None
-
-    def __enter__(self) -> "FigureWorker":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+from bayesmag._src.app.figure_worker import FigureWorker, InlineFigures  # noqa: E402  (moved there; kept importable here)

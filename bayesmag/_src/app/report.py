@@ -733,17 +733,36 @@ def render_html(markdown: str, folder: str | Path | None = None, title: str = "C
     return "\n".join(out) + "\n"
 
 
-def write_report(run_dir: str | Path) -> Path:
-    """(Re)write ``report.md`` and ``report.html`` (figures embedded) in a run folder from its metrics.json
-    and params.json; returns the path of ``report.md``."""
+def write_report(run_dir: str | Path, *, require_marker: bool = True) -> Path:
+    """(Re)write ``report.md`` and ``report.html`` (figures embedded) in a run folder from its
+    metrics.json and params.json; returns the path of ``report.md``.
+
+    The folder must hold a valid bayesmag marker (``require_marker``; the job itself writes the
+    report into its staging folder without one), and an existing report must be one the marker
+    lists: a folder or a report that bayesmag did not write is never changed. Each file is written
+    to a temporary sibling, renamed into place and listed in the marker.
+    """
+    from bayesmag._src.app.outdir import MARKER, OutputError, atomic_write_text, marker_problem, marker_status, register
+
     run_dir = Path(run_dir)
+    out, out_html = run_dir / "report.md", run_dir / "report.html"
+    if require_marker:
+        mark = marker_status(run_dir) if run_dir.is_dir() else None
+        problem = marker_problem(mark)
+        if problem is not None:
+            raise OutputError(f"{run_dir} is not a finished bayesmag run folder ({problem}); `bayesmag report` "
+                              f"writes only into folders written by `bayesmag run`. Give such a folder.")
+        for path in (out, out_html):
+            if (path.exists() or path.is_symlink()) and (path.name not in mark["files"] or path.is_symlink()
+                                                         or not path.is_file()):
+                raise OutputError(f"{path} was not written by bayesmag (its {MARKER} does not list it); it will "
+                                  f"not be replaced. Move it away and retry.")
     for f in ("metrics.json", "params.json"):
         if not (run_dir / f).exists():
             raise FileNotFoundError(f"{run_dir} has no {f}: give a folder written by `bayesmag run`.")
     metrics = json.loads((run_dir / "metrics.json").read_text())
     params = json.loads((run_dir / "params.json").read_text())
     figs = sorted(p.name for p in run_dir.glob("*.png"))
-    out = run_dir / "report.md"
     nuts_rows = None
     if (run_dir / "nuts_summary.csv").exists():
         import csv
@@ -751,10 +770,16 @@ def write_report(run_dir: str | Path) -> Path:
             nuts_rows = list(csv.DictReader(f))
     text = render_report(metrics, params, figs, network_parts=_network_parts(run_dir / "predictions.csv"),
                          reference_sd=run_reference_sd(run_dir), nuts_rows=nuts_rows)
-    out.write_text(text)
-    (run_dir / "report.html").write_text(render_html(text, run_dir))
-    from bayesmag._src.app.export import _register
-    _register(run_dir, run_dir / "report.html")       # a folder written before report.html may still be re-run
+    page = render_html(text, run_dir)
+    if require_marker:
+        from bayesmag._src.app.outdir import recover
+        recover(run_dir, files_only=True)   # partial reports of killed processes
+        for path, content in ((out, text), (out_html, page)):
+            atomic_write_text(path, content)
+            register(run_dir, path)
+    else:
+        out.write_text(text)
+        out_html.write_text(page)
     return out
 
 

@@ -1,0 +1,583 @@
+"""Issue 21 (items 1-4, 16-18) and issue 22.4: nothing overwritten, nothing unusable written, nothing left running.
+
+Every case works in temporary folders; the signal cases start ``python -m bayesmag`` as a real
+child process and send it real signals.
+"""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from bayesmag import write_csv
+from bayesmag._src.app import job as job_module
+from bayesmag._src.app.cli import main
+from bayesmag._src.app.outdir import MARKER, OutputError, marker_status, recover, staging_dir
+from bayesmag.simulate import simulate
+
+
+CONFIG = """name = "t"
+[data]
+path = "{data}"
+[split]
+kind = "random"
+test_fraction = 0.2
+[uq]
+method = "analytic"
+n_params = 10
+n_qmc = 16
+[output]
+figures = false
+progress = false
+"""
+
+
+def _recording(path: Path, n=200, seed=0) -> Path:
+    write_csv(simulate(n, design="iid", seed=seed), path)
+    return path
+
+
+def _config(folder: Path, data: Path, text: str = CONFIG) -> Path:
+    p = folder / "cfg.toml"
+    p.write_text(text.format(data=data))
+    return p
+
+
+def _err(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def _tree(folder: Path) -> dict:
+    """Every entry below ``folder`` (links not followed): path -> ('file', bytes) | ('link', target) | ('dir',)."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            rel = p.relative_to(folder).as_posix()
+            if p.is_symlink():
+                out[rel] = ("link", os.readlink(p))
+            elif p.is_dir():
+                out[rel] = ("dir",)
+            else:
+                out[rel] = ("file", p.read_bytes())
+    return out
+
+
+def _dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Fail loudly if the computation starts: refusals must come before it."""
+    def boom(*a, **k):
+        raise AssertionError("the job started computing")
+    monkeypatch.setattr(job_module, "_run_job", boom)
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    """One finished physics run folder (copied by the tests that change it)."""
+    folder = tmp_path_factory.mktemp("model")
+    rec = _recording(folder / "rec.csv")
+    assert main(["run", str(_config(folder, rec)), "--out", str(folder / "run"), "--no-progress"]) == 0
+    return folder / "run"
+
+
+def _copy(model: Path, tmp_path: Path) -> tuple[Path, Path]:
+    """A copy of the run folder and a config to re-run it (the recording outside the folder)."""
+    run = tmp_path / "run"
+    shutil.copytree(model, run, symlinks=True)
+    return run, _config(tmp_path, _recording(tmp_path / "rec.csv"))
+
+
+# --------------------------------------------------------------------------- item 2: a marker read in full or "not ours"
+
+
+def _truncate(m: Path):
+    m.write_bytes(m.read_bytes()[: len(m.read_bytes()) // 2])
+
+
+def _no_files(m: Path):
+    doc = json.loads(m.read_text())
+    del doc["files"]
+    m.write_text(json.dumps(doc))
+
+
+def _px4(m: Path):            # what `bayesmag export R --format px4 --out R/.bayesmag-run` did before item 1
+    m.write_text("# PX4 parameters\n1\t1\tCAL_MAG0_XOFF\t0.1\t9\n")
+
+
+def _files_not_a_list(m: Path):
+    doc = json.loads(m.read_text())
+    doc["files"] = "calibration.json"
+    m.write_text(json.dumps(doc))
+
+
+def _not_utf8(m: Path):
+    m.write_bytes(b"\xff\xfe\x00garbage")
+
+
+@pytest.mark.parametrize("damage", [_truncate, _no_files, _px4, _files_not_a_list, _not_utf8])
+def test_a_marker_that_cannot_be_read_in_full_means_not_ours(tmp_path, capsys, model, no_work, damage):
+    run, cfg = _copy(model, tmp_path)
+    (run / "notes.txt").write_text("my notes")
+    damage(run / MARKER)
+    before = _tree(run)
+    rc = main(["run", str(cfg), "--out", str(run), "--no-progress"])
+    err = _err(capsys)
+    assert rc == 2 and err.count("\n") == 1 and "not its own" in err and MARKER in err, err
+    assert _tree(run) == before                           # a refused run changes nothing
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".run.")]
+
+
+# --------------------------------------------------------------------------- item 3: only listed paths are removed
+
+
+@pytest.mark.parametrize("extra", ["empty_dir", "symlink_file", "symlink_dir", "marker_bak", "nested_file"])
+def test_rerun_refuses_anything_the_marker_does_not_list(tmp_path, capsys, model, no_work, extra):
+    run, cfg = _copy(model, tmp_path)
+    outside = tmp_path / "outside.txt"
+    outside.write_text("keep")
+    if extra == "empty_dir":
+        (run / "my_empty").mkdir()
+    elif extra == "symlink_file":
+        (run / "link.txt").symlink_to(outside)
+    elif extra == "symlink_dir":
+        (run / "linkdir").symlink_to(tmp_path)
+    elif extra == "marker_bak":
+        shutil.copy(run / MARKER, run / (MARKER + ".bak"))
+    else:
+        (run / "sub").mkdir()
+        (run / "sub" / "data.csv").write_text("x")
+    before = _tree(run)
+    rc = main(["run", str(cfg), "--out", str(run), "--no-progress"])
+    assert rc == 2 and "did not write" in _err(capsys)
+    assert _tree(run) == before and outside.read_text() == "keep"
+
+
+def test_rerun_of_a_clean_run_folder_still_replaces_it(tmp_path, capsys, model):
+    run, cfg = _copy(model, tmp_path)
+    old = json.loads((run / MARKER).read_text())["written"]
+    assert main(["run", str(cfg), "--out", str(run), "--no-progress"]) == 0
+    mark = marker_status(run)
+    assert mark["complete"] and "calibration.json" in mark["files"] and isinstance(mark["dirs"], list)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["run", "rec.csv", "cfg.toml"]), old
+
+
+_NAMES = st.sampled_from(["a", "b.txt", "notes.md", MARKER + ".bak", ".hidden", "figure.png", "x y"])
+
+
+@st.composite
+def _user_entries(draw):
+    """User additions to a bayesmag folder: files, empty folders, symlinks; and maybe a damaged marker."""
+    entries = draw(st.lists(st.tuples(st.sampled_from(["file", "dir", "link", "nested"]), _NAMES), max_size=4))
+    damage = draw(st.sampled_from([None, None, "truncate", "no_files", "not_json", "incomplete", "remove_listed"]))
+    return entries, damage
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_user_entries())
+def test_property_whatever_the_marker_does_not_list_survives_a_rerun(case):
+    """Any folder contents: the rerun either replaces only what the marker listed, or is refused and changes nothing."""
+    entries, damage = case
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        out = d / "out"
+        with staging_dir(out) as tmp:                    # a genuine bayesmag folder: two files, one subfolder
+            (tmp / "calibration.json").write_text("{}")
+            (tmp / "sub").mkdir()
+            (tmp / "sub" / "fig.png").write_text("png")
+        listed = set(marker_status(out)["files"]) | {MARKER, "sub"}
+        target = d / "target.txt"
+        target.write_text("outside")
+        for kind, name in entries:
+            p = out / name
+            if p.exists() or p.is_symlink():
+                continue
+            if kind == "file":
+                p.write_text("user " + name)
+            elif kind == "dir":
+                p.mkdir()
+            elif kind == "link":
+                p.symlink_to(target)
+            else:
+                (out / "sub" / name).write_text("user nested")
+        m = out / MARKER
+        if damage == "truncate":
+            m.write_text(m.read_text()[:20])
+        elif damage == "no_files":
+            doc = json.loads(m.read_text())
+            del doc["files"]
+            m.write_text(json.dumps(doc))
+        elif damage == "not_json":
+            m.write_text("# not json")
+        elif damage == "incomplete":
+            doc = json.loads(m.read_text())
+            doc["complete"] = False
+            m.write_text(json.dumps(doc))
+        elif damage == "remove_listed":
+            (out / "calibration.json").unlink()         # fewer files than listed is still ours
+        before = _tree(out)
+        unlisted = {k: v for k, v in before.items() if k not in listed and not k.startswith("sub/fig.png")}
+        try:
+            with staging_dir(out) as tmp:
+                (tmp / "new.json").write_text("{}")
+        except OutputError:
+            assert _tree(out) == before                   # refused: nothing changed
+            assert unlisted or damage not in (None, "remove_listed")
+        else:
+            assert not unlisted and damage in (None, "remove_listed")
+            assert (out / "new.json").exists()
+        assert target.read_text() == "outside"
+        assert sorted(p.name for p in d.iterdir()) == ["out", "target.txt"]    # no staging, .old or lock left
+
+
+# --------------------------------------------------------------------------- item 18: partial files of dead processes
+
+
+def test_partial_files_of_dead_processes_are_removed_by_the_next_apply(tmp_path, capsys, model):
+    rec = _recording(tmp_path / "rec.csv")
+    dead, live = _dead_pid(), os.getppid()
+    stale = tmp_path / f".calibrated.csv.partial-{dead}"
+    stale.write_text("time,run\n" * 1000)                 # what a killed apply left
+    alive = tmp_path / f".calibrated.csv.partial-{live}"
+    alive.write_text("another process is writing")
+    user_dir = tmp_path / f".thesis.partial-{dead}"      # a folder of that name without a marker: not ours
+    user_dir.mkdir()
+    assert main(["apply", "--model", str(model), "--data", str(rec), "--out", str(tmp_path / "calibrated.csv"),
+                 "--no-progress"]) == 0
+    assert not stale.exists() and alive.exists() and user_dir.is_dir()
+    assert (tmp_path / "calibrated.csv").exists()
+
+
+def test_partial_files_of_dead_processes_are_removed_by_the_next_run(tmp_path, capsys, model):
+    run, cfg = _copy(model, tmp_path)
+    dead = _dead_pid()
+    beside = tmp_path / f".calibrated.csv.partial-{dead}"
+    beside.write_text("x")
+    inside = run / f".report.md.partial-{dead}"          # a killed `bayesmag report` into the run folder
+    inside.write_text("x")
+    live = run / f".report.md.partial-{os.getppid()}"
+    live.write_text("x")
+    assert main(["run", str(cfg), "--out", str(run), "--no-progress"]) == 2      # the live one is not ours
+    assert live.exists() and inside.exists() is False and beside.exists() is False
+    live.unlink()
+    assert main(["run", str(cfg), "--out", str(run), "--no-progress"]) == 0
+
+
+def test_recover_removes_dead_partial_files_only(tmp_path):
+    dead = _dead_pid()
+    (tmp_path / f".out.csv.partial-{dead}").write_text("x")
+    (tmp_path / f".out.csv.partial-{os.getpid()}").write_text("mine")
+    (tmp_path / f"out.csv.partial-{dead}").write_text("no leading dot: a user's name")
+    (tmp_path / f".link.partial-{dead}").symlink_to(tmp_path / f"out.csv.partial-{dead}")
+    done = recover(tmp_path)
+    assert done == [f"removed stale .out.csv.partial-{dead}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f".out.csv.partial-{os.getpid()}",
+                                                                 f"out.csv.partial-{dead}", f".link.partial-{dead}"])
+
+
+# --------------------------------------------------------------------------- item 1: export --out
+
+
+def _export(run, fmt, out=None, *extra):
+    return main(["export", str(run), "--format", fmt] + (["--out", str(out)] if out is not None else []) + list(extra))
+
+
+@pytest.mark.parametrize("target", ["calibration.json", "calibration.npz", MARKER, "metrics.json", "report.md"])
+def test_export_never_replaces_a_file_of_the_run_folder(tmp_path, capsys, model, target):
+    run, _ = _copy(model, tmp_path)
+    before = _tree(run)
+    for force in ([], ["--force"]):
+        assert _export(run, "px4", run / target, *force) == 2
+        err = _err(capsys)
+        assert err.count("\n") == 1 and str(run / target) in err
+    assert _tree(run) == before
+    assert main(["apply", "--model", str(run), "--data", str(_recording(tmp_path / "r.csv")),
+                 "--out", str(tmp_path / "o.csv"), "--no-progress"]) == 0
+
+
+def test_export_never_replaces_the_training_recording(tmp_path, capsys):
+    rec = _recording(tmp_path / "rec.csv")
+    run = tmp_path / "run"
+    assert main(["run", str(_config(tmp_path, rec)), "--out", str(run), "--no-progress"]) == 0
+    before = rec.read_bytes()
+    for force in ([], ["--force"]):
+        assert _export(run, "c-header", rec, *force) == 2
+        assert "training recording" in _err(capsys)
+    assert rec.read_bytes() == before
+
+
+def test_export_refuses_a_users_file_unless_forced_and_replaces_its_own(tmp_path, capsys, model):
+    run, _ = _copy(model, tmp_path)
+    mine = tmp_path / "params.txt"
+    mine.write_text("my own PX4 parameters\n")
+    assert _export(run, "px4", mine) == 2
+    err = _err(capsys)
+    assert "was not written by `bayesmag export`" in err and "--force" in err
+    assert mine.read_text() == "my own PX4 parameters\n"
+    assert _export(run, "px4", mine, "--force") == 0 and "bayesmag-export" in mine.read_text()
+    for fmt in ("json", "magcal", "c-header", "ardupilot", "px4"):     # bayesmag's own exports: replaced freely
+        out = tmp_path / f"cal{fmt}"
+        assert _export(run, fmt, out) == 0 and _export(run, fmt, out) == 0
+    assert _export(run, "px4", tmp_path) == 2 and "is a folder" in _err(capsys)
+    link = tmp_path / "link.params"
+    link.symlink_to(tmp_path / "calpx4")
+    assert _export(run, "px4", link, "--force") == 2 and "symbolic link" in _err(capsys)
+
+
+def test_export_writes_atomically(tmp_path, capsys, model, monkeypatch):
+    """A write that fails halfway leaves the previous export whole and no temporary file."""
+    run, _ = _copy(model, tmp_path)
+    out = tmp_path / "cal.h"
+    assert _export(run, "c-header", out) == 0
+    before = out.read_bytes()
+    import builtins
+    real_open = builtins.open
+
+    def failing_open(path, mode="r", *a, **k):
+        f = real_open(path, mode, *a, **k)
+        if "w" in mode and ".partial-" in str(path):
+            f.write("/* half")
+            f.flush()
+            raise OSError(28, "No space left on device", str(path))
+        return f
+    monkeypatch.setattr(builtins, "open", failing_open)
+    assert _export(run, "c-header", out) == 2
+    monkeypatch.undo()
+    assert "No space left on device" in _err(capsys)
+    assert out.read_bytes() == before
+    assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
+
+
+# --------------------------------------------------------------------------- item 4: report needs a valid marker
+
+
+def test_report_refuses_a_folder_without_a_valid_marker(tmp_path, capsys, model):
+    run, _ = _copy(model, tmp_path)
+    (run / "report.md").write_text("my edited report")
+    shutil.copy(run / MARKER, tmp_path / "marker")
+    (run / MARKER).unlink()
+    assert main(["report", str(run)]) == 2 and "not a finished bayesmag run folder" in _err(capsys)
+    (run / MARKER).write_text("{")                       # truncated
+    assert main(["report", str(run)]) == 2 and "not a finished bayesmag run folder" in _err(capsys)
+    assert (run / "report.md").read_text() == "my edited report"
+    shutil.copy(tmp_path / "marker", run / MARKER)
+    assert main(["report", str(run)]) == 0 and (run / "report.md").read_text().startswith("#")
+    (run / "report.md").unlink()                         # absent: written and listed, the folder stays re-runnable
+    assert main(["report", str(run)]) == 0 and "report.md" in marker_status(run)["files"]
+
+
+# --------------------------------------------------------------------------- items 16, 17: signals, nothing left running
+
+TRAINING = """name = "long"
+[data]
+source = "simulated"
+[data.simulate]
+design = "campaign"
+n = 2400
+seed = 0
+[split]
+kind = "time_blocks"
+test_fraction = 0.2
+[uq]
+method = "analytic"
+[network]
+enabled = true
+likelihoods = ["gaussian"]
+width = 16
+hidden_layers = 2
+max_epochs = 5000
+patience = 5000
+mc_passes = 5
+conformal_folds = 2
+[output]
+figures = true
+progress = false
+"""
+
+
+def _env(worker: bool = True):
+    """The child's environment; ``worker``: the figure worker on (BAYESMAG_FIGURE_WORKER=1), so that the kill
+    tests have a child process to lose."""
+    return {**os.environ, "MPLBACKEND": "Agg", "JAX_PLATFORMS": "cpu", "PYTHONUNBUFFERED": "1",
+            "BAYESMAG_FIGURE_WORKER": "1" if worker else "0"}
+
+
+def _children(pid: int) -> list[int]:
+    """Live (not zombie) direct children of ``pid``, from /proc."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.append(int(d.name))
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2:].split()[0] != "Z"
+
+
+def _start_training(tmp_path: Path, out: Path) -> tuple[subprocess.Popen, list[int]]:
+    """``python -m bayesmag run`` of a long training job; returns once its figure worker is up and 6 s more."""
+    cfg = tmp_path / "long.toml"
+    cfg.write_text(TRAINING)
+    p = subprocess.Popen([sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(out), "--no-progress"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=tmp_path)
+    deadline = time.monotonic() + 120
+    kids = []
+    while time.monotonic() < deadline and p.poll() is None and not kids:
+        time.sleep(0.1)
+        kids = _children(p.pid)
+    assert kids, f"no figure worker started: {p.poll()} {p.stderr.read().decode() if p.poll() is not None else ''}"
+    time.sleep(6.0)                                      # into the training (max_epochs 5000)
+    assert p.poll() is None
+    return p, kids
+
+
+def _fake_old_run(out: Path) -> dict:
+    with staging_dir(out) as tmp:
+        (tmp / "calibration.json").write_text("{\"old\": true}")
+    return _tree(out)
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_interrupt_is_one_line_exit_status_and_a_safe_folder(tmp_path, sig, code):
+    out = tmp_path / "out"
+    before = _fake_old_run(out)
+    p, kids = _start_training(tmp_path, out)
+    t0 = time.monotonic()
+    p.send_signal(sig)
+    stdout, stderr = p.communicate(timeout=30)          # returns: nothing holds the pipes any more
+    took = time.monotonic() - t0
+    err = stderr.decode()
+    assert p.returncode == code, err
+    assert took < 2.0, took
+    assert err.count("\n") == 1 and "interrupted by" in err and "Traceback" not in err, err
+    assert _tree(out) == before                          # the old result, untouched
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["long.toml", "out"]    # no staging, lock or .old
+    time.sleep(1.0)
+    assert not [k for k in kids if _running(k)]
+
+
+def test_no_process_outlives_a_sigkilled_run_and_capture_output_returns(tmp_path):
+    """The issue's case: subprocess.run(capture_output=True) of a SIGKILLed `bayesmag run` returns at once and
+    no child of it (figure worker, resource tracker) survives. SIGTERM: the test above."""
+    import threading
+
+    cfg = tmp_path / "long.toml"
+    cfg.write_text(TRAINING)
+    cmd = [sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]
+    result = {}
+
+    def run():
+        result["r"] = subprocess.run(cmd, capture_output=True, env=_env(), cwd=tmp_path, timeout=120)
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    deadline = time.monotonic() + 120
+    cmd_pid, kids = None, []
+    while time.monotonic() < deadline and not kids:
+        time.sleep(0.1)
+        cmd_pid = next(iter(_children(os.getpid())), None)
+        kids = _children(cmd_pid) if cmd_pid else []
+    assert kids, "no figure worker started"
+    time.sleep(2.0)
+    os.kill(cmd_pid, signal.SIGKILL)
+    t.join(timeout=30)                                   # hung forever before: the worker held the pipes
+    assert not t.is_alive() and result["r"].returncode == -signal.SIGKILL
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and [k for k in kids if _running(k)]:
+        time.sleep(0.1)
+    assert not [k for k in kids if _running(k)], "a child of `bayesmag run` outlived it"
+
+
+def test_bayesmag_run_spawns_no_process_by_default(tmp_path):
+    """Without BAYESMAG_FIGURE_WORKER the command draws its figures itself: no child at any time."""
+    cfg = tmp_path / "long.toml"
+    cfg.write_text(TRAINING)
+    p = subprocess.Popen([sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(tmp_path / "out"),
+                          "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env={k: v for k, v in _env().items() if k != "BAYESMAG_FIGURE_WORKER"}, cwd=tmp_path)
+    seen = []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 8 and p.poll() is None:
+        seen += _children(p.pid)
+        time.sleep(0.1)
+    p.send_signal(signal.SIGINT)
+    p.communicate(timeout=30)
+    assert p.returncode == 130 and seen == []
+
+
+# --------------------------------------------------------------------------- issue 22.4: nothing spawned from Python
+
+
+def test_a_script_without_main_guard_fits_once_and_spawns_nothing(tmp_path):
+    script = tmp_path / "user_script.py"
+    script.write_text(textwrap.dedent(f"""
+        import os, sys
+        import bayesmag
+        from bayesmag.simulate import simulate
+        print("script body ran", os.getpid())
+        d = simulate(600, design="campaign", seed=0)
+        cal = bayesmag.Calibrator("paper_physics", overrides=["uq.n_params=20", "uq.n_qmc=32"],
+                                  out={str(tmp_path / 'api')!r}).fit(d)
+        kids = [p for p in os.listdir("/proc") if p.isdigit() and
+                open(f"/proc/{{p}}/stat").read().rsplit(")", 1)[1].split()[1] == str(os.getpid())]
+        print("children", kids)
+        print("multiprocessing", "multiprocessing.resource_tracker" in sys.modules)
+        print("figures", sorted(p.name for p in cal.run_dir_.glob("*.png")))
+    """))
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, timeout=300, env=_env(), cwd=tmp_path)
+    out = r.stdout.decode()
+    assert r.returncode == 0, r.stderr.decode()[-3000:]
+    assert out.count("script body ran") == 1
+    assert "children []" in out and "multiprocessing False" in out
+    assert "calibration.png" in out                      # paper_physics draws figures: here, in this process
+
+
+def test_figure_worker_refuses_functions_of_main():
+    from bayesmag._src.app.figure_worker import FigureWorker
+
+    def f(folder):
+        pass
+    f.__module__ = "__main__"
+    with FigureWorker() as figs, pytest.raises(ValueError, match="__main__"):
+        figs.submit(f)
+
+
+def test_signal_handlers_are_left_alone_by_import_and_by_calls_from_python(tmp_path):
+    script = textwrap.dedent("""
+        import signal
+        before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), signal.set_wakeup_fd(-1))
+        import bayesmag
+        from bayesmag._src.app.cli import main
+        main(["report", "/nonexistent"])                 # a call from Python: no handlers, not even briefly kept
+        after = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), signal.set_wakeup_fd(-1))
+        print(before == after, after[0] is signal.default_int_handler, after[1] == signal.SIG_DFL)
+    """)
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120, env=_env(), cwd=tmp_path)
+    assert r.stdout.decode().split() == ["True", "True", "True"], r.stderr.decode()[-2000:]
