@@ -28,10 +28,10 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from .jsonio import write_json
 from .data import AXES, CalibrationData
 from .domain import Domain
 from .frames import frame_io
@@ -206,15 +206,7 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
         "units": {"field": "uT", "temperature": "C", "time": "s"},
     }
     np.savez(Path(path) / "calibration.npz", **arrays)
-    (Path(path) / "calibration.json").write_text(json.dumps(doc, indent=2, default=_json_default))
-
-
-def _json_default(o: Any):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o)}")
+    write_json(Path(path) / "calibration.json", doc)
 
 
 def load(path: str | Path) -> Calibration:

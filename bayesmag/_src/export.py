@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .jsonio import dumps
 from .data import AXES, CalibrationData
 
 __all__ = ["FORMATS", "ExportError", "affine_at", "hard_soft_iron", "fit_symmetric_affine", "px4_params",
@@ -313,9 +314,9 @@ def render(fmt: str, ex: Export) -> str:
     """The file text of format ``fmt``."""
     notes = limitations(fmt, ex)
     if fmt == "json":
-        return json.dumps({**_json_doc(ex), "notes": notes}, indent=2) + "\n"
+        return dumps({**_json_doc(ex), "notes": notes}) + "\n"
     if fmt == "magcal":
-        return json.dumps({"form": "B_cal = (B - b) * A  (row vectors, MATLAB magcal convention)", "units": "uT",
+        return dumps({"form": "B_cal = (B - b) * A  (row vectors, MATLAB magcal convention)", "units": "uT",
                            "temperature_C": ex.t_ref, "A": ex.A.tolist(), "b": ex.b.tolist(), "notes": notes},
                           indent=2) + "\n"
     if fmt == "px4":

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from .jsonio import write_json
 from .config import Config, ConfigError, to_toml
 from .data import AXES, CalibrationData, DataError, load_csv, make_split, validate
 from .datasets import load_dataset
@@ -301,7 +301,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
 
     with staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
-        (tmp / "params.json").write_text(json.dumps(fit.to_json(), indent=2))
+        write_json(tmp / "params.json", fit.to_json())
         write_predictions(tmp / "predictions.csv", test, split.test, columns)
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
         from .artifact import save_calibration
@@ -315,7 +315,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         timings["write"] = time.perf_counter() - t     # files and figures (total: the whole job)
         timings["total"] = time.perf_counter() - t_all
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
-        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        write_json(tmp / "metrics.json", metrics)
         from .report import write_report
         write_report(tmp)
     return result

@@ -10,6 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..jsonio import write_json
 from ..data import AXES
 from .options import DBIC_MIN, FLOOR_RATIO, LOCATE_FRACTION, LOCATE_P, MIN_GAIN, N_PERM, RHO_STRUCTURE, T_IDENT, \
     Z_DISTINCT, Z_MIN, DiscoverOptions
@@ -76,7 +77,7 @@ class DiscoveryResult:
             if self.options.figures:
                 from .. import discover_plots
                 figures = discover_plots.discovery_figures(tmp, self)
-            (tmp / "findings.json").write_text(json.dumps(jsonable(self.to_json()), indent=2))
+            write_json(tmp / "findings.json", jsonable(self.to_json()))
             (tmp / "report.md").write_text(report_markdown(self, figures))
         return out
 
