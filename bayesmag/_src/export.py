@@ -203,6 +203,7 @@ class Export:
     has_network: bool
     accuracy: dict | None
     source: str
+    warnings: tuple[str, ...] = ()
 
 
 def exported_prediction(fmt: str, ex: Export, b_meas, temperature) -> np.ndarray:
@@ -246,8 +247,14 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
     coef = thermo_affine_coefficients(cal)
     lo, hi = cal.domain.low, cal.domain.high
     t_range = (float(lo[3]), float(hi[3]))
+    warnings: list[str] = []
     if t_ref is None:                    # where most training rows are; the domain's middle without them
         t_ref = float(np.median(train.temperature)) if train is not None else 0.5 * (t_range[0] + t_range[1])
+    else:
+        t_ref = check_t_ref(t_ref)
+        if not t_range[0] <= t_ref <= t_range[1]:
+            warnings.append(f"--temperature {t_ref:g} C lies outside the training range [{t_range[0]:.4g}, "
+                            f"{t_range[1]:.4g}] C: the exported coefficients there are extrapolation.")
     t_ref = float(t_ref)
     A, b = hard_soft_iron(*affine_at(coef, t_ref))
     rows, source = train, "training rows"
@@ -260,11 +267,37 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
     px4 = px4_params(rows.b_meas, rows.temperature, phys, tref=t_ref, tmin=t_range[0], tmax=t_range[1])
     ap = ardupilot_params(rows.b_meas, phys)
     ex = Export(coef, t_ref, t_range, A, b, px4, ap, tuple(dropped_components(cal)), cal.network is not None, None,
-                source)
+                source, tuple(warnings))
+    _check_finite(ex)
     if train is not None:
         full = cal.predict(train)["calibrated"] if cal.network is not None else phys
         ex = dataclasses.replace(ex, accuracy=accuracy_loss(ex, train, full))
     return ex
+
+
+def check_t_ref(t_ref) -> float:
+    """A reference temperature (C) to export at: finite, not below absolute zero, at most 1e4 C; else ExportError."""
+    try:
+        t = float(t_ref)
+    except (TypeError, ValueError):
+        raise ExportError(f"--temperature {t_ref!r} is not a number; give a temperature in C, e.g. 25.") from None
+    if not np.isfinite(t) or not -273.15 <= t <= 1e4:
+        raise ExportError(f"--temperature {t_ref!r} is not a usable temperature: it must be finite and within "
+                          f"[-273.15, 10000] C (e.g. the sensor's working temperature, 25).")
+    return t
+
+
+def _check_finite(ex: Export) -> None:
+    """Never export a non-finite coefficient: name the first one (the calibration is degenerate)."""
+    named = {f"coef.{k}": v for k, v in ex.coef.items()}
+    named.update({"A": ex.A, "b": ex.b, "t_ref": ex.t_ref})
+    named.update({f"px4.{k}": v for k, v in (ex.px4 or {}).items()})
+    named.update({f"ardupilot.{k}": v for k, v in (ex.ardupilot or {}).items()})
+    for k, v in named.items():
+        if not np.isfinite(np.asarray(v, dtype=np.float64)).all():
+            raise ExportError(f"the exported coefficient {k} would be non-finite ({np.asarray(v).tolist()}); nothing "
+                              f"was written. The calibration is degenerate at this temperature: check it with "
+                              f"`bayesmag report`, or export at another --temperature.")
 
 
 # --------------------------------------------------------------------------- writers
@@ -284,7 +317,8 @@ def limitations(fmt: str, ex: Export) -> list[str]:
     """Plain statements of what the target cannot hold and the accuracy that costs."""
     parts = list(_CANNOT_HOLD[fmt]) + [f"physics extra terms {list(ex.dropped)}"] * bool(ex.dropped) \
         + ["the residual network"] * ex.has_network
-    lines = [f"{fmt} cannot hold: " + ("; ".join(parts) if parts else "nothing of this model (exact)") + "."]
+    lines = [f"WARNING: {w}" for w in ex.warnings]
+    lines.append(f"{fmt} cannot hold: " + ("; ".join(parts) if parts else "nothing of this model (exact)") + ".")
     acc = ex.accuracy
     if acc is None:
         lines.append("Accuracy loss not measured: the training rows could not be reloaded.")

@@ -38,10 +38,14 @@ def load_data(cfg: Config) -> CalibrationData:
     """The recording a config names (CSV path, named dataset, or the built-in simulator)."""
     d = cfg.data
     if d.path is not None:
-        return load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit)
+        return load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit,
+                        field_unit=d.field_unit)
     if d.source == "simulated":
         from .simulate import simulate_from_config
-        return simulate_from_config(dict(d.simulate))
+        try:
+            return simulate_from_config(dict(d.simulate))
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"[data.simulate] {e}") from None
     return load_dataset(d.source)
 
 
@@ -208,6 +212,11 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
     validate(data, n_params=model.n_params, origin=data.source,
              need_temperature_variation=cfg.physics.temperature_terms,
              allow_duplicate_times=False)
+    if train.n < model.n_params + 1:
+        raise ConfigError(f"[split] leaves {train.n} training rows of {data.n} ({split.description}), but the physics "
+                          f"model has {model.n_params} parameters per axis: at least {model.n_params + 1} training rows "
+                          f"are needed (many more for a useful calibration). Lower split.test_fraction or give "
+                          f"more data.")
     if cfg.physics.temperature_terms and np.ptp(train.temperature) < 1e-6:
         raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
                         "Set [physics] temperature_terms = false or use a split that keeps temperature variation.")
@@ -306,6 +315,12 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
         from .artifact import save_calibration
         save_calibration(tmp, result["predictor"], config=cfg.to_dict(), level=cfg.uq.level)
+        from .artifact import ArtifactError, read_calibration
+        try:                    # what `apply` and `export` will load: never report success for a file they refuse
+            read_calibration(tmp)
+        except ArtifactError as e:
+            raise JobError(f"bayesmag wrote a calibration its own loader refuses ({e}); nothing was written to "
+                           f"{out}. Please report this as a bug.") from None
         for writer in result.get("writers", []):    # stage files and figures, drawn here while the figure
             writer(tmp)                             # process draws the physics stage's
         if cfg.output.figures:
