@@ -809,9 +809,6 @@ def check_simulate_config(config: Mapping) -> None:
     unknown = sorted(set(config) - set(valid))
     if unknown:
         raise ValueError(f"unknown simulation config key(s) {unknown}; valid keys for design {design!r}: {valid}.")
-    n = config.get("n")
-    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < SIMULATE_MIN_N):
-        raise ValueError(f"'n' = {n!r} must be an integer of at least {SIMULATE_MIN_N} (rows to simulate).")
     seed = config.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"'seed' = {seed!r} must be an integer >= 0.")
@@ -834,6 +831,10 @@ def check_simulate_config(config: Mapping) -> None:
             get_effect(spec.pop("name"), **spec)
         except TypeError as e:
             raise ValueError(str(e)) from None
+    _params_from_config(config.get("params"))
+    n = config.get("n")
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < SIMULATE_MIN_N):
+        raise ValueError(f"'n' = {n!r} must be an integer of at least {SIMULATE_MIN_N} (rows to simulate).")
 
 
 def _params_from_config(value) -> TrueParams:
