@@ -15,10 +15,11 @@ import pytest
 
 import bayesmag
 from bayesmag import CalibrationData, DataError, write_csv
-from bayesmag._src import jsonio
-from bayesmag._src.artifact import ArtifactError, load, read_calibration, save_calibration
+from bayesmag._src import artifact as A
+from bayesmag._src import data as D
+from bayesmag._src.artifact import ArtifactError, load, save_calibration
 from bayesmag._src.cli import main
-from bayesmag._src.data import ARRAY_COLUMNS, DataNote, load_csv, spread_duplicate_times
+from bayesmag._src.data import load_csv
 from bayesmag.simulate import simulate
 
 CONFIG = """name = "t"
@@ -122,7 +123,7 @@ def test_save_symmetrises_the_covariance_and_run_reads_its_calibration_back(tmp_
     import dataclasses
     pred = dataclasses.replace(pred, fit=dataclasses.replace(fit, cov=cov))
     save_calibration(tmp_path, pred, config={})
-    saved = read_calibration(tmp_path).cov
+    saved = A.read_calibration(tmp_path).cov
     np.testing.assert_array_equal(saved, np.swapaxes(saved, -1, -2))
     # a calibration the loader refuses makes the run fail (exit 2), and nothing is written
     import bayesmag._src.artifact as art
@@ -159,6 +160,7 @@ def test_every_json_file_a_run_writes_is_strict(model):
 
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf"), np.float64("nan"), np.array([1.0, np.nan])])
 def test_jsonio_writes_null_for_non_finite(value, tmp_path):
+    from bayesmag._src import jsonio
     jsonio.write_json(tmp_path / "m.json", {"a": value, "b": [1, {"c": value}]})
     doc = _strict((tmp_path / "m.json").read_text())
     flat = json.dumps(doc)
@@ -230,7 +232,7 @@ def test_quoted_header_is_read(tmp_path):
 
 def test_unused_text_column_is_ignored_with_a_note(tmp_path, capsys):
     p = _write_text(tmp_path / "t.csv", _canonical_text(extra=("comment", lambda i: f"operator {i % 3}")))
-    with pytest.warns(DataNote, match="column 'comment' holds text"):
+    with pytest.warns(D.DataNote, match="column 'comment' holds text"):
         d = load_csv(p)
     assert d.n == 60
     rc = main(["run", str(_config(tmp_path, p)), "--out", str(tmp_path / "o"), "--no-progress"])
@@ -246,7 +248,7 @@ def test_unused_text_column_is_ignored_with_a_note(tmp_path, capsys):
 def test_a_latin1_byte_is_decoded_with_a_note(tmp_path):
     text = _canonical_text(extra=("note", lambda i: "Müller" if i == 7 else "x"))
     p = _write_text(tmp_path / "l1.csv", text, encoding="latin-1")
-    with pytest.warns(DataNote, match=r"line 9 holds the byte 0xfc, which is not UTF-8; the file was read as Latin-1"):
+    with pytest.warns(D.DataNote, match=r"line 9 holds the byte 0xfc, which is not UTF-8; the file was read as Latin-1"):
         d = load_csv(p)
     assert d.n == 60
     (tmp_path / "bin.csv").write_bytes(b"\x00\x01\x02binary")
@@ -509,8 +511,8 @@ def test_fit_physics_converts_declared_units(frame, unit, factor):
 
 
 def test_numpy_arrays_in_the_documented_order(frame):
-    assert ARRAY_COLUMNS[:4] == ("bx_meas", "by_meas", "bz_meas", "temperature")
-    x = frame[list(ARRAY_COLUMNS)].to_numpy()
+    assert D.ARRAY_COLUMNS[:4] == ("bx_meas", "by_meas", "bz_meas", "temperature")
+    x = frame[list(D.ARRAY_COLUMNS)].to_numpy()
     np.testing.assert_array_equal(bayesmag.fit_physics(x).theta, bayesmag.fit_physics(frame).theta)
     cal = bayesmag.Calibrator().fit(frame)
     out = cal.calibration_.predict(x[:, :4])
@@ -554,7 +556,7 @@ def test_repeated_timestamps_spread_on_request(frame, tmp_path):
     # a physics fit does not use time: repeated stamps are fine there
     assert bayesmag.fit_physics(df).theta.shape == (3, 8)
     d = CalibrationData(np.ones((6, 3)) * 40, np.full(6, 20.0), None, time=[0, 0, 0, 0, 1, 1], run=[1] * 6)
-    np.testing.assert_allclose(spread_duplicate_times(d).time, [0, 0.25, 0.5, 0.75, 1, 1.5])
+    np.testing.assert_allclose(D.spread_duplicate_times(d).time, [0, 0.25, 0.5, 0.75, 1, 1.5])
 
 
 def test_low_field_from_the_library_with_a_declared_unit(frame):
