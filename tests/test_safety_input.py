@@ -158,6 +158,16 @@ def test_every_json_file_a_run_writes_is_strict(model):
         _strict(f.read_text())
 
 
+def test_a_run_with_a_nan_metric_writes_null(tmp_path, monkeypatch):
+    import bayesmag._src.metrics as M
+    monkeypatch.setattr(M, "mae", lambda y, x: np.full(3, np.nan))      # a metric that came out NaN
+    rec = _csv(tmp_path / "rec.csv")
+    assert main(["run", str(_config(tmp_path, rec)), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    m = _strict((tmp_path / "o" / "metrics.json").read_text())
+    assert m["raw"]["mae"] == {"x": None, "y": None, "z": None}
+    assert (tmp_path / "o" / "report.md").exists()                      # the report reads the nulls back
+
+
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf"), np.float64("nan"), np.array([1.0, np.nan])])
 def test_jsonio_writes_null_for_non_finite(value, tmp_path):
     from bayesmag._src import jsonio
