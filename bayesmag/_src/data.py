@@ -450,7 +450,7 @@ def _sniff_delimiter(path: Path, header_line: str, data_line: str) -> str:
                     f"consistently. Write the file comma-separated (with '.' as the decimal point).")
 
 
-def _decode(path: Path, raw: bytes) -> str:
+def _decode(path: Path, raw: bytes, *, note: bool = True) -> str:
     """``raw`` as text: UTF-8 (a byte-order mark removed); else Latin-1 with a :class:`DataNote` naming the
     line of the first non-UTF-8 byte. A NUL byte means a binary file: refused."""
     if b"\x00" in raw[:65536]:
@@ -460,8 +460,10 @@ def _decode(path: Path, raw: bytes) -> str:
     except UnicodeDecodeError as e:
         line = raw[:e.start].count(b"\n") + 1
         import warnings
-        warnings.warn(DataNote(f"{path}: line {line} holds the byte 0x{raw[e.start]:02x}, which is not UTF-8; the "
-                               f"file was read as Latin-1 (save it as UTF-8 to silence this note)."), stacklevel=4)
+        if note:
+            warnings.warn(DataNote(f"{path}: line {line} holds the byte 0x{raw[e.start]:02x}, which is not UTF-8; "
+                                   f"the file was read as Latin-1 (save it as UTF-8 to silence this note)."),
+                          stacklevel=4)
         return raw.decode("latin-1")
 
 
@@ -493,7 +495,7 @@ def _read_table(path: Path, wanted: set[str] | None = None) -> tuple[list[str], 
         raise DataError(f"{path} is a folder; expected a CSV file.")
     with open(path, "rb") as f:
         head = f.readline() + f.readline()
-    head_text = _decode(path, head) if head else ""
+    head_text = _decode(path, head, note=False) if head else ""     # the whole file's decode below notes it
     lines = head_text.split("\n")
     first = lines[0].rstrip("\r")
     second = lines[1].rstrip("\r") if len(lines) > 1 else ""
