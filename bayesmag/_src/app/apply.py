@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from bayesmag._src.app.artifact import load
-from bayesmag._src.core.data import AXES, DataError, check_field_unit, check_values
+from bayesmag._src.core.data import AXES, DataError, check_values
+from bayesmag._src.core.data import check_units as _check_units
 from bayesmag._src.core.domain import REASON_CODES
 
 __all__ = ["apply_calibration", "check_units", "check_apply_paths"]
@@ -21,18 +22,30 @@ OUTPUT_COLUMNS = ("calibrated", "aleatoric_physics", "epistemic_physics", "resid
 def check_units(cal, data) -> list[str]:
     """Errors for units that cannot be right; warnings for suspicious ones (vs the training domain).
 
-    The field check is :func:`~bayesmag._src.core.data.check_field_unit`, shared with ``run`` and ``discover``.
+    The check is :func:`~bayesmag._src.core.data.check_units`, shared with ``run``, ``discover`` and the library;
+    measured and reference columns are both checked against the training range.
     """
     finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
     if not finite.any():
-        raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature.")
-    train_max = float(np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max())
-    warn = check_field_unit(data.subset(finite), train_max_ut=train_max, fix="Use --field-unit nT")
-    med_t = float(np.median(data.temperature[finite]))
-    if med_t > 150:
-        raise DataError(f"Column 'temperature' has median {med_t:.2f}, which looks like kelvin, but the calibration "
-                        f"expects Celsius. Use --temperature-unit K.")
-    return warn
+        raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature: no row can be "
+                        "calibrated. Check the column mapping (--columns) and the file.")
+    return _check_units(data.subset(finite), train_max_ut=train_max_ut(cal), fix="Use --field-unit nT",
+                       temperature_fix="Use --temperature-unit K")
+
+
+def train_max_ut(cal) -> float:
+    """The largest |field component| (uT) a calibration's training domain reaches."""
+    return float(np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max())
+
+
+def check_apply_options(level, n_params: int, n_qmc: int) -> None:
+    """``--level`` in (0, 1) (or None: the run's), ``--n-params`` and ``--n-qmc`` at least 2; else :class:`DataError`."""
+    if level is not None and not (isinstance(level, (int, float)) and 0 < level < 1):
+        raise DataError(f"--level {level} must be a number in (0, 1), e.g. --level 0.95 for 95 % intervals.")
+    for flag, v in (("--n-params", n_params), ("--n-qmc", n_qmc)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
+            raise DataError(f"{flag} {v} must be an integer of at least 2 (the PS-QMC draws), e.g. {flag} "
+                            f"{100 if flag == '--n-params' else 256}.")
 
 
 def check_apply_paths(model_dir, data_path, out_path) -> Path:
@@ -68,7 +81,7 @@ def _check_magnitudes(data) -> None:
 
 
 def apply_calibration(model_dir, data_path, out_path, *, level=None, method="analytic", n_params=100, n_qmc=256,
-                      temperature_unit="C", field_unit="uT", columns=None, chunk_size=100_000,
+                      temperature_unit="C", field_unit=None, columns=None, chunk_size=100_000,
                       progress=False) -> dict:
     """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``.
 
@@ -77,6 +90,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
     is written to a temporary sibling first, then renamed into place.
     """
     t0 = time.perf_counter()
+    check_apply_options(level, n_params, n_qmc)
     out_path = check_apply_paths(model_dir, data_path, out_path)
     cal = load(model_dir)
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
@@ -85,8 +99,11 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="ana
     _check_magnitudes(data)
     warnings = check_units(cal, data)
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
-                       progress=progress)
+                       progress=progress, check_units=False)      # checked above, with the CLI's wording
     level = cal.level if level is None else level
+    if not pred["valid"].any():
+        raise DataError(f"No row of {data_path} could be calibrated ({data.n} rows, every one with a non-finite "
+                        f"input or output); nothing was written. Check the file's values and column mapping.")
     bad = np.flatnonzero(~pred["valid"])
     if bad.size:
         shown = ", ".join(str(int(r) + 1) for r in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")

@@ -27,11 +27,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.core.data import AXES, CalibrationData
 from bayesmag._src.core.domain import Domain
 from bayesmag._src.core.frames import frame_io
@@ -53,6 +54,11 @@ class ArtifactError(ValueError):
     """A calibration folder that cannot be loaded; the message says exactly why."""
 
 
+#: Plausible magnitudes of saved numbers: parameters, noise model and domain ("value"; a gain or offset of
+#: 1e8 is already absurd), variances ("variance": cov, s2) and temperatures (C). Larger ones are damage.
+_MAX_ABS = {"value": 1e8, "variance": 1e16, "temperature": 1e4, "domain": 1e12}
+
+
 def _component_registry() -> dict[str, type]:
     from bayesmag._src.core import catalogue  # noqa: F401  (registers catalogue terms)
     from bayesmag._src.core.physics import EXTRA_TERMS
@@ -65,6 +71,28 @@ def model_to_json(model: PhysicsModel) -> dict:
     return {"terms": [one(t) for t in model.terms], "transforms": [one(t) for t in model.transforms]}
 
 
+def _check_settings(cls, name: str, settings: dict) -> None:
+    """Each saved setting of a physics component has its field's type: numbers finite and plausible (``t0`` a
+    temperature in C), booleans booleans. Refused with :class:`ArtifactError` naming the setting."""
+    if not isinstance(settings, dict):
+        raise ArtifactError(f"field 'model' component {name!r}: 'settings' must be a table; got {settings!r}.")
+    for f in dataclasses.fields(cls):
+        if f.name not in settings or f.default is dataclasses.MISSING:
+            continue
+        v, key = settings[f.name], f"model.{name}.{f.name}"
+        if isinstance(f.default, bool):
+            if not isinstance(v, bool):
+                raise ArtifactError(f"field '{key}' = {v!r} must be true or false; the file is damaged.")
+        elif isinstance(f.default, (int, float)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ArtifactError(f"field '{key}' = {v!r} must be a number, not {type(v).__name__}; the file "
+                                    f"was edited or is damaged.")
+            lo, hi = (-273.15, _MAX_ABS["temperature"]) if f.name == "t0" else (-_MAX_ABS["value"], _MAX_ABS["value"])
+            if not (math.isfinite(v) and lo <= v <= hi):
+                raise ArtifactError(f"field '{key}' = {v!r} must be finite and within [{lo:g}, {hi:g}]"
+                                    + (" (a temperature in C)" if f.name == "t0" else "") + "; the file is damaged.")
+
+
 def model_from_json(d: dict) -> PhysicsModel:
     reg = _component_registry()
 
@@ -72,7 +100,9 @@ def model_from_json(d: dict) -> PhysicsModel:
         name = item["name"]
         if name not in reg:
             raise ArtifactError(f"the calibration uses physics component {name!r}, which this bayesmag does not "
-                                f"know (known: {sorted(reg)}); install the version that wrote it.")
+                                f"know (known: {sorted(reg)}); it was written by another bayesmag version: "
+                                f"upgrade bayesmag (pip install -U bayesmag) or use the version that wrote it.")
+        _check_settings(reg[name], name, item["settings"])
         return reg[name](**item["settings"])
     return PhysicsModel(tuple(build(t) for t in d["terms"]), tuple(build(t) for t in d["transforms"]))
 
@@ -101,6 +131,16 @@ class Calibration:
     def param_names(self):
         return self.model.param_names
 
+    def __repr__(self) -> str:
+        terms = "+".join(c.name for c in self.model.components)
+        net = "none"
+        if self.network is not None:
+            k = self.network["meta"].get("members")
+            net = f"ensemble of {k}" if k else "one"
+        ver = f", bayesmag {self.package_version}" if self.package_version else ""
+        return (f"Calibration({terms}, {self.theta.shape[1]} parameters per axis, likelihood={self.likelihood!r}, "
+                f"level={self.level:g}, network={net}{ver})")
+
     def physics_fit(self):
         """A :class:`~bayesmag.PhysicsFit`-like view for :func:`~bayesmag.physics_uncertainty`."""
         from bayesmag._src.core.fit import PhysicsFit
@@ -109,6 +149,9 @@ class Calibration:
         return PhysicsFit(model=self.model, theta=self.theta, cov=self.cov, s2=s2, n=0,
                           rmse_in_sample=np.full(3, np.nan), result=("converged",) * 3, n_steps=np.zeros(3),
                           covariance_method="", cov_info=empty, diagnostics=empty)
+
+    def _train_max(self) -> float:
+        return float(np.maximum(np.abs(np.asarray(self.domain.low[:3])), np.abs(np.asarray(self.domain.high[:3]))).max())
 
     def predictor(self, *, method: str = "analytic", n_params: int = 100, n_qmc: int = 256, seed: int = 0,
                   chunk_size: int = 256):
@@ -124,20 +167,49 @@ class Calibration:
                          scale=self.interval_scale, domain=self.domain,
                          uq=UQOptions(method, n_params, n_qmc, seed, chunk_size), sessions=self.sessions)
 
-    @frame_io    # a pandas DataFrame in, a DataFrame out (frames.py); CalibrationData in, the dict below out
-    def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
+    def predict(self, data, *, level: float | None = None, method: str = "analytic",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
-                new_session: bool = True, progress: bool = False) -> dict[str, np.ndarray]:
+                new_session: bool = True, progress: bool = False, columns: dict | None = None,
+                field_unit: str | None = None, temperature_unit: str = "C",
+                check_units: bool = True) -> "dict[str, np.ndarray] | pandas.DataFrame":
         """Calibrated field and uncertainty for every row of ``data`` (reference columns not needed).
 
+        Args:
+          data: :class:`~bayesmag.CalibrationData`, a pandas DataFrame (canonical names or ``columns``),
+            or a NumPy array (n, 4) ``bx_meas, by_meas, bz_meas, temperature`` (``data.ARRAY_COLUMNS``).
+          level: central interval level in (0, 1) (default: the calibration's).
+          field_unit, temperature_unit: declared units (converted to uT and C); by default the
+            values are checked to be in uT and C against the training range: nT, mT, gauss and
+            kelvin are refused (``frames.as_calibration_data``). ``check_units=False`` skips that
+            check for rows the caller checked already (``bayesmag apply``).
+
+        Returns:
+          A DataFrame for a DataFrame (columns ``x_calibrated, x_lower, ...`` and the flags, the input's
+          index); otherwise a dict of (n, 3) arrays ``calibrated, aleatoric_physics, epistemic_physics,
+          residual_physics, total, lower, upper`` (plus ``aleatoric_nn, epistemic_nn`` with a network,
+          and ``transfer`` when the calibration holds a transfer sd) and (n,) arrays ``in_domain``,
+          ``in_domain_reason`` (strings, '' inside) and ``valid``.
+
         Rows with non-finite inputs are not dropped: their outputs are NaN and ``valid`` is False.
-        Returns a dict of (n, 3) arrays: ``calibrated, aleatoric_physics, epistemic_physics,
-        residual_physics, total, lower, upper`` (plus ``aleatoric_nn, epistemic_nn`` with a network,
-        and ``transfer`` when the calibration holds a transfer sd), and (n,) arrays ``in_domain``,
-        ``in_domain_reason`` (strings, '' inside) and ``valid``. Every chunk is predicted by
-        :meth:`predictor`. ``new_session`` (default True: ``data`` is a new recording) adds the
-        transfer part; False treats the rows as from the training sessions.
+        Every chunk is predicted by :meth:`predictor`. ``new_session`` (default True: ``data`` is a
+        new recording) adds the transfer part; False treats the rows as from the training sessions.
         """
+        from bayesmag._src.core.frames import as_calibration_data, is_frame, prediction_frame
+
+        if level is not None and (isinstance(level, bool) or not isinstance(level, (int, float))
+                                  or not 0 < level < 1):
+            raise ValueError(f"level = {level!r} must be a number in (0, 1), e.g. 0.95.")
+        if is_frame(data):
+            index = data.index
+            out = self.predict(as_calibration_data(data, columns=columns, field_unit=field_unit,
+                                                   temperature_unit=temperature_unit, train_max_ut=self._train_max(),
+                                                   what="the data given to predict"),
+                               level=level, method=method, n_params=n_params, n_qmc=n_qmc, seed=seed,
+                               chunk_size=chunk_size, new_session=new_session, progress=progress, check_units=False)
+            return prediction_frame(out, index)
+        if check_units or not isinstance(data, CalibrationData):
+            data = as_calibration_data(data, columns=columns, field_unit=field_unit, temperature_unit=temperature_unit,
+                                       train_max_ut=self._train_max(), what="the data given to predict")
         level = self.level if level is None else level
         n = data.n
         x = np.column_stack([data.b_meas, data.temperature])
@@ -183,7 +255,9 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
     into folder ``path``."""
     from bayesmag import __version__
     fit = predictor.fit
-    arrays = {"theta": np.asarray(fit.theta), "cov": np.asarray(fit.cov), "sigma_in": np.asarray(predictor.sigma_in),
+    cov = np.asarray(fit.cov, np.float64)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))         # exactly symmetric: the loader checks it (issue 21 #5)
+    arrays = {"theta": np.asarray(fit.theta), "cov": cov, "sigma_in": np.asarray(predictor.sigma_in),
               "residual_sd": np.asarray(predictor.residual_sd, dtype=np.float64), "s2": np.asarray(fit.s2)}
     if predictor.transfer_sd is not None:
         arrays["transfer_sd"] = np.asarray(predictor.transfer_sd, np.float64)
@@ -212,16 +286,12 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
         "arrays": {"file": "calibration.npz", "keys": sorted(arrays)},
         "units": {"field": "uT", "temperature": "C", "time": "s"},
     }
+    bad = [k for k, v in arrays.items() if np.issubdtype(np.asarray(v).dtype, np.number)
+           and not np.isfinite(np.asarray(v)).all()]
+    if bad:
+        raise ArtifactError(f"the calibration to save holds NaN/inf in {bad[:3]}; it was not written.")
     np.savez(Path(path) / "calibration.npz", **arrays)
-    (Path(path) / "calibration.json").write_text(json.dumps(doc, indent=2, default=_json_default))
-
-
-def _json_default(o: Any):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o)}")
+    write_json(Path(path) / "calibration.json", doc)
 
 
 def load(path: str | Path) -> Calibration:
@@ -233,7 +303,6 @@ def load(path: str | Path) -> Calibration:
     from bayesmag._src.app.outdir import is_staging_name, marker_status
 
     path = Path(path)
-    j, z = path / "calibration.json", path / "calibration.npz"
     if not path.is_dir():
         old = sorted(path.parent.glob(f".{path.name}.old-*")) if not path.exists() else []
         hint = (f" An interrupted run left the earlier result in {old[0]}; the next bayesmag run into "
@@ -246,6 +315,29 @@ def load(path: str | Path) -> Calibration:
     if mark is not None and not mark.get("complete"):
         raise ArtifactError(f"{path} was not finished (its .bayesmag-run marker says incomplete); re-run "
                             f"`bayesmag run` to write a full calibration.")
+    return read_calibration(path)
+
+
+def _check_version(v, j: Path, writer) -> None:
+    """``format_version`` must be an integer this code reads; a newer one says to upgrade."""
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ArtifactError(f"{j}: field 'format_version' = {v!r} must be an integer (one of "
+                            f"{list(READABLE_VERSIONS)}), not {type(v).__name__}; the file was edited or is damaged.")
+    if v > max(READABLE_VERSIONS):
+        from bayesmag import __version__
+        raise ArtifactError(f"{j} has calibration format version {v}; this bayesmag reads versions "
+                            f"{list(READABLE_VERSIONS)} (it is version {__version__}). The file was written by a "
+                            f"newer bayesmag ({writer}): upgrade bayesmag (pip install -U bayesmag) to apply it.")
+    if v not in READABLE_VERSIONS:
+        raise ArtifactError(f"{j} has calibration format version {v}, which no bayesmag reads (this one reads "
+                            f"{list(READABLE_VERSIONS)}); the file is damaged. Re-run `bayesmag run`.")
+
+
+def read_calibration(path: str | Path) -> Calibration:
+    """The :class:`Calibration` in ``path``'s ``calibration.json`` and ``.npz``, every field checked; the marker
+    and folder name are not looked at (:func:`load` does, for users; ``run`` reads its staging folder back)."""
+    path = Path(path)
+    j, z = path / "calibration.json", path / "calibration.npz"
     missing = [p.name for p in (j, z) if not p.exists()]
     if missing:
         raise ArtifactError(f"{path} is incomplete: {missing} missing. Re-run `bayesmag run` to write a full calibration.")
@@ -256,11 +348,7 @@ def load(path: str | Path) -> Calibration:
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ArtifactError(f"{j} is not a bayesmag calibration "
                             f"(format {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}).")
-    v = doc.get("format_version")
-    if v not in READABLE_VERSIONS:
-        raise ArtifactError(f"{j} has calibration format version {v}; this bayesmag reads versions "
-                            f"{list(READABLE_VERSIONS)}. It was written by bayesmag {doc.get('package_version')}: "
-                            f"install that version (or newer) to apply it.")
+    _check_version(doc.get("format_version"), j, f"bayesmag {doc.get('package_version', '?')}")
     try:
         with np.load(z, allow_pickle=False) as f:
             arrays = {k: np.asarray(f[k]) for k in f.files}
@@ -275,7 +363,7 @@ def load(path: str | Path) -> Calibration:
         raise ArtifactError(f"{j}: the calibration description is damaged ({type(e).__name__}: {e}).") from None
 
 
-def _field(name: str, value, where: str, *, shape=None, finite=True) -> np.ndarray:
+def _field(name: str, value, where: str, *, shape=None, finite=True, kind: str = "value") -> np.ndarray:
     arr = np.asarray(value)
     if not (np.issubdtype(arr.dtype, np.number) and not np.issubdtype(arr.dtype, np.complexfloating)):
         raise ArtifactError(f"{where}: field '{name}' holds {arr.dtype} values, not real numbers; the file is damaged.")
@@ -285,6 +373,10 @@ def _field(name: str, value, where: str, *, shape=None, finite=True) -> np.ndarr
     if finite and not np.isfinite(arr).all():
         raise ArtifactError(f"{where}: field '{name}' holds {int((~np.isfinite(arr)).sum())} NaN/inf value(s); "
                             f"the calibration is damaged and would give NaN results.")
+    limit = _MAX_ABS[kind]
+    if arr.size and np.nanmax(np.abs(np.where(np.isfinite(arr), arr, 0.0))) > limit:
+        raise ArtifactError(f"{where}: field '{name}' holds {float(arr.flat[np.argmax(np.abs(np.nan_to_num(arr)))]):.3g}, "
+                            f"beyond any plausible value (|x| <= {limit:g}); the calibration is damaged.")
     return arr
 
 
@@ -312,10 +404,10 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
         raise ArtifactError(f"{where}: field 'param_names' {doc['param_names']} does not match the model "
                             f"{list(model.param_names)}; the files are inconsistent.")
     theta = _field("theta", arrays["theta"], where, shape=(3, p))
-    cov = _field("cov", arrays["cov"], where, shape=(3, p, p))
-    sigma_in = _field("sigma_in", arrays["sigma_in"], where, shape=(4, 4))
+    cov = _field("cov", arrays["cov"], where, shape=(3, p, p), kind="variance")
+    sigma_in = _field("sigma_in", arrays["sigma_in"], where, shape=(4, 4), kind="variance")
     residual_sd = _field("residual_sd", arrays["residual_sd"], where, shape=(3,))
-    s2 = _field("s2", arrays["s2"], where, shape=(3,)) if "s2" in arrays else None
+    s2 = _field("s2", arrays["s2"], where, shape=(3,), kind="variance") if "s2" in arrays else None
     for a, ax in enumerate(AXES):
         c = cov[a]
         d = np.sqrt(np.abs(np.diag(c)))
@@ -342,12 +434,12 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
     dom = doc["domain"]
     if not isinstance(dom, dict):
         raise ArtifactError(f"{where}: field 'domain' must be a table; got {dom!r}.")
-    low = _field("domain.low", dom.get("low"), where, shape=(4,))
-    high = _field("domain.high", dom.get("high"), where, shape=(4,))
+    low = _field("domain.low", dom.get("low"), where, shape=(4,), kind="domain")
+    high = _field("domain.high", dom.get("high"), where, shape=(4,), kind="domain")
     out_lo = None if dom.get("out_low") is None else _field("domain.out_low", dom["out_low"], where, shape=(3,))
     out_hi = None if dom.get("out_high") is None else _field("domain.out_high", dom["out_high"], where, shape=(3,))
     margin = float(_field("domain.margin", dom.get("margin", 0.05), where, shape=()))
-    rate_hi = None if dom.get("rate_high") is None else _field("domain.rate_high", dom["rate_high"], where, shape=(4,))
+    rate_hi = None if dom.get("rate_high") is None else _field("domain.rate_high", dom["rate_high"], where, shape=(4,), kind="domain")
     extra = {k: _field(k, arrays[k], where, shape=(3,)) for k in ("transfer_sd", "interval_scale") if k in arrays}
     if any((v < 0).any() for v in extra.values()):
         raise ArtifactError(f"{where}: field 'transfer_sd' or 'interval_scale' is negative; the calibration is damaged.")
@@ -396,7 +488,7 @@ def _check_network(meta, arrays: dict, where: str) -> dict:
         raise ArtifactError(f"{where}: field 'network' describes a network but calibration.npz holds no network "
                             f"weights; the files are inconsistent.")
     for k, v in arrays.items():
-        _field(f"network/{k}", v, where)
+        _field(f"network/{k}", v, where, kind="domain")
     members = meta.get("members")
     prefixes = [""]
     if members is not None:

@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 
 from bayesmag._src.app.config import Config, ConfigError, config_from_dict, read_config_dict
-from bayesmag._src.core.data import CalibrationData, DataError, write_csv
+from bayesmag._src.core.data import DataError, write_csv
 
 __all__ = ["Calibrator", "DEFAULT_CONFIG"]
 
@@ -35,7 +35,11 @@ class Calibrator:
         replaced by the rows given to :meth:`fit`.
       overrides: ``--set``-style ``key=value`` strings applied to the config.
       out: run folder to write (default: a temporary folder kept as long as the object).
-      columns, temperature_unit, field_unit: how to read DataFrames (see ``frames.from_frame``).
+      columns, temperature_unit, field_unit: how to read the data (``frames.as_calibration_data``: a
+        DataFrame, a NumPy array (n, 7) in the order ``data.ARRAY_COLUMNS``, or CalibrationData;
+        the field is checked to be in uT and the temperature in C unless a unit is declared).
+      duplicate_times: ``"refuse"`` (default: rows of a run that share a timestamp are named) or
+        ``"spread"`` (spread them evenly up to the next stamp, as for the whole-second Belsten stamps).
 
     Attributes after :meth:`fit`: ``calibration_`` (:class:`~bayesmag.Calibration`),
     ``metrics_`` (the run's metrics.json), ``physics_fit_``, ``run_dir_``.
@@ -49,10 +53,11 @@ class Calibrator:
     """
 
     def __init__(self, config=None, overrides=(), *, out: str | Path | None = None, columns: dict | None = None,
-                 temperature_unit: str = "C", field_unit: str = "uT"):
+                 temperature_unit: str = "C", field_unit: str | None = None, duplicate_times: str = "refuse"):
         self.config = config
         self.overrides = list(overrides)
         self.out = out
+        self.duplicate_times = duplicate_times
         self.frame_options = {"columns": columns, "temperature_unit": temperature_unit, "field_unit": field_unit}
 
     def _raw_config(self) -> dict:
@@ -77,13 +82,12 @@ class Calibrator:
         """Run the job on ``data`` (with reference columns); ``y`` is ignored (sklearn signature)."""
         del y
         from bayesmag._src.app.artifact import load
-        from bayesmag._src.core.frames import as_data
+        from bayesmag._src.core.frames import as_calibration_data
         from bayesmag._src.app.job import run_job
 
-        opts = {k: v for k, v in self.frame_options.items() if v is not None}
-        rows, _ = as_data(data, **opts) if not isinstance(data, CalibrationData) else (data, None)
-        if rows.b_ref is None:
-            raise DataError("fit needs the reference field (bx_ref, by_ref, bz_ref columns).")
+        what = "the data given to Calibrator.fit"
+        rows = as_calibration_data(data, **self.frame_options, require_reference=True,
+                                   duplicate_times=self.duplicate_times, what=what)
         if self.out is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="bayesmag-calibrator-")
             base = Path(self._tmp.name)
@@ -93,10 +97,13 @@ class Calibrator:
         csv = base / "fit_data.csv"
         write_csv(rows, csv)
         raw = self._raw_config()
-        raw["data"] = {"path": str(csv)}
+        raw["data"] = {"path": str(csv), **({"field_unit": "uT"} if rows.field_unit is not None else {})}
         cfg = config_from_dict(raw)
         self.run_dir_ = base / "run"
-        result = run_job(cfg, self.run_dir_, progress=cfg.output.progress)
+        try:
+            result = run_job(cfg, self.run_dir_, progress=cfg.output.progress)
+        except DataError as e:          # name the user's data, never the temporary CSV it was handed over in
+            raise DataError(str(e).replace(f" in {csv}", f" in {what}").replace(str(csv), what)) from None
         self.metrics_ = result["metrics"]
         self.physics_fit_ = result["fit"]
         self.calibration_ = load(self.run_dir_)
@@ -109,12 +116,7 @@ class Calibrator:
     def predict(self, data, **kwargs):
         """Calibrated field and uncertainty: a DataFrame for a DataFrame, the dict of arrays for CalibrationData."""
         self._check_fitted()
-        if not isinstance(data, CalibrationData):
-            from bayesmag._src.core.frames import as_data, prediction_frame
-            opts = {k: v for k, v in self.frame_options.items() if v is not None}
-            rows, index = as_data(data, **opts)
-            return prediction_frame(self.calibration_.predict(rows, **kwargs), index)
-        return self.calibration_.predict(data, **kwargs)
+        return self.calibration_.predict(data, **{**self.frame_options, **kwargs})
 
     def __repr__(self) -> str:
         state = f"fitted, {self.run_dir_}" if hasattr(self, "calibration_") else "not fitted"

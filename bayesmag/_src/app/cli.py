@@ -37,7 +37,7 @@ def _cmd_run(args) -> int:
 
     cfg_path = _resolve_config(args.config)
     _refuse_fleet_config(cfg_path, "run")
-    cfg = load_config(cfg_path, args.set or [])
+    cfg = load_config(cfg_path, (args.set or []) + _unit_overrides(args))
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
         result = run_job(cfg, out, progress=None if _progress(args) else False,   # None: [output] progress
@@ -98,11 +98,18 @@ def _cmd_fleet(args) -> int:
     if gt:
         print(f"  ground truth: planted {sorted(gt['defective'])}; flagged exactly: {gt['exact']}")
     return 0
+
+
 def _figure_worker() -> bool:
     """Draw the physics figures in a worker process? Only with ``BAYESMAG_FIGURE_WORKER=1``: measured on the
     2-core machine it did not pay (docs/benchmarks.md, ``benchmarks/bench_figures.py``)."""
     import os
     return os.environ.get("BAYESMAG_FIGURE_WORKER", "0").strip().lower() in ("1", "true", "yes", "on")
+
+
+def _unit_overrides(args) -> list[str]:
+    """``--field-unit U`` as the ``--set data.field_unit="U"`` it means."""
+    return [f'data.field_unit="{args.field_unit}"'] if getattr(args, "field_unit", None) else []
 
 
 def packaged_configs_dir() -> Path:
@@ -287,6 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a config key, e.g. --set uq.n_params=100 or --set data.path=my.csv")
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
+    r.add_argument("--field-unit", choices=["uT", "nT", "mT", "G"], default=None,
+                   help="declare the field unit of the data file (converted to uT and trusted: e.g. uT for a "
+                        "genuine low-field session); same as --set data.field_unit=...")
     r.set_defaults(func=_cmd_run)
 
     a = sub.add_parser("apply", help="apply a saved calibration to a recording (reference columns optional)")
@@ -299,8 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--n-params", type=int, default=100, help="Np for --uq psqmc")
     a.add_argument("--n-qmc", type=int, default=256, help="Nq for --uq psqmc")
     a.add_argument("--temperature-unit", choices=["C", "K"], default="C", help="temperature unit of --data")
-    a.add_argument("--field-unit", choices=["uT", "nT", "mT", "G"], default="uT",
-                   help="field unit of --data (converted to uT at load)")
+    a.add_argument("--field-unit", choices=["uT", "nT", "mT", "G"], default=None,
+                   help="declare the field unit of --data (converted to uT at load and trusted; default: uT, checked)")
     a.add_argument("--columns", metavar="NAME=COL,...",
                    help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")
@@ -416,12 +426,26 @@ def _main(argv: list[str]) -> int:
     from bayesmag._src.app.job import JobError
     from bayesmag._src.app.outdir import OutputError
 
+    import warnings
+
+    from bayesmag._src.core.data import DataNote
+
     expected = (ConfigError, DataError, JobError, ArtifactError, OutputError, OSError)
+    show = warnings.showwarning
+
+    def note(message, category, *a, **k):       # a DataNote is one line on stderr, not a warning with a source line
+        if issubclass(category, DataNote):
+            print(f"bayesmag: note: {_one_line(message)}", file=sys.stderr)
+        else:
+            show(message, category, *a, **k)
     try:
-        if argv[:1] == ["discover"]:        # discover parses its own options (argparse REMAINDER drops --flags)
-            return _cmd_discover(argv[1:])
-        args = build_parser().parse_args(argv)
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", DataNote)
+            warnings.showwarning = note
+            if argv[:1] == ["discover"]:        # discover parses its own options (argparse REMAINDER drops --flags)
+                return _cmd_discover(argv[1:])
+            args = build_parser().parse_args(argv)
+            return args.func(args)
     except expected as e:
         print(f"bayesmag: error: {_one_line(e)}", file=sys.stderr)
         return 2

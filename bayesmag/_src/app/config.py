@@ -39,6 +39,7 @@ class DataConfig:
     source: str | None = None           # "belsten2023" | "simulated"
     path: str | None = None             # canonical CSV (or mapped with `columns`)
     temperature_unit: str = "C"
+    field_unit: str | None = None       # declared unit of the file's field (nT/mT/G converted; uT trusted); None: uT, checked
     columns: dict = dataclasses.field(default_factory=dict)
     simulate: dict = dataclasses.field(default_factory=dict)
 
@@ -203,6 +204,7 @@ _CHOICES = {
     "physics.covariance": ("white", "ar1", "newey_west"),
     "uq.method": ("psqmc", "mc", "analytic"),
     "data.temperature_unit": ("C", "K"),
+    "data.field_unit": ("uT", "nT", "mT", "G"),
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
     "measurement.kind": ("vector", "scalar", "constant"),
@@ -349,6 +351,9 @@ def _check_measurement(m: MeasurementConfig) -> None:
     bad = [f for f in m.exports if f not in FORMATS]
     if bad:
         raise ConfigError(f"Config key 'measurement.exports' has unknown format(s) {bad}; valid: {list(FORMATS)}.")
+#: Largest plausible input-noise sd (uT or C) and reference-magnetometer sd (uT); larger ones are typos.
+_MAX_SD = 1e4
+_MAX_REFERENCE_SD = 1e3
 
 
 def _check_semantics(cfg: Config) -> None:
@@ -378,10 +383,24 @@ def _check_semantics(cfg: Config) -> None:
         if "\n" in v or "\r" in v or len(v) > 200:
             raise ConfigError(f"Config key 'certificate.{key}' = {v[:60]!r}... must be one line of at most 200 "
                               f"characters (e.g. \"Acme AMR-3 s/n 0042\").")
+    if isinstance(s, list) and all(isinstance(v, (int, float)) for v in s):
+        bad = [v for v in s if isinstance(v, bool) or not 0 <= v <= _MAX_SD]
+        if bad:
+            raise ConfigError(f"Config key 'uq.sigma_in' = {s!r} holds {bad[0]!r}: each standard deviation "
+                              f"[Bx, By, Bz (uT), T (C)] must be >= 0 and at most {_MAX_SD:g}.")
     r = cfg.uq.reference_sd
     if not (isinstance(r, (int, float)) and r >= 0 or isinstance(r, list) and len(r) == 3
             and all(isinstance(v, (int, float)) and v >= 0 for v in r)):
         raise ConfigError(f"Config key 'uq.reference_sd' = {r!r} must be a standard uncertainty >= 0 in uT, or 3 of them.")
+    if any(v > _MAX_REFERENCE_SD for v in (r if isinstance(r, list) else [r])):
+        raise ConfigError(f"Config key 'uq.reference_sd' = {r!r} is not a plausible standard uncertainty of a "
+                          f"reference magnetometer: it must be at most {_MAX_REFERENCE_SD:g} uT (typical: 0.001-1).")
+    if d.source == "simulated":
+        from bayesmag._src.core.simulate import check_simulate_config
+        try:
+            check_simulate_config(d.simulate)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"[data.simulate] {e}") from None
 
 
 def config_from_dict(raw: dict) -> Config:

@@ -58,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default runs/discover_<name>, or runs/<name> when the config's "
                                  "name starts with discover)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--field-unit", choices=["uT", "nT", "mT", "G"], default=None,
+                   help="declare the field unit of the data (converted to uT and trusted)")
     p.add_argument("--no-figures", action="store_true")
     p.add_argument("--no-progress", action="store_true", help="no stage lines on stderr")
     return p
@@ -81,14 +83,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.data and args.config:
             raise ConfigError("give a CONFIG or --data FILE.csv, not both.")
         if args.data:
-            data = load_csv(args.data)
+            data = load_csv(args.data, field_unit=args.field_unit)
             opts = DiscoverOptions()
             header = Path(args.data).read_text(encoding="utf-8-sig").splitlines()[0]   # BOM-safe, any delimiter
             if "time" not in [c.strip().strip('"') for c in re.split(r"[,;\t]", header)]:
                 opts = dataclasses.replace(opts, time_available=False)
             name = Path(args.data).stem
         elif args.config:
-            cfg, opts = load_discover_config(resolve_config(args.config), args.set or [])
+            units = [f'data.field_unit="{args.field_unit}"'] if args.field_unit else []
+            cfg, opts = load_discover_config(resolve_config(args.config), (args.set or []) + units)
             data = load_data(cfg)
             name = cfg.name
         else:

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayesmag._src.core.jsonio import dumps
 from bayesmag._src.core.data import AXES, CalibrationData
 
 __all__ = ["FORMATS", "ExportError", "affine_at", "hard_soft_iron", "fit_symmetric_affine", "px4_params",
@@ -214,6 +215,7 @@ class Export:
     cov: np.ndarray | None = None           # (3, k, k) their covariance per output axis
     uncertainty: dict | None = None         # report.expanded_uncertainties of the run (None: not known)
     domain: object = None                   # the training Domain (ranges of field, temperature, rates)
+    warnings: tuple[str, ...] = ()
 
 
 def exported_prediction(fmt: str, ex: Export, b_meas, temperature) -> np.ndarray:
@@ -262,8 +264,14 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
     coef = thermo_affine_coefficients(cal)
     lo, hi = cal.domain.low, cal.domain.high
     t_range = (float(lo[3]), float(hi[3]))
+    warnings: list[str] = []
     if t_ref is None:                    # where most training rows are; the domain's middle without them
         t_ref = float(np.median(train.temperature)) if train is not None else 0.5 * (t_range[0] + t_range[1])
+    else:
+        t_ref = check_t_ref(t_ref)
+        if not t_range[0] <= t_ref <= t_range[1]:
+            warnings.append(f"--temperature {t_ref:g} C lies outside the training range [{t_range[0]:.4g}, "
+                            f"{t_range[1]:.4g}] C: the exported coefficients there are extrapolation.")
     t_ref = float(t_ref)
     A, b = hard_soft_iron(*affine_at(coef, t_ref))
     rows, source = train, "training rows"
@@ -280,7 +288,8 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
     cal_cov = getattr(cal, "cov", None)      # a field calibration has its covariance in another parametrisation
     cov = None if cal_cov is None else np.asarray(cal_cov, np.float64)[:, :k, :k]
     ex = Export(coef, t_ref, t_range, A, b, px4, ap, tuple(dropped_components(cal)), cal.network is not None, None,
-                source, names, cov, uncertainty, cal.domain)
+                source, names, cov, uncertainty, cal.domain, tuple(warnings))
+    _check_finite(ex)
     if train is not None:
         scored, which = ((held_out, "held-out (test) rows") if held_out is not None and held_out.n > 0
                          else (train, "training rows (the run has no held-out rows)"))
@@ -297,6 +306,29 @@ def test_vector(ex: Export) -> tuple[np.ndarray, np.ndarray]:
     frac = np.array([[0.5, 0.5, 0.5, 0.5], [0.2, 0.7, 0.4, 0.1], [0.9, 0.1, 0.8, 0.9], [0.35, 0.95, 0.05, 0.6]])
     x = lo + frac * (hi - lo)
     return x, apply_thermo_affine(ex.coef, x[:, :3], x[:, 3])
+def check_t_ref(t_ref) -> float:
+    """A reference temperature (C) to export at: finite, not below absolute zero, at most 1e4 C; else ExportError."""
+    try:
+        t = float(t_ref)
+    except (TypeError, ValueError):
+        raise ExportError(f"--temperature {t_ref!r} is not a number; give a temperature in C, e.g. 25.") from None
+    if not np.isfinite(t) or not -273.15 <= t <= 1e4:
+        raise ExportError(f"--temperature {t_ref!r} is not a usable temperature: it must be finite and within "
+                          f"[-273.15, 10000] C (e.g. the sensor's working temperature, 25).")
+    return t
+
+
+def _check_finite(ex: Export) -> None:
+    """Never export a non-finite coefficient: name the first one (the calibration is degenerate)."""
+    named = {f"coef.{k}": v for k, v in ex.coef.items()}
+    named.update({"A": ex.A, "b": ex.b, "t_ref": ex.t_ref})
+    named.update({f"px4.{k}": v for k, v in (ex.px4 or {}).items()})
+    named.update({f"ardupilot.{k}": v for k, v in (ex.ardupilot or {}).items()})
+    for k, v in named.items():
+        if not np.isfinite(np.asarray(v, dtype=np.float64)).all():
+            raise ExportError(f"the exported coefficient {k} would be non-finite ({np.asarray(v).tolist()}); nothing "
+                              f"was written. The calibration is degenerate at this temperature: check it with "
+                              f"`bayesmag report`, or export at another --temperature.")
 
 
 # --------------------------------------------------------------------------- writers
@@ -316,7 +348,8 @@ def limitations(fmt: str, ex: Export) -> list[str]:
     """Plain statements of what the target cannot hold and the accuracy that costs."""
     parts = list(_CANNOT_HOLD[fmt]) + [f"physics extra terms {list(ex.dropped)}"] * bool(ex.dropped) \
         + ["the residual network"] * ex.has_network
-    lines = [f"{fmt} cannot hold: " + ("; ".join(parts) if parts else "nothing of this model (exact)") + "."]
+    lines = [f"WARNING: {w}" for w in ex.warnings]
+    lines.append(f"{fmt} cannot hold: " + ("; ".join(parts) if parts else "nothing of this model (exact)") + ".")
     acc = ex.accuracy
     if acc is None:
         lines.append("Accuracy loss not measured: the run's rows could not be reloaded.")
@@ -537,10 +570,10 @@ def render(fmt: str, ex: Export) -> str:
     notes = limitations(fmt, ex)
     sign = f"{SIGNATURE} {__version__}"
     if fmt == "json":
-        return json.dumps({"written_by": sign, **_json_doc(ex), "notes": notes}, indent=2) + "\n"
+        return dumps({"written_by": sign, **_json_doc(ex), "notes": notes}) + "\n"
     if fmt == "magcal":
-        return json.dumps({"written_by": sign,
-                           "form": "B_cal = (B - b) * A  (row vectors, MATLAB magcal convention)", "units": "uT",
+        return dumps({"written_by": sign,
+                      "form": "B_cal = (B - b) * A  (row vectors, MATLAB magcal convention)", "units": "uT",
                            "temperature_C": ex.t_ref, "A": ex.A.tolist(), "b": ex.b.tolist(), "notes": notes},
                           indent=2) + "\n"
     if fmt == "px4":

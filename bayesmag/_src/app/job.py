@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.app.config import Config, ConfigError, to_toml
 from bayesmag._src.core.data import AXES, CalibrationData, DataError, load_csv, make_split, validate
 from bayesmag._src.core.datasets import load_dataset
@@ -38,10 +38,14 @@ def load_data(cfg: Config) -> CalibrationData:
     """The recording a config names (CSV path, named dataset, or the built-in simulator)."""
     d = cfg.data
     if d.path is not None:
-        return load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit)
+        return load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit,
+                        field_unit=d.field_unit)
     if d.source == "simulated":
         from bayesmag._src.core.simulate import simulate_from_config
-        return simulate_from_config(dict(d.simulate))
+        try:
+            return simulate_from_config(dict(d.simulate))
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"[data.simulate] {e}") from None
     return load_dataset(d.source)
 
 
@@ -218,6 +222,11 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
     validate(data, n_params=model.n_params, origin=data.source,
              need_temperature_variation=cfg.physics.temperature_terms,
              allow_duplicate_times=False)
+    if train.n < model.n_params + 1:
+        raise ConfigError(f"[split] leaves {train.n} training rows of {data.n} ({split.description}), but the physics "
+                          f"model has {model.n_params} parameters per axis: at least {model.n_params + 1} training rows "
+                          f"are needed (many more for a useful calibration). Lower split.test_fraction or give "
+                          f"more data.")
     if cfg.physics.temperature_terms and np.ptp(train.temperature) < 1e-6:
         raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
                         "Set [physics] temperature_terms = false or use a split that keeps temperature variation.")
@@ -319,11 +328,17 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
 
     with staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
-        (tmp / "params.json").write_text(json.dumps(fit.to_json(), indent=2))
+        write_json(tmp / "params.json", fit.to_json())
         write_predictions(tmp / "predictions.csv", test, split.test, columns)
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
         from bayesmag._src.app.artifact import save_calibration
         save_calibration(tmp, result["predictor"], config=cfg.to_dict(), level=cfg.uq.level)
+        from bayesmag._src.app.artifact import ArtifactError, read_calibration
+        try:                    # what `apply` and `export` will load: never report success for a file they refuse
+            read_calibration(tmp)
+        except ArtifactError as e:
+            raise JobError(f"bayesmag wrote a calibration its own loader refuses ({e}); nothing was written to "
+                           f"{out}. Please report this as a bug.") from None
         for writer in result.get("writers", []):    # stage files and figures, drawn here while the figure
             writer(tmp)                             # process draws the physics stage's
         if cfg.output.figures:
@@ -333,7 +348,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         timings["write"] = time.perf_counter() - t     # files and figures (total: the whole job)
         timings["total"] = time.perf_counter() - t_all
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
-        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        write_json(tmp / "metrics.json", metrics)
         from bayesmag._src.app.report import write_report
         write_report(tmp, require_marker=False)     # the staging folder: its marker says incomplete
     return result

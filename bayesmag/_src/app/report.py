@@ -733,6 +733,15 @@ def render_html(markdown: str, folder: str | Path | None = None, title: str = "C
     return "\n".join(out) + "\n"
 
 
+def _axes_null_as_nan(d):
+    """Per-axis values written as ``null`` (strict JSON for NaN, jsonio) read back as NaN for the tables."""
+    if isinstance(d, dict):
+        return {k: (float("nan") if v is None and k in AXES else _axes_null_as_nan(v)) for k, v in d.items()}
+    if isinstance(d, list):
+        return [_axes_null_as_nan(v) for v in d]
+    return d
+
+
 def write_report(run_dir: str | Path, *, require_marker: bool = True) -> Path:
     """(Re)write ``report.md`` and ``report.html`` (figures embedded) in a run folder from its
     metrics.json and params.json; returns the path of ``report.md``.
@@ -760,8 +769,8 @@ def write_report(run_dir: str | Path, *, require_marker: bool = True) -> Path:
     for f in ("metrics.json", "params.json"):
         if not (run_dir / f).exists():
             raise FileNotFoundError(f"{run_dir} has no {f}: give a folder written by `bayesmag run`.")
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    params = json.loads((run_dir / "params.json").read_text())
+    metrics = _axes_null_as_nan(json.loads((run_dir / "metrics.json").read_text()))
+    params = _axes_null_as_nan(json.loads((run_dir / "params.json").read_text()))
     figs = sorted(p.name for p in run_dir.glob("*.png"))
     nuts_rows = None
     if (run_dir / "nuts_summary.csv").exists():

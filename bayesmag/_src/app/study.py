@@ -17,13 +17,13 @@ measurement noise pushed through the true calibration matrix,
 from __future__ import annotations
 
 import dataclasses
-import json
 import resource
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.core import metrics as M
 from bayesmag._src.app.config import Config, ConfigError, config_error
 from bayesmag._src.core.data import AXES, make_split
@@ -187,12 +187,12 @@ def run_study(cfg: Config, out: str | Path, *, progress: bool = True) -> dict:
     table12 = {s: {k: r[k] for k in ("raw", "physics", "hybrid", "noise_floor")} for s, r in records.items()}
     table13 = {s: r["significance"] for s, r in records.items()}
     with staging_dir(Path(out)) as tmp:
-        (tmp / "simulation_study.json").write_text(json.dumps(table12, indent=2))
+        write_json(tmp / "simulation_study.json", table12)
         (tmp / "simulation_study.md").write_text("# Test RMSE (uT) by sample size (the paper's Table 12)\n\n"
                                                  + _table12_md(records))
-        (tmp / "significance.json").write_text(json.dumps(table13, indent=2))
+        write_json(tmp / "significance.json", table13)
         (tmp / "significance.md").write_text("# Paired test of physics vs hybrid squared errors (the paper's "
                                              "Table 13, every size)\n\n" + _table13_md(records))
         _figure(tmp / "rmse_vs_size.png", records)
-        (tmp / "metrics.json").write_text(json.dumps({"records": records, **summary}, indent=2))
+        write_json(tmp / "metrics.json", {"records": records, **summary})
     return {"records": records, **summary}

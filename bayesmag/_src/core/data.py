@@ -25,7 +25,11 @@ __all__ = [
     "validate_for_discover",
     "check_field_unit",
     "check_values",
+    "check_units",
+    "spread_duplicate_times",
+    "DataNote",
     "FIELD_UNITS",
+    "ARRAY_COLUMNS",
     "split_random",
     "split_by_run",
     "split_time_blocks",
@@ -47,6 +51,13 @@ CANONICAL_COLUMNS = (
 )
 _REQUIRED = ("bx_meas", "by_meas", "bz_meas", "temperature")
 _REF = ("bx_ref", "by_ref", "bz_ref")
+#: Column order of a NumPy array given to the library's entry points (``fit_physics``, ``Calibration.predict``,
+#: ``Calibrator``, ``discover``): (n, 4) = the first four (no reference), (n, 7) = all seven.
+ARRAY_COLUMNS = ("bx_meas", "by_meas", "bz_meas", "temperature", "bx_ref", "by_ref", "bz_ref")
+#: Absolute zero in degrees Celsius: no temperature is below it.
+ABSOLUTE_ZERO_C = -273.15
+#: Run ids are stored as int64 and read as float64: above 2**53 distinct ids could merge.
+_MAX_RUN_ID = 2**53
 #: A temperature column whose median is above this is almost surely kelvin.
 _KELVIN_THRESHOLD_C = 150.0
 #: Field units ``load_csv`` converts from, as the factor to microtesla.
@@ -63,6 +74,10 @@ class DataError(ValueError):
     """Bad input data: the message names the row/column and the fix."""
 
 
+class DataNote(UserWarning):
+    """Something bayesmag did to the input on the user's behalf (e.g. ignored an unused text column)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class CalibrationData:
     """One calibration recording (or a subset of one).
@@ -73,8 +88,11 @@ class CalibrationData:
       b_ref: (n, 3) reference field, uT, or ``None`` when the recording has no
         reference (the normal case when applying a calibration in the field).
       time: (n,) seconds.
-      run: (n,) integer run (campaign) id.
+      run: (n,) integer run (campaign) id (|id| < 2**53).
       source: a short description of where the rows came from.
+      field_unit: the field unit the user declared at load (values are converted to uT), or ``None``
+        when none was declared: entry points then check that the values look like uT
+        (:func:`check_units`); a declared unit is trusted (e.g. a genuine low-field session).
 
     Example:
       >>> d = CalibrationData(np.zeros((2, 3)), np.array([20.0, 21.0]), np.zeros((2, 3)))
@@ -88,6 +106,7 @@ class CalibrationData:
     time: np.ndarray | None = None
     run: np.ndarray | None = None
     source: str = ""
+    field_unit: str | None = None
 
     def __post_init__(self):
         b = np.asarray(self.b_meas, dtype=np.float64)
@@ -107,11 +126,7 @@ class CalibrationData:
             if self.time is None
             else np.asarray(self.time, dtype=np.float64).reshape(-1)
         )
-        run = (
-            np.zeros(n, dtype=np.int64)
-            if self.run is None
-            else np.asarray(self.run).astype(np.int64).reshape(-1)
-        )
+        run = np.zeros(n, dtype=np.int64) if self.run is None else _run_ids(self.run)
         if time.shape[0] != n or run.shape[0] != n:
             raise DataError(f"time and run must have {n} rows.")
         for name, arr in (("b_meas", b), ("temperature", t), ("b_ref", ref), ("time", time), ("run", run)):
@@ -141,7 +156,35 @@ class CalibrationData:
             self.time[idx],
             self.run[idx],
             self.source,
+            self.field_unit,
         )
+
+    def __repr__(self) -> str:
+        ref = "with reference" if self.b_ref is not None else "no reference"
+        src = f", source={self.source!r}" if self.source else ""
+        return f"CalibrationData(n={self.n}, runs={self.runs.size}, {ref}{src})"
+
+
+def _run_ids(run) -> np.ndarray:
+    """(n,) int64 run ids; ids that are not integers or beyond 2**53 are refused (they would merge)."""
+    r = np.asarray(run).reshape(-1)
+    if r.dtype.kind in "iu":
+        big = np.abs(r.astype(np.float64)) >= _MAX_RUN_ID
+    elif r.dtype.kind in "fb":
+        rf = r.astype(np.float64)
+        if not np.isfinite(rf).all():
+            raise DataError(f"Column 'run' has non-finite values at {_bad_rows(~np.isfinite(rf))}.")
+        if np.any(rf != np.round(rf)):
+            raise DataError(f"Column 'run' must hold integers; {_bad_rows(rf != np.round(rf))} do not.")
+        big = np.abs(rf) >= _MAX_RUN_ID
+    else:
+        raise DataError(f"Column 'run' must hold integers; got {r.dtype} values.")
+    if big.any():
+        i = int(np.flatnonzero(big)[0])
+        raise DataError(f"Column 'run' holds {r[i]} at {_bad_rows(big)}: run ids must lie within +-2**53 "
+                        f"({_MAX_RUN_ID}), beyond which distinct ids merge into one run. Renumber the runs "
+                        f"(e.g. 1, 2, 3, ...).")
+    return r.astype(np.int64)
 
 
 # --------------------------------------------------------------------------- validation
@@ -185,32 +228,55 @@ def check_values(data: CalibrationData, *, origin: str = "", allow_nonfinite: bo
                     f"{'temperature (C)' if name == 'temperature' else 'field (uT)'} is that large "
                     f"(|value| > {limit:.0e}). The value is corrupt; repair or remove those rows."
                 )
+        if name == "temperature":
+            cold = np.isfinite(col) & (np.where(np.isfinite(col), col, 0.0) < ABSOLUTE_ZERO_C)
+            if cold.any():
+                r = int(np.flatnonzero(cold)[0])
+                raise DataError(
+                    f"Column 'temperature'{where} holds {col[r]:.6g} C at {_bad_rows(cold)}, below absolute zero "
+                    f"({ABSOLUTE_ZERO_C} C): the value is corrupt or in another unit. Repair or remove those rows "
+                    f"(temperatures are read in Celsius, or kelvin with temperature_unit = \"K\")."
+                )
 
 
 def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
-                     fix: str = "Convert the field columns to uT") -> list[str]:
+                     fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT") -> list[str]:
     """Refuse a field that is not in microtesla; return warnings for a suspicious one.
 
     With ``train_max_ut`` (the largest |B| a calibration was trained on, ``apply``): a 99th
     percentile |component| above 50x that is nT (refused); below 1/50 of it a warning (mT or
     gauss?). Without it (``run``, ``discover``): the 99th percentile must lie in
     :data:`_PLAUSIBLE_P99_UT`; above is nT, below is mT or gauss (both refused). Measured and
-    reference columns are checked alike.
+    reference columns are checked alike (the reference against the training range too). A field that is
+    zero in every row is refused as such. A unit the user declared at load (``data.field_unit``, e.g.
+    ``--field-unit uT`` for a genuine low-field session) is trusted: only the all-zero check runs.
     """
     where = f" in {origin}" if origin else ""
     groups = [("measured field (bx_meas, by_meas, bz_meas)", data.b_meas)]
-    if data.b_ref is not None and train_max_ut is None:
+    if data.b_ref is not None:
         groups.append(("reference field (bx_ref, by_ref, bz_ref)", data.b_ref))
     warn = []
     for label, b in groups:
         ok = np.isfinite(b).all(axis=1)
         if not ok.any():
+            if label.startswith("reference") and train_max_ut is not None:
+                continue                    # apply: reference columns are optional extras
             raise DataError(f"No row{where} has a finite {label}.")
         p99 = float(np.percentile(np.abs(b[ok]), 99))
+        if p99 == 0.0 and not np.any(b[ok]):
+            raise DataError(f"The {label}{where} is zero in every row: the sensor recorded no field (or the "
+                            f"columns are mapped wrongly). Check the file and the column mapping.")
+        if data.field_unit is not None:
+            continue                        # declared by the user: trusted
         if train_max_ut is not None:
             if p99 > 50 * train_max_ut:
                 raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile) but the calibration was "
                                 f"trained on |B| up to {train_max_ut:.3g} uT: the file looks like nT (x1000). {fix}.")
+            if train_max_ut > 10 and p99 < train_max_ut / 50 and label.startswith("reference"):
+                raise DataError(f"The {label}{where} is at most {p99:.3g} (99th percentile) while the calibration "
+                                f"was trained on |B| up to {train_max_ut:.3g} uT: the reference looks like mT "
+                                f"(/1000) or gauss (/100); its RMSE would be meaningless. Convert it to uT, or "
+                                f"{declare} if it really is.")
             if train_max_ut > 10 and p99 < train_max_ut / 50:
                 warn.append(f"The {label} is at most {p99:.3g} while training reached {train_max_ut:.3g} uT: "
                             f"is the file in gauss or mT? bayesmag expects uT.")
@@ -223,7 +289,34 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
         if p99 < lo:
             raise DataError(f"The {label}{where} stays below {p99:.3g} (99th percentile of |component|), but "
                             f"bayesmag expects microtesla (the Earth's field is 25-65 uT): the file looks like mT "
-                            f"(x1000) or gauss (x100). {fix}.")
+                            f"(x1000) or gauss (x100). {fix}; or, for a genuine low-field recording in uT, "
+                            f"declare the unit with {declare}.")
+    return warn
+
+
+def check_units(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
+                fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT",
+                temperature_fix: str = "Set [data] temperature_unit = \"K\" (or subtract 273.15)") -> list[str]:
+    """The one unit check of every entry point (``run``, ``apply``, ``discover`` and the library's
+    ``fit_physics``, ``Calibration.predict``, ``Calibrator``, ``discover``).
+
+    Field in uT (:func:`check_field_unit`; nT, mT and gauss refused unless declared), temperature in
+    Celsius (a median above 150 C is kelvin: refused), nothing below absolute zero. Returns
+    warnings (suspicious, not refused); raises :class:`DataError` naming the column and the fix.
+    ``fix``/``declare``/``temperature_fix`` word the remedy for the caller (a CLI flag or an argument).
+    """
+    where = f" in {origin}" if origin else ""
+    warn = check_field_unit(data, train_max_ut=train_max_ut, origin=origin, fix=fix, declare=declare)
+    t = data.temperature[np.isfinite(data.temperature)]
+    if t.size:
+        med = float(np.median(t))
+        if med > _KELVIN_THRESHOLD_C:
+            raise DataError(f"Column 'temperature'{where} has median {med:.2f}, which looks like kelvin, but "
+                            f"Celsius is expected. {temperature_fix}.")
+        if t.min() < ABSOLUTE_ZERO_C:
+            bad = np.isfinite(data.temperature) & (np.nan_to_num(data.temperature) < ABSOLUTE_ZERO_C)
+            raise DataError(f"Column 'temperature'{where} is below absolute zero ({ABSOLUTE_ZERO_C} C) at "
+                            f"{_bad_rows(bad)}: the value is corrupt or in another unit. Repair those rows.")
     return warn
 
 
@@ -255,6 +348,35 @@ def _check_time(data: CalibrationData, where: str, *, duplicates: bool, order: b
                 )
 
 
+def spread_duplicate_times(data: CalibrationData) -> CalibrationData:
+    """Rows of a run that share a timestamp spread evenly up to the run's next distinct stamp.
+
+    A stamp held by k rows becomes ``t, t + d/k, ..., t + (k-1) d/k`` with d the gap to the next
+    stamp (the median gap after the last one): e.g. whole-second stamps at 4 Hz become quarter
+    seconds, as :func:`load_belsten` does. Row order is kept; other rows are unchanged.
+
+    Example:
+      >>> d = CalibrationData(np.ones((4, 3)) * 40, np.full(4, 20.0), None, time=[0, 0, 1, 1])
+      >>> spread_duplicate_times(d).time.tolist()
+      [0.0, 0.5, 1.0, 1.5]
+    """
+    time = np.array(data.time, dtype=np.float64)
+    for r in np.unique(data.run):
+        sel = np.flatnonzero(data.run == r)
+        o = np.argsort(time[sel], kind="stable")
+        ts = time[sel][o]
+        uniq, start, counts = np.unique(ts, return_index=True, return_counts=True)
+        if counts.max(initial=1) == 1:
+            continue
+        last_gap = float(np.median(np.diff(uniq))) if uniq.size > 1 else 1.0
+        step = (np.append(uniq[1:], uniq[-1] + last_gap) - uniq) / counts
+        rank = np.arange(ts.size) - np.repeat(start, counts)
+        new = np.empty_like(ts)
+        new[o] = ts + rank * np.repeat(step, counts)
+        time[sel] = new
+    return dataclasses.replace(data, time=time)
+
+
 def validate(
     data: CalibrationData,
     *,
@@ -276,17 +398,11 @@ def validate(
     check_values(data, origin=origin)
     if need_reference and data.b_ref is None:
         raise DataError(f"The recording{where} has no reference columns {_REF}; a calibration needs them.")
-    check_field_unit(data, origin=origin)
+    check_units(data, origin=origin, declare="[data] field_unit = \"uT\" (or --field-unit uT)")
     if data.n < n_params + 1:
         raise DataError(
             f"The recording{where} has {data.n} rows but the physics model has {n_params} parameters per axis; "
             f"at least {n_params + 1} rows are needed (many more for a useful calibration)."
-        )
-    med = float(np.median(data.temperature))
-    if med > _KELVIN_THRESHOLD_C:
-        raise DataError(
-            f"Column 'temperature'{where} has median {med:.2f}, which looks like kelvin, but Celsius is expected. "
-            f"Set [data] temperature_unit = \"K\" (or subtract 273.15)."
         )
     if need_temperature_variation and float(np.ptp(data.temperature)) < 1e-6:
         raise DataError(
@@ -303,11 +419,7 @@ def validate_for_discover(data: CalibrationData, *, origin: str = "") -> None:
     origin = origin or data.source
     where = f" in {origin}" if origin else ""
     check_values(data, origin=origin)
-    check_field_unit(data, origin=origin)
-    med = float(np.median(data.temperature))
-    if med > _KELVIN_THRESHOLD_C:
-        raise DataError(f"Column 'temperature'{where} has median {med:.2f}, which looks like kelvin, but Celsius is "
-                        f"expected. Set [data] temperature_unit = \"K\" (or subtract 273.15).")
+    check_units(data, origin=origin, declare="[data] field_unit = \"uT\" (or --field-unit uT)")
     _check_time(data, where, duplicates=False, order=True)
 
 
@@ -338,37 +450,72 @@ def _sniff_delimiter(path: Path, header_line: str, data_line: str) -> str:
                     f"consistently. Write the file comma-separated (with '.' as the decimal point).")
 
 
-def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
+def _decode(path: Path, raw: bytes, *, note: bool = True) -> str:
+    """``raw`` as text: UTF-8 (a byte-order mark removed); else Latin-1 with a :class:`DataNote` naming the
+    line of the first non-UTF-8 byte. A NUL byte means a binary file: refused."""
+    if b"\x00" in raw[:65536]:
+        raise DataError(f"{path} is not a text file (it holds NUL bytes); expected a CSV with a header row.")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw[:e.start].count(b"\n") + 1
+        import warnings
+        if note:
+            warnings.warn(DataNote(f"{path}: line {line} holds the byte 0x{raw[e.start]:02x}, which is not UTF-8; "
+                                   f"the file was read as Latin-1 (save it as UTF-8 to silence this note)."),
+                          stacklevel=4)
+        return raw.decode("latin-1")
+
+
+def _header(path: Path, first: str, delim: str) -> list[str]:
+    """The header row's names (quotes and blanks removed); two columns of one name are refused, naming both."""
+    try:
+        header = [h.strip().strip('"').strip() for h in next(csv.reader([first], delimiter=delim))]
+    except (csv.Error, StopIteration) as e:
+        raise DataError(f"{path}: the header row cannot be read ({e}); write one header line of column names.") \
+            from None
+    seen: dict[str, int] = {}
+    for j, h in enumerate(header):
+        if h and h in seen:
+            raise DataError(f"{path}: the header names column '{h}' twice (column {seen[h] + 1} and column {j + 1}); "
+                            f"bayesmag cannot tell which one holds the data. Rename or remove one of them.")
+        seen[h] = j
+    return header
+
+
+def _read_table(path: Path, wanted: set[str] | None = None) -> tuple[list[str], np.ndarray]:
     """Read a delimited file (comma, semicolon or tab; sniffed) with a header row into (header, float array).
 
-    A UTF-8 byte-order mark is removed. Fast path: ``numpy.loadtxt``; on any irregularity the
-    row-by-row reader below names the row and column at fault.
+    A UTF-8 byte-order mark is removed; a file that is not UTF-8 is read as Latin-1 (a note says so).
+    Fast path: ``numpy.loadtxt``; on any irregularity the row-by-row reader below names the row and
+    column at fault. Columns outside ``wanted`` (all wanted when None) that hold text are ignored
+    (NaN) with a :class:`DataNote`; a wanted one is refused naming the row.
     """
+    if path.is_dir():
+        raise DataError(f"{path} is a folder; expected a CSV file.")
+    with open(path, "rb") as f:
+        head = f.readline() + f.readline()
+    head_text = _decode(path, head, note=False) if head else ""     # the whole file's decode below notes it
+    lines = head_text.split("\n")
+    first = lines[0].rstrip("\r")
+    second = lines[1].rstrip("\r") if len(lines) > 1 else ""
+    delim = _sniff_delimiter(path, first, second)
+    header = _header(path, first, delim) if first.strip() else []
+    if not header:
+        raise DataError(f"{path} is empty; expected a header row and data rows.")
     try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            first = f.readline()
-            second = f.readline()
-    except UnicodeDecodeError:
-        raise DataError(f"{path} is not a text file (not UTF-8); expected a CSV with a header row.") from None
-    except IsADirectoryError:
-        raise DataError(f"{path} is a folder; expected a CSV file.") from None
-    first = first.rstrip("\r\n")
-    delim = _sniff_delimiter(path, first, second.rstrip("\r\n"))
-    header = [h.strip() for h in first.split(delim)] if first.strip() else []
-    if header:
-        try:
-            arr = np.loadtxt(path, delimiter=delim, skiprows=1, ndmin=2, dtype=np.float64, encoding="utf-8-sig")
-            if arr.shape[0] > 0 and arr.shape[1] == len(header):
-                return header, arr
-        except (ValueError, UnicodeDecodeError):
-            pass
-    with open(path, newline="", encoding="utf-8-sig", errors="replace") as f:
-        reader = csv.reader(f, delimiter=delim)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise DataError(f"{path} is empty; expected a header row and data rows.") from None
-        rows = []
+        arr = np.loadtxt(path, delimiter=delim, skiprows=1, ndmin=2, dtype=np.float64, encoding="utf-8-sig")
+        if arr.shape[0] > 0 and arr.shape[1] == len(header):
+            return header, arr
+    except (ValueError, UnicodeDecodeError):
+        pass
+    import io
+
+    text = _decode(path, path.read_bytes())
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delim)
+    rows: list[list[str]] = []
+    try:
+        next(reader)
         for i, row in enumerate(reader, start=1):
             if not row or all(not c.strip() for c in row):
                 continue
@@ -377,21 +524,36 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
                     f"{path}: data row {i} has {len(row)} fields but the header has {len(header)} "
                     f"({_DELIMITERS[delim]}-separated)."
                 )
-            vals = []
-            for j, c in enumerate(row):
-                c = c.strip()
-                try:
-                    vals.append(float(c) if c else np.nan)
-                except ValueError:
-                    hint = (" Decimal commas are not read: use '.' as the decimal point."
-                            if "," in c and delim != "," else "")
-                    raise DataError(
-                        f"{path}: data row {i}, column '{header[j]}' holds {c!r}, which is not a number.{hint}"
-                    ) from None
-            rows.append(vals)
+            rows.append(row)
+    except csv.Error as e:
+        raise DataError(f"{path}: line {reader.line_num} cannot be read as CSV ({e}): a field that long usually "
+                        f"means an unbalanced quote (\") joined many lines into one field. Repair the quotes on or "
+                        f"before that line.") from None
     if not rows:
         raise DataError(f"{path} has a header but no data rows.")
-    return header, np.asarray(rows, dtype=np.float64)
+    cols = []
+    for j, name in enumerate(header):
+        col = np.empty(len(rows))
+        for k, row in enumerate(rows):
+            c = row[j].strip()
+            try:
+                col[k] = float(c) if c else np.nan
+            except ValueError:
+                if wanted is not None and name not in wanted:
+                    import warnings
+                    warnings.warn(DataNote(f"{path}: column '{name}' holds text (data row {k + 1}: {c[:40]!r}); "
+                                           f"bayesmag does not use it and ignored it."), stacklevel=3)
+                    col[:] = np.nan
+                    break
+                hint = (" Decimal commas are not read: use '.' as the decimal point."
+                        if "," in c and delim != "," else
+                        " An unbalanced quote (\") joined lines into this field; repair the quotes."
+                        if '"' in row[j] or "\n" in row[j] else "")
+                raise DataError(
+                    f"{path}: data row {k + 1}, column '{name}' holds {c[:60]!r}, which is not a number.{hint}"
+                ) from None
+        cols.append(col)
+    return header, np.column_stack(cols)
 
 
 def column_mapping(columns: Mapping[str, str] | None, *, field_unit: str = "uT", temperature_unit: str = "C",
@@ -420,7 +582,7 @@ def load_csv(
     *,
     columns: Mapping[str, str] | None = None,
     temperature_unit: str = "C",
-    field_unit: str = "uT",
+    field_unit: str | None = None,
     require_reference: bool = True,
 ) -> CalibrationData:
     """Load a canonical CSV (``time,run,bx_meas,by_meas,bz_meas,temperature,bx_ref,by_ref,bz_ref``).
@@ -429,20 +591,25 @@ def load_csv(
       path: the file.
       columns: optional mapping canonical name -> the file's column name, for other layouts.
       temperature_unit: ``"C"`` or ``"K"`` (kelvin is converted to Celsius).
-      field_unit: one of :data:`FIELD_UNITS` (``uT``, ``nT``, ``mT``, ``G``); converted to uT.
+      field_unit: one of :data:`FIELD_UNITS` (``uT``, ``nT``, ``mT``, ``G``), converted to uT and trusted
+        (recorded as ``data.field_unit``); ``None`` (default): uT, checked by :func:`check_units`.
       require_reference: if False, the ``*_ref`` columns may be absent.
 
     ``run`` is optional (all rows one run); ``time`` is optional (row index). The delimiter
-    (comma, semicolon or tab) is sniffed from the header and first row.
+    (comma, semicolon or tab) is sniffed from the header and first row; a quoted header is read.
+    Two columns of one name are refused; a text column the mapping does not use is ignored with
+    a :class:`DataNote` warning.
     """
     path = Path(path)
     if not path.exists():
         raise DataError(f"Data file {path} does not exist.")
+    declared = field_unit
+    field_unit = field_unit or "uT"
     mapping = column_mapping(columns, field_unit=field_unit, temperature_unit=temperature_unit,
                              what="[data.columns]")
     if path.is_dir():
         raise DataError(f"Data file {path} is a folder; expected a CSV file.")
-    header, arr = _read_table(path)
+    header, arr = _read_table(path, wanted=set(mapping.values()))
     idx = {h: i for i, h in enumerate(header)}
 
     def col(name: str, required: bool) -> np.ndarray | None:
@@ -468,11 +635,11 @@ def load_csv(
     ref = None if refs[0] is None else np.stack(refs, axis=1) * FIELD_UNITS[field_unit]
     time = col("time", False)
     run = col("run", False)
-    if run is not None and np.isfinite(run).all() and np.any(run != np.round(run)):
-        raise DataError(f"{path}: column 'run' must hold integers.")
-    if run is not None and not np.isfinite(run).all():
-        raise DataError(f"{path}: column 'run' has non-finite values at {_bad_rows(~np.isfinite(run))}.")
-    return CalibrationData(b, t, ref, time, run, source=str(path))
+    try:
+        run = None if run is None else _run_ids(run)
+    except DataError as e:
+        raise DataError(f"{path}: {e}") from None
+    return CalibrationData(b, t, ref, time, run, source=str(path), field_unit=declared)
 
 
 def _runs_from_gaps(time: np.ndarray, gap_s: float) -> np.ndarray:

@@ -430,11 +430,18 @@ def _refuse_unidentifiable(J: np.ndarray, names: tuple[str, ...]) -> None:
 
 
 def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: str = "white",
-                theta0: np.ndarray | None = None, check_rank: bool = True) -> PhysicsFit:
-    """Fit ``model`` row-wise (each output axis separately) by Levenberg-Marquardt.
+                theta0: np.ndarray | None = None, check_rank: bool = True, columns: dict | None = None,
+                field_unit: str | None = None, temperature_unit: str = "C") -> PhysicsFit:
+    """Fit ``model`` row-wise (each output axis separately) by Levenberg-Marquardt; returns a :class:`PhysicsFit`.
 
     Args:
-      data: :class:`~bayesmag.CalibrationData` with a reference.
+      data: :class:`~bayesmag.CalibrationData` with a reference, a pandas DataFrame (canonical names or
+        ``columns``) or a NumPy array (n, 7) in the order ``data.ARRAY_COLUMNS``
+        (``bx_meas, by_meas, bz_meas, temperature, bx_ref, by_ref, bz_ref``). Time is not used:
+        repeated timestamps are fine.
+      columns, field_unit, temperature_unit: as ``frames.as_calibration_data``: the field is checked to
+        be in uT (nT, mT, gauss refused) and the temperature in C (kelvin refused) unless a unit is
+        declared (then converted).
       model: defaults to the paper's thermo-affine model.
       covariance_method: ``"white"``, ``"ar1"`` or ``"newey_west"`` (module docstring).
       theta0: optional (3, p) starting point (default: identity gain, zero elsewhere).
@@ -443,6 +450,10 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
     """
     from bayesmag._src.core.physics import inputs_from_data
 
+    from bayesmag._src.core.frames import as_calibration_data
+
+    data = as_calibration_data(data, columns=columns, field_unit=field_unit, temperature_unit=temperature_unit,
+                               require_reference=True, what="the data given to fit_physics")
     model = model or PhysicsModel.paper()
     inputs = inputs_from_data(data)
     y = jnp.asarray(data.b_ref)
@@ -458,7 +469,7 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
     covs, infos, diags = [], [], []
     for a in range(3):
         c, info = covariance(J[a], resid[:, a], method=covariance_method, run=data.run)
-        covs.append(c)
+        covs.append(0.5 * (c + c.T))     # exactly symmetric (what is saved and what the loader checks)
         infos.append(info)
         diags.append(identifiability(c, model.param_names))
     return PhysicsFit(

@@ -13,10 +13,16 @@ from typing import Mapping
 
 import numpy as np
 
-from bayesmag._src.core.data import AXES, CANONICAL_COLUMNS, FIELD_UNITS, CalibrationData, DataError, column_mapping
+from bayesmag._src.core.data import (ARRAY_COLUMNS, AXES, CANONICAL_COLUMNS, FIELD_UNITS, CalibrationData, DataError,
+                                     check_units, column_mapping, spread_duplicate_times)
 
 __all__ = ["FIELD_UNITS", "frame_io", "load_table", "from_frame", "to_frame", "prediction_frame", "read_parquet", "as_data",
-           "is_frame"]
+           "is_frame", "as_calibration_data", "DUPLICATE_TIMES"]
+
+#: What the library's entry points do with repeated timestamps within a run: ``"ignore"`` (time not used),
+#: ``"refuse"`` (name the rows) or ``"spread"`` (spread the rows that share a stamp evenly over the
+#: interval to the next stamp, as the Belsten loader does for its whole-second stamps).
+DUPLICATE_TIMES = ("ignore", "refuse", "spread")
 
 _FIELD = ("bx_meas", "by_meas", "bz_meas", "bx_ref", "by_ref", "bz_ref")
 
@@ -29,7 +35,8 @@ def is_frame(obj) -> bool:
 
 
 def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit: str = "C",
-               field_unit: str = "uT", require_reference: bool = False, source: str = "DataFrame") -> CalibrationData:
+               field_unit: str | None = None, require_reference: bool = False,
+               source: str = "DataFrame") -> CalibrationData:
     """A :class:`~bayesmag.CalibrationData` from a DataFrame with canonical (or mapped) columns.
 
     ``time`` and ``run`` are optional (row index / one run); the three ``*_ref`` columns are
@@ -37,7 +44,13 @@ def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit
     """
     if not is_frame(df):
         raise DataError(f"expected a pandas DataFrame; got {type(df).__name__}.")
+    declared, field_unit = field_unit, field_unit or "uT"
     mapping = column_mapping(columns, field_unit=field_unit, temperature_unit=temperature_unit)
+    dup = [c for c in set(df.columns) if list(df.columns).count(c) > 1]
+    if dup:
+        pos = [i + 1 for i, c in enumerate(df.columns) if c == dup[0]]
+        raise DataError(f"the DataFrame has two columns named {dup[0]!r} (positions {pos}); bayesmag cannot tell "
+                        f"which one holds the data. Rename or drop one.")
 
     def col(name, required):
         src = mapping[name]
@@ -65,7 +78,89 @@ def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit
     run = col("run", False)
     if run is not None and (not np.isfinite(run).all() or np.any(run != np.round(run))):
         raise DataError("column 'run' of the DataFrame must hold finite integers.")
-    return CalibrationData(b, t, ref, col("time", False), run, source=source)
+    return CalibrationData(b, t, ref, col("time", False), run, source=source, field_unit=declared)
+
+
+def _from_array(x, *, field_unit: str | None, temperature_unit: str, source: str) -> CalibrationData:
+    """A (n, 4) or (n, 7) array in the order :data:`~bayesmag._src.data.ARRAY_COLUMNS`."""
+    x = np.asarray(x)
+    if x.ndim != 2 or x.shape[1] not in (4, 7) or not np.issubdtype(x.dtype, np.number):
+        raise DataError(f"a NumPy array must be numeric with shape (n, 4) or (n, 7), columns "
+                        f"{list(ARRAY_COLUMNS[:4])} (+ {list(ARRAY_COLUMNS[4:])} for a fit); got shape {x.shape} "
+                        f"of {x.dtype}. Or pass a DataFrame with named columns.")
+    x = x.astype(np.float64)
+    f = FIELD_UNITS[field_unit or "uT"]
+    t = x[:, 3] - 273.15 if temperature_unit == "K" else x[:, 3]
+    return CalibrationData(x[:, :3] * f, t, x[:, 4:7] * f if x.shape[1] == 7 else None, source=source,
+                           field_unit=field_unit)
+
+
+def as_calibration_data(obj, *, columns: Mapping[str, str] | None = None, field_unit: str | None = None,
+                        temperature_unit: str = "C", require_reference: bool = False,
+                        duplicate_times: str = "ignore", train_max_ut: float | None = None,
+                        what: str = "data") -> CalibrationData:
+    """The library's boundary: a :class:`~bayesmag.CalibrationData`, DataFrame or NumPy array as checked
+    CalibrationData in uT and Celsius (the command line's checks, :func:`~bayesmag._src.data.check_units`).
+
+    Args:
+      obj: CalibrationData, a pandas DataFrame (canonical or ``columns``-mapped names), or a NumPy
+        array (n, 4) / (n, 7) in the order :data:`~bayesmag._src.data.ARRAY_COLUMNS`
+        (``bx_meas, by_meas, bz_meas, temperature[, bx_ref, by_ref, bz_ref]``).
+      columns: canonical name -> the DataFrame's column name.
+      field_unit: ``None`` (uT, checked: nT, mT and gauss refused), or a declared unit of
+        :data:`FIELD_UNITS` (converted to uT and trusted).
+      temperature_unit: ``"C"`` or ``"K"`` (converted); kelvin given as Celsius is refused.
+      require_reference: refuse data without the reference field.
+      duplicate_times: one of :data:`DUPLICATE_TIMES`.
+      train_max_ut: the calibration's largest training |B| (``predict``: the field is checked against it).
+      what: how messages name ``obj`` (e.g. ``"the data given to fit_physics"``).
+
+    Example:
+      >>> as_calibration_data(np.array([[20.0, 5.0, -40.0, 21.0]] * 3)).n
+      3
+    """
+    if duplicate_times not in DUPLICATE_TIMES:
+        raise DataError(f"duplicate_times is {duplicate_times!r}; it must be one of {list(DUPLICATE_TIMES)}.")
+    column_mapping(columns, field_unit=field_unit or "uT", temperature_unit=temperature_unit)   # units known
+    if isinstance(obj, CalibrationData):
+        data = obj                          # columns= maps DataFrame names: nothing to map here
+        if field_unit is not None or temperature_unit != "C":
+            f = FIELD_UNITS[field_unit or "uT"]
+            data = CalibrationData(data.b_meas * f, data.temperature - (273.15 if temperature_unit == "K" else 0.0),
+                                   None if data.b_ref is None else data.b_ref * f, data.time, data.run, data.source,
+                                   field_unit or data.field_unit)
+    elif is_frame(obj):
+        data = from_frame(obj, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                          require_reference=require_reference, source=what)
+    elif isinstance(obj, np.ndarray):
+        if columns:
+            raise DataError(f"columns= maps DataFrame columns; a NumPy array has the fixed order {list(ARRAY_COLUMNS)}.")
+        data = _from_array(obj, field_unit=field_unit, temperature_unit=temperature_unit, source=what)
+    else:
+        raise DataError(f"{what} must be a CalibrationData, a pandas DataFrame or a NumPy array (n, 4) / (n, 7) "
+                        f"in the order {list(ARRAY_COLUMNS)}; got {type(obj).__name__}.")
+    if require_reference and data.b_ref is None:
+        raise DataError(f"{what} has no reference field (bx_ref, by_ref, bz_ref); a fit needs it.")
+    arg_fix = "Convert the field to uT or pass field_unit='nT' (or 'mT', 'G')"
+    finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
+    if finite.any():
+        import warnings
+
+        from bayesmag._src.core.data import DataNote
+        for w in check_units(data.subset(finite), train_max_ut=train_max_ut, origin=what, fix=arg_fix,
+                             declare="field_unit='uT'",
+                             temperature_fix="Pass temperature_unit='K' (or subtract 273.15)"):
+            warnings.warn(DataNote(w), stacklevel=3)
+    if duplicate_times != "ignore":
+        from bayesmag._src.core.data import _check_time
+        if duplicate_times == "spread":
+            data = spread_duplicate_times(data)
+        try:
+            _check_time(data, f" in {what}", duplicates=True, order=False)
+        except DataError as e:
+            raise DataError(f"{e} Or pass duplicate_times='spread' to spread rows that share a timestamp evenly "
+                            f"up to the next one.") from None
+    return data
 
 
 def to_frame(data: CalibrationData):
@@ -152,7 +247,7 @@ def frame_io(method=None, *, physics_inputs: bool = False):
 
 
 def load_table(path: str | Path, *, columns: Mapping[str, str] | None = None, temperature_unit: str = "C",
-               field_unit: str = "uT", require_reference: bool = True) -> CalibrationData:
+               field_unit: str | None = None, require_reference: bool = True) -> CalibrationData:
     """A recording from CSV (``data.load_csv``) or Parquet (by suffix), with column mapping and units."""
     if Path(path).suffix.lower() in (".parquet", ".pq"):
         return read_parquet(path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,

@@ -197,6 +197,15 @@ class Predictor:
         if self.fusion not in FUSIONS:
             raise ValueError(f"fusion {self.fusion!r} is not known; it must be one of {list(FUSIONS)}")
 
+    def __repr__(self) -> str:
+        theta = np.shape(getattr(self.fit, "theta", ()))
+        members = getattr(self.network, "members", None)
+        net = "none" if self.network is None else (f"ensemble of {len(members)}" if members else "one")
+        opt = lambda v: "none" if v is None else "[" + ", ".join(f"{x:.3g}" for x in np.asarray(v, float).reshape(-1)) + "]"  # noqa: E731
+        return (f"Predictor(physics {theta[-1] if theta else '?'} parameters per axis, network={net}, "
+                f"fusion={self.fusion!r}, transfer_sd={opt(self.transfer_sd)}, scale={opt(self.scale)}, "
+                f"uq={self.uq.method!r})")
+
     @property
     def family(self) -> str:
         """Likelihood family of the predictive distribution's network part ('gaussian' without one)."""

@@ -25,6 +25,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import inspect
+import math
 import types
 from typing import Callable, ClassVar, Mapping, NamedTuple, Sequence
 
@@ -788,6 +789,52 @@ def simulate(
 
 
 _CONFIG_KEYS = ("n", "design", "seed", "params", "noise_sd", "temp_noise_sd", "effects")
+#: Fewest rows a simulation config may ask for (a calibration of 8 parameters per axis needs many more).
+SIMULATE_MIN_N = 50
+
+
+def check_simulate_config(config: Mapping) -> None:
+    """Check a ``[data.simulate]`` table without simulating; ValueError naming the key, the value and the valid set.
+
+    ``n`` an integer >= :data:`SIMULATE_MIN_N` (or absent), ``seed`` an integer >= 0, ``noise_sd`` (scalar
+    or 3 values) and ``temp_noise_sd`` finite and >= 0, ``design``, keys and effects known.
+    """
+    if not isinstance(config, Mapping):
+        raise ValueError(f"the simulation config must be a mapping; got {type(config).__name__}.")
+    design = config.get("design", "iid")
+    if design not in _DESIGNS:
+        raise ValueError(f"'design' = {design!r} is not known; it must be one of {sorted(_DESIGNS)}.")
+    design_keys = [p for p in inspect.signature(_DESIGNS[design]).parameters if p not in ("n", "seed")]
+    valid = list(_CONFIG_KEYS) + design_keys
+    unknown = sorted(set(config) - set(valid))
+    if unknown:
+        raise ValueError(f"unknown simulation config key(s) {unknown}; valid keys for design {design!r}: {valid}.")
+    seed = config.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"'seed' = {seed!r} must be an integer >= 0.")
+    for key in ("noise_sd", "temp_noise_sd"):
+        v = config.get(key, 0.0)
+        vals = v if isinstance(v, (list, tuple)) else [v]
+        ok = (len(vals) in ((1, 3) if key == "noise_sd" else (1,)) and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x >= 0 for x in vals))
+        if not ok:
+            raise ValueError(f"'{key}' = {v!r} must be a finite standard deviation >= 0"
+                             + (" (uT; one value or one per axis)." if key == "noise_sd" else " (C)."))
+    effects = config.get("effects", ())
+    if not isinstance(effects, (list, tuple)):
+        raise ValueError(f"'effects' = {effects!r} must be a list of effect names or tables with a 'name'.")
+    for item in effects:
+        spec = {"name": item} if isinstance(item, str) else dict(item) if isinstance(item, Mapping) else None
+        if spec is None or "name" not in spec:
+            raise ValueError(f"each effect must be a name or a mapping with a 'name'; got {item!r}.")
+        try:
+            get_effect(spec.pop("name"), **spec)
+        except TypeError as e:
+            raise ValueError(str(e)) from None
+    _params_from_config(config.get("params"))
+    n = config.get("n")
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < SIMULATE_MIN_N):
+        raise ValueError(f"'n' = {n!r} must be an integer of at least {SIMULATE_MIN_N} (rows to simulate).")
 
 
 def _params_from_config(value) -> TrueParams:
@@ -814,16 +861,9 @@ def simulate_from_config(config: Mapping) -> CalibrationData:
       >>> simulate_from_config(cfg).n
       500
     """
-    if not isinstance(config, Mapping):
-        raise ValueError(f"the simulation config must be a mapping; got {type(config).__name__}.")
+    check_simulate_config(config)
     design = config.get("design", "iid")
-    if design not in _DESIGNS:
-        raise ValueError(f"config 'design' is {design!r}; it must be one of {sorted(_DESIGNS)}.")
     design_keys = [p for p in inspect.signature(_DESIGNS[design]).parameters if p not in ("n", "seed")]
-    valid = list(_CONFIG_KEYS) + design_keys
-    unknown = sorted(set(config) - set(valid))
-    if unknown:
-        raise ValueError(f"unknown simulation config key(s) {unknown}; valid keys for design {design!r}: {valid}.")
     effects = []
     for item in config.get("effects", ()):
         spec = {"name": item} if isinstance(item, str) else dict(item) if isinstance(item, Mapping) else None

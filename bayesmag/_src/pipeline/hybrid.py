@@ -48,7 +48,6 @@ figures (:mod:`~bayesmag._src.app.hybrid_plots`).
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -56,6 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.core import metrics as M
 from bayesmag._src.app.config import Config, NetworkConfig, config_error
 from bayesmag._src.core.data import AXES, CalibrationData
@@ -411,7 +411,7 @@ def hybrid_writers(cfg: Config, hs: HybridStage, columns: dict, test: Calibratio
 
         def write_comparison(out: Path) -> None:
             (Path(out) / "likelihood_comparison.md").write_text(md)
-            (Path(out) / "likelihood_comparison.json").write_text(json.dumps(records, indent=2))
+            write_json(Path(out) / "likelihood_comparison.json", records)
 
         writers.append(write_comparison)
     if cfg.output.figures:

@@ -214,12 +214,15 @@ def _locate_interval(designs, others, ext, ctx, block_rows, seed) -> dict:
                if edge > 0.01 else {})}
 
 
-def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, progress=None,
-             **kwargs) -> DiscoveryResult:
+def discover(data, options: DiscoverOptions | None = None, *, progress=None, columns: dict | None = None,
+             field_unit: str | None = None, temperature_unit: str = "C", **kwargs) -> DiscoveryResult:
     """Locate, name and model physics missing from the thermo-affine calibration model.
 
     Args:
-      data: a recording with a reference (:class:`~bayesmag.CalibrationData`).
+      data: a recording with a reference: :class:`~bayesmag.CalibrationData`, a pandas DataFrame
+        (canonical names or ``columns``) or a NumPy array (n, 7) in the order ``data.ARRAY_COLUMNS``.
+      columns, field_unit, temperature_unit: as ``frames.as_calibration_data`` (field checked to be in
+        uT and temperature in C unless a unit is declared, then converted).
       options: :class:`DiscoverOptions`; or give its fields as keyword arguments.
       progress: optional callable receiving one line per stage.
 
@@ -239,8 +242,12 @@ def discover(data: CalibrationData, options: DiscoverOptions | None = None, *, p
         options = DiscoverOptions(**kwargs)
     elif kwargs:
         raise TypeError(f"give options or keyword arguments, not both; got keywords {sorted(kwargs)}.")
-    if not isinstance(data, CalibrationData):
-        raise TypeError(f"data must be a CalibrationData; got {type(data).__name__}.")
+    if not isinstance(data, CalibrationData) or columns or field_unit is not None or temperature_unit != "C":
+        from bayesmag._src.core.frames import as_calibration_data
+        if not isinstance(data, CalibrationData) and not hasattr(data, "shape") and not hasattr(data, "columns"):
+            raise TypeError(f"data must be a CalibrationData, a DataFrame or a NumPy array; got {type(data).__name__}.")
+        data = as_calibration_data(data, columns=columns, field_unit=field_unit, temperature_unit=temperature_unit,
+                                   require_reference=True, what="the data given to discover")
     if data.b_ref is None:
         raise ValueError("discovery needs a recording with reference columns (b_ref); this one has none.")
     from bayesmag._src.core.data import validate_for_discover

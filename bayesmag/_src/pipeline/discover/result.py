@@ -10,6 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
+from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.core.data import AXES
 from bayesmag._src.pipeline.discover.options import DBIC_MIN, FLOOR_RATIO, LOCATE_FRACTION, LOCATE_P, MIN_GAIN, N_PERM, RHO_STRUCTURE, T_IDENT, \
     Z_DISTINCT, Z_MIN, Z_RUN, DiscoverOptions
@@ -78,7 +79,7 @@ class DiscoveryResult:
             if self.options.figures:
                 from bayesmag._src.app import discover_plots
                 figures = discover_plots.discovery_figures(tmp, self)
-            (tmp / "findings.json").write_text(json.dumps(jsonable(self.to_json()), indent=2))
+            write_json(tmp / "findings.json", jsonable(self.to_json()))
             (tmp / "report.md").write_text(report_markdown(self, figures))
         return out
 
