@@ -109,7 +109,7 @@ class Calibration:
                           rmse_in_sample=np.full(3, np.nan), result=("converged",) * 3, n_steps=np.zeros(3),
                           covariance_method="", cov_info=empty, diagnostics=empty)
 
-    def predictor(self, *, method: str = "analytic", n_params: int = 100, n_qmc: int = 256, seed: int = 0,
+    def predictor(self, *, method: str = "auto", n_params: int = 100, n_qmc: int = 256, seed: int = 0,
                   chunk_size: int = 256):
         """The saved :class:`~bayesmag._src.core.predictor.Predictor` with these physics-UQ settings."""
         from bayesmag._src.core.predictor import Predictor, UQOptions
@@ -124,7 +124,7 @@ class Calibration:
                          uq=UQOptions(method, n_params, n_qmc, seed, chunk_size))
 
     @frame_io    # a pandas DataFrame in, a DataFrame out (frames.py); CalibrationData in, the dict below out
-    def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "analytic",
+    def predict(self, data: CalibrationData, *, level: float | None = None, method: str = "auto",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
                 new_session: bool = True, progress: bool = False) -> dict[str, np.ndarray]:
         """Calibrated field and uncertainty for every row of ``data`` (reference columns not needed).
@@ -180,7 +180,7 @@ class Calibration:
 def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95) -> None:
     """Write the :class:`~bayesmag._src.core.predictor.Predictor` as ``calibration.json`` and ``calibration.npz``
     into folder ``path``."""
-    from bayesmag import __version__
+    from bayesmag._src.core.version import __version__
     fit = predictor.fit
     arrays = {"theta": np.asarray(fit.theta), "cov": np.asarray(fit.cov), "sigma_in": np.asarray(predictor.sigma_in),
               "residual_sd": np.asarray(predictor.residual_sd, dtype=np.float64), "s2": np.asarray(fit.s2)}

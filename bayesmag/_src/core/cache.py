@@ -8,6 +8,10 @@ The folder is ``$XDG_CACHE_HOME/bayesmag/jax`` (``~/.cache/bayesmag/jax``) on Li
 ``~/Library/Caches/bayesmag/jax`` on macOS and ``%LOCALAPPDATA%\\bayesmag\\jax`` on Windows.
 
 The setting must be made before the first compilation of the process: JAX opens the cache once.
+It is made on first use, not at import (:func:`ensure_compile_cache`: the first public name taken
+from ``bayesmag``, the command line, :func:`~bayesmag.calibrate`, :func:`~bayesmag.run_job`), so
+``import bayesmag`` alone leaves the process's JAX settings alone; a call of
+:func:`configure_compile_cache` before that first use wins.
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ import os
 import sys
 from pathlib import Path
 
-__all__ = ["ENV_VAR", "default_cache_dir", "cache_dir_from_env", "configure_compile_cache", "compile_cache_off"]
+__all__ = ["ENV_VAR", "default_cache_dir", "cache_dir_from_env", "configure_compile_cache", "compile_cache_off",
+           "ensure_compile_cache"]
 
 ENV_VAR = "BAYESMAG_COMPILE_CACHE"
 _OFF = ("0", "off", "false", "no")
@@ -53,6 +58,8 @@ def configure_compile_cache(enabled: bool = True, directory: str | Path | None =
     """
     import jax
 
+    global _configured
+    _configured = True
     env_dir = cache_dir_from_env()
     path = None
     if enabled and (ENV_VAR not in os.environ or env_dir is not None):
@@ -70,6 +77,16 @@ def configure_compile_cache(enabled: bool = True, directory: str | Path | None =
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+_configured = False
+
+
+def ensure_compile_cache() -> None:
+    """Configure the cache with the defaults (:func:`configure_compile_cache`) once per process, unless
+    it was configured already; cheap after the first call."""
+    if not _configured:
+        configure_compile_cache()
 
 
 _CACHE_KEYS = ("jax_enable_compilation_cache", "jax_compilation_cache_dir")

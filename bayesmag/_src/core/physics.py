@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Inputs", "Term", "InputTransform", "ThermoAffine", "ThermalLag",
+__all__ = ["T0_DEFAULT", "resolve_t0", "Inputs", "Term", "InputTransform", "ThermoAffine", "ThermalLag",
            "PhysicsModel", "inputs_from_data", "AXES"]
 
 AXES = ("x", "y", "z")
@@ -97,6 +97,26 @@ class InputTransform(abc.ABC):
 
     @abc.abstractmethod
     def __call__(self, params: jax.Array, inputs: Inputs) -> Inputs: ...
+
+
+#: The one default reference temperature of every settings type (config ``[physics] t0``, :class:`~bayesmag.Calibrator`,
+#: :func:`~bayesmag.discover`): the training rows' mean temperature, which decorrelates S from Ks and O from Ko.
+T0_DEFAULT = "mean"
+
+
+def resolve_t0(t0, temperature) -> float:
+    """The reference temperature (C) a model is built with: ``t0`` itself, or with ``"mean"`` the mean of
+    ``temperature`` (the training rows'). The one place where ``"mean"`` is resolved.
+
+    Example:
+      >>> resolve_t0("mean", [20.0, 30.0]), resolve_t0(0, [20.0, 30.0])
+      (25.0, 0.0)
+    """
+    if isinstance(t0, str):
+        if t0 != "mean":
+            raise ValueError(f"t0 = {t0!r} must be a number (C) or \"mean\".")
+        return float(np.mean(np.asarray(temperature, dtype=np.float64)))
+    return float(t0)
 
 
 @dataclasses.dataclass(frozen=True)
