@@ -257,3 +257,18 @@ def test_compile_cache_is_configured_on_first_use_not_at_import(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split() == ["None", str(tmp_path / "c")]
+
+
+def test_python_dash_m_bayesmag_is_the_command_line():
+    r = subprocess.run([sys.executable, "-m", "bayesmag", "--version"], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}, cwd=ROOT.parent)
+    assert r.returncode == 0 and r.stdout.strip() == f"bayesmag {bayesmag.__version__}", r.stderr[-2000:]
+
+
+def test_network_package_keeps_every_name_of_the_old_module():
+    from bayesmag._src.core import network
+    from bayesmag._src.core.network import infer, recalibration, spec, train
+
+    assert all(hasattr(network, n) for n in network.__all__)
+    assert network.NetworkSpec is spec.NetworkSpec and network.fit_residual_network is train.fit_residual_network
+    assert network.mc_predict is infer.mc_predict and network.recalibrate is recalibration.recalibrate

@@ -41,8 +41,9 @@ Outputs: ``metrics["hybrid"][likelihood]`` = ``rmse, mae, coverage, nll, crps, m
 per axis; ``metrics["network"]`` = settings and per-likelihood training outcome (epochs
 run, best epoch, NaN epoch, seconds); ``metrics["hybrid_vs_physics"]`` = paired squared-error
 test (sec. 4.4); prediction columns for the first (primary) likelihood; with several
-likelihoods, ``likelihood_comparison.md`` / ``.json`` (the layout of the paper's Table 7);
-figures (:mod:`~bayesmag._src.app.hybrid_plots`).
+likelihoods, the rows of ``likelihood_comparison.md`` / ``.json`` (the layout of the paper's Table 7).
+This module computes; the application layer writes the files and draws the figures
+(``bayesmag._src.app.hybrid_outputs``).
 """
 
 from __future__ import annotations
