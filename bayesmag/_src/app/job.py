@@ -11,7 +11,6 @@ half-written folder that looks complete.
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -111,9 +110,9 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
 
     The physics stage's figures are drawn in a background process
-    (:class:`~bayesmag._src.app.plots.FigureWorker`): right after the physics stage when there is no
-    network, else after the training (whose threads keep the cores busy) while this process draws
-    the hybrid stage's. The output folder is swapped in only after they are all drawn.
+    (:class:`~bayesmag._src.app.plots.FigureWorker`) after :func:`~bayesmag.calibrate` (whose training
+    threads keep the cores busy), while this process draws the hybrid stage's. The output folder is
+    swapped in only after they are all drawn.
     """
     import contextlib
 
@@ -122,7 +121,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None) -> Jo
     from bayesmag._src.app.outdir import reserve
     from bayesmag._src.app.plots import FigureWorker
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
-        # [output] compile_cache = false: off for this job only (bayesmag switches it on at import)
+        # [output] compile_cache = false: off for this job only (bayesmag switches it on at first use)
         with compile_cache_off() if not cfg.output.compile_cache else contextlib.nullcontext():
             with FigureWorker(enabled=cfg.output.figures) as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
