@@ -48,22 +48,26 @@ def load_data(cfg: Config) -> CalibrationData:
 
 def build_model(cfg: Config, train: CalibrationData) -> PhysicsModel:
     """The physics model of ``[physics]`` for the training rows (T0 resolved once, :func:`resolve_t0`)."""
+    from bayesmag._src.pipeline.settings import PhysicsSettings
+    p = cfg.physics
     try:
-        return cfg.settings().physics.model(train)
+        return PhysicsSettings(t0=p.t0, temperature_terms=p.temperature_terms, extra_terms=tuple(p.extra_terms),
+                               covariance=p.covariance).model(train)
     except (ValueError, TypeError) as e:
         raise ConfigError(f"[physics] extra_terms: {e}") from None
 
 
 def resolve_sigma_in(cfg: Config, train: CalibrationData) -> tuple[np.ndarray, str]:
     """The (4, 4) input-noise covariance of ``[uq] sigma_in`` and where it came from."""
+    from bayesmag._src.pipeline.settings import sigma_in_matrix
     try:
-        return cfg.settings().uq.sigma_in_matrix(train)
+        return sigma_in_matrix(cfg.uq.sigma_in, train)
     except ValueError:
         raise ConfigError("Config key 'uq.sigma_in' as a 4x4 matrix must be symmetric positive semi-definite.") from None
 
 
 def _residual_variance(cfg: Config, fit: PhysicsFit, train: CalibrationData, sigma_in: np.ndarray) -> np.ndarray:
-    return residual_variance(cfg.settings().uq, fit, train, sigma_in)
+    return residual_variance(cfg.uq, fit, train, sigma_in)      # reads method, n_params, n_qmc, seed, chunk_size
 
 
 class JobResult(dict):
@@ -95,7 +99,8 @@ def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, colum
 
 
 def uq_options(cfg: Config) -> UQOptions:
-    return cfg.settings().uq.options()
+    u = cfg.uq
+    return UQOptions(method=u.method, n_params=u.n_params, n_qmc=u.n_qmc, seed=u.seed, chunk_size=u.chunk_size)
 
 
 def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData, model: PhysicsModel,

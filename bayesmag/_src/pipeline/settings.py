@@ -22,7 +22,7 @@ from bayesmag._src.core.network import NetworkSpec
 from bayesmag._src.core.physics import T0_DEFAULT, PhysicsModel, resolve_t0
 from bayesmag._src.core.predictor import FUSIONS, UQOptions
 
-__all__ = ["PhysicsSettings", "UQSettings", "NetworkSettings", "NutsSettings", "ConformalPlan", "CalibrationSettings",
+__all__ = ["PhysicsSettings", "UQSettings", "sigma_in_matrix", "NetworkSettings", "NutsSettings", "ConformalPlan", "CalibrationSettings",
            "COVARIANCES", "UQ_METHODS", "TRANSFER_METHODS", "INTERVAL_CALIBRATIONS"]
 
 COVARIANCES = ("white", "ar1", "newey_west")
@@ -90,21 +90,27 @@ class UQSettings:
                          chunk_size=self.chunk_size)
 
     def sigma_in_matrix(self, train) -> tuple[np.ndarray, str]:
-        """The (4, 4) input-noise covariance and where it came from.
+        """The (4, 4) input-noise covariance and where it came from (:func:`sigma_in_matrix`)."""
+        return sigma_in_matrix(self.sigma_in, train)
 
-        Raises:
-            ValueError: a 4x4 ``sigma_in`` that is not symmetric positive semi-definite.
-        """
-        s = self.sigma_in
-        if isinstance(s, str) and s == "auto":
-            from bayesmag._src.core.physics_uq import estimate_input_noise
-            return estimate_input_noise(train), "auto: within-run second differences, 1.4826*MAD/sqrt(6)"
-        arr = np.asarray(s, dtype=np.float64)
-        if arr.ndim == 1:
-            return np.diag(arr**2), "config: standard deviations"
-        if not np.allclose(arr, arr.T) or np.linalg.eigvalsh(arr).min() < -1e-12:
-            raise ValueError("'sigma_in' as a 4x4 matrix must be symmetric positive semi-definite.")
-        return arr, "config: covariance matrix"
+
+def sigma_in_matrix(sigma_in, train) -> tuple[np.ndarray, str]:
+    """The (4, 4) input-noise covariance ``sigma_in`` stands for, and where it came from: ``"auto"`` (estimated
+    from ``train``), 4 standard deviations, or a 4x4 covariance.
+
+    Raises:
+        ValueError: a 4x4 ``sigma_in`` that is not symmetric positive semi-definite.
+    """
+    s = sigma_in
+    if isinstance(s, str) and s == "auto":
+        from bayesmag._src.core.physics_uq import estimate_input_noise
+        return estimate_input_noise(train), "auto: within-run second differences, 1.4826*MAD/sqrt(6)"
+    arr = np.asarray(s, dtype=np.float64)
+    if arr.ndim == 1:
+        return np.diag(arr**2), "config: standard deviations"
+    if not np.allclose(arr, arr.T) or np.linalg.eigvalsh(arr).min() < -1e-12:
+        raise ValueError("'sigma_in' as a 4x4 matrix must be symmetric positive semi-definite.")
+    return arr, "config: covariance matrix"
 
 
 @dataclasses.dataclass(frozen=True)
