@@ -52,9 +52,13 @@ class Inputs(NamedTuple):
 
 
 def inputs_from_data(data) -> Inputs:
-    """:class:`Inputs` (float64) from a :class:`~bayesmag.CalibrationData`."""
-    return Inputs(jnp.asarray(data.b_meas), jnp.asarray(data.temperature), jnp.asarray(data.time),
-                  jnp.asarray(data.run))
+    """:class:`Inputs` (float64) from a :class:`~bayesmag.CalibrationData`.
+
+    ``jax.device_put``, not ``jnp.asarray``: the same arrays, without compiling a conversion program for
+    every new row count (a job calls this for many row sets; each program costs tracing and lowering
+    even when the persistent cache holds it).
+    """
+    return Inputs(*(jax.device_put(np.asarray(a)) for a in (data.b_meas, data.temperature, data.time, data.run)))
 
 
 class Term(abc.ABC):

@@ -124,7 +124,8 @@ def _perturbed(inputs: Inputs, eps: jax.Array) -> Inputs:
 
 
 def _slice_inputs(inputs: Inputs, lo: int, hi: int) -> Inputs:
-    return Inputs(*(a[lo:hi] for a in inputs))
+    """Rows ``lo:hi``, sliced on the host (an eager slice of a JAX array compiles a program per chunk shape)."""
+    return Inputs(*(jax.device_put(np.asarray(a)[lo:hi]) for a in inputs))
 
 
 @dataclasses.dataclass(frozen=True)
