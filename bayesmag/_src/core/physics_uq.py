@@ -239,11 +239,12 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
         eps = sobol_normal(n_qmc, sigma_in, seed=seed)
     else:
         eps = np.random.default_rng(seed).standard_normal((n_qmc, 4)) @ _sqrt_psd(sigma_in).T
-    eps = jnp.asarray(eps)
+    eps = jax.device_put(np.asarray(eps))          # device_put: jnp.asarray compiles a program per shape
     draws = []
     for a in range(3):
         key, sub = jax.random.split(key)
-        draws.append(jax.random.multivariate_normal(sub, jnp.asarray(fit.theta[a]), jnp.asarray(fit.cov[a]),
+        draws.append(jax.random.multivariate_normal(sub, jax.device_put(np.asarray(fit.theta[a])),
+                                                    jax.device_put(np.asarray(fit.cov[a])),
                                                     shape=(max(n_params, 2),), method="svd"))
     out = np.zeros((4, n, 3))
     chunks = range(0, n, chunk_size)

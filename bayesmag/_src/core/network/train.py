@@ -263,7 +263,7 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
         with ThreadPoolExecutor(min(threads, n_axes), thread_name_prefix="bayesmag-train") as own:
             parts = list(own.map(run, range(n_axes)))
     join = lambda *leaves: np.concatenate([np.asarray(leaf) for leaf in leaves])   # noqa: E731
-    params = jax.tree.map(lambda *leaves: jnp.asarray(join(*leaves)), *[p for p, _ in parts])
+    params = jax.tree.map(lambda *leaves: jax.device_put(join(*leaves)), *[p for p, _ in parts])   # no program per shape
     info = jax.tree.map(join, *[i for _, i in parts])
     return params, info
 
