@@ -78,12 +78,12 @@ def _needs_x64(fn):
 
 
 from bayesmag._src.core.cache import configure_compile_cache as configure_compile_cache  # noqa: E402
+from bayesmag._src.core.cache import ensure_compile_cache as _ensure_compile_cache  # noqa: E402
+from bayesmag._src.core.version import __version__ as __version__  # noqa: E402
 
 # Cold start: JAX's persistent compilation cache is opt-in (BAYESMAG_COMPILE_CACHE=1 or
-# [output] compile_cache = true): reading it back crashed on CPU in CI (see _src/core/cache.py).
-configure_compile_cache(False)
-
-__version__ = "0.1.0"
+# [output] compile_cache = true): reading it back crashed on CPU in CI (see _src/core/cache.py). It is
+# configured on first use -- not at import, so `import bayesmag` leaves the process's JAX settings alone.
 
 #: public name -> module in bayesmag._src that defines it
 _EXPORTS = {
@@ -96,6 +96,13 @@ _EXPORTS = {
     "core.fit": ("LMSolution", "PhysicsFit", "covariance", "fit_physics", "identifiability", "levenberg_marquardt"),
     "core.frames": ("from_frame", "prediction_frame", "read_parquet", "to_frame"),
     "app.calibrator": ("Calibrator",),
+    "pipeline.calibrate": ("CalibrationRun", "calibrate"),
+    "pipeline.settings": ("CalibrationSettings", "NetworkSettings", "NutsSettings", "PhysicsSettings", "UQSettings"),
+    "pipeline.stages": ("CalibrationError",),
+    "core.predictor": ("Prediction", "Predictor"),
+    "core.likelihoods": ("register_likelihood",),
+    "app.discover_outputs": ("write_discovery",),
+    "app.nuts_outputs": ("write_nuts_outputs",),
     "app.export": ("ExportError", "export_run"),
     "app.artifact": ("ArtifactError", "Calibration", "load"),
     "pipeline.discover": ("DiscoverOptions", "DiscoveryResult", "discover"),
@@ -104,20 +111,25 @@ _EXPORTS = {
     "core.network": ("MCPrediction", "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict"),
     "pipeline.nuts": ("NutsResult", "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts"),
     "core.physics": (
-        "EXTRA_TERMS", "Inputs", "InputTransform", "PhysicsModel", "Term", "ThermoAffine", "inputs_from_data",
+        "T0_DEFAULT", "resolve_t0", "EXTRA_TERMS", "Inputs", "InputTransform", "PhysicsModel", "Term", "ThermoAffine", "inputs_from_data",
     ),
     "core.catalogue": (
         "CATALOGUE", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "RunOffset",
-        "TemperatureQuadratic", "ThermalLag", "TimingOffset",
+        "TemperatureQuadratic", "ThermalLag", "TimingOffset", "register_term",
     ),
     "core.physics_uq": ("PhysicsUQ", "estimate_input_noise", "physics_uncertainty", "sobol_normal"),
 }
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
+#: public name -> its name in the defining module
+_ALIASES = {"register_likelihood": "register", "register_term": "register"}
 _SUBMODULES = ("likelihoods", "metrics", "simulate")
-_NEEDS_X64 = ("fit_physics", "physics_uncertainty", "run_nuts", "run_job", "discover", "levenberg_marquardt")
+_NEEDS_X64 = ("fit_physics", "physics_uncertainty", "run_nuts", "run_job", "discover", "levenberg_marquardt", "calibrate")
 
 
 def __getattr__(name):
+    if name.startswith("__"):
+        raise AttributeError(f"module 'bayesmag' has no attribute {name!r}")
+    _ensure_compile_cache()
     if name in _SUBMODULES:
         return _importlib.import_module(f".{name}", __name__)
     mod = _WHERE.get(name)
@@ -125,7 +137,7 @@ def __getattr__(name):
         raise AttributeError(f"module 'bayesmag' has no attribute {name!r}")
     if name in ("EXTRA_TERMS", "CATALOGUE"):
         _importlib.import_module("._src.core.catalogue", __name__)      # registers the catalogue's terms
-    value = getattr(_importlib.import_module(f"._src.{mod}", __name__), name)
+    value = getattr(_importlib.import_module(f"._src.{mod}", __name__), _ALIASES.get(name, name))
     if name in _NEEDS_X64:                                      # float64 entry points warn in float32
         value = _needs_x64(value)
     globals()[name] = value
@@ -138,7 +150,10 @@ def __dir__():
 
 __all__ = [  # noqa: F822 (resolved lazily by __getattr__)
     "likelihoods", "metrics", "simulate", "enable_x64", "x64_enabled", "Float64Warning", "X64_AT_IMPORT",
-    "configure_compile_cache", "Calibrator", "ExportError", "export_run",
+    "configure_compile_cache", "Calibrator", "ExportError", "export_run", "calibrate", "CalibrationRun",
+    "CalibrationSettings", "NetworkSettings", "NutsSettings", "PhysicsSettings", "UQSettings", "CalibrationError",
+    "Prediction", "Predictor", "register_likelihood", "register_term", "write_discovery", "write_nuts_outputs",
+    "T0_DEFAULT", "resolve_t0",
     "from_frame", "prediction_frame", "read_parquet", "to_frame", "HybridPrediction", "fuse", "MCPrediction",
     "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict", "CATALOGUE", "AxisQuadratic",
     "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "RunOffset", "TimingOffset", "NutsResult",

@@ -1,7 +1,8 @@
-"""``python -m bayesmag ...``: the same as the ``bayesmag`` command."""
+"""``python -m bayesmag ...``: the command line (the same as the ``bayesmag`` console script)."""
 
 import sys
 
 from bayesmag._src.app.cli import main
 
-sys.exit(main())
+if __name__ == "__main__":
+    sys.exit(main())

@@ -10,7 +10,8 @@ from bayesmag._src.core.likelihoods import get_likelihood as get_likelihood
 from bayesmag._src.core.likelihoods import moment_match as moment_match
 from bayesmag._src.core.likelihoods import sample_by_inversion as sample_by_inversion
 from bayesmag._src.core.likelihoods import ShapeParam as ShapeParam
+from bayesmag._src.core.likelihoods import register as register
 from bayesmag._src.core.likelihoods import unregister as unregister
 
 __all__ = ["Likelihood", "ShapeParam", "Gaussian", "Laplace", "StudentT", "LIKELIHOODS", "get_likelihood",
-           "moment_match", "sample_by_inversion", "unregister"]
+           "moment_match", "sample_by_inversion", "register", "unregister"]

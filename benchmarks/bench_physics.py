@@ -45,9 +45,9 @@ def main():
     rows = {}
     rows["physics fit (LM, 3 axes, 3040 rows, with covariance)"] = timed(lambda: bm.fit_physics(train), args.repeats)
     rows["physics UQ psqmc Np=500 Nq=1000 (338 rows x 3 axes)"] = timed(
-        lambda: bm.physics_uncertainty(fit, inp, sigma_in=S, n_params=500, n_qmc=1000, seed=0), args.repeats)
+        lambda: bm.physics_uncertainty(fit, inp, sigma_in=S, method="psqmc", n_params=500, n_qmc=1000, seed=0), args.repeats)
     rows["physics UQ psqmc Np=100 Nq=500 (paper 'reduced')"] = timed(
-        lambda: bm.physics_uncertainty(fit, inp, sigma_in=S, n_params=100, n_qmc=500, seed=0), args.repeats)
+        lambda: bm.physics_uncertainty(fit, inp, sigma_in=S, method="psqmc", n_params=100, n_qmc=500, seed=0), args.repeats)
     rows["physics UQ analytic (exact moments)"] = timed(
         lambda: bm.physics_uncertainty(fit, inp, sigma_in=S, method="analytic"), args.repeats)
 

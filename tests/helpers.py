@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import bayesmag
 from bayesmag import CalibrationData, PhysicsModel, PhysicsUQ, inputs_from_data
 from bayesmag._src.core import likelihoods as _likelihoods_src
 from bayesmag._src.core.network import MCPrediction
@@ -38,9 +39,10 @@ def uq_parts(seed=0, n=50):
     return phys, nn
 
 
-# A fourth family, defined in the tests and nowhere else: registration is automatic. It is the worked
+# A fourth family, defined in the tests and nowhere else, registered by its decorator. It is the worked
 # example of docs/extending.md; test_likelihoods checks it against scipy and runs it through the
 # network, fusion, NUTS and apply; test_extending registers it under a test-only name.
+@bayesmag.register_likelihood
 @dataclasses.dataclass(frozen=True)
 class Logistic(Likelihood):
     r"""Logistic(loc, scale); CRPS = s (z - 2 log F(z) - 1) (Jordan et al. 2019, crps_logis)."""

@@ -13,7 +13,7 @@ from bayesmag._src.app.artifact import ArtifactError, load
 from bayesmag._src.app.cli import main
 from bayesmag._src.app.config import config_from_dict
 
-UQ = {"n_params": 40, "n_qmc": 64, "seed": 3}
+UQ = {"n_params": 40, "n_qmc": 64, "seed": 3, "method": "psqmc"}
 
 
 def _run(tmp_path, sim=None, **over):

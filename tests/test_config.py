@@ -21,7 +21,7 @@ def test_defaults_and_round_trip():
     ({"data": {"source": "simulated"}, "bogus": 1}, r"Unknown config key 'bogus'"),
     ({"data": {"source": "simulated"}, "uq": {"n_params": "many"}}, r"'uq.n_params' = 'many' has the wrong type: expected int"),
     ({"data": {"source": "simulated"}, "split": {"kind": "shuffle"}}, r"'split.kind' = 'shuffle' is not valid.*by_run"),
-    ({"data": {"source": "simulated"}, "uq": {"method": "qmc"}}, r"must be one of \['psqmc', 'mc', 'analytic'\]"),
+    ({"data": {"source": "simulated"}, "uq": {"method": "qmc"}}, r"must be one of \['auto', 'psqmc', 'mc', 'analytic'\]"),
     ({"data": {}}, r"needs 'source'"),
     ({"data": {"source": "a", "path": "b"}}, r"both 'source' and 'path'"),
     ({"data": {"source": "simulated"}, "uq": {"sigma_in": [1, 2]}}, r"sigma_in"),

@@ -82,6 +82,8 @@ def test_default_cache_dir_follows_xdg(monkeypatch, tmp_path):
 
 _SNIPPET = """
 import time, jax, jax.numpy as jnp, bayesmag
+assert jax.config.values["jax_compilation_cache_dir"] is None     # configured on first use, not at import
+bayesmag.fit_physics                                               # first use of the API
 f = jax.jit(lambda x: jnp.sin(x) @ jnp.cos(x).T + jnp.linalg.inv(x @ x.T + 3 * jnp.eye(x.shape[0])))
 print(jax.config.values["jax_compilation_cache_dir"])
 f(jnp.ones((7, 7))).block_until_ready()
@@ -129,15 +131,16 @@ def test_job_with_the_cache_switched_off_runs_without_it_and_restores_it(tmp_pat
     """[output] compile_cache = false from Python: off during the job, the caller's setting back after."""
     import jax
 
-    from bayesmag._src.app import job
+    from bayesmag._src.pipeline import stages
+    cache.ensure_compile_cache()                    # as the first use of bayesmag does
     seen = []
-    real = job.run_physics_stage
+    real = stages.run_physics_stage
 
     def spy(*args, **kwargs):
         seen.append((jax.config.values["jax_enable_compilation_cache"], jax.config.values["jax_compilation_cache_dir"]))
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(job, "run_physics_stage", spy)
+    monkeypatch.setattr(stages, "run_physics_stage", spy)
     before = (jax.config.values["jax_enable_compilation_cache"], jax.config.values["jax_compilation_cache_dir"])
     overrides = ["output.compile_cache=false", "output.figures=false", "output.progress=false", "network.enabled=false",
                  "data.simulate.n=400", "uq.n_params=20", "uq.n_qmc=32"]

@@ -60,7 +60,8 @@ def test_fast_path_equals_brute_force_nested(chunk):
     """The matrix-product path computes the paper's nested estimator exactly (same draws, same Sobol points)."""
     fit, d = _fit()
     inp = inputs_from_data(d.subset(np.arange(30)))
-    u = physics_uncertainty(fit, inp, sigma_in=SIGMA, n_params=40, n_qmc=64, seed=5, chunk_size=chunk)
+    u = physics_uncertainty(fit, inp, sigma_in=SIGMA, method="psqmc", n_params=40, n_qmc=64, seed=5,
+                            chunk_size=chunk)
     eps = jnp.asarray(sobol_normal(64, SIGMA, seed=5))
     key = jax.random.PRNGKey(5)
     for a in range(3):

@@ -9,8 +9,8 @@ import scipy.stats
 import bayesmag
 from bayesmag import PhysicsUQ, metrics
 from bayesmag._src.core.likelihoods import Gaussian
-from bayesmag._src.core.predictor import (Components, Predictor, UQOptions, compose, conformal_quantile,
-                                     conformal_ratios, conformal_scale)
+from bayesmag._src.core.predictor import Components, Predictor, UQOptions, compose
+from bayesmag._src.pipeline.conformal import conformal_quantile, conformal_ratios, conformal_scale
 from helpers import uq_parts
 
 Z95 = scipy.stats.norm.ppf(0.975)

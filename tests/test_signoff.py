@@ -341,7 +341,7 @@ def test_job_draws_the_physics_calibration_and_pit(run):
 
 def test_trace_shows_the_worst_r_hat_parameters():
     import pandas as pd
-    from bayesmag._src.pipeline.nuts.plots import trace_parameters
+    from bayesmag._src.app.nuts_plots import trace_parameters
     df = pd.DataFrame({"axis": list("xxxyyy") + ["x"], "parameter": ["S_x", "S_y", "O", "S_x", "Ko", "O", "sigma"],
                        "r_hat": [1.001, 1.09, 1.002, 1.03, 1.002, 1.2, 1.5],
                        "ess_bulk": [100.0, 900.0, 50.0, 800.0, 60.0, 700.0, 10.0],

@@ -80,7 +80,7 @@ def _check_magnitudes(data) -> None:
     check_values(data, origin=data.source, allow_nonfinite=True)
 
 
-def apply_calibration(model_dir, data_path, out_path, *, level=None, method="analytic", n_params=100, n_qmc=256,
+def apply_calibration(model_dir, data_path, out_path, *, level=None, method="auto", n_params=100, n_qmc=256,
                       temperature_unit="C", field_unit=None, columns=None, chunk_size=100_000,
                       progress=False) -> dict:
     """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``.

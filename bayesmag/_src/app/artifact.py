@@ -153,7 +153,7 @@ class Calibration:
     def _train_max(self) -> float:
         return float(np.maximum(np.abs(np.asarray(self.domain.low[:3])), np.abs(np.asarray(self.domain.high[:3]))).max())
 
-    def predictor(self, *, method: str = "analytic", n_params: int = 100, n_qmc: int = 256, seed: int = 0,
+    def predictor(self, *, method: str = "auto", n_params: int = 100, n_qmc: int = 256, seed: int = 0,
                   chunk_size: int = 256):
         """The saved :class:`~bayesmag._src.core.predictor.Predictor` with these physics-UQ settings."""
         from bayesmag._src.core.predictor import Predictor, UQOptions
@@ -167,7 +167,7 @@ class Calibration:
                          scale=self.interval_scale, domain=self.domain,
                          uq=UQOptions(method, n_params, n_qmc, seed, chunk_size), sessions=self.sessions)
 
-    def predict(self, data, *, level: float | None = None, method: str = "analytic",
+    def predict(self, data, *, level: float | None = None, method: str = "auto",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
                 new_session: bool = True, progress: bool = False, columns: dict | None = None,
                 field_unit: str | None = None, temperature_unit: str = "C",
@@ -253,7 +253,7 @@ class Calibration:
 def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95) -> None:
     """Write the :class:`~bayesmag._src.core.predictor.Predictor` as ``calibration.json`` and ``calibration.npz``
     into folder ``path``."""
-    from bayesmag import __version__
+    from bayesmag._src.core.version import __version__
     fit = predictor.fit
     cov = np.asarray(fit.cov, np.float64)
     cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))         # exactly symmetric: the loader checks it (issue 21 #5)

@@ -1,23 +1,37 @@
-"""A scikit-learn-style front door for notebooks: ``bayesmag.Calibrator(config).fit(data).predict(df)``.
+"""A scikit-learn estimator for notebooks and pipelines: ``bayesmag.Calibrator(config).fit(X, y).predict(X)``.
 
-``fit`` runs the same job as ``bayesmag run`` (split, physics fit, physics uncertainty, and the
-network / NUTS stages the config enables) on the rows it is given, into a run folder, and keeps
-the saved calibration; ``predict`` applies it. Without a config it fits the physics stage on all
-rows (``[split] kind = "none"``) with the exact analytic uncertainty.
+``fit`` converts the config to library settings and calls :func:`~bayesmag.calibrate` directly
+(no job, no files, no process spawned); the fitted calibration is the saved
+:class:`~bayesmag.Calibration` (:meth:`Calibrator.save` writes the folder ``bayesmag apply`` reads).
+It follows scikit-learn's estimator contract without importing scikit-learn (an optional extra,
+``pip install bayesmag[sklearn]``): the constructor only stores its parameters, ``get_params`` /
+``set_params`` / :func:`sklearn.base.clone` / ``Pipeline`` work, ``fit`` returns ``self``, fitted
+attributes end in ``_``.
 """
 
 from __future__ import annotations
 
+import inspect
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from bayesmag._src.app.config import Config, ConfigError, config_from_dict, read_config_dict
-from bayesmag._src.core.data import DataError, write_csv
+from bayesmag._src.core.data import AXES, CalibrationData, DataError
 
-__all__ = ["Calibrator", "DEFAULT_CONFIG"]
+__all__ = ["Calibrator", "DEFAULT_CONFIG", "PARAM_UNITS"]
 
-DEFAULT_CONFIG = {"name": "calibrator", "split": {"kind": "none"}, "physics": {"t0": "mean"},
-                  "uq": {"method": "analytic"}, "output": {"figures": False, "progress": False}}
+#: The config of ``Calibrator()``: the default settings (physics stage, ``"auto"`` uncertainty), no figures.
+DEFAULT_CONFIG = {"name": "calibrator", "split": {"kind": "none"}, "output": {"figures": False, "progress": False}}
+
+#: Units of the paper model's parameters (``params_``); other terms' parameters say ``""`` unless the
+#: term names them with a ``param_units()`` method.
+PARAM_UNITS = {"S": "1", "Ks": "1/C", "O": "uT", "Ko": "uT/C"}
+
+#: Column order of a NumPy ``X``: the measured field (uT) and the temperature (C), then optionally time (s)
+#: and run; a NumPy ``y`` is the reference field ``(n, 3)`` in uT.
+ARRAY_COLUMNS = ("bx_meas", "by_meas", "bz_meas", "temperature", "time", "run")
 
 
 def _drop_none(d):
@@ -27,22 +41,31 @@ def _drop_none(d):
 
 
 class Calibrator:
-    """Fit a calibration on a DataFrame or :class:`~bayesmag.CalibrationData`, then predict.
+    """Fit a calibration on a DataFrame, a :class:`~bayesmag.CalibrationData` or NumPy arrays, then predict.
 
     Args:
-      config: None (physics stage on all rows), a TOML path or packaged config name, a
-        :class:`~bayesmag.Config`, or a plain dict as parsed from TOML. Its ``[data]`` table is
-        replaced by the rows given to :meth:`fit`.
+      config: None (the physics stage with the default settings, :data:`DEFAULT_CONFIG`), a TOML
+        path or packaged config name (``"paper_physics"``), a :class:`~bayesmag.Config`, or a plain dict
+        as parsed from TOML. Its ``[data]`` table and ``[split]`` are not used: the rows given to
+        :meth:`fit` are the data, and ``holdout`` says which of them are held out.
       overrides: ``--set``-style ``key=value`` strings applied to the config.
-      out: run folder to write (default: a temporary folder kept as long as the object).
-      columns, temperature_unit, field_unit: how to read the data (``frames.as_calibration_data``: a
-        DataFrame, a NumPy array (n, 7) in the order ``data.ARRAY_COLUMNS``, or CalibrationData;
-        the field is checked to be in uT and the temperature in C unless a unit is declared).
-      duplicate_times: ``"refuse"`` (default: rows of a run that share a timestamp are named) or
-        ``"spread"`` (spread them evenly up to the next stamp, as for the whole-second Belsten stamps).
+      out: a folder: after :meth:`fit` the calibration is saved in ``out/run`` (:meth:`save`).
+      columns, temperature_unit, field_unit: how the data are read (a DataFrame's column names; the
+        declared units, converted to uT and C). Undeclared, the field is checked to be in uT and the
+        temperature in C (nT, mT, gauss and kelvin refused), as on the command line.
+      duplicate_times: ``"ignore"`` (default: a physics fit does not use time), ``"refuse"`` (rows of a
+        run that share a timestamp are named) or ``"spread"`` (spread evenly up to the next stamp, as
+        for the whole-second Belsten stamps at 4 Hz).
+      holdout: None (default: every row fits, no metrics), a fraction in (0, 1) (that share of the rows,
+        chosen as the config's ``[split]`` kind chooses them, is held out and scored into ``metrics_``),
+        or ``"config"`` (the config's own ``[split]``). Nothing is ever held out silently.
 
-    Attributes after :meth:`fit`: ``calibration_`` (:class:`~bayesmag.Calibration`),
-    ``metrics_`` (the run's metrics.json), ``physics_fit_``, ``run_dir_``.
+    NumPy input: ``X`` ``(n, 4)`` columns :data:`ARRAY_COLUMNS` (``bx, by, bz`` in uT, temperature in C;
+    optional 5th time in s and 6th run), ``y`` ``(n, 3)`` the reference field in uT.
+
+    Attributes after :meth:`fit`: ``run_`` (the :class:`~bayesmag.CalibrationRun`), ``calibration_``
+    (the :class:`~bayesmag.Calibration` :meth:`predict` applies), ``physics_fit_``, ``params_`` (a
+    labelled DataFrame), ``metrics_`` (scores of the held-out rows, or None), ``run_dir_`` (with ``out``).
 
     Example:
       >>> import bayesmag
@@ -50,17 +73,54 @@ class Calibrator:
       >>> cal = bayesmag.Calibrator().fit(d)
       >>> cal.predict(d)["calibrated"].shape
       (400, 3)
+      >>> list(cal.params_.columns)
+      ['axis', 'parameter', 'value', 'sd', 'unit']
     """
 
     def __init__(self, config=None, overrides=(), *, out: str | Path | None = None, columns: dict | None = None,
-                 temperature_unit: str = "C", field_unit: str | None = None, duplicate_times: str = "refuse"):
+                 temperature_unit: str = "C", field_unit: str | None = None, holdout: float | str | None = None,
+                 duplicate_times: str = "ignore"):
         self.config = config
-        self.overrides = list(overrides)
+        self.overrides = overrides
         self.out = out
+        self.columns = columns
+        self.temperature_unit = temperature_unit
+        self.field_unit = field_unit
+        self.holdout = holdout
         self.duplicate_times = duplicate_times
-        self.frame_options = {"columns": columns, "temperature_unit": temperature_unit, "field_unit": field_unit}
 
-    def _raw_config(self) -> dict:
+    # ------------------------------------------------------------------ scikit-learn's parameter protocol
+    @classmethod
+    def _get_param_names(cls) -> list[str]:
+        return [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
+
+    def get_params(self, deep: bool = True) -> dict:
+        """The constructor parameters (scikit-learn's ``get_params``; ``deep`` has nothing to recurse into)."""
+        return {name: getattr(self, name) for name in self._get_param_names()}
+
+    def set_params(self, **params) -> "Calibrator":
+        """Set constructor parameters by name; returns ``self``.
+
+        Raises:
+            ValueError: a name that is not a parameter (the message lists them).
+        """
+        valid = self._get_param_names()
+        for k, v in params.items():
+            if k not in valid:
+                raise ValueError(f"Calibrator has no parameter {k!r}; its parameters are {valid}.")
+            setattr(self, k, v)
+        return self
+
+    def __sklearn_tags__(self):
+        from sklearn.utils import Tags, TargetTags  # only called by scikit-learn itself
+        tags = Tags(estimator_type="regressor", target_tags=TargetTags(required=False, multi_output=True,
+                                                                      single_output=False))
+        tags.input_tags.two_d_array = True
+        tags.input_tags.allow_nan = False
+        return tags
+
+    # ------------------------------------------------------------------ config and data
+    def _config(self) -> Config:
         c = self.config
         if c is None:
             raw = {k: dict(v) if isinstance(v, dict) else v for k, v in DEFAULT_CONFIG.items()}
@@ -69,55 +129,172 @@ class Calibrator:
         elif isinstance(c, dict):
             raw = _drop_none(dict(c))
         elif isinstance(c, (str, Path)):
-            from bayesmag._src.app.cli import _resolve_config
-            raw = read_config_dict(_resolve_config(str(c)))
+            from bayesmag._src.app.config import resolve_config_path
+            raw = read_config_dict(resolve_config_path(str(c)))
         else:
             raise ConfigError(f"config must be None, a path, a Config or a dict; got {type(c).__name__}.")
         if self.overrides:
             from bayesmag._src.app.config import apply_overrides
-            raw = apply_overrides(raw, self.overrides)
-        return raw
+            raw = apply_overrides(raw, list(self.overrides))
+        raw["data"] = {"source": "simulated"}        # a placeholder: the rows come from fit()
+        return config_from_dict(raw)
 
-    def fit(self, data, y=None) -> "Calibrator":
-        """Run the job on ``data`` (with reference columns); ``y`` is ignored (sklearn signature)."""
-        del y
-        from bayesmag._src.app.artifact import load
-        from bayesmag._src.core.frames import as_calibration_data
-        from bayesmag._src.app.job import run_job
+    def _rows(self, X, y=None, *, need_reference: bool = False) -> tuple[CalibrationData, object]:
+        """``X`` (and ``y``) as checked CalibrationData in uT and C (the command line's unit checks,
+        :func:`~bayesmag._src.core.frames.as_calibration_data`), and the DataFrame index (or None)."""
+        from bayesmag._src.core.frames import as_calibration_data, is_frame
 
-        what = "the data given to Calibrator.fit"
-        rows = as_calibration_data(data, **self.frame_options, require_reference=True,
-                                   duplicate_times=self.duplicate_times, what=what)
-        if self.out is None:
-            self._tmp = tempfile.TemporaryDirectory(prefix="bayesmag-calibrator-")
-            base = Path(self._tmp.name)
+        index = X.index if is_frame(X) else None
+        if not isinstance(X, CalibrationData) and not is_frame(X):
+            a = np.asarray(X, dtype=np.float64)
+            if a.ndim != 2 or a.shape[1] not in (4, 5, 6):
+                raise DataError(f"X as an array must be (n, 4) [bx, by, bz, temperature] (optionally time, run); "
+                                f"got shape {a.shape}.")
+            X = CalibrationData(a[:, :3], a[:, 3], None, a[:, 4] if a.shape[1] > 4 else None,
+                                a[:, 5].astype(int) if a.shape[1] > 5 else None, source="array X")
+        if y is not None:
+            ref = np.asarray(y.to_numpy() if hasattr(y, "to_numpy") else y, dtype=np.float64)
+            n = len(X) if is_frame(X) else X.n
+            if ref.shape != (n, 3):
+                raise DataError(f"y must be the reference field (n, 3) = ({n}, 3); got shape {ref.shape}.")
+            if is_frame(X):
+                X = X.assign(**{f"{a}_ref": ref[:, i] for i, a in enumerate(("bx", "by", "bz"))})
+            else:
+                X = CalibrationData(X.b_meas, X.temperature, ref, X.time, X.run, source=X.source)
+        rows = as_calibration_data(X, columns=self.columns if is_frame(X) else None, field_unit=self.field_unit,
+                                   temperature_unit=self.temperature_unit, require_reference=need_reference,
+                                   duplicate_times=self.duplicate_times, what="the data given to Calibrator")
+        return rows, index
+
+    def _split(self, cfg: Config, rows: CalibrationData):
+        from bayesmag._src.core.data import make_split
+
+        h = self.holdout
+        if h is None:
+            return None
+        sp = cfg.split
+        if isinstance(h, str):
+            if h != "config":
+                raise ValueError(f"holdout = {h!r} must be None, a fraction in (0, 1) or \"config\".")
+            kind, fraction = sp.kind, sp.test_fraction
         else:
-            base = Path(self.out)
-            base.mkdir(parents=True, exist_ok=True)
-        csv = base / "fit_data.csv"
-        write_csv(rows, csv)
-        raw = self._raw_config()
-        raw["data"] = {"path": str(csv), **({"field_unit": "uT"} if rows.field_unit is not None else {})}
-        cfg = config_from_dict(raw)
-        self.run_dir_ = base / "run"
+            if not 0 < float(h) < 1:
+                raise ValueError(f"holdout = {h!r} must be None, a fraction in (0, 1) or \"config\".")
+            kind = sp.kind if sp.kind != "none" else "random"
+            fraction = float(h)
+        if kind == "none":
+            return None
+        return make_split(rows, kind=kind, test_fraction=fraction, seed=sp.seed, test_runs=sp.test_runs,
+                          n_blocks=sp.n_blocks)
+
+    # ------------------------------------------------------------------ estimator
+    def fit(self, X, y=None) -> "Calibrator":
+        """Calibrate on ``X`` (with the reference columns, or the reference as ``y``); returns ``self``.
+
+        Runs :func:`~bayesmag.calibrate` with the config's stages (physics; network and NUTS when the
+        config enables them) on the rows (minus the ``holdout`` rows, which are scored into ``metrics_``).
+        """
+        from bayesmag._src.core.data import validate
+        from bayesmag._src.pipeline.calibrate import calibrate
+
+        cfg = self._config()
+        rows, _ = self._rows(X, y, need_reference=True)
+        split = self._split(cfg, rows)
+        train, test = (rows, None) if split is None else (rows.subset(split.train), rows.subset(split.test))
+        settings = cfg.settings()
         try:
-            result = run_job(cfg, self.run_dir_, progress=cfg.output.progress)
-        except DataError as e:          # name the user's data, never the temporary CSV it was handed over in
-            raise DataError(str(e).replace(f" in {csv}", f" in {what}").replace(str(csv), what)) from None
-        self.metrics_ = result["metrics"]
-        self.physics_fit_ = result["fit"]
-        self.calibration_ = load(self.run_dir_)
+            model = settings.physics.model(train)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"[physics] extra_terms: {e}") from None
+        validate(rows, n_params=model.n_params, origin=rows.source or "the rows given to Calibrator.fit",
+                 need_temperature_variation=cfg.physics.temperature_terms, allow_duplicate_times=True)
+        if cfg.nuts.enabled:
+            from bayesmag._src.app.nuts_stage import check_nuts_config
+            settings = cfg.settings(nuts_priors=check_nuts_config(cfg, model.param_names))
+        self.run_ = calibrate(train, settings, test=test)
+        self.physics_fit_ = self.run_.fit
+        self.metrics_ = None
+        if split is not None:
+            from bayesmag._src.app.job import job_metrics
+            self.metrics_, _ = job_metrics(cfg, self.run_, rows, split, test)
+        self._cfg = cfg
+        self.calibration_ = self._calibration()
+        self.params_ = self._params_frame()
+        if self.out is not None:
+            self.run_dir_ = self.save(Path(self.out) / "run")
         return self
 
-    def _check_fitted(self):
-        if not hasattr(self, "calibration_"):
+    def _calibration(self):
+        """The fitted calibration exactly as saved and loaded (a round trip through a temporary folder)."""
+        from bayesmag._src.app.artifact import load
+        with tempfile.TemporaryDirectory(prefix="bayesmag-calibrator-") as tmp:
+            return load(self.save(Path(tmp) / "run"))
+
+    def _params_frame(self):
+        import pandas as pd
+
+        fit = self.physics_fit_
+        sd = np.sqrt(np.stack([np.diag(np.asarray(c)) for c in fit.cov]))
+        units = []
+        for comp in fit.model.components:
+            own = getattr(comp, "param_units", None)
+            if callable(own):
+                units += list(own())
+            elif comp.name == "thermo_affine":
+                units += [PARAM_UNITS[n.split("_")[0]] for n in comp.param_names()]
+            else:
+                units += [""] * len(comp.param_names())
+        recs = [{"axis": ax, "parameter": name, "value": float(fit.theta[a][j]), "sd": float(sd[a][j]),
+                 "unit": units[j]} for a, ax in enumerate(AXES) for j, name in enumerate(fit.model.param_names)]
+        return pd.DataFrame.from_records(recs, columns=["axis", "parameter", "value", "sd", "unit"])
+
+    def save(self, path: str | Path) -> Path:
+        """Write the fitted calibration into folder ``path`` (atomically): ``calibration.json``/``.npz``
+        (``bayesmag apply --model PATH`` and :func:`bayesmag.load` read them), ``params.json``,
+        ``config.resolved.toml`` and, with a holdout, ``metrics.json``. Returns ``path``."""
+        import json
+
+        from bayesmag._src.app.artifact import save_calibration
+        from bayesmag._src.app.config import to_toml
+        from bayesmag._src.app.outdir import staging_dir
+
+        self._check_fitted("run_")
+        path = Path(path)
+        with staging_dir(path) as tmp:
+            (tmp / "params.json").write_text(json.dumps(self.physics_fit_.to_json(), indent=2))
+            (tmp / "config.resolved.toml").write_text(to_toml(self._cfg.to_dict()))
+            save_calibration(tmp, self.run_.predictor, config=self._cfg.to_dict(), level=self._cfg.uq.level)
+            if self.metrics_ is not None:
+                (tmp / "metrics.json").write_text(json.dumps(self.metrics_, indent=2))
+        return path
+
+    def _check_fitted(self, attr: str = "calibration_"):
+        if not hasattr(self, attr):
             raise RuntimeError("this Calibrator is not fitted yet: call fit(data) first.")
 
-    def predict(self, data, **kwargs):
-        """Calibrated field and uncertainty: a DataFrame for a DataFrame, the dict of arrays for CalibrationData."""
+    def predict(self, X, **kwargs):
+        """Calibrated field and uncertainty (:meth:`bayesmag.Calibration.predict`): a DataFrame for a
+        DataFrame (its index kept), the dict of ``(n, 3)`` arrays for a CalibrationData or an array."""
         self._check_fitted()
-        return self.calibration_.predict(data, **{**self.frame_options, **kwargs})
+        if isinstance(X, CalibrationData):
+            return self.calibration_.predict(X, **kwargs)
+        from bayesmag._src.core.frames import is_frame, prediction_frame
+        rows, index = self._rows(X)
+        out = self.calibration_.predict(rows, **kwargs)
+        return prediction_frame(out, index) if is_frame(X) else out
+
+    def score(self, X, y=None) -> float:
+        r"""Minus the mean CRPS (uT) of the predictive distribution at the reference, over rows and axes:
+        :math:`-\frac{1}{3n}\sum_{i,a} \mathrm{CRPS}(F_{ia}, y_{ia})` (higher is better, 0 is perfect;
+        scikit-learn's convention). ``y``: the reference, unless ``X`` holds it."""
+        from bayesmag._src.core import metrics as M
+
+        self._check_fitted()
+        rows, _ = self._rows(X, y, need_reference=True)
+        pred = self.calibration_.predictor().predict(rows)
+        return -float(np.mean(M.crps(pred.dist, rows.b_ref)))
 
     def __repr__(self) -> str:
-        state = f"fitted, {self.run_dir_}" if hasattr(self, "calibration_") else "not fitted"
-        return f"Calibrator(config={self.config!r}) [{state}]"
+        params = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items()
+                           if v != inspect.signature(type(self).__init__).parameters[k].default)
+        return f"Calibrator({params})"

@@ -113,25 +113,14 @@ def _unit_overrides(args) -> list[str]:
 
 
 def packaged_configs_dir() -> Path:
-    """The shipped configs: ``bayesmag/configs`` when installed, the repository's ``configs/`` in a checkout."""
-    here = Path(__file__).resolve().parents[2]     # bayesmag/_src/app/cli.py -> bayesmag/
-    for d in (here / "configs", here.parent / "configs"):
-        if d.is_dir() and any(d.glob("*.toml")):
-            return d
-    return here / "configs"
+    """The shipped configs (:func:`bayesmag._src.app.config.packaged_configs_dir`)."""
+    from bayesmag._src.app.config import packaged_configs_dir as where
+    return where()
 
 
 def _resolve_config(name: str) -> Path:
-    p = Path(name)
-    if p.exists():
-        return p
-    packaged = packaged_configs_dir() / f"{Path(name).name.removesuffix('.toml')}.toml"
-    if packaged.exists():
-        return packaged
-    from bayesmag._src.app.config import ConfigError
-    names = sorted(x.stem for x in packaged_configs_dir().glob("*.toml"))
-    raise ConfigError(f"Config file {name} does not exist, and it is not a packaged config; those are: "
-                      f"{', '.join(names)}.")
+    from bayesmag._src.app.config import resolve_config_path
+    return resolve_config_path(name)
 
 
 def _cmd_data(args) -> int:
@@ -283,7 +272,7 @@ def _cmd_report(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from bayesmag import __version__
+    from bayesmag._src.core.version import __version__
     p = argparse.ArgumentParser(prog="bayesmag", description="Magnetometer calibration with trustworthy uncertainty.")
     p.add_argument("--version", action="version", version=f"bayesmag {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
@@ -304,8 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--data", required=True, help="canonical CSV (time,run,bx_meas,by_meas,bz_meas,temperature[,*_ref])")
     a.add_argument("--out", required=True, help="output CSV")
     a.add_argument("--level", type=float, default=None, help="central interval level (default: the run's)")
-    a.add_argument("--uq", choices=["analytic", "psqmc"], default="analytic",
-                   help="physics uncertainty method (analytic: exact moments, fastest)")
+    a.add_argument("--uq", choices=["auto", "analytic", "psqmc"], default="auto",
+                   help="physics uncertainty method (auto, the default everywhere: analytic -- exact moments, "
+                        "fastest -- where the model allows it, else psqmc)")
     a.add_argument("--n-params", type=int, default=100, help="Np for --uq psqmc")
     a.add_argument("--n-qmc", type=int, default=256, help="Nq for --uq psqmc")
     a.add_argument("--temperature-unit", choices=["C", "K"], default="C", help="temperature unit of --data")
@@ -420,6 +410,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str]) -> int:
+    from bayesmag._src.core.cache import ensure_compile_cache
+    ensure_compile_cache()                  # before the first compilation (opt-in: BAYESMAG_COMPILE_CACHE=1)
     from bayesmag._src.app.artifact import ArtifactError
     from bayesmag._src.app.config import ConfigError
     from bayesmag._src.core.data import DataError

@@ -20,11 +20,14 @@ from pathlib import Path
 from typing import Any, ClassVar, Union
 
 from bayesmag._src.core.likelihoods import LIKELIHOODS
-from bayesmag._src.core.network import ACTIVATIONS, VALIDATION_KINDS, NetworkSpec
+from bayesmag._src.core.network import ACTIVATIONS, VALIDATION_KINDS
+from bayesmag._src.core.physics import T0_DEFAULT
+from bayesmag._src.core.predictor import FUSIONS
+from bayesmag._src.pipeline import settings as S
 
 __all__ = ["Config", "ConfigError", "load_config", "config_from_dict", "apply_overrides", "to_toml",
-           "DataConfig", "SplitConfig", "PhysicsConfig", "UQConfig", "OutputConfig", "NetworkConfig", "NutsConfig",
-           "CertificateConfig", "MeasurementConfig",
+           "DataConfig", "SplitConfig", "packaged_configs_dir", "resolve_config_path", "PhysicsConfig", "UQConfig",
+           "OutputConfig", "NetworkConfig", "NutsConfig", "CertificateConfig", "MeasurementConfig",
            "config_error"]
 
 
@@ -55,7 +58,7 @@ class SplitConfig:
 
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
-    t0: Union[float, str] = 0.0         # reference temperature, or "mean" (training mean)
+    t0: Union[float, str] = T0_DEFAULT  # reference temperature (C), or "mean" (training mean; the one default)
     temperature_terms: bool = True
     extra_terms: list = dataclasses.field(default_factory=list)
     covariance: str = "white"           # white | ar1 | newey_west
@@ -63,7 +66,7 @@ class PhysicsConfig:
 
 @dataclasses.dataclass(frozen=True)
 class UQConfig:
-    method: str = "psqmc"               # psqmc | mc | analytic
+    method: str = "auto"                # auto (analytic where exact, else psqmc) | psqmc | mc | analytic
     n_params: int = 500
     n_qmc: int = 1000
     sigma_in: Union[str, list] = "auto"  # "auto", [sd_bx, sd_by, sd_bz, sd_T], or a 4x4 covariance
@@ -76,42 +79,23 @@ class UQConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class NetworkConfig(NetworkSpec):
-    """``[network]``: the library's :class:`~bayesmag.NetworkSpec` settings (names, defaults and
-    checks written once, there) plus the job's switches. ``enabled = false`` runs the physics
-    stage only; ``likelihoods`` trains one network per family; ``fusion`` combines it with physics."""
+class NetworkConfig(S.NetworkSettings):
+    """``[network]``: the library's :class:`~bayesmag._src.pipeline.settings.NetworkSettings` (names,
+    defaults and checks written once, there) plus the job's switch ``enabled`` (``false`` runs the
+    physics stage only)."""
 
     #: spec fields set per network by the job, not by the table
     internal: ClassVar[tuple[str, ...]] = ("likelihood", "n_in")
-    #: spec settings whose job default differs from the library's (honest by default, issue #13)
+    #: spec settings whose job default differs from the library's NetworkSpec (honest by default, issue #13)
     job_defaults: ClassVar[tuple[str, ...]] = ("validation",)
 
     enabled: bool = False
     likelihoods: list = dataclasses.field(default_factory=lambda: ["gaussian"])
-    validation: str = "time_blocks"     # the job's default; the library's NetworkSpec keeps the paper's "random"
-    interval_calibration: str = "conformal"  # "conformal": scale the intervals to cover uq.level of held-out blocks
-    conformal_folds: int = 5            # cross-conformal: at most this many time-block folds (one network each; fewer when long test blocks need long folds, hybrid.conformal_plan)
-    fusion: str = "moment_match"
 
-    def __post_init__(self):
-        super().__post_init__()
-        names = self.likelihoods
-        if not names:
-            raise ValueError(f"likelihoods = [] is empty; name at least one of {sorted(LIKELIHOODS)}.")
-        unknown = [n for n in names if not isinstance(n, str) or n not in LIKELIHOODS]
-        if unknown:
-            raise ValueError(f"likelihoods = {list(names)} names unknown likelihood(s) {unknown}; each must be one "
-                             f"of {sorted(LIKELIHOODS)}.")
-        if len(set(names)) != len(names):
-            raise ValueError(f"likelihoods = {list(names)} repeats a name.")
-        if self.conformal_folds < 2 or self.conformal_folds * self.validation_fraction >= 1.0:
-            raise ValueError(f"conformal_folds = {self.conformal_folds} is not valid with validation_fraction = "
-                             f"{self.validation_fraction}: it must be at least 2, and the folds (each one block of "
-                             f"validation_fraction of every run) must fit in a run together (folds x fraction < 1).")
-
-    def spec(self, likelihood: str) -> NetworkSpec:
-        """The library settings of the network for one ``likelihood``."""
-        return NetworkSpec.from_config(self, likelihood)
+    def settings(self) -> S.NetworkSettings:
+        """The library settings (no ``enabled`` switch)."""
+        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(S.NetworkSettings)}
+        return S.NetworkSettings(**{**kw, "likelihoods": tuple(self.likelihoods)})
 
     def table(self) -> dict:
         """The ``[network]`` table (no internal fields)."""
@@ -191,6 +175,29 @@ class Config:
     certificate: CertificateConfig = dataclasses.field(default_factory=CertificateConfig)
     measurement: MeasurementConfig = dataclasses.field(default_factory=MeasurementConfig)
 
+    def settings(self, *, nuts_priors=None) -> S.CalibrationSettings:
+        """The library settings of this job (:func:`~bayesmag.calibrate`): physics, UQ, the network
+        (when enabled, with its cross-conformal plan from ``[split]``) and NUTS (when enabled, with
+        ``nuts_priors`` parsed by :func:`~bayesmag.parse_priors`)."""
+        from bayesmag._src.pipeline.conformal import conformal_plan
+
+        p, u = self.physics, self.uq
+        physics = S.PhysicsSettings(t0=p.t0, temperature_terms=p.temperature_terms,
+                                    extra_terms=tuple(p.extra_terms), covariance=p.covariance)
+        uq = S.UQSettings(method=u.method, n_params=u.n_params, n_qmc=u.n_qmc, sigma_in=u.sigma_in, level=u.level,
+                          seed=u.seed, chunk_size=u.chunk_size, residual_term=u.residual_term, transfer=u.transfer,
+                          reference_sd=u.reference_sd)
+        network = conformal = nuts = None
+        if self.network.enabled:
+            network = self.network.settings()
+            if network.interval_calibration == "conformal":
+                conformal = S.ConformalPlan(*conformal_plan(self.split, network))
+        if self.nuts.enabled:
+            n = self.nuts
+            nuts = S.NutsSettings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
+                                  chain_method=n.chain_method, likelihood=n.likelihood, priors=nuts_priors, seed=n.seed)
+        return S.CalibrationSettings(physics=physics, uq=uq, network=network, nuts=nuts, conformal=conformal)
+
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["network"] = dataclasses.asdict(self.network)
@@ -202,7 +209,7 @@ class Config:
 _CHOICES = {
     "split.kind": ("random", "by_run", "time_blocks", "none"),
     "physics.covariance": ("white", "ar1", "newey_west"),
-    "uq.method": ("psqmc", "mc", "analytic"),
+    "uq.method": ("auto", "psqmc", "mc", "analytic"),
     "data.temperature_unit": ("C", "K"),
     "data.field_unit": ("uT", "nT", "mT", "G"),
     "network.interval_calibration": ("conformal", "none"),
@@ -222,7 +229,6 @@ def _choices(path: str) -> tuple | None:
     if path == "network.validation":
         return VALIDATION_KINDS
     if path == "network.fusion":
-        from bayesmag._src.pipeline.hybrid import FUSIONS
         return FUSIONS
     if path == "nuts.chain_method":
         from bayesmag._src.pipeline.nuts import CHAIN_METHODS
@@ -459,6 +465,28 @@ def read_config_dict(path: str | Path, overrides: list[str] = ()) -> dict:
         if not p.is_absolute() and not p.exists() and (path.parent / p).exists():
             data["path"] = str(path.parent / p)   # relative to the config file
     return raw
+
+
+def packaged_configs_dir() -> Path:
+    """The shipped configs: ``bayesmag/configs`` when installed, the repository's ``configs/`` in a checkout."""
+    here = Path(__file__).resolve().parents[2]     # bayesmag/_src/app/config.py -> bayesmag/
+    for d in (here / "configs", here.parent / "configs"):
+        if d.is_dir() and any(d.glob("*.toml")):
+            return d
+    return here / "configs"
+
+
+def resolve_config_path(name: str) -> Path:
+    """A config file: the path itself, else a packaged config of that name (``"paper_physics"``)."""
+    p = Path(name)
+    if p.exists():
+        return p
+    packaged = packaged_configs_dir() / f"{Path(name).name.removesuffix('.toml')}.toml"
+    if packaged.exists():
+        return packaged
+    names = sorted(x.stem for x in packaged_configs_dir().glob("*.toml"))
+    raise ConfigError(f"Config file {name} does not exist, and it is not a packaged config; those are: "
+                      f"{', '.join(names)}.")
 
 
 def load_config(path: str | Path, overrides: list[str] = ()) -> Config:

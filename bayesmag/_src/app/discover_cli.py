@@ -33,7 +33,7 @@ def load_discover_config(path: str | Path, overrides: Sequence[str] = ()):
         opts = DiscoverOptions(**disc)
     except (ValueError, TypeError) as e:
         raise ConfigError(f"[discover]: {e}") from None
-    if "t0" not in disc and cfg.physics.t0 != 0.0:
+    if "t0" not in disc:                # [physics] t0 (itself defaulting to the one default, "mean") applies
         opts = dataclasses.replace(opts, t0=cfg.physics.t0)
     return cfg, opts
 
@@ -100,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
             opts = dataclasses.replace(opts, figures=False)
         out = Path(args.out) if args.out else default_out(name)
         res = discover(data, opts, progress=None if args.no_progress else _progress_printer())
-        res.write(out)
+        from bayesmag._src.app.discover_outputs import write_discovery
+        write_discovery(res, out)
     except (ConfigError, DataError, FileNotFoundError, ValueError) as e:
         print(f"bayesmag discover: error: {e}", file=sys.stderr)
         return 2

@@ -1,11 +1,11 @@
-"""The job's NUTS stage (application layer): ``[nuts]`` settings in, ``metrics["nuts"]`` and files out."""
+"""The ``[nuts]`` table's check (application layer): settings and priors validated once, before any fitting."""
 
 from __future__ import annotations
 
 import dataclasses
 
 from bayesmag._src.app.config import config_error
-from bayesmag._src.pipeline.nuts import NutsResult, check_settings, parse_priors, run_nuts
+from bayesmag._src.pipeline.nuts import NutsResult, check_settings, parse_priors
 
 __all__ = ["check_nuts_config", "run_nuts_stage"]
 
@@ -26,28 +26,7 @@ def check_nuts_config(cfg, param_names) -> dict:
 
 
 def run_nuts_stage(cfg, fit, train, priors, *, progress: bool = False) -> NutsResult:
-    """The job's NUTS stage (``[nuts] enabled = true``): sample with the priors :func:`check_nuts_config` parsed.
-
-    Returns the :class:`NutsResult`; :func:`~bayesmag._src.app.job.run_job` adds its metrics and files.
-    Every warning raised while sampling ends up once in ``res.warnings`` (the job prints them and puts
-    them in metrics.json), never as a raw Python warning line: the NutsWarnings are there already,
-    any other user or runtime warning (e.g. from NumPyro) is added once.
-    """
-    import warnings
-
-    from bayesmag._src.pipeline.nuts.constants import NutsWarning
-
-    n = cfg.nuts
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        res = run_nuts(train, fit, chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
-                       chain_method=n.chain_method, likelihood=n.likelihood, priors=priors, seed=n.seed,
-                       progress=progress)
-    found = list(res.warnings)
-    for w in caught:             # library deprecation notices are for developers, not a calibration's user
-        if not issubclass(w.category, (UserWarning, RuntimeWarning)):
-            continue
-        msg = str(w.message) if issubclass(w.category, NutsWarning) else f"NUTS ({w.category.__name__}): {w.message}"
-        if msg not in found:
-            found.append(msg)
-    return dataclasses.replace(res, warnings=tuple(dict.fromkeys(found)))
+    """The NUTS stage with ``[nuts]``'s settings and the priors :func:`check_nuts_config` parsed
+    (:func:`~bayesmag._src.pipeline.stages.run_nuts_stage`; the job runs it inside :func:`~bayesmag.calibrate`)."""
+    from bayesmag._src.pipeline.stages import run_nuts_stage as run
+    return run(cfg.settings(nuts_priors=priors).nuts, fit, train, progress=progress)

@@ -212,7 +212,7 @@ def register(folder: str | Path, path: str | Path) -> bool:
 
 
 def _write_marker(folder: Path, complete: bool) -> None:
-    from bayesmag import __version__
+    from bayesmag._src.core.version import __version__
     doc = {"tool": "bayesmag", "version": __version__, "complete": complete,
            "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     if complete:

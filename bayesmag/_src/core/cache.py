@@ -11,6 +11,10 @@ The folder is ``$XDG_CACHE_HOME/bayesmag/jax`` (``~/.cache/bayesmag/jax``) on Li
 ``~/Library/Caches/bayesmag/jax`` on macOS and ``%LOCALAPPDATA%\\bayesmag\\jax`` on Windows.
 
 The setting must be made before the first compilation of the process: JAX opens the cache once.
+It is made on first use, not at import (:func:`ensure_compile_cache`: the first public name taken
+from ``bayesmag``, the command line, :func:`~bayesmag.calibrate`, :func:`~bayesmag.run_job`), so
+``import bayesmag`` alone leaves the process's JAX settings alone; a call of
+:func:`configure_compile_cache` before that first use wins.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import sys
 from pathlib import Path
 
 __all__ = ["ENV_VAR", "default_cache_dir", "cache_dir_from_env", "configure_compile_cache", "compile_cache_off",
-           "compile_cache"]
+           "compile_cache", "ensure_compile_cache"]
 
 ENV_VAR = "BAYESMAG_COMPILE_CACHE"
 _OFF = ("0", "off", "false", "no")
@@ -63,6 +67,8 @@ def configure_compile_cache(enabled: bool = True, directory: str | Path | None =
     """
     import jax
 
+    global _configured
+    _configured = True
     env = _env_setting()
     path = None
     if env == "on" or (enabled and env == ""):
@@ -80,6 +86,16 @@ def configure_compile_cache(enabled: bool = True, directory: str | Path | None =
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+_configured = False
+
+
+def ensure_compile_cache() -> None:
+    """Switch the cache on at first use when ``BAYESMAG_COMPILE_CACHE`` asks for it (opt-in), once per
+    process and unless it was configured already; otherwise the process's JAX settings are left alone."""
+    if not _configured and _env_setting() == "on":
+        configure_compile_cache()
 
 
 _CACHE_KEYS = ("jax_enable_compilation_cache", "jax_compilation_cache_dir")

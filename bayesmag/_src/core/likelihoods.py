@@ -2,11 +2,13 @@ r"""Predictive distributions behind one interface: log-likelihood, CRPS, quantil
 
 Every family is a location-scale distribution with location ``loc`` and scale ``scale``
 (any broadcastable shapes), plus its own shape fields. A family is one frozen dataclass,
-registered as a JAX pytree and in :data:`LIKELIHOODS` by ``__init_subclass__`` under its
-``name``. It is the one registry of observation models: the residual network, hybrid
+registered as a JAX pytree by ``__init_subclass__``, and in :data:`LIKELIHOODS` under its ``name`` by
+the :func:`register` decorator (``bayesmag.register_likelihood``: the one registration style, as
+``bayesmag.register_term`` for physics terms). It is the one registry of observation models: the residual network, hybrid
 fusion, saved calibrations and NUTS all look a family up here, so adding a family needs
 that one class and nothing else (worked example: ``docs/extending.md``)::
 
+    @register
     @dataclasses.dataclass(frozen=True)
     class Logistic(Likelihood):
         name = "logistic"
@@ -69,7 +71,7 @@ import numpy as np
 from jax.scipy.special import betainc, betaln, gammaln, ndtr, ndtri
 
 __all__ = ["Likelihood", "ShapeParam", "Gaussian", "Laplace", "StudentT", "LIKELIHOODS", "get_likelihood",
-           "moment_match", "sample_by_inversion", "unregister"]
+           "moment_match", "sample_by_inversion", "register", "unregister"]
 
 ArrayLike = jax.typing.ArrayLike
 
@@ -122,6 +124,27 @@ class ShapeParam:
                              + (' or "learn"' if self.head is not None else "") + ".")
 
 
+def register(cls: type) -> type:
+    """Add family ``cls`` (a frozen dataclass subclassing :class:`Likelihood` with a string ``name``) to
+    :data:`LIKELIHOODS`, so that the network, fusion, saved calibrations, NUTS and the config know it;
+    returns ``cls``, so it decorates the class (``@bayesmag.register_likelihood``). Undo with :func:`unregister`.
+
+    Raises:
+        TypeError: not a dataclass subclass of Likelihood with a string ``name``.
+        ValueError: the name is taken by another class.
+    """
+    if not (isinstance(cls, type) and issubclass(cls, Likelihood) and dataclasses.is_dataclass(cls)):
+        raise TypeError(f"a likelihood family must be a frozen dataclass subclassing Likelihood; got {cls!r}.")
+    name = cls.__dict__.get("name")
+    if not isinstance(name, str):
+        raise TypeError(f"likelihood family {cls.__name__} must set a string class attribute 'name'.")
+    old = _REGISTRY.get(name)
+    if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
+        raise ValueError(f"likelihood name {name!r} is already used by {old.__module__}.{old.__qualname__}")
+    _REGISTRY[name] = cls
+    return cls
+
+
 def unregister(name: str) -> type["Likelihood"]:
     """Remove a family from :data:`LIKELIHOODS` (e.g. a family a test registered); returns its class."""
     if name not in _REGISTRY:
@@ -172,14 +195,6 @@ class Likelihood(abc.ABC):
             cls.head_transforms = tuple((f, p.head) for f, p in cls.shape_params.items() if p.head is not None)
         jax.tree_util.register_pytree_with_keys(cls, _flatten_with_keys, _make_unflatten(cls),
                                                 _flatten)
-        name = cls.__dict__.get("name")
-        if name is None:
-            return
-        old = _REGISTRY.get(name)
-        if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
-            raise ValueError(f"likelihood name {name!r} is already used by "
-                             f"{old.__module__}.{old.__qualname__}")
-        _REGISTRY[name] = cls
 
     def __post_init__(self):
         if "__dataclass_fields__" not in type(self).__dict__:
@@ -398,6 +413,7 @@ _LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 _INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
 
 
+@register
 @dataclasses.dataclass(frozen=True)
 class Gaussian(Likelihood):
     r"""Normal distribution :math:`N(\mu, s^2)`.
@@ -455,6 +471,7 @@ class Gaussian(Likelihood):
 
 # -- Laplace ---------------------------------------------------------------------------------
 
+@register
 @dataclasses.dataclass(frozen=True)
 class Laplace(Likelihood):
     r"""Laplace distribution with location :math:`\mu` and scale :math:`b` (variance :math:`2b^2`).
@@ -662,6 +679,7 @@ def _df_prior():
     return nd.Gamma(*DF_PRIOR)
 
 
+@register
 @dataclasses.dataclass(frozen=True)
 class StudentT(Likelihood):
     r"""Location-scale Student-t with ``df`` :math:`\nu` degrees of freedom.

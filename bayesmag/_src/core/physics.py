@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Inputs", "Term", "InputTransform", "ThermoAffine", "ThermalLag",
+__all__ = ["T0_DEFAULT", "resolve_t0", "Inputs", "Term", "InputTransform", "ThermoAffine", "ThermalLag",
            "PhysicsModel", "inputs_from_data", "AXES"]
 
 AXES = ("x", "y", "z")
@@ -52,9 +52,13 @@ class Inputs(NamedTuple):
 
 
 def inputs_from_data(data) -> Inputs:
-    """:class:`Inputs` (float64) from a :class:`~bayesmag.CalibrationData`."""
-    return Inputs(jnp.asarray(data.b_meas), jnp.asarray(data.temperature), jnp.asarray(data.time),
-                  jnp.asarray(data.run))
+    """:class:`Inputs` (float64) from a :class:`~bayesmag.CalibrationData`.
+
+    ``jax.device_put``, not ``jnp.asarray``: the same arrays, without compiling a conversion program for
+    every new row count (a job calls this for many row sets; each program costs tracing and lowering
+    even when the persistent cache holds it).
+    """
+    return Inputs(*(jax.device_put(np.asarray(a)) for a in (data.b_meas, data.temperature, data.time, data.run)))
 
 
 class Term(abc.ABC):
@@ -97,6 +101,26 @@ class InputTransform(abc.ABC):
 
     @abc.abstractmethod
     def __call__(self, params: jax.Array, inputs: Inputs) -> Inputs: ...
+
+
+#: The one default reference temperature of every settings type (config ``[physics] t0``, :class:`~bayesmag.Calibrator`,
+#: :func:`~bayesmag.discover`): the training rows' mean temperature, which decorrelates S from Ks and O from Ko.
+T0_DEFAULT = "mean"
+
+
+def resolve_t0(t0, temperature) -> float:
+    """The reference temperature (C) a model is built with: ``t0`` itself, or with ``"mean"`` the mean of
+    ``temperature`` (the training rows'). The one place where ``"mean"`` is resolved.
+
+    Example:
+      >>> resolve_t0("mean", [20.0, 30.0]), resolve_t0(0, [20.0, 30.0])
+      (25.0, 0.0)
+    """
+    if isinstance(t0, str):
+        if t0 != "mean":
+            raise ValueError(f"t0 = {t0!r} must be a number (C) or \"mean\".")
+        return float(np.mean(np.asarray(temperature, dtype=np.float64)))
+    return float(t0)
 
 
 @dataclasses.dataclass(frozen=True)

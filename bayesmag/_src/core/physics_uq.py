@@ -124,7 +124,8 @@ def _perturbed(inputs: Inputs, eps: jax.Array) -> Inputs:
 
 
 def _slice_inputs(inputs: Inputs, lo: int, hi: int) -> Inputs:
-    return Inputs(*(a[lo:hi] for a in inputs))
+    """Rows ``lo:hi``, sliced on the host (an eager slice of a JAX array compiles a program per chunk shape)."""
+    return Inputs(*(jax.device_put(np.asarray(a)[lo:hi]) for a in inputs))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -183,7 +184,22 @@ _lin_jit = jax.jit(lambda k, *a: k.chunk(*a), static_argnums=(0, 7))
 _gen_jit = jax.jit(lambda k, inp, lo, size, *a: k.chunk(inp, lo, size, *a), static_argnums=(0, 3))
 
 
-def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: str = "psqmc",
+#: The one default propagation method wherever bayesmag predicts (config ``[uq] method``, :class:`Predictor`,
+#: ``Calibration.predict``, ``bayesmag apply``, :class:`~bayesmag.Calibrator`): ``"auto"`` = ``"analytic"`` (exact
+#: moments) for a model linear in its parameters and polynomial in the inputs, else ``"psqmc"``.
+DEFAULT_METHOD = "auto"
+#: Every method name :func:`physics_uncertainty` accepts.
+METHODS = ("auto", "psqmc", "mc", "analytic")
+
+
+def resolve_method(method: str, model) -> str:
+    """The method ``"auto"`` stands for with ``model`` (:data:`DEFAULT_METHOD`); any other name unchanged."""
+    if method == "auto":
+        return "analytic" if model.degree is not None and model.is_linear else "psqmc"
+    return method
+
+
+def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: str = DEFAULT_METHOD,
                         n_params: int = 500, n_qmc: int = 1000, seed: int = 0, chunk_size: int = 256,
                         progress: bool = False, quad_nodes: int | None = None) -> PhysicsUQ:
     """Physics prediction and uncertainty for rows ``inputs`` (module docstring).
@@ -193,15 +209,16 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
       inputs: rows to predict.
       sigma_in: (4, 4) covariance of the input noise on (Bx, By, Bz, T) (uT^2, C^2).
       method: ``"psqmc"`` (the paper's nested sampler; Sobol inner loop), ``"mc"`` (plain
-        Monte-Carlo inner loop, for comparison) or ``"analytic"`` (exact moments).
+        Monte-Carlo inner loop, for comparison), ``"analytic"`` (exact moments) or ``"auto"`` (the
+        default: analytic where it is exact, else psqmc; :func:`resolve_method`).
       n_params, n_qmc: Np and Nq. seed: seeds the parameter draws and the Sobol scrambling.
       chunk_size: rows per compiled chunk (bounds memory at chunk x Nq x p floats).
       quad_nodes: Gauss-Hermite nodes per input for ``"analytic"`` (default ``degree + 1``, exact).
     """
-    valid = ("psqmc", "mc", "analytic")
-    if method not in valid:
-        raise ValueError(f"uq method {method!r} is not known; it must be one of {list(valid)}.")
+    if method not in METHODS:
+        raise ValueError(f"uq method {method!r} is not known; it must be one of {list(METHODS)}.")
     model = fit.model
+    method = resolve_method(method, model)
     sigma_in = np.asarray(sigma_in, dtype=np.float64)
     if sigma_in.shape != (4, 4):
         raise ValueError(f"sigma_in must be a 4x4 covariance of (Bx, By, Bz, T); got shape {sigma_in.shape}.")
@@ -222,11 +239,12 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
         eps = sobol_normal(n_qmc, sigma_in, seed=seed)
     else:
         eps = np.random.default_rng(seed).standard_normal((n_qmc, 4)) @ _sqrt_psd(sigma_in).T
-    eps = jnp.asarray(eps)
+    eps = jax.device_put(np.asarray(eps))          # device_put: jnp.asarray compiles a program per shape
     draws = []
     for a in range(3):
         key, sub = jax.random.split(key)
-        draws.append(jax.random.multivariate_normal(sub, jnp.asarray(fit.theta[a]), jnp.asarray(fit.cov[a]),
+        draws.append(jax.random.multivariate_normal(sub, jax.device_put(np.asarray(fit.theta[a])),
+                                                    jax.device_put(np.asarray(fit.cov[a])),
                                                     shape=(max(n_params, 2),), method="svd"))
     out = np.zeros((4, n, 3))
     chunks = range(0, n, chunk_size)

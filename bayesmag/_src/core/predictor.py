@@ -12,8 +12,7 @@ Composition (:func:`compose`), per row and axis, with physics aleatoric / episte
 :math:`a_p, e_p` (PS-QMC), residual sd :math:`r` (training scatter beyond the propagated input
 noise), network aleatoric / epistemic sds :math:`a, e` (MC DropConnect) and transfer sd
 :math:`\tau` (between-session variation, :func:`estimate_transfer`), and conformal scale :math:`c`
-(conformal factor on held-out time: :func:`conformal_scale`, or pooled over the job's cross-conformal
-time-block folds with :func:`conformal_ratios` / :func:`conformal_quantile`; 1 when absent):
+(conformal factor on held-out time, :mod:`bayesmag._src.pipeline.conformal`; 1 when absent):
 
 * physics only: :math:`N(\bar y_{phys},\; c^2 (a_p^2 + r^2 + e_p^2) + \tau^2)`;
 * network, ``fusion = "moment_match"``: mean :math:`\bar y_{phys} + \mu_{NN}`, variance
@@ -38,7 +37,7 @@ import numpy as np
 from bayesmag._src.core.likelihoods import Gaussian, Likelihood, get_likelihood, moment_match
 
 __all__ = ["FUSIONS", "UQOptions", "Components", "Prediction", "Predictor", "TransferEstimate", "compose",
-           "conformal_quantile", "conformal_ratios", "conformal_scale", "estimate_transfer", "network_inputs"]
+           "estimate_transfer", "network_inputs"]
 
 FUSIONS = ("moment_match", "paper")
 
@@ -58,7 +57,7 @@ def network_inputs(data) -> np.ndarray:
 class UQOptions:
     """How the physics uncertainty is propagated (:func:`~bayesmag.physics_uncertainty`)."""
 
-    method: str = "psqmc"
+    method: str = "auto"               # physics_uq.DEFAULT_METHOD: analytic where exact, else psqmc
     n_params: int = 500
     n_qmc: int = 1000
     seed: int = 0
@@ -173,7 +172,7 @@ class Predictor:
     :class:`~bayesmag._src.core.network.NetworkEnsemble` of them (``passes`` split over the members, moments
     pooled over all passes) or None, predicted with ``passes`` MC passes from ``network_seed``; ``fusion``: one of
     :data:`FUSIONS`; ``transfer_sd``: (3,) between-session sd or None; ``scale``: (3,) interval
-    factor (:func:`conformal_scale`) or None; ``domain``: the
+    factor (:func:`~bayesmag._src.pipeline.conformal.conformal_scale`) or None; ``domain``: the
     training :class:`~bayesmag._src.core.domain.Domain` or None; ``uq``: physics UQ settings;
     ``sessions``: a hierarchical session posterior (``transfer_sd(fit, data) -> (n, 3)``, e.g.
     :class:`~bayesmag._src.pipeline.sessions.SessionPosterior`) whose row-dependent transfer sd
@@ -271,34 +270,6 @@ class Predictor:
             return pred
         out = self.domain.outside(data, pred.mean)
         return dataclasses.replace(pred, in_domain=~out.any(axis=1), domain_reason=self.domain.reasons(out))
-
-
-def conformal_ratios(y: np.ndarray, pred: Prediction, level: float) -> np.ndarray:
-    """Conformity scores ``|y - mean| / half-width`` ``(n, 3)`` of held-out rows ``y`` under the central
-    ``level`` intervals of ``pred`` (the factor each row's interval would need to cover it)."""
-    lo, hi = pred.interval(level)
-    return np.abs(np.asarray(y, np.float64) - pred.mean) / (0.5 * (hi - lo))
-
-
-def conformal_quantile(ratios: np.ndarray, level: float) -> np.ndarray:
-    """Per-axis split-conformal quantile of ``ratios`` ``(n, 3)``: the ``ceil((n+1) level)``-th smallest."""
-    ratios = np.asarray(ratios, np.float64)
-    n = ratios.shape[0]
-    if n < 20:
-        raise ValueError(f"conformal_scale needs at least 20 held-out rows, got {n}")
-    rank = min(int(np.ceil((n + 1) * level)), n)
-    return np.sort(ratios, axis=0)[rank - 1]
-
-
-def conformal_scale(y: np.ndarray, pred: Prediction, level: float) -> np.ndarray:
-    """Per-axis factor ``k`` on the sd so that the central ``level`` intervals of ``pred`` cover
-    ``level`` of the held-out rows ``y`` (split conformal: the ``ceil((n+1) level)``-th smallest
-    ratio ``|y - mean| / half-width``; Vovk et al. 2005, Lei et al. 2018). Location-scale
-    families: multiplying the sd by ``k`` multiplies the interval half-width by ``k``. Cross-conformal
-    (scores of several folds, each from the model that did not see it) pools :func:`conformal_ratios`
-    and takes :func:`conformal_quantile` of them.
-    """
-    return conformal_quantile(conformal_ratios(y, pred, level), level)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -41,8 +41,9 @@ Outputs: ``metrics["hybrid"][likelihood]`` = ``rmse, mae, coverage, nll, crps, m
 per axis; ``metrics["network"]`` = settings and per-likelihood training outcome (epochs
 run, best epoch, NaN epoch, seconds); ``metrics["hybrid_vs_physics"]`` = paired squared-error
 test (sec. 4.4); prediction columns for the first (primary) likelihood; with several
-likelihoods, ``likelihood_comparison.md`` / ``.json`` (the layout of the paper's Table 7);
-figures (:mod:`~bayesmag._src.app.hybrid_plots`).
+likelihoods, the rows of ``likelihood_comparison.md`` / ``.json`` (the layout of the paper's Table 7).
+This module computes; the application layer writes the files and draws the figures
+(``bayesmag._src.app.hybrid_outputs``).
 """
 
 from __future__ import annotations
@@ -51,67 +52,34 @@ import dataclasses
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import numpy as np
 
-from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.core import metrics as M
-from bayesmag._src.app.config import Config, NetworkConfig, config_error
 from bayesmag._src.core.data import AXES, CalibrationData
 from bayesmag._src.core.network import (MCPrediction, NetworkEnsemble, NetworkSpec, ResidualNetwork, check_network_size, ensemble_passes,
                       fit_residual_network, merged_reporter, progress_bar, recalibrate, training_threads,
                       validation_rows)
 from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.physics_uq import PhysicsUQ
-from bayesmag._src.core.predictor import (FUSIONS, Components, Prediction, Predictor, compose, conformal_quantile, conformal_ratios,
-                        network_inputs)
+from bayesmag._src.core.predictor import FUSIONS, Components, Prediction, Predictor, compose, network_inputs
+from bayesmag._src.pipeline.conformal import conformal_folds, conformal_plan, conformal_quantile, conformal_ratios
+from bayesmag._src.pipeline.settings import ConformalPlan, NetworkSettings
 
-__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "check_network_config", "conformal_folds", "conformal_plan",
-           "network_inputs", "train_network",
-           "fuse", "score", "run_hybrid_stage", "hybrid_metrics", "hybrid_columns", "hybrid_writers",
+__all__ = ["FUSIONS", "HybridPrediction", "HybridStage", "NetworkSizeError", "check_network_config", "conformal_folds",
+           "conformal_plan", "network_inputs", "train_network",
+           "fuse", "score", "run_hybrid_stage", "hybrid_metrics", "hybrid_columns",
            "comparison_markdown", "comparison_records"]
 
 
-def conformal_folds(run: np.ndarray, *, fraction: float, folds: int, seed: int) -> np.ndarray:
-    """Cross-conformal folds ``(n,)``: fold ``k`` is one contiguous time block of ``fraction`` of every run,
-    placed at a seeded position inside the k-th of ``folds`` equal stretches of the run (rows in time order);
-    rows in no fold are -1. Stratified positions: the folds together sample the whole length of every run,
-    so the scale does not hang on where one block per run happened to fall.
-    """
-    from bayesmag._src.core.data import split_time_blocks
-
-    sp = split_time_blocks(run, test_fraction=folds * fraction, n_blocks=folds, seed=seed)
-    held = np.zeros(run.size, bool)
-    held[sp.test] = True
-    fold = np.full(run.size, -1)
-    for r in np.unique(run):
-        rows = np.flatnonzero(run == r)
-        slot = np.minimum(np.arange(rows.size) // max(rows.size // folds, 1), folds - 1)   # split_time_blocks' slots
-        fold[rows[held[rows]]] = slot[held[rows]]
-    return fold
+class NetworkSizeError(ValueError):
+    """The training rows are too few for the network settings (the message names the setting)."""
 
 
-def conformal_plan(split, net_cfg: NetworkConfig) -> tuple[float, int]:
-    """``(fraction, folds)`` of the cross-conformal folds: each fold one block of ``fraction`` of every
-    run's training rows, ``folds`` of them.
+class _RandomSplit:
+    """A split without time blocks, for :func:`conformal_plan`'s default."""
 
-    The scores must be as hard as the rows they calibrate: a network predicting the middle of a long
-    held-out stretch errs more than one bridging a short gap. So with a ``time_blocks`` split the fold
-    blocks are at least as long as the test blocks (``test_fraction / n_blocks`` of a run, i.e.
-    ``test_fraction / n_blocks / (1 - test_fraction)`` of its training rows), else
-    ``validation_fraction``; and there are at most ``conformal_folds`` of them, fewer where longer
-    blocks would not fit in a run together (folds x fraction < 1; at least 2 folds, blocks then < 1/2).
-
-    Example: ``test_fraction = 0.2`` in one block per run: blocks of 0.25 of the training rows, 3 folds.
-    """
-    fraction = net_cfg.validation_fraction
-    if split.kind == "time_blocks":
-        fraction = max(fraction, split.test_fraction / split.n_blocks / (1.0 - split.test_fraction))
-    folds = net_cfg.conformal_folds
-    while folds > 2 and folds * fraction >= 1.0:
-        folds -= 1
-    return min(fraction, 0.49), folds
+    kind = "random"
 
 
 #: The fused hybrid prediction: a :class:`~bayesmag._src.core.predictor.Prediction` (mean, dist, total,
@@ -143,17 +111,16 @@ class HybridStage:
         return self.specs[0].likelihood
 
 
-def check_network_config(cfg: Config) -> list[NetworkSpec]:
-    """Validate the ``[network]`` table; return one :class:`NetworkSpec` per likelihood.
+def check_network_config(settings) -> list[NetworkSpec]:
+    """One :class:`NetworkSpec` per likelihood of a :class:`NetworkSettings` (or of an object holding
+    one as ``.network``, such as the job's config); the settings validated themselves when built."""
+    net = getattr(settings, "network", settings)
+    return [net.spec(name) for name in net.likelihoods]
 
-    The settings were validated when the config was loaded (``NetworkConfig``).
-    """
-    return [cfg.network.spec(name) for name in cfg.network.likelihoods]   # validated at load (config.py)
 
-
-def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig,
+def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkSettings,
                   groups: np.ndarray | None = None, progress=False, pool=None) -> ResidualNetwork:
-    """Train the axis networks as ``[network]`` says: validation rows, then optional recalibration.
+    """Train the axis networks as the settings say: validation rows, then optional recalibration.
 
     ``groups``: the run of every row (time order within a run), used by ``validation = "time_blocks"``;
     ``progress`` and ``pool``: as in :func:`~bayesmag._src.core.network.fit_residual_network`.
@@ -165,7 +132,7 @@ def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: Netw
     return net
 
 
-def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkConfig, groups: np.ndarray,
+def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkSettings, groups: np.ndarray,
                         folds: np.ndarray, n_folds: int, progress: bool = False) -> list[ResidualNetwork]:
     """The ``n_folds`` cross-conformal networks, network ``k`` trained without the rows of fold ``k``
     (``folds == k``), all at once: every fold's axes share one pool of
@@ -253,10 +220,16 @@ def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
     return msgs
 
 
-def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: CalibrationData,
-                     test: CalibrationData, timings: dict[str, float], *, new_session=False,
+def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsUQ | None, train: CalibrationData,
+                     test: CalibrationData | None, timings: dict[str, float], *, level: float = 0.95,
+                     conformal: ConformalPlan | None = None, new_session=False,
                      progress: bool = False) -> HybridStage:
-    """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them.
+    """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them
+    (``test`` and ``uq`` None: train only, ``predictions`` and ``alternates`` empty).
+
+    ``settings``: a :class:`NetworkSettings`; ``level``: the intervals' level (conformal scores);
+    ``conformal``: the cross-conformal plan, needed with ``interval_calibration = "conformal"``
+    (None there: ``(validation_fraction, conformal_folds)`` as for a random split).
 
     With ``network.interval_calibration = "conformal"`` the interval scale is cross-conformal over
     K time-block folds (:func:`conformal_folds`; each one block of every run, as long as
@@ -273,14 +246,18 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
     before. ``new_session``: test rows that get the transfer part. Adds ``timings["network_train"]``
     (all networks) and ``["hybrid_inference"]`` (s).
     """
-    specs = check_network_config(cfg)
-    net_cfg = cfg.network
+    if hasattr(settings, "network") and hasattr(settings, "split"):    # the job's Config (the old signature)
+        full = settings.settings()
+        settings, conformal, level = full.network, full.conformal, settings.uq.level
+    specs = check_network_config(settings)
+    net_cfg = settings
     # Conformal rows: K folds of held-out time blocks, each seen neither by its network's training nor by its early
     # stopping (scores on the early-stopping rows are optimistic: their coverage overstates).
     folds = np.zeros(train.n, int) - 1
     n_folds = 0
     if net_cfg.interval_calibration == "conformal":
-        fold_fraction, n_folds = conformal_plan(cfg.split, net_cfg)
+        plan = conformal if conformal is not None else ConformalPlan(*conformal_plan(_RandomSplit(), net_cfg))
+        fold_fraction, n_folds = plan.fraction, plan.folds
         folds = conformal_folds(train.run, fraction=fold_fraction, folds=n_folds, seed=net_cfg.seed + 1)
     fit_idx = np.flatnonzero(folds != 0)
     # Size checks for every likelihood before any training.
@@ -289,7 +266,7 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
         for spec in specs:
             check_network_size(spec, fit_rows.size)
     except ValueError as e:
-        raise config_error(e, "network", net_cfg.table()) from None
+        raise NetworkSizeError(str(e)) from None
 
     fit = physics.fit
     x_train = network_inputs(train)
@@ -331,19 +308,19 @@ def run_hybrid_stage(cfg: Config, physics: Predictor, uq: PhysicsUQ, train: Cali
                     pk = dataclasses.replace(pr, network=nk)
                     val = train.subset(np.flatnonzero(folds == k))
                     ratios.append(conformal_ratios(val.b_ref, pk.compose(pk.components(val), new_session=False),
-                                                   cfg.uq.level))
+                                                   level))
                 timings["hybrid_inference"] += time.perf_counter() - t
                 # only ever widen: a factor < 1 would trust the calibration blocks over the network's own sd
                 # the K fold networks predict together (deep ensemble), with the scale their held-out folds gave
                 pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(nets)),
-                                         scale=np.maximum(conformal_quantile(np.concatenate(ratios), cfg.uq.level), 1.0))
-            t = time.perf_counter()
-            comp = Components(uq, pr.network_part(test), pr.transfer_part(test))
-            pred = pr.compose(comp, new_session=new_session)
-            timings["hybrid_inference"] += time.perf_counter() - t
-
-            networks[name], predictors[name], preds[name] = net, pr, pred
-            alts[name] = pr.compose(comp, fusion=other, new_session=new_session)
+                                         scale=np.maximum(conformal_quantile(np.concatenate(ratios), level), 1.0))
+            networks[name], predictors[name] = net, pr
+            if test is not None:
+                t = time.perf_counter()
+                comp = Components(uq, pr.network_part(test), pr.transfer_part(test))
+                preds[name] = pr.compose(comp, new_session=new_session)
+                timings["hybrid_inference"] += time.perf_counter() - t
+                alts[name] = pr.compose(comp, fusion=other, new_session=new_session)
             training[name] = {**net.info_dict(), "train_seconds": round(train_s, 3)}
             if pr.scale is not None:
                 training[name]["conformal"] = {"folds": n_folds, "block_fraction": round(fold_fraction, 6),
@@ -399,31 +376,3 @@ def hybrid_columns(hs: HybridStage, y: np.ndarray, level: float) -> dict[str, np
     return {"hybrid_predicted": pred.mean, "aleatoric_nn": pred.aleatoric_nn, "epistemic_nn": pred.epistemic_nn,
             "hybrid_total": pred.total, "hybrid_lower": lo, "hybrid_upper": hi,
             "hybrid_covered": (y >= lo) & (y <= hi)}
-
-
-def hybrid_writers(cfg: Config, hs: HybridStage, columns: dict, test: CalibrationData, level: float) -> list:
-    """Writers ``f(folder)`` of the stage's files: likelihood comparison (several likelihoods), figures."""
-    writers = []
-    if len(hs.specs) > 1:
-        scores = {name: M.score_per_axis(test.b_ref, p.dist, level, mean=p.mean) for name, p in hs.predictions.items()}
-        md = comparison_markdown(scores, fusion=hs.fusion, level=level, n_test=test.n)
-        records = comparison_records(scores)
-
-        def write_comparison(out: Path) -> None:
-            (Path(out) / "likelihood_comparison.md").write_text(md)
-            write_json(Path(out) / "likelihood_comparison.json", records)
-
-        writers.append(write_comparison)
-    if cfg.output.figures:
-        temperature = np.asarray(test.temperature)
-        dists = {name: p.dist for name, p in hs.predictions.items()}
-        cols = dict(columns)
-
-        def write_figures(out: Path) -> None:
-            from bayesmag._src.app.hybrid_plots import hybrid_figures
-            hybrid_figures(Path(out), cols, temperature, dists, level=level)
-            from bayesmag._src.app.network_plots import loss_curves
-            loss_curves(Path(out) / "network_loss.png", hs.networks)
-
-        writers.append(write_figures)
-    return writers

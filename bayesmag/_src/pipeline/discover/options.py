@@ -8,6 +8,7 @@ import dataclasses
 from scipy import stats as _stats
 
 from bayesmag._src.core import catalogue as C
+from bayesmag._src.core.physics import T0_DEFAULT
 
 __all__ = ["DiscoverOptions"]
 
@@ -79,7 +80,7 @@ class DiscoverOptions:
     cv: str = "time_blocks"
     n_folds: int = 5
     block_s: float | None = None
-    t0: float | str = "mean"
+    t0: float | str = T0_DEFAULT
     max_terms: int = MAX_TERMS
     seed: int = 0
     figures: bool = True

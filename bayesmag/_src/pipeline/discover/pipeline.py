@@ -35,6 +35,7 @@ from bayesmag._src.pipeline.discover.frame import Designs, Extension, JointModel
 from bayesmag._src.pipeline.discover.intervals import profile_interval, profile_minimiser
 from bayesmag._src.pipeline.discover.options import DELTA_SYS_FRACTION, N_BOOT_LAG, ROWS_PER_PARAM, Z_DISTINCT, \
     Z_MIN, DiscoverOptions
+from bayesmag._src.core.physics import resolve_t0
 from bayesmag._src.pipeline.discover.result import DiscoveryResult
 from bayesmag._src.pipeline.discover.search import compare, cv_residuals, forward, groups, row_loss, score_group
 
@@ -227,7 +228,7 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
       progress: optional callable receiving one line per stage.
 
     Returns:
-      :class:`DiscoveryResult` (``.write(dir)`` writes findings.json, report.md, figures).
+      :class:`DiscoveryResult` (``bayesmag.write_discovery(res, dir)`` writes findings.json, report.md, figures).
 
     Example:
       >>> from bayesmag.simulate import simulate, get_effect
@@ -264,7 +265,7 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
                          "and the periodicity check are skipped.")
     t_std = float(np.std(data.temperature))
     temp_terms = t_std > 0.05
-    t0 = float(np.mean(data.temperature)) if options.t0 == "mean" else float(options.t0)
+    t0 = resolve_t0(options.t0, data.temperature)
     base = ThermoAffine(t0=t0, temperature=temp_terms)
     if not temp_terms:
         notes.append(f"Temperature varies by only {t_std:.3g} C (sd): the base model has no temperature terms.")

@@ -20,7 +20,8 @@ __all__ = ["DiscoveryResult", "report_markdown"]
 
 @dataclasses.dataclass
 class DiscoveryResult:
-    """What :func:`~bayesmag._src.pipeline.discover.discover` found. ``to_json()`` is findings.json.
+    """What :func:`~bayesmag._src.pipeline.discover.discover` found. ``to_json()`` is findings.json
+    (written, with report.md and the figures, by :func:`bayesmag.write_discovery`).
 
     ``findings``: one entry per physical effect, with ``channel`` (the sensor channel it acts
     on; ``"all"`` for whole-sensor effects; None for an output-frame term), ``axis`` (the
@@ -68,20 +69,6 @@ class DiscoveryResult:
                            "n_perm": N_PERM, "rho_structure": RHO_STRUCTURE, "floor_ratio": FLOOR_RATIO},
             "seconds": self.seconds,
         }
-
-    def write(self, out: str | Path) -> Path:
-        """Write findings.json, report.md and the figures to ``out`` atomically (temp folder, then rename)."""
-        from bayesmag._src.app.outdir import staging_dir
-
-        out = Path(out)
-        with staging_dir(out) as tmp:
-            figures = []
-            if self.options.figures:
-                from bayesmag._src.app import discover_plots
-                figures = discover_plots.discovery_figures(tmp, self)
-            write_json(tmp / "findings.json", jsonable(self.to_json()))
-            (tmp / "report.md").write_text(report_markdown(self, figures))
-        return out
 
 
 def jsonable(x):

@@ -75,8 +75,9 @@ References:
 
 Modules (one concept each; ``constants`` at the bottom): ``priors``, ``model`` (the numpyro
 model and its whitening), ``sampler``, ``idata`` (ArviZ InferenceData and summary),
-``crosscheck``, ``result``, ``run`` (:func:`run_nuts`), ``compare`` (LOO), ``outputs`` and
-``plots``. The job stage lives in the application layer (``bayesmag._src.app.nuts_stage``).
+``crosscheck``, ``result``, ``run`` (:func:`run_nuts`) and ``compare`` (LOO). Files and figures are
+the application layer's (``bayesmag._src.app.nuts_outputs``, ``nuts_plots``), as is the job's
+``[nuts]`` check (``bayesmag._src.app.nuts_stage``).
 """
 
 from bayesmag._src.pipeline.nuts.compare import compare_models, loo
@@ -97,7 +98,6 @@ from bayesmag._src.pipeline.nuts.constants import (
 from bayesmag._src.pipeline.nuts.crosscheck import crosscheck
 from bayesmag._src.pipeline.nuts.idata import JOINT_STATS, build_idata, summary_frame
 from bayesmag._src.pipeline.nuts.model import NutsProblem, build_problem, nuts_model
-from bayesmag._src.pipeline.nuts.outputs import write_nuts_outputs
 from bayesmag._src.pipeline.nuts.priors import NutsPriors, parse_priors
 from bayesmag._src.pipeline.nuts.result import NutsResult
 from bayesmag._src.pipeline.nuts.run import run_nuts
@@ -105,7 +105,7 @@ from bayesmag._src.pipeline.nuts.sampler import NutsDraws, check_settings, sampl
 
 __all__ = [
     "NutsPriors", "parse_priors", "NutsProblem", "build_problem", "nuts_model", "NutsDraws", "sample_nuts",
-    "NutsResult", "run_nuts", "crosscheck", "loo", "compare_models", "write_nuts_outputs", "build_idata",
+    "NutsResult", "run_nuts", "crosscheck", "loo", "compare_models", "build_idata",
     "summary_frame", "check_settings", "NutsWarning", "CHAIN_METHODS", "PARAMETRISATIONS", "JOINT_STATS",
     "RHAT_MAX", "ESS_MIN", "MEAN_DIFF_TOL", "SD_RATIO_RANGE", "MIN_DRAWS", "MIN_CHAINS", "DEFAULT_PRIOR_SCALE",
     "INIT_RADIUS", "EBFMI_MIN",

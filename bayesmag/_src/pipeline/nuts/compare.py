@@ -8,7 +8,6 @@ from typing import Any, Mapping
 import numpy as np
 
 from bayesmag._src.pipeline.nuts.idata import arviz
-from bayesmag._src.pipeline.nuts.result import NutsResult
 
 __all__ = ["loo", "compare_models"]
 
@@ -24,7 +23,7 @@ def loo(result, *, axis: str | None = None, pointwise: bool = True):
       ``arviz.ELPDData`` (elpd_loo, se, p_loo, pareto_k, ...).
     """
     az = arviz()
-    idata = result.idata if isinstance(result, NutsResult) else result
+    idata = getattr(result, "idata", result)     # a NutsResult or its InferenceData
     ll = idata.log_likelihood
     post = idata.posterior
     if axis is not None:
@@ -58,7 +57,7 @@ def compare_models(models: Mapping[str, Any], *, axis: str | None = None, method
         raise ValueError(f"compare_models needs at least two models; got {list(models)}.")
     ref_name, ref = None, None
     for name, m in models.items():
-        idata = m.idata if isinstance(m, NutsResult) else m
+        idata = getattr(m, "idata", m)
         obs = idata.observed_data.b_ref
         if axis is not None:
             obs = obs.sel(axis=axis)

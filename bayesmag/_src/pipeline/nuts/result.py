@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,7 +49,7 @@ class NutsResult:
 
     def loo(self, axis: str | None = None):
         """PSIS-LOO of all sampled axes together, or of one ``axis`` (:func:`~bayesmag.loo`)."""
-        from bayesmag._src.pipeline.nuts.compare import loo
+        from bayesmag._src.pipeline.nuts.compare import loo       # compare does not import this module
         return loo(self.idata, axis=axis)
 
     def metrics(self) -> dict:
@@ -81,8 +80,3 @@ class NutsResult:
             out["axes"][ax] = block
         out["elpd_loo_total"] = elpd_total
         return out
-
-    def write(self, folder: str | Path, *, figures: bool = True) -> list[Path]:
-        from bayesmag._src.pipeline.nuts.outputs import write_nuts_outputs
-        return write_nuts_outputs(self, folder, figures=figures)
-

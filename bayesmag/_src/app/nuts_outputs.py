@@ -1,4 +1,4 @@
-"""Files of a NUTS run: ``nuts.nc`` (netCDF-4, all InferenceData groups), summary CSV/Markdown, figures."""
+"""Files of a NUTS run (application layer: the library returns a :class:`NutsResult`, this writes it): ``nuts.nc`` (netCDF-4, all InferenceData groups), summary CSV/Markdown, figures."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayesmag._src.pipeline.nuts.result import NutsResult
+from bayesmag._src.pipeline.nuts import NutsResult
 
 __all__ = ["write_nuts_outputs"]
 
@@ -87,7 +87,7 @@ def write_nuts_outputs(res: NutsResult, folder: str | Path, *, figures: bool = T
     res.summary.to_csv(out[1], index=False, float_format="%.10g")
     out[2].write_text(_markdown(res))
     if figures:
-        from bayesmag._src.pipeline.nuts.plots import nuts_figures
+        from bayesmag._src.app.nuts_plots import nuts_figures
         out += nuts_figures(folder, res)
     return out
 

@@ -1,0 +1,113 @@
+"""``calibrate(data, settings) -> CalibrationRun``: the whole calibration as one pure function.
+
+The stages (:mod:`~bayesmag._src.pipeline.stages`) in order -- physics, then the hybrid stage when
+``settings.network`` is set, then NUTS when ``settings.nuts`` is set -- on the training rows, each
+predicting the optional ``test`` rows. Nothing is written and nothing is drawn: the command line's
+job (``bayesmag._src.app.job``) is load, split, :func:`calibrate`, write; :class:`~bayesmag.Calibrator`
+calls it directly; a saved calibration is :attr:`CalibrationRun.predictor` serialised.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+
+from bayesmag._src.core.data import CalibrationData, DataError
+from bayesmag._src.core.predictor import Prediction, Predictor
+from bayesmag._src.pipeline.settings import CalibrationSettings
+from bayesmag._src.pipeline import stages
+from bayesmag._src.pipeline.stages import HybridStage, PhysicsStage
+
+__all__ = ["CalibrationRun", "calibrate"]
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationRun:
+    """What :func:`calibrate` computed: frozen, written by nobody.
+
+    ``physics``: the :class:`PhysicsStage`; ``hybrid``: the :class:`HybridStage` or None; ``nuts``: the
+    :class:`~bayesmag.NutsResult` or None; ``predictor``: the calibration (the primary likelihood's
+    hybrid predictor, else the physics one); ``domain``: the training rows' value domain;
+    ``timings``: seconds per stage.
+    """
+
+    settings: CalibrationSettings
+    physics: PhysicsStage
+    predictor: Predictor
+    domain: Any
+    hybrid: HybridStage | None = None
+    nuts: Any = None
+    timings: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def fit(self):
+        """The physics fit (:class:`~bayesmag.PhysicsFit`)."""
+        return self.physics.fit
+
+    @property
+    def prediction(self) -> Prediction | None:
+        """The calibration's prediction of the test rows (None without test rows)."""
+        if self.hybrid is not None:
+            return self.hybrid.predictions.get(self.hybrid.primary)
+        return self.physics.prediction
+
+    def __repr__(self) -> str:
+        stages = "physics" + (" + hybrid" if self.hybrid is not None else "") + (" + nuts" if self.nuts is not None else "")
+        return f"CalibrationRun({stages}, {self.fit.model.n_params} parameters per axis)"
+
+
+def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None, *,
+              test: CalibrationData | None = None, progress: bool = False) -> CalibrationRun:
+    """Calibrate on the rows ``data`` (with a reference) and, when given, predict the ``test`` rows.
+
+    Args:
+      data: the training rows (:class:`~bayesmag.CalibrationData` with ``b_ref``).
+      settings: library settings (:class:`~bayesmag.CalibrationSettings`; default: physics only,
+        PS-QMC uncertainty, T0 the training mean).
+      test: held-out rows to predict (their predictions are in the stages and :attr:`CalibrationRun.prediction`).
+      progress: progress bars.
+
+    Returns:
+      a frozen :class:`CalibrationRun`.
+
+    Raises:
+      DataError: no reference, or constant temperature with temperature terms.
+      ValueError: settings that do not fit the data (e.g. a network too large for the rows).
+      CalibrationError: the physics fit did not converge.
+
+    Example:
+      >>> import bayesmag
+      >>> d = bayesmag.simulate.simulate(400, design="campaign", seed=0)
+      >>> run = bayesmag.calibrate(d, bayesmag.CalibrationSettings(uq=bayesmag.UQSettings(method="analytic")))
+      >>> run.predictor.predict(d).mean.shape
+      (400, 3)
+    """
+    from bayesmag._src.core.cache import ensure_compile_cache
+    from bayesmag._src.core.domain import Domain
+
+    ensure_compile_cache()
+    s = settings if settings is not None else CalibrationSettings()
+    if data.b_ref is None:
+        raise DataError("calibrate needs the reference field (bx_ref, by_ref, bz_ref).")
+    if s.physics.temperature_terms and np.ptp(data.temperature) < 1e-6:
+        raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
+                        "Set temperature_terms = false or use a split that keeps temperature variation.")
+    timings: dict[str, float] = {}
+    model = s.physics.model(data)
+    domain = Domain.from_data(data)
+    ps = stages.run_physics_stage(s.uq, data, test, model, domain, timings, covariance=s.physics.covariance,
+                                  progress=progress)
+    predictor, hs, nuts = ps.predictor, None, None
+    if s.network is not None:
+        hs = stages.run_hybrid_stage(s.network, ps.predictor, ps.uq, data, test, timings, level=s.uq.level,
+                                     conformal=s.conformal,
+                                     new_session=ps.new_session if test is not None else False, progress=progress)
+        predictor = hs.predictors[hs.primary]
+    if s.nuts is not None:
+        t = time.perf_counter()
+        nuts = stages.run_nuts_stage(s.nuts, ps.fit, data, progress=progress)
+        timings["nuts"] = time.perf_counter() - t
+    return CalibrationRun(s, ps, predictor, domain, hs, nuts, timings)

@@ -1,0 +1,202 @@
+"""The library's settings for :func:`~bayesmag.calibrate`: plain frozen values, no TOML.
+
+The application's config (``bayesmag._src.app.config``) converts its tables into these
+(:meth:`~bayesmag.Config.settings`); a script builds them directly::
+
+    >>> s = CalibrationSettings(physics=PhysicsSettings(t0=0.0), uq=UQSettings(method="analytic"))
+    >>> s.network is None and s.nuts is None
+    True
+
+Every default is written once, here (the config's defaults are these ones).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Union
+
+import numpy as np
+
+from bayesmag._src.core.likelihoods import LIKELIHOODS
+from bayesmag._src.core.network import NetworkSpec
+from bayesmag._src.core.physics import T0_DEFAULT, PhysicsModel, resolve_t0
+from bayesmag._src.core.predictor import FUSIONS, UQOptions
+
+__all__ = ["PhysicsSettings", "UQSettings", "sigma_in_matrix", "NetworkSettings", "NutsSettings", "ConformalPlan", "CalibrationSettings",
+           "COVARIANCES", "UQ_METHODS", "TRANSFER_METHODS", "INTERVAL_CALIBRATIONS"]
+
+COVARIANCES = ("white", "ar1", "newey_west")
+UQ_METHODS = ("auto", "psqmc", "mc", "analytic")
+TRANSFER_METHODS = ("loro", "off")
+INTERVAL_CALIBRATIONS = ("conformal", "none")
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsSettings:
+    """The physics model and its fit.
+
+    ``t0``: reference temperature (C) of the thermal terms, or ``"mean"`` (the default,
+    :data:`~bayesmag._src.core.physics.T0_DEFAULT`): the training rows' mean, resolved once by
+    :meth:`model` (:func:`~bayesmag._src.core.physics.resolve_t0`); ``extra_terms``: catalogue
+    names or ``{name = ..., field = value}`` tables (:func:`~bayesmag._src.core.catalogue.make_extra`);
+    ``covariance``: ``"white"``, ``"ar1"`` or ``"newey_west"``.
+    """
+
+    t0: Union[float, str] = T0_DEFAULT
+    temperature_terms: bool = True
+    extra_terms: tuple = ()
+    covariance: str = "white"
+
+    def model(self, train) -> PhysicsModel:
+        """The physics model for the training rows ``train`` (T0 resolved here, once).
+
+        Raises:
+            ValueError: an unknown or badly specified extra term (the message names it).
+        """
+        from bayesmag._src.core.catalogue import make_extra
+
+        t0 = resolve_t0(self.t0, train.temperature)
+        extra = tuple(make_extra(s, t0=t0) for s in self.extra_terms)
+        return PhysicsModel.paper(t0=t0, temperature=self.temperature_terms, extra=extra)
+
+
+@dataclasses.dataclass(frozen=True)
+class UQSettings:
+    """How the physics uncertainty is propagated and composed.
+
+    ``method``/``n_params``/``n_qmc``/``seed``/``chunk_size``: :func:`~bayesmag.physics_uncertainty`
+    (``"auto"`` by default, :data:`~bayesmag._src.core.physics_uq.DEFAULT_METHOD`: the one default
+    method wherever bayesmag predicts); ``sigma_in``:
+    ``"auto"`` (estimated from the training rows), 4 standard deviations ``[bx, by, bz, T]`` or a
+    4x4 covariance; ``level``: the central interval's level; ``residual_term``: add the fit's
+    residual variance beyond the input noise; ``transfer``: ``"loro"`` (leave one run out),
+    ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them).
+    """
+
+    method: str = UQOptions.method
+    n_params: int = UQOptions.n_params
+    n_qmc: int = UQOptions.n_qmc
+    sigma_in: Union[str, Any] = "auto"
+    level: float = 0.95
+    seed: int = UQOptions.seed
+    chunk_size: int = UQOptions.chunk_size
+    residual_term: bool = True
+    transfer: str = "loro"
+    reference_sd: Union[float, Any] = 0.0
+
+    def options(self) -> UQOptions:
+        """The :class:`~bayesmag._src.core.predictor.UQOptions` a :class:`Predictor` keeps."""
+        return UQOptions(method=self.method, n_params=self.n_params, n_qmc=self.n_qmc, seed=self.seed,
+                         chunk_size=self.chunk_size)
+
+    def sigma_in_matrix(self, train) -> tuple[np.ndarray, str]:
+        """The (4, 4) input-noise covariance and where it came from (:func:`sigma_in_matrix`)."""
+        return sigma_in_matrix(self.sigma_in, train)
+
+
+def sigma_in_matrix(sigma_in, train) -> tuple[np.ndarray, str]:
+    """The (4, 4) input-noise covariance ``sigma_in`` stands for, and where it came from: ``"auto"`` (estimated
+    from ``train``), 4 standard deviations, or a 4x4 covariance.
+
+    Raises:
+        ValueError: a 4x4 ``sigma_in`` that is not symmetric positive semi-definite.
+    """
+    s = sigma_in
+    if isinstance(s, str) and s == "auto":
+        from bayesmag._src.core.physics_uq import estimate_input_noise
+        return estimate_input_noise(train), "auto: within-run second differences, 1.4826*MAD/sqrt(6)"
+    arr = np.asarray(s, dtype=np.float64)
+    if arr.ndim == 1:
+        return np.diag(arr**2), "config: standard deviations"
+    if not np.allclose(arr, arr.T) or np.linalg.eigvalsh(arr).min() < -1e-12:
+        raise ValueError("'sigma_in' as a 4x4 matrix must be symmetric positive semi-definite.")
+    return arr, "config: covariance matrix"
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkSettings(NetworkSpec):
+    """The hybrid stage: the :class:`~bayesmag.NetworkSpec` settings shared by every network, plus
+    ``likelihoods`` (one network per family; the first is the primary one), ``interval_calibration``
+    (``"conformal"``: cross-conformal time-block folds, at most ``conformal_folds`` of them;
+    ``"none"``) and ``fusion`` (one of :data:`~bayesmag._src.core.predictor.FUSIONS`).
+
+    The stage's default early-stopping rows are held-out time blocks (``validation =
+    "time_blocks"``; the bare :class:`NetworkSpec` keeps the paper's ``"random"``).
+    """
+
+    likelihoods: tuple = ("gaussian",)
+    validation: str = "time_blocks"
+    interval_calibration: str = "conformal"
+    conformal_folds: int = 5
+    fusion: str = "moment_match"
+
+    def __post_init__(self):
+        super().__post_init__()
+        names = list(self.likelihoods)
+        if not names:
+            raise ValueError(f"likelihoods = [] is empty; name at least one of {sorted(LIKELIHOODS)}.")
+        unknown = [n for n in names if not isinstance(n, str) or n not in LIKELIHOODS]
+        if unknown:
+            raise ValueError(f"likelihoods = {names} names unknown likelihood(s) {unknown}; each must be one "
+                             f"of {sorted(LIKELIHOODS)}.")
+        if len(set(names)) != len(names):
+            raise ValueError(f"likelihoods = {names} repeats a name.")
+        if self.interval_calibration not in INTERVAL_CALIBRATIONS:
+            raise ValueError(f"interval_calibration = {self.interval_calibration!r} is not valid; it must be one of "
+                             f"{list(INTERVAL_CALIBRATIONS)}.")
+        if self.fusion not in FUSIONS:
+            raise ValueError(f"fusion = {self.fusion!r} is not valid; it must be one of {list(FUSIONS)}.")
+        if self.conformal_folds < 2 or self.conformal_folds * self.validation_fraction >= 1.0:
+            raise ValueError(f"conformal_folds = {self.conformal_folds} is not valid with validation_fraction = "
+                             f"{self.validation_fraction}: it must be at least 2, and the folds (each one block of "
+                             f"validation_fraction of every run) must fit in a run together (folds x fraction < 1).")
+
+    def spec(self, likelihood: str) -> NetworkSpec:
+        """The library settings of the network for one ``likelihood``."""
+        return NetworkSpec.from_config(self, likelihood)
+
+    def specs(self) -> list[NetworkSpec]:
+        """One :class:`NetworkSpec` per likelihood, in order."""
+        return [self.spec(name) for name in self.likelihoods]
+
+
+@dataclasses.dataclass(frozen=True)
+class NutsSettings:
+    """The NUTS cross-check of the physics posterior (:func:`~bayesmag.run_nuts`'s arguments).
+
+    ``priors``: a parsed :class:`~bayesmag._src.pipeline.nuts.NutsPriors`, or None (the defaults).
+    """
+
+    chains: int = 4
+    warmup: int = 1000
+    draws: int = 1000
+    target_accept: float = 0.8
+    chain_method: str = "vectorized"
+    likelihood: str = "gaussian"
+    priors: Any = None
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class ConformalPlan:
+    """The cross-conformal folds of the hybrid stage: ``folds`` blocks of ``fraction`` of every run
+    (:func:`~bayesmag._src.pipeline.conformal.conformal_plan` sizes them from the split)."""
+
+    fraction: float
+    folds: int
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationSettings:
+    """Everything :func:`~bayesmag.calibrate` needs besides the data.
+
+    ``network`` None: physics stage only; ``nuts`` None: no NUTS cross-check; ``conformal``:
+    the cross-conformal plan (None: the default plan for a random split,
+    ``(validation_fraction, conformal_folds)`` shrunk to fit).
+    """
+
+    physics: PhysicsSettings = PhysicsSettings()
+    uq: UQSettings = UQSettings()
+    network: NetworkSettings | None = None
+    nuts: NutsSettings | None = None
+    conformal: ConformalPlan | None = None
