@@ -574,8 +574,9 @@ def test_repeated_timestamps_spread_on_request(frame, tmp_path):
     df = frame.copy()
     df["time"] = np.repeat(np.arange(75), 4).astype(float)     # whole-second stamps at 4 Hz, as in the real files
     with pytest.raises(DataError, match="duplicate_times='spread'") as e:
-        bayesmag.Calibrator(out=tmp_path / "a").fit(df)
+        bayesmag.Calibrator(out=tmp_path / "a", duplicate_times="refuse").fit(df)
     assert "tmp" not in str(e.value) and "fit_data.csv" not in str(e.value)
+    assert bayesmag.Calibrator().fit(df).calibration_.theta.shape == (3, 8)     # default: time is not used
     cal = bayesmag.Calibrator(out=tmp_path / "b", duplicate_times="spread").fit(df)
     assert cal.calibration_.theta.shape == (3, 8)
     # a physics fit does not use time: repeated stamps are fine there
