@@ -324,7 +324,7 @@ def _check_version(v, j: Path, writer) -> None:
         raise ArtifactError(f"{j}: field 'format_version' = {v!r} must be an integer (one of "
                             f"{list(READABLE_VERSIONS)}), not {type(v).__name__}; the file was edited or is damaged.")
     if v > max(READABLE_VERSIONS):
-        from bayesmag import __version__
+        from bayesmag._src.core.version import __version__
         raise ArtifactError(f"{j} has calibration format version {v}; this bayesmag reads versions "
                             f"{list(READABLE_VERSIONS)} (it is version {__version__}). The file was written by a "
                             f"newer bayesmag ({writer}): upgrade bayesmag (pip install -U bayesmag) to apply it.")

@@ -566,7 +566,7 @@ def _c_header(ex: Export, notes: list[str], sign: str = SIGNATURE) -> str:
 
 def render(fmt: str, ex: Export) -> str:
     """The file text of format ``fmt``."""
-    from bayesmag import __version__
+    from bayesmag._src.core.version import __version__
     notes = limitations(fmt, ex)
     sign = f"{SIGNATURE} {__version__}"
     if fmt == "json":

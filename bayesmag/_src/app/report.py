@@ -373,7 +373,7 @@ def certificate_record(cfg, data) -> dict:
     """
     import datetime
 
-    from bayesmag import __version__
+    from bayesmag._src.core.version import __version__
     from bayesmag._src.app.config import to_toml
 
     d = cfg.data
