@@ -125,7 +125,8 @@ def test_auto_method_is_analytic_where_exact_else_psqmc(data):
 def test_calibrator_constructor_only_stores_and_params_round_trip():
     cal = bayesmag.Calibrator("paper_physics", holdout=0.1)
     assert cal.get_params() == {"config": "paper_physics", "overrides": (), "out": None, "columns": None,
-                                "temperature_unit": "C", "field_unit": "uT", "holdout": 0.1}
+                                "temperature_unit": "C", "field_unit": None, "holdout": 0.1,
+                                "duplicate_times": "ignore"}
     assert cal.set_params(holdout=None) is cal and cal.holdout is None
     with pytest.raises(ValueError, match="no parameter 'seed'"):
         cal.set_params(seed=1)

@@ -353,7 +353,7 @@ def _check_measurement(m: MeasurementConfig) -> None:
                           "false or \"auto\".")
     if m.min_magnitude < 0:
         raise ConfigError(f"Config key 'measurement.min_magnitude' = {m.min_magnitude} must be >= 0 uT.")
-    from bayesmag._src.app.export import FORMATS
+    from bayesmag._src.app.formats import FORMATS
     bad = [f for f in m.exports if f not in FORMATS]
     if bad:
         raise ConfigError(f"Config key 'measurement.exports' has unknown format(s) {bad}; valid: {list(FORMATS)}.")

@@ -41,8 +41,8 @@ def load_discover_config(path: str | Path, overrides: Sequence[str] = ()):
 
 def resolve_config(name: str) -> Path:
     """A config path, or the name of a packaged config (``discover_belsten``), as ``bayesmag run`` accepts."""
-    from bayesmag._src.app.cli import _resolve_config
-    return _resolve_config(name)
+    from bayesmag._src.app.config import resolve_config_path
+    return resolve_config_path(name)
 
 
 def default_out(name: str) -> Path:

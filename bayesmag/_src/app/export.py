@@ -50,7 +50,7 @@ __all__ = ["FORMATS", "ExportError", "affine_at", "hard_soft_iron", "fit_symmetr
            "c_domain_code", "check_export_out", "is_export", "SIGNATURE"]
 
 #: File suffix per format (never plain ".json": calibration.json is the artifact itself).
-FORMATS = {"json": ".export.json", "c-header": ".h", "magcal": ".magcal.json", "px4": ".params", "ardupilot": ".parm"}
+from bayesmag._src.app.formats import FORMATS  # noqa: E402  (re-exported: the export formats)
 #: The token every exported file carries near its top: a file without it was not written by
 #: ``bayesmag export`` and is never replaced without ``force``.
 SIGNATURE = "bayesmag-export"
@@ -598,7 +598,7 @@ def split_rows(cal) -> tuple[CalibrationData, CalibrationData]:
     """The run's training and held-out (test) rows, reloaded through its saved config (data source and split)."""
     from bayesmag._src.app.config import config_from_dict
     from bayesmag._src.core.data import make_split
-    from bayesmag._src.app.job import load_data
+    from bayesmag._src.app.inputs import load_data
 
     raw = {k: v for k, v in cal.config.items() if v is not None}
     cfg = config_from_dict(_drop_none(raw))

@@ -50,7 +50,7 @@ def load_field_data(cfg: Config):
         except (TypeError, ValueError) as e:
             raise ConfigError(f"[measurement.simulate]: {e}") from None
         return c.data, c.f_ref, c
-    from bayesmag._src.app.job import load_data
+    from bayesmag._src.app.inputs import load_data
     return load_data(cfg), None, None
 
 
@@ -178,7 +178,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                          heading=heading, compare_vector=mc.compare_vector)
     timings.update(fs.timings)
     if not fs.fit.converged:
-        from bayesmag._src.app.job import JobError
+        from bayesmag._src.pipeline.stages import CalibrationError as JobError
         raise JobError("The field fit did not converge; check the data for outliers.")
     params = fs.fit.to_json()
     field_m = {"n_train": int(train.n), "n_test": int(test.n), "dropped_low_magnitude": dropped,
@@ -203,7 +203,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
         _write_predictions(tmp / "predictions.csv", test, split.test, fs.target_test, fs.prediction, cfg.uq.level)
         for fmt, text in field_export_texts(fs.fit, train, mc.exports).items():
-            from bayesmag._src.app.export import FORMATS
+            from bayesmag._src.app.formats import FORMATS
             (tmp / f"calibration{FORMATS[fmt]}").write_text(text)
         figures = []
         if cfg.output.figures:

@@ -18,8 +18,8 @@ import numpy as np
 
 from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.app.config import Config, ConfigError, config_error, to_toml
-from bayesmag._src.core.data import AXES, CalibrationData, DataError, load_csv, make_split, validate
-from bayesmag._src.core.datasets import load_dataset
+from bayesmag._src.core.data import AXES, CalibrationData, DataError, make_split, validate
+from bayesmag._src.app.inputs import load_data
 from bayesmag._src.core.fit import PhysicsFit
 from bayesmag._src.core.physics import PhysicsModel, inputs_from_data
 from bayesmag._src.app.outdir import staging_dir
@@ -33,21 +33,6 @@ __all__ = ["run_job", "run_physics_stage", "load_data", "build_model", "resolve_
 
 #: The job could not finish; the message says why and what to change (the library's :class:`CalibrationError`).
 JobError = CalibrationError
-
-
-def load_data(cfg: Config) -> CalibrationData:
-    """The recording a config names (CSV path, named dataset, or the built-in simulator)."""
-    d = cfg.data
-    if d.path is not None:
-        return load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit,
-                        field_unit=d.field_unit)
-    if d.source == "simulated":
-        from bayesmag._src.core.simulate import simulate_from_config
-        try:
-            return simulate_from_config(dict(d.simulate))
-        except (ValueError, TypeError) as e:
-            raise ConfigError(f"[data.simulate] {e}") from None
-    return load_dataset(d.source)
 
 
 def build_model(cfg: Config, train: CalibrationData) -> PhysicsModel:
