@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import threading
 from concurrent.futures import Executor, ThreadPoolExecutor
 from typing import Any, Callable, NamedTuple
 
@@ -232,6 +233,23 @@ def training_threads() -> int:
 
 
 
+#: Held while :func:`_compile_once` compiles: XLA compiling on several threads at once (the axes and the
+#: cross-conformal folds train on threads) crashed the interpreter with SIGSEGV inside
+#: ``backend_compile_and_load`` (jaxlib 0.10.2, CPU); the threads then only run compiled programs.
+_COMPILE_LOCK = threading.Lock()
+
+
+def _compile_once(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val) -> None:
+    """Compile the programs :func:`_train_axes` runs for one column (init, a chunk of epochs, the summary) in
+    this thread, one compilation at a time in the process, before the axes start on threads. A chunk with
+    ``stop = 0`` runs no epoch: nothing is trained and no result depends on it."""
+    spec = spec.compiled_key()
+    with _COMPILE_LOCK:
+        s = _init_axes(spec, keys[:1])
+        s, running = _train_chunk(spec, s, 0, x_fit, r_fit[:, :1], x_val, r_val[:, :1])
+        jax.block_until_ready((running, jax.vmap(_trainer(spec).info)(s), s.best_params))
+
+
 def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
                     progress: Callable[[TrainProgress], None] | None = None, threads: int | None = None,
                     pool: Executor | None = None):
@@ -250,6 +268,8 @@ def _train_parallel(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
     threads = training_threads() if threads is None else threads
     report = merged_reporter(n_axes, 1, progress) if progress is not None else None   # waiting axes: epoch 0
     r_fit, r_val = np.asarray(r_fit), np.asarray(r_val)
+    if n_axes > 1 and (pool is not None or threads > 1):
+        _compile_once(spec, keys, x_fit, r_fit, x_val, r_val)
 
     def run(a):
         return _train_axes(spec, keys[a:a + 1], x_fit, r_fit[:, a:a + 1], x_val, r_val[:, a:a + 1],
