@@ -164,6 +164,7 @@ class MeasurementConfig:
 
     kind: str = "vector"                # vector | scalar | constant
     field: Union[float, str] = "free"   # constant: the site's field magnitude in uT (e.g. IGRF/WMM), or "free"
+    scalar_column: str = ""             # scalar with data.path: the CSV column of the reference magnitude per row, uT
     temperature_terms: Union[bool, str] = "auto"   # "auto": on when the training temperature spans >= 1 C
     covariance: str = "white"           # white | ar1 (residual autocorrelation)
     min_magnitude: float = 0.0          # drop rows whose reference magnitude is below this (a scalar sensor's range), uT
@@ -345,6 +346,9 @@ def _check_measurement(m: MeasurementConfig) -> None:
                           "false or \"auto\".")
     if m.min_magnitude < 0:
         raise ConfigError(f"Config key 'measurement.min_magnitude' = {m.min_magnitude} must be >= 0 uT.")
+    if m.scalar_column and m.kind != "scalar":
+        raise ConfigError(f"Config key 'measurement.scalar_column' = {m.scalar_column!r} is only read by "
+                          f"kind = \"scalar\" (kind is {m.kind!r}); remove it or set measurement.kind = \"scalar\".")
     from bayesmag._src.app.export import FORMATS
     bad = [f for f in m.exports if f not in FORMATS]
     if bad:
@@ -354,6 +358,9 @@ def _check_measurement(m: MeasurementConfig) -> None:
 def _check_semantics(cfg: Config) -> None:
     _check_numbers(cfg)
     _check_measurement(cfg.measurement)
+    if cfg.measurement.scalar_column and cfg.data.path is None:
+        raise ConfigError(f"Config key 'measurement.scalar_column' = {cfg.measurement.scalar_column!r} names a CSV "
+                          "column, but [data] names no 'path'; give data.path (a CSV with that column).")
     d = cfg.data
     if d.source is not None and d.path is not None:
         raise ConfigError("[data] names both 'source' and 'path'; give one.")

@@ -50,8 +50,17 @@ def load_field_data(cfg: Config):
         except (TypeError, ValueError) as e:
             raise ConfigError(f"[measurement.simulate]: {e}") from None
         return c.data, c.f_ref, c
-    from bayesmag._src.app.job import load_data
-    return load_data(cfg), None, None
+    d, mc = cfg.data, cfg.measurement
+    if d.path is None:
+        from bayesmag._src.app.job import load_data
+        return load_data(cfg), None, None
+    from bayesmag._src.core.data import load_column, load_csv
+    # a field recording needs no reference vector: a scalar column, or one constant field, is the reference
+    data = load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit, require_reference=False)
+    f_ref = None
+    if mc.scalar_column:
+        f_ref = load_column(d.path, mc.scalar_column, key="[measurement] scalar_column", positive=True)
+    return data, f_ref, None
 
 
 def _fmt(v: float) -> str:
@@ -151,8 +160,9 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         raise ConfigError(f"[measurement]: {e}") from None
     data, f_ref, campaign = load_field_data(cfg)
     if data.b_ref is None and f_ref is None and mc.kind != "constant":
-        raise DataError(f"The {mc.kind} measurement model needs a reference (columns bx_ref, by_ref, bz_ref); "
-                        "the recording has none. Use [measurement] kind = \"constant\" with the site's field.")
+        raise DataError(f"The {mc.kind} measurement model needs a reference: a magnitude column named by "
+                        "[measurement] scalar_column, or the columns bx_ref, by_ref, bz_ref; the recording has "
+                        "neither. Name the column, or use [measurement] kind = \"constant\" with the site's field.")
     mag = f_ref if f_ref is not None else (np.linalg.norm(data.b_ref, axis=1) if data.b_ref is not None else None)
     keep = np.ones(data.n, bool) if mag is None else mag >= mc.min_magnitude
     dropped = int((~keep).sum())
