@@ -150,3 +150,45 @@ def test_scalar_column_config_errors(raw, match):
     from bayesmag._src.app.config import config_from_dict
     with pytest.raises(ConfigError, match=match):
         config_from_dict(raw)
+
+
+# --------------------------------------------------------------------------- the NUTS cross-check as a job stage
+
+
+def test_field_run_with_nuts_writes_the_cross_check(tmp_path, capsys):
+    """``[nuts] enabled = true`` in a field config: NUTS on the same posterior, summary files, verdict in the report.
+
+    A 600-row two-temperature campaign, 2 chains x 150 draws: R-hat below 1.05 and the Laplace sds within 25 %
+    of NUTS (looser than the job's verdict thresholds, which need more draws than a quick test affords).
+    """
+    import csv
+    from bayesmag._src.app.cli import main
+    p = tmp_path / "c.toml"
+    p.write_text((CONFIGS / "field_simulated.toml").read_text()
+                 + "\n[nuts]\nenabled = true\nchains = 2\nwarmup = 150\ndraws = 150\nseed = 3\n")
+    rc = main(["run", str(p), "--out", str(tmp_path / "o"), "--no-progress", "--set", "measurement.simulate.n=600",
+               "--set", "output.figures=false", "--set", 'measurement.exports=["json"]'])
+    assert rc == 0
+    assert "NUTS: max R-hat" in capsys.readouterr().out
+    out = tmp_path / "o"
+    m = json.loads((out / "metrics.json").read_text())["field"]["nuts"]
+    assert m["chains"] == 2 and m["draws"] == 150 and m["max_rhat"] < 1.05
+    assert 0.75 < m["sd_ratio_min"] and m["sd_ratio_max"] < 1.25 and m["max_mean_shift_sd"] < 0.5
+    rows = list(csv.DictReader(open(out / "nuts_summary.csv")))
+    assert [r["name"] for r in rows if r["kind"] == "parameter"] == json.loads((out / "field_params.json").read_text())["param_names"]
+    assert sum(r["kind"] == "invariant" for r in rows) == 18
+    assert "Verdict" in (out / "nuts_summary.md").read_text()
+    assert "### NUTS cross-check" in (out / "report.md").read_text()
+    import xarray as xr
+    ds = xr.open_dataset(out / "nuts.nc", group="posterior", engine="h5netcdf")
+    assert ds["theta"].shape == (2, 150, len(rows) - 18)
+
+
+@pytest.mark.parametrize("over, key", [("nuts.priors={S_xx=\"normal(1, 0.1)\"}", "nuts.priors"),
+                                       ("nuts.likelihood=\"student_t\"", "nuts.likelihood"),
+                                       ("nuts.target_accept=1.5", "nuts.target_accept")])
+def test_field_nuts_config_errors_name_the_key(tmp_path, over, key):
+    cfg = load_config(CONFIGS / "field_simulated.toml", ["nuts.enabled=true", over])
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        bayesmag.run_job(cfg, tmp_path / "o")
+    assert not (tmp_path / "o").exists()

@@ -2,7 +2,8 @@
 
 Writes into the output folder, atomically (staging folder renamed at the end): ``field_params.json``,
 ``metrics.json``, ``predictions.csv`` (held-out magnitudes with intervals), ``report.md`` (the
-certificate, with the field section), the exports listed in ``[measurement] exports`` and figures.
+certificate, with the field section), the exports listed in ``[measurement] exports``, figures, and with
+``[nuts] enabled = true`` the NUTS cross-check (``nuts_summary.csv``, ``nuts_summary.md``, ``nuts.nc``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,31 @@ from bayesmag._src.core.data import DataError, make_split
 from bayesmag._src.core.field import INVARIANT_NAMES, gauge_text
 from bayesmag._src.core.measurement import measurement_from_spec
 
-__all__ = ["run_field_job", "field_report_lines", "load_field_data", "print_summary"]
+__all__ = ["run_field_job", "field_report_lines", "load_field_data", "print_summary", "check_field_nuts_config"]
+
+
+def check_field_nuts_config(cfg: Config) -> None:
+    """``[nuts]`` of a field run: the sampler settings as for a vector run; the likelihood and priors are the
+    field fit's own (Gaussian normalised residuals, :class:`~bayesmag.field.FieldPrior`), so those keys must
+    stay at their defaults. Raises :class:`ConfigError` naming the key."""
+    if not cfg.nuts.enabled:
+        return
+    import dataclasses
+
+    from bayesmag._src.app.config import config_error
+    from bayesmag._src.pipeline.nuts.sampler import check_settings
+    n = cfg.nuts
+    try:
+        check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
+                       chain_method=n.chain_method)
+    except ValueError as e:
+        raise config_error(e, "nuts", [f.name for f in dataclasses.fields(n)]) from None
+    if n.likelihood != "gaussian":
+        raise ConfigError(f"Config key 'nuts.likelihood' = {n.likelihood!r}: a field calibration's NUTS cross-check "
+                          "uses the field fit's Gaussian likelihood; remove the key (or set \"gaussian\").")
+    if n.priors:
+        raise ConfigError(f"Config key 'nuts.priors' = {dict(n.priors)!r}: a field calibration's NUTS cross-check "
+                          "uses the field fit's own priors (docs/field.md); remove the key.")
 
 
 def print_summary(m: dict) -> int:
@@ -36,6 +61,9 @@ def print_summary(m: dict) -> int:
     if f.get("vector_comparison"):
         c = f["vector_comparison"]["counts"]
         print(f"  vs vector fit: {c['agree']} agree, {c['disagree']} disagree, {c['not identified']} not identified")
+    if f.get("nuts"):
+        nu = f["nuts"]
+        print(f"  NUTS: max R-hat {nu['max_rhat']:.3f}, min ESS {nu['min_ess']:.0f}: {nu['verdict']}")
     for w in m.get("warnings", []):
         print(f"  note: {w}", file=sys.stderr)
     return 0
@@ -124,9 +152,11 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
     nuts = f.get("nuts")
     if nuts:
         L += ["", "### NUTS cross-check", "",
-              f"{nuts['chains']} chains x {nuts['draws']} draws; max R-hat {nuts['max_rhat']:.3f}, min ESS "
-              f"{nuts['min_ess']:.0f}; largest |Laplace - NUTS| mean / NUTS sd: {nuts['max_mean_shift_sd']:.2f}; "
-              f"sd ratio Laplace/NUTS in [{nuts['sd_ratio_min']:.2f}, {nuts['sd_ratio_max']:.2f}]."]
+              f"{nuts['chains']} chains x {nuts['draws']} draws (warm-up {nuts['warmup']}); max R-hat "
+              f"{nuts['max_rhat']:.3f}, min ESS {nuts['min_ess']:.0f}, {nuts['divergences']} divergences; largest "
+              f"|Laplace - NUTS| mean / NUTS sd: {nuts['max_mean_shift_sd']:.2f}; sd ratio Laplace/NUTS in "
+              f"[{nuts['sd_ratio_min']:.2f}, {nuts['sd_ratio_max']:.2f}] (parameters).",
+              f"- {nuts['verdict']} (parameters and identified invariants; nuts_summary.md, nuts_summary.csv, nuts.nc)."]
     if f.get("exports"):
         L += ["", "### Exports", "", "Written: " + ", ".join(f["exports"]) + " (coefficients in the gauge frame)."]
     return L
@@ -158,6 +188,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         meas = measurement_from_spec(mc.kind, mc.field)
     except ValueError as e:
         raise ConfigError(f"[measurement]: {e}") from None
+    check_field_nuts_config(cfg)
     data, f_ref, campaign = load_field_data(cfg)
     if data.b_ref is None and f_ref is None and mc.kind != "constant":
         raise DataError(f"The {mc.kind} measurement model needs a reference: a magnitude column named by "
@@ -190,6 +221,16 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     if not fs.fit.converged:
         from bayesmag._src.app.job import JobError
         raise JobError("The field fit did not converge; check the data for outliers.")
+    nuts = None
+    if cfg.nuts.enabled:
+        from bayesmag._src.core.field import field_target
+        from bayesmag._src.pipeline.field_nuts import field_nuts
+        t = time.perf_counter()
+        n = cfg.nuts
+        y_tr = field_target(meas, b_ref=train.b_ref, f_ref=None if f_ref is None else f_ref[split.train], n=train.n)
+        nuts = field_nuts(fs.fit, train.b_meas, train.temperature, y_tr, chains=n.chains, warmup=n.warmup,
+                          draws=n.draws, seed=n.seed, target_accept=n.target_accept, chain_method=n.chain_method)
+        timings["nuts"] = time.perf_counter() - t
     params = fs.fit.to_json()
     field_m = {"n_train": int(train.n), "n_test": int(test.n), "dropped_low_magnitude": dropped,
                "min_magnitude": mc.min_magnitude, "scores": fs.scores,
@@ -204,9 +245,11 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         field_m["truth_check"] = {"identified": int(ok.sum()),
                                   "coverage_identified": float(np.mean(np.abs(z[ok]) <= k)) if ok.any() else None,
                                   "abs_z": {n: float(abs(v)) for n, v in zip(INVARIANT_NAMES, z)}}
+    if nuts is not None:
+        field_m["nuts"] = {k: v for k, v in nuts.items() if k not in ("samples", "rows")}
     metrics = {"field": field_m, "split": split.as_dict(),
                "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs]},
-               "warnings": [n for n in fs.fit.notes]}
+               "warnings": [n for n in fs.fit.notes] + ([] if nuts is None else list(nuts["warnings"]))}
     with staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
         (tmp / "field_params.json").write_text(json.dumps(params, indent=2))
@@ -215,6 +258,9 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         for fmt, text in field_export_texts(fs.fit, train, mc.exports).items():
             from bayesmag._src.app.export import FORMATS
             (tmp / f"calibration{FORMATS[fmt]}").write_text(text)
+        if nuts is not None:
+            from bayesmag._src.pipeline.field_nuts import write_field_nuts_outputs
+            write_field_nuts_outputs(nuts, tmp, fs.fit.param_names)
         figures = []
         if cfg.output.figures:
             from bayesmag._src.app.field_plots import field_figures

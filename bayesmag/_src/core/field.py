@@ -278,6 +278,10 @@ def _init(model: FieldModel, u, t, target) -> np.ndarray:
     return th
 
 
+#: passes of (LM solve, noise level) at most, and the relative change of the noise level that ends them
+_MAX_PASSES, _SIG_RTOL = 8, 1e-3
+
+
 @dataclasses.dataclass(frozen=True)
 class FieldFit:
     """A fitted field calibration: posterior mode, Laplace covariance and diagnostics."""
@@ -431,7 +435,11 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     sig = max(float(np.sqrt(np.mean(np.asarray(r0) ** 2))), 1e-6)
     infl, rho, steps, ok = 1.0, 0.0, 0, True
     theta = theta0
-    for _ in range(2):                       # second pass: prior weights with the fitted noise level
+    # The prior enters the LM cost as w (theta - mu) with w = sig / sd, so the mode is the posterior mode only
+    # when sig is the noise level the fit itself implies: iterate to that fixed point. (Two passes were not
+    # enough: from a poor algebraic start the second pass ran with sig 25x too large, i.e. a prior 600x too
+    # strong, which moved the mode by up to 0.6 posterior sd; NUTS showed it, tests/test_field.py.)
+    for k in range(_MAX_PASSES):
         sol = _solve(model, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd))
         theta = np.asarray(sol.theta)
         steps += int(sol.n_steps)
@@ -442,7 +450,11 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
             rr = r.reshape(len(u), -1)
             rho = float(np.mean([lag1_autocorrelation(rr[:, k], run) for k in range(rr.shape[1])]))
             infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99))
-        sig = math.sqrt(s2 * infl)
+        sig_new = math.sqrt(s2 * infl)
+        done = k > 0 and abs(sig_new / sig - 1.0) < _SIG_RTOL
+        sig = sig_new
+        if done:
+            break
     P = J.T @ J / (s2 * infl) + np.diag(1.0 / sd**2)
     cov = np.linalg.inv(P)
     cov = 0.5 * (cov + cov.T)
