@@ -220,3 +220,31 @@ def test_nuts_agrees_with_the_laplace_posterior():
     r = field_nuts(f, d.b_meas, d.temperature, c.f_ref, chains=2, warmup=200, draws=200)
     assert r["max_rhat"] < 1.05 and r["min_ess"] > 100
     assert r["max_mean_shift_sd"] < 0.5 and 0.75 < r["sd_ratio_min"] and r["sd_ratio_max"] < 1.25
+
+
+# --------------------------------------------------------------------------- interval calibration (cross-conformal)
+
+
+def test_conformal_scale_is_one_when_the_noise_model_is_right():
+    """White reading noise (the Laplace predictive is right): the fold scale c is ~1 (declared band 0.85-1.2)
+    and every training row of a fold is scored once. (On the Belsten recordings c = 1.27:
+    tests/test_field_job.py::test_scalar_belsten_against_vector_fit.)"""
+    from bayesmag._src.pipeline.field_stage import _time_block_folds, magnitude_interval_scale
+    c = simulate_field("dance", n=1000, seed=5, temperature=(15.0, 35.0))
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar())
+    white = magnitude_interval_scale(d, Scalar(), c.f_ref, fraction=0.08, folds=5, start=f)
+    assert 0.85 <= white["scale"] <= 1.2
+    assert white["n"] == int(np.sum(_time_block_folds(d.run, fraction=0.08, folds=5, seed=0) >= 0)) == 400
+
+
+def test_fit_with_keep_equals_the_fit_of_the_kept_rows():
+    """``keep`` (rows carried with weight 0) gives the same fit as the subset (one compiled solver for all folds)."""
+    c = simulate_field("dance", n=800, seed=6, temperature=(15.0, 35.0))
+    d = c.data
+    keep = np.ones(d.n, bool)
+    keep[200:300] = False
+    a = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar(), keep=keep)
+    b = fit_field(d.b_meas[keep], d.temperature[keep], c.f_ref[keep], Scalar())
+    assert a.n == b.n == 700 and a.model.t0 == b.model.t0
+    assert np.allclose(a.theta, b.theta, rtol=1e-7, atol=1e-9) and np.allclose(a.cov, b.cov, rtol=1e-6, atol=1e-14)

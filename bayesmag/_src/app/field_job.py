@@ -112,6 +112,14 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
          "| RMSE (uT) | coverage | mean width (uT) | NLL | CRPS (uT) |", "|---|---|---|---|---|",
          f"| {_fmt(f['scores']['rmse'])} | {f['scores']['coverage']:.3f} (nominal {f['scores']['level']:g}) | "
          f"{_fmt(f['scores']['mean_width'])} | {_fmt(f['scores']['nll'])} | {_fmt(f['scores']['crps'])} |", ""]
+    ic = f["scores"].get("interval_calibration")
+    if ic:
+        L += [f"Intervals: the Laplace predictive sd times the conformal scale c = {ic['scale']:.3g}, from {ic['folds']} "
+              f"time-block folds of the training rows ({ic['n']} rows, each predicted by a fit that did not see it; "
+              f"unscaled they covered {ic['fold_coverage_before']:.3f}). Unscaled on the held-out rows: coverage "
+              f"{ic['laplace_coverage']:.3f}, CRPS {_fmt(ic['laplace_crps'])} uT.", ""]
+    else:
+        L += ["Intervals: the Laplace predictive as it is (measurement.interval_calibration = \"none\").", ""]
     L += ["### Gauge-free quantities (at T0)", "",
           "Q = S^T S (scale and non-orthogonality), dQ/dT, d = S^-1 O (offset in the sensor frame, uT), dd/dT (uT/C).",
           "", "| quantity | value | sd | prior sd | identified |", "|---|---|---|---|---|"]
@@ -179,7 +187,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     """Run the field calibration the config describes and write its outputs into ``out``."""
     from bayesmag._src.app.field_export import field_export_texts
     from bayesmag._src.app.outdir import staging_dir
-    from bayesmag._src.pipeline.field_stage import run_field_stage
+    from bayesmag._src.pipeline.field_stage import conformal_plan, run_field_stage
 
     mc = cfg.measurement
     timings: dict[str, float] = {}
@@ -216,7 +224,9 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     fs = run_field_stage(train, test, meas, f_ref_train=None if f_ref is None else f_ref[split.train],
                          f_ref_test=None if f_ref is None else f_ref[split.test], t0=cfg.physics.t0,
                          temperature_terms=mc.temperature_terms, covariance=mc.covariance, level=cfg.uq.level,
-                         heading=heading, compare_vector=mc.compare_vector)
+                         heading=heading, compare_vector=mc.compare_vector, seed=cfg.split.seed,
+                         conformal=None if mc.interval_calibration == "none" else
+                         conformal_plan(cfg.split.test_fraction, cfg.split.n_blocks, cfg.split.kind, mc.conformal_folds))
     timings.update(fs.timings)
     if not fs.fit.converged:
         from bayesmag._src.app.job import JobError
