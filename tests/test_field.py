@@ -196,16 +196,12 @@ def test_parameter_coverage_quick():
     assert 0.85 <= cov <= 1.0
 
 
-_SHORT = pytest.mark.xfail(reason="known shortfall (docs/field.md): the Laplace posterior is too narrow where the "
-                                  "motion only just identifies a quantity; bench_field.py measured 0.88-0.89 (10 seeds)", strict=False)
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("kind, kw", [("dance", {"temperature": (15.0, 40.0)}),
-                                      pytest.param("two_temperature", {}, marks=_SHORT),
-                                      pytest.param("few_orientations", {}, marks=_SHORT)])
+@pytest.mark.parametrize("kind, kw", [("dance", {"temperature": (15.0, 40.0)}), ("two_temperature", {}),
+                                      ("few_orientations", {})])
 def test_parameter_coverage_20_campaigns(kind, kw):
-    """20 campaigns per kind: coverage of the identified invariants in [0.90, 0.99] (declared)."""
+    """20 campaigns per kind: coverage of the identified invariants in [0.90, 0.99] (declared). two_temperature and
+    few_orientations failed it (0.88-0.89) until the estimate was made the posterior mode (fixed-point passes)."""
     cov = _coverage(kind, range(200, 220), Scalar(), **kw)
     assert 0.90 <= cov <= 0.99
 
