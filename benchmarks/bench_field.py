@@ -85,8 +85,8 @@ def kabsch(Bm, Bt):
     return (U @ np.diag([1, 1, d]) @ Vt).T                   # R with Bt ~ Bm R^T
 
 
-def run_one(kind, seed, temperature, n_orient):
-    kw = dict(n=2000, seed=seed, n_orient=n_orient)
+def run_one(kind, seed, temperature, n_orient, sim=None):
+    kw = dict(n=2000, seed=seed, n_orient=n_orient, **(sim or {}))
     if kind != "two_temperature":
         kw["temperature"] = temperature
     c = simulate_field(kind, **kw)
@@ -141,6 +141,11 @@ CAMPAIGNS = [("dance", "many orientations, 20 C", (20.0, 20.0), 12),
              ("two_temperature", "turns at 15 and 40 C", None, 12),
              ("few_orientations", "12 orientations, 20 C", (20.0, 20.0), 12),
              ("few_orientations", "12 orientations, 15->40 C ramp", (15.0, 40.0), 12)]
+#: generator settings no code change was tried on (a check that a fix is not tuned to the rows above)
+UNSEEN = [("two_temperature", "unseen: turns at 0 and 30 C, incl. 30 deg, noise 0.1 uT", None, 12,
+           {"temperatures": (0.0, 30.0), "inclination": 30.0, "noise_sd": 0.1}),
+          ("few_orientations", "unseen: 16 orientations, 10->30 C ramp, incl. 75 deg", (10.0, 30.0), 16,
+           {"inclination": 75.0})]
 
 
 def main():
@@ -161,9 +166,12 @@ def main():
         print(f"10,000 rows, scalar model, 18 parameters + posterior + magnitude intervals: cold {times[0]:.2f} s, "
               f"warm {min(times[1:]):.2f} / {max(times[1:]):.2f} s", flush=True)
         return
-    table = {}
-    for kind, label, temp, no in CAMPAIGNS:
-        runs = [run_one(kind, s, temp, no) for s in range(a.seeds)]
+    table, per_seed = {}, {}
+    for kind, label, temp, no, *sim in [c + (None,) for c in CAMPAIGNS] + UNSEEN:
+        runs = [run_one(kind, s, temp, no, sim[0]) for s in range(a.seeds)]
+        per_seed[label] = {m: {"offset_err": [r[m]["offset_err"] for r in runs]} for m in ("bayesmag", "ellipsoid")}
+        per_seed[label]["bayesmag"]["inv_hits"] = [r["bayesmag"]["inv_hits"] for r in runs]
+        per_seed[label]["bayesmag"]["inv_n"] = [r["bayesmag"]["inv_n"] for r in runs]
         row = {}
         for m in runs[0]:
             keys = runs[0][m].keys()
@@ -179,7 +187,7 @@ def main():
                   flush=True)
     if a.out:
         with open(a.out, "w") as fh:
-            json.dump({"seeds": a.seeds, "table": table}, fh, indent=2)
+            json.dump({"seeds": a.seeds, "table": table, "per_seed": per_seed}, fh, indent=2)
 
 
 if __name__ == "__main__":

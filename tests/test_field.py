@@ -168,22 +168,40 @@ def _coverage(kind, seeds, meas, n=1500, **kw):
     return float(np.mean(np.concatenate(hits)))
 
 
+@pytest.mark.parametrize("kind, meas, cov", [("two_temperature", Constant(50.0), "white"),
+                                             ("few_orientations", Scalar(), "ar1")])
+def test_estimate_is_the_posterior_mode(kind, meas, cov):
+    """The returned theta is a stationary point of the posterior it reports (noise level and priors as stored):
+    the gradient of the negative log posterior, times the posterior sd, is ~0 (a Newton step of < 0.01 sd).
+
+    Fails with prior weights from a stale noise level (two fixed passes: 0.30 on the first campaign)."""
+    c = simulate_field(kind, n=600, seed=0)
+    d = c.data
+    y = field_target(meas, b_ref=d.b_ref, f_ref=c.f_ref, n=d.n)
+    f = fit_field(d.b_meas, d.temperature, y, meas, covariance=cov, run=d.run)
+    u, t, yy = jnp.asarray(d.b_meas), jnp.asarray(d.temperature), jnp.asarray(y)
+
+    def neg_log_post(th):
+        r = f.model.residual(th, u, t, yy)
+        return 0.5 * jnp.sum(r * r) / (f.s2 * f.inflation) + 0.5 * jnp.sum(((th - f.prior_mean) / f.prior_sd) ** 2)
+
+    import jax
+    g = np.asarray(jax.grad(neg_log_post)(jnp.asarray(f.theta)))
+    assert np.max(np.abs(f.cov @ g) / f.std) < 0.01
+
+
 def test_parameter_coverage_quick():
     """4 dance campaigns x 18 invariants: 95 % intervals cover at least 85 % (below the binomial 3-sd band at n=72)."""
     cov = _coverage("dance", range(100, 104), Constant(50.0), n=1000, temperature=(15.0, 40.0))
     assert 0.85 <= cov <= 1.0
 
 
-_SHORT = pytest.mark.xfail(reason="known shortfall (docs/field.md): the Laplace posterior is too narrow where the "
-                                  "motion only just identifies a quantity; bench_field.py measured 0.88-0.89 (10 seeds)", strict=False)
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("kind, kw", [("dance", {"temperature": (15.0, 40.0)}),
-                                      pytest.param("two_temperature", {}, marks=_SHORT),
-                                      pytest.param("few_orientations", {}, marks=_SHORT)])
+@pytest.mark.parametrize("kind, kw", [("dance", {"temperature": (15.0, 40.0)}), ("two_temperature", {}),
+                                      ("few_orientations", {})])
 def test_parameter_coverage_20_campaigns(kind, kw):
-    """20 campaigns per kind: coverage of the identified invariants in [0.90, 0.99] (declared)."""
+    """20 campaigns per kind: coverage of the identified invariants in [0.90, 0.99] (declared). two_temperature and
+    few_orientations failed it (0.88-0.89) until the estimate was made the posterior mode (fixed-point passes)."""
     cov = _coverage(kind, range(200, 220), Scalar(), **kw)
     assert 0.90 <= cov <= 0.99
 
@@ -198,3 +216,31 @@ def test_nuts_agrees_with_the_laplace_posterior():
     r = field_nuts(f, d.b_meas, d.temperature, c.f_ref, chains=2, warmup=200, draws=200)
     assert r["max_rhat"] < 1.05 and r["min_ess"] > 100
     assert r["max_mean_shift_sd"] < 0.5 and 0.75 < r["sd_ratio_min"] and r["sd_ratio_max"] < 1.25
+
+
+# --------------------------------------------------------------------------- interval calibration (cross-conformal)
+
+
+def test_conformal_scale_is_one_when_the_noise_model_is_right():
+    """White reading noise (the Laplace predictive is right): the fold scale c is ~1 (declared band 0.85-1.2)
+    and every training row of a fold is scored once. (On the Belsten recordings c = 1.27:
+    tests/test_field_job.py::test_scalar_belsten_against_vector_fit.)"""
+    from bayesmag._src.pipeline.field_stage import _time_block_folds, magnitude_interval_scale
+    c = simulate_field("dance", n=1000, seed=5, temperature=(15.0, 35.0))
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar())
+    white = magnitude_interval_scale(d, Scalar(), c.f_ref, fraction=0.08, folds=5, start=f)
+    assert 0.85 <= white["scale"] <= 1.2
+    assert white["n"] == int(np.sum(_time_block_folds(d.run, fraction=0.08, folds=5, seed=0) >= 0)) == 400
+
+
+def test_fit_with_keep_equals_the_fit_of_the_kept_rows():
+    """``keep`` (rows carried with weight 0) gives the same fit as the subset (one compiled solver for all folds)."""
+    c = simulate_field("dance", n=800, seed=6, temperature=(15.0, 35.0))
+    d = c.data
+    keep = np.ones(d.n, bool)
+    keep[200:300] = False
+    a = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar(), keep=keep)
+    b = fit_field(d.b_meas[keep], d.temperature[keep], c.f_ref[keep], Scalar())
+    assert a.n == b.n == 700 and a.model.t0 == b.model.t0
+    assert np.allclose(a.theta, b.theta, rtol=1e-7, atol=1e-9) and np.allclose(a.cov, b.cov, rtol=1e-6, atol=1e-14)

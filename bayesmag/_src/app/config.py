@@ -149,9 +149,12 @@ class MeasurementConfig:
 
     kind: str = "vector"                # vector | scalar | constant
     field: Union[float, str] = "free"   # constant: the site's field magnitude in uT (e.g. IGRF/WMM), or "free"
+    scalar_column: str = ""             # scalar with data.path: the CSV column of the reference magnitude per row, uT
     temperature_terms: Union[bool, str] = "auto"   # "auto": on when the training temperature spans >= 1 C
     covariance: str = "white"           # white | ar1 (residual autocorrelation)
     min_magnitude: float = 0.0          # drop rows whose reference magnitude is below this (a scalar sensor's range), uT
+    interval_calibration: str = "conformal"   # magnitude intervals: "conformal" (scale from time-block folds) | "none"
+    conformal_folds: int = 5            # at most this many cross-conformal folds (refits) of the training rows
     heading_check: bool = True          # simulated campaigns: heading error on the level test rows
     compare_vector: bool = True         # with a vector reference in the data: compare the 18 invariants
     exports: list = dataclasses.field(default_factory=lambda: ["json", "c-header", "magcal", "px4", "ardupilot"])
@@ -216,6 +219,7 @@ _CHOICES = {
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),
+    "measurement.interval_calibration": ("conformal", "none"),
 }
 
 
@@ -353,6 +357,11 @@ def _check_measurement(m: MeasurementConfig) -> None:
                           "false or \"auto\".")
     if m.min_magnitude < 0:
         raise ConfigError(f"Config key 'measurement.min_magnitude' = {m.min_magnitude} must be >= 0 uT.")
+    if m.conformal_folds < 2:
+        raise ConfigError(f"Config key 'measurement.conformal_folds' = {m.conformal_folds} must be at least 2.")
+    if m.scalar_column and m.kind != "scalar":
+        raise ConfigError(f"Config key 'measurement.scalar_column' = {m.scalar_column!r} is only read by "
+                          f"kind = \"scalar\" (kind is {m.kind!r}); remove it or set measurement.kind = \"scalar\".")
     from bayesmag._src.app.formats import FORMATS
     bad = [f for f in m.exports if f not in FORMATS]
     if bad:
@@ -365,6 +374,9 @@ _MAX_REFERENCE_SD = 1e3
 def _check_semantics(cfg: Config) -> None:
     _check_numbers(cfg)
     _check_measurement(cfg.measurement)
+    if cfg.measurement.scalar_column and cfg.data.path is None:
+        raise ConfigError(f"Config key 'measurement.scalar_column' = {cfg.measurement.scalar_column!r} names a CSV "
+                          "column, but [data] names no 'path'; give data.path (a CSV with that column).")
     d = cfg.data
     if d.source is not None and d.path is not None:
         raise ConfigError("[data] names both 'source' and 'path'; give one.")

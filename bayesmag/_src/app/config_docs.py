@@ -83,10 +83,15 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "measurement.kind": ("", 'what the reference gives: "vector" (reference magnetometer) | "scalar" (a magnitude per '
                          'row) | "constant" (one field magnitude for the recording); docs/field.md'),
     "measurement.field": ("uT", 'constant: the site field magnitude (e.g. from IGRF/WMM), or "free"'),
+    "measurement.scalar_column": ("", 'scalar with data.path: the CSV column holding the reference magnitude per row '
+                                  '(uT); "" = the magnitude of bx_ref, by_ref, bz_ref'),
     "measurement.temperature_terms": ("", 'thermal terms in the field fit: true | false | "auto" (on when the '
                                       'training temperature spans >= 1 C)'),
     "measurement.covariance": ("", 'field fit parameter covariance: "white" | "ar1" (autocorrelated residuals)'),
     "measurement.min_magnitude": ("uT", "drop rows whose reference magnitude is below this (a scalar sensor's range)"),
+    "measurement.interval_calibration": ("", 'magnitude intervals: "conformal" (scaled to cover on time-block folds '
+                                         'of the training rows) | "none" (the Laplace predictive as it is)'),
+    "measurement.conformal_folds": ("", "most cross-conformal folds of the field fit (one refit each)"),
     "measurement.heading_check": ("", "simulated campaigns: report the heading error on the level test rows"),
     "measurement.compare_vector": ("", "with a vector reference in the data: compare the scalar fit's invariants"),
     "measurement.exports": ("", "firmware exports written by a field run (json, c-header, magcal, px4, ardupilot)"),

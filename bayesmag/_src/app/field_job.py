@@ -2,7 +2,8 @@
 
 Writes into the output folder, atomically (staging folder renamed at the end): ``field_params.json``,
 ``metrics.json``, ``predictions.csv`` (held-out magnitudes with intervals), ``report.md`` (the
-certificate, with the field section), the exports listed in ``[measurement] exports`` and figures.
+certificate, with the field section), the exports listed in ``[measurement] exports``, figures, and with
+``[nuts] enabled = true`` the NUTS cross-check (``nuts_summary.csv``, ``nuts_summary.md``, ``nuts.nc``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,31 @@ from bayesmag._src.core.data import DataError, make_split
 from bayesmag._src.core.field import INVARIANT_NAMES, gauge_text
 from bayesmag._src.core.measurement import measurement_from_spec
 
-__all__ = ["run_field_job", "field_report_lines", "load_field_data", "print_summary"]
+__all__ = ["run_field_job", "field_report_lines", "load_field_data", "print_summary", "check_field_nuts_config"]
+
+
+def check_field_nuts_config(cfg: Config) -> None:
+    """``[nuts]`` of a field run: the sampler settings as for a vector run; the likelihood and priors are the
+    field fit's own (Gaussian normalised residuals, :class:`~bayesmag.field.FieldPrior`), so those keys must
+    stay at their defaults. Raises :class:`ConfigError` naming the key."""
+    if not cfg.nuts.enabled:
+        return
+    import dataclasses
+
+    from bayesmag._src.app.config import config_error
+    from bayesmag._src.pipeline.nuts.sampler import check_settings
+    n = cfg.nuts
+    try:
+        check_settings(chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
+                       chain_method=n.chain_method)
+    except ValueError as e:
+        raise config_error(e, "nuts", [f.name for f in dataclasses.fields(n)]) from None
+    if n.likelihood != "gaussian":
+        raise ConfigError(f"Config key 'nuts.likelihood' = {n.likelihood!r}: a field calibration's NUTS cross-check "
+                          "uses the field fit's Gaussian likelihood; remove the key (or set \"gaussian\").")
+    if n.priors:
+        raise ConfigError(f"Config key 'nuts.priors' = {dict(n.priors)!r}: a field calibration's NUTS cross-check "
+                          "uses the field fit's own priors (docs/field.md); remove the key.")
 
 
 def print_summary(m: dict) -> int:
@@ -36,6 +61,9 @@ def print_summary(m: dict) -> int:
     if f.get("vector_comparison"):
         c = f["vector_comparison"]["counts"]
         print(f"  vs vector fit: {c['agree']} agree, {c['disagree']} disagree, {c['not identified']} not identified")
+    if f.get("nuts"):
+        nu = f["nuts"]
+        print(f"  NUTS: max R-hat {nu['max_rhat']:.3f}, min ESS {nu['min_ess']:.0f}: {nu['verdict']}")
     for w in m.get("warnings", []):
         print(f"  note: {w}", file=sys.stderr)
     return 0
@@ -50,8 +78,18 @@ def load_field_data(cfg: Config):
         except (TypeError, ValueError) as e:
             raise ConfigError(f"[measurement.simulate]: {e}") from None
         return c.data, c.f_ref, c
-    from bayesmag._src.app.inputs import load_data
-    return load_data(cfg), None, None
+    d, mc = cfg.data, cfg.measurement
+    if d.path is None:
+        from bayesmag._src.app.inputs import load_data
+        return load_data(cfg), None, None
+    from bayesmag._src.core.data import load_column, load_csv
+    # a field recording needs no reference vector: a scalar column, or one constant field, is the reference
+    data = load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit, field_unit=d.field_unit,
+                    require_reference=False)
+    f_ref = None
+    if mc.scalar_column:
+        f_ref = load_column(d.path, mc.scalar_column, key="[measurement] scalar_column", positive=True)
+    return data, f_ref, None
 
 
 def _fmt(v: float) -> str:
@@ -75,6 +113,14 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
          "| RMSE (uT) | coverage | mean width (uT) | NLL | CRPS (uT) |", "|---|---|---|---|---|",
          f"| {_fmt(f['scores']['rmse'])} | {f['scores']['coverage']:.3f} (nominal {f['scores']['level']:g}) | "
          f"{_fmt(f['scores']['mean_width'])} | {_fmt(f['scores']['nll'])} | {_fmt(f['scores']['crps'])} |", ""]
+    ic = f["scores"].get("interval_calibration")
+    if ic:
+        L += [f"Intervals: the Laplace predictive sd times the conformal scale c = {ic['scale']:.3g}, from {ic['folds']} "
+              f"time-block folds of the training rows ({ic['n']} rows, each predicted by a fit that did not see it; "
+              f"unscaled they covered {ic['fold_coverage_before']:.3f}). Unscaled on the held-out rows: coverage "
+              f"{ic['laplace_coverage']:.3f}, CRPS {_fmt(ic['laplace_crps'])} uT.", ""]
+    else:
+        L += ["Intervals: the Laplace predictive as it is (measurement.interval_calibration = \"none\").", ""]
     L += ["### Gauge-free quantities (at T0)", "",
           "Q = S^T S (scale and non-orthogonality), dQ/dT, d = S^-1 O (offset in the sensor frame, uT), dd/dT (uT/C).",
           "", "| quantity | value | sd | prior sd | identified |", "|---|---|---|---|---|"]
@@ -115,9 +161,11 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
     nuts = f.get("nuts")
     if nuts:
         L += ["", "### NUTS cross-check", "",
-              f"{nuts['chains']} chains x {nuts['draws']} draws; max R-hat {nuts['max_rhat']:.3f}, min ESS "
-              f"{nuts['min_ess']:.0f}; largest |Laplace - NUTS| mean / NUTS sd: {nuts['max_mean_shift_sd']:.2f}; "
-              f"sd ratio Laplace/NUTS in [{nuts['sd_ratio_min']:.2f}, {nuts['sd_ratio_max']:.2f}]."]
+              f"{nuts['chains']} chains x {nuts['draws']} draws (warm-up {nuts['warmup']}); max R-hat "
+              f"{nuts['max_rhat']:.3f}, min ESS {nuts['min_ess']:.0f}, {nuts['divergences']} divergences; largest "
+              f"|Laplace - NUTS| mean / NUTS sd: {nuts['max_mean_shift_sd']:.2f}; sd ratio Laplace/NUTS in "
+              f"[{nuts['sd_ratio_min']:.2f}, {nuts['sd_ratio_max']:.2f}] (parameters).",
+              f"- {nuts['verdict']} (parameters and identified invariants; nuts_summary.md, nuts_summary.csv, nuts.nc)."]
     if f.get("exports"):
         L += ["", "### Exports", "", "Written: " + ", ".join(f["exports"]) + " (coefficients in the gauge frame)."]
     return L
@@ -140,7 +188,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     """Run the field calibration the config describes and write its outputs into ``out``."""
     from bayesmag._src.app.field_export import field_export_texts
     from bayesmag._src.app.outdir import staging_dir
-    from bayesmag._src.pipeline.field_stage import run_field_stage
+    from bayesmag._src.pipeline.field_stage import conformal_plan, run_field_stage
 
     mc = cfg.measurement
     timings: dict[str, float] = {}
@@ -149,10 +197,12 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         meas = measurement_from_spec(mc.kind, mc.field)
     except ValueError as e:
         raise ConfigError(f"[measurement]: {e}") from None
+    check_field_nuts_config(cfg)
     data, f_ref, campaign = load_field_data(cfg)
     if data.b_ref is None and f_ref is None and mc.kind != "constant":
-        raise DataError(f"The {mc.kind} measurement model needs a reference (columns bx_ref, by_ref, bz_ref); "
-                        "the recording has none. Use [measurement] kind = \"constant\" with the site's field.")
+        raise DataError(f"The {mc.kind} measurement model needs a reference: a magnitude column named by "
+                        "[measurement] scalar_column, or the columns bx_ref, by_ref, bz_ref; the recording has "
+                        "neither. Name the column, or use [measurement] kind = \"constant\" with the site's field.")
     mag = f_ref if f_ref is not None else (np.linalg.norm(data.b_ref, axis=1) if data.b_ref is not None else None)
     keep = np.ones(data.n, bool) if mag is None else mag >= mc.min_magnitude
     dropped = int((~keep).sum())
@@ -175,11 +225,23 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     fs = run_field_stage(train, test, meas, f_ref_train=None if f_ref is None else f_ref[split.train],
                          f_ref_test=None if f_ref is None else f_ref[split.test], t0=cfg.physics.t0,
                          temperature_terms=mc.temperature_terms, covariance=mc.covariance, level=cfg.uq.level,
-                         heading=heading, compare_vector=mc.compare_vector)
+                         heading=heading, compare_vector=mc.compare_vector, seed=cfg.split.seed,
+                         conformal=None if mc.interval_calibration == "none" else
+                         conformal_plan(cfg.split.test_fraction, cfg.split.n_blocks, cfg.split.kind, mc.conformal_folds))
     timings.update(fs.timings)
     if not fs.fit.converged:
         from bayesmag._src.pipeline.stages import CalibrationError as JobError
         raise JobError("The field fit did not converge; check the data for outliers.")
+    nuts = None
+    if cfg.nuts.enabled:
+        from bayesmag._src.core.field import field_target
+        from bayesmag._src.pipeline.field_nuts import field_nuts
+        t = time.perf_counter()
+        n = cfg.nuts
+        y_tr = field_target(meas, b_ref=train.b_ref, f_ref=None if f_ref is None else f_ref[split.train], n=train.n)
+        nuts = field_nuts(fs.fit, train.b_meas, train.temperature, y_tr, chains=n.chains, warmup=n.warmup,
+                          draws=n.draws, seed=n.seed, target_accept=n.target_accept, chain_method=n.chain_method)
+        timings["nuts"] = time.perf_counter() - t
     params = fs.fit.to_json()
     field_m = {"n_train": int(train.n), "n_test": int(test.n), "dropped_low_magnitude": dropped,
                "min_magnitude": mc.min_magnitude, "scores": fs.scores,
@@ -194,9 +256,11 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         field_m["truth_check"] = {"identified": int(ok.sum()),
                                   "coverage_identified": float(np.mean(np.abs(z[ok]) <= k)) if ok.any() else None,
                                   "abs_z": {n: float(abs(v)) for n, v in zip(INVARIANT_NAMES, z)}}
+    if nuts is not None:
+        field_m["nuts"] = {k: v for k, v in nuts.items() if k not in ("samples", "rows")}
     metrics = {"field": field_m, "split": split.as_dict(),
                "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs]},
-               "warnings": [n for n in fs.fit.notes]}
+               "warnings": [n for n in fs.fit.notes] + ([] if nuts is None else list(nuts["warnings"]))}
     with staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
         (tmp / "field_params.json").write_text(json.dumps(params, indent=2))
@@ -205,6 +269,9 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         for fmt, text in field_export_texts(fs.fit, train, mc.exports).items():
             from bayesmag._src.app.formats import FORMATS
             (tmp / f"calibration{FORMATS[fmt]}").write_text(text)
+        if nuts is not None:
+            from bayesmag._src.pipeline.field_nuts import write_field_nuts_outputs
+            write_field_nuts_outputs(nuts, tmp, fs.fit.param_names)
         figures = []
         if cfg.output.figures:
             from bayesmag._src.app.field_plots import field_figures

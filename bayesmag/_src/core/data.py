@@ -20,6 +20,7 @@ __all__ = [
     "CANONICAL_COLUMNS",
     "load_csv",
     "load_belsten",
+    "load_column",
     "write_csv",
     "validate",
     "validate_for_discover",
@@ -640,6 +641,33 @@ def load_csv(
     except DataError as e:
         raise DataError(f"{path}: {e}") from None
     return CalibrationData(b, t, ref, time, run, source=str(path), field_unit=declared)
+
+
+def load_column(path: str | Path, name: str, *, key: str = "the column", positive: bool = False) -> np.ndarray:
+    """One extra numeric column of a CSV (e.g. a scalar magnetometer's magnitude), validated at load.
+
+    Args:
+      path: the file. name: the column's header. key: what named the column (for the message, e.g.
+        ``"[measurement] scalar_column"``). positive: every value must be > 0 (a magnitude).
+    Raises :class:`DataError` naming the column, the row and the fix.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"Data file {path} does not exist.")
+    header, arr = _read_table(path)
+    if name not in header:
+        raise DataError(f"{path} has no column '{name}' (named by {key}); columns found: {header}. "
+                        f"Set {key} to one of them.")
+    v = arr[:, header.index(name)]
+    bad = ~np.isfinite(v)
+    if bad.any():
+        raise DataError(f"{path}: column '{name}' (named by {key}) is empty or not finite at {_bad_rows(bad)}; "
+                        "drop those rows or fill them.")
+    if positive and np.any(v <= 0):
+        i = int(np.flatnonzero(v <= 0)[0])
+        raise DataError(f"{path}: column '{name}' (named by {key}) holds {v[i]:g} at data row {i + 1}: a field "
+                        f"magnitude must be positive (uT); check the column and its unit.")
+    return v
 
 
 def _runs_from_gaps(time: np.ndarray, gap_s: float) -> np.ndarray:

@@ -229,16 +229,22 @@ def field_target(measurement: MeasurementModel, b_ref=None, f_ref=None, n: int |
 # --------------------------------------------------------------------------- the fit
 
 
+def _static(model: FieldModel) -> FieldModel:
+    """The model with T0 = 0, for the jitted functions (called with T - T0): the model is a static argument,
+    so a T0 inside it would compile them again for every recording."""
+    return dataclasses.replace(model, t0=0.0)
+
+
 @functools.partial(jax.jit, static_argnums=(0,))
-def _solve(model: FieldModel, theta0, u, t, target, mu, w):
+def _solve(model: FieldModel, theta0, u, t, target, mu, w, keep):
     def r(th):
-        return jnp.concatenate([model.residual(th, u, t, target), w * (th - mu)])
+        return jnp.concatenate([model.residual(th, u, t, target) * keep, w * (th - mu)])
     return levenberg_marquardt(r, theta0, max_steps=2000)
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _jac_resid(model: FieldModel, theta, u, t, target):
-    f = lambda th: model.residual(th, u, t, target)
+def _jac_resid(model: FieldModel, theta, u, t, target, keep):
+    f = lambda th: model.residual(th, u, t, target) * keep
     return f(theta), jax.jacfwd(f)(theta)
 
 
@@ -276,6 +282,10 @@ def _init(model: FieldModel, u, t, target) -> np.ndarray:
     th = model.pack(U, np.zeros((3, 3)), O, np.zeros(3), extra)
     assert th.shape == (p,)
     return th
+
+
+#: passes of (LM solve, noise level) at most, and the relative change of the noise level that ends them
+_MAX_PASSES, _SIG_RTOL = 8, 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -321,9 +331,7 @@ class FieldFit:
 
     def invariants(self) -> dict:
         """Gauge-free quantities with posterior and prior standard deviations and an identified flag."""
-        g = lambda th: invariants(*self.model.unpack(th)[:4])
-        val = np.asarray(g(jnp.asarray(self.theta)))
-        G = np.asarray(jax.jacfwd(g)(jnp.asarray(self.theta)))
+        val, G = (np.asarray(x) for x in _invariants_jac(_static(self.model), jnp.asarray(self.theta)))
         cov = G @ self.cov @ G.T
         sd = np.sqrt(np.clip(np.diag(cov), 0, None))
         prior_sd = np.sqrt(np.clip(np.diag(G @ np.diag(self.prior_sd**2) @ G.T), 0, None))
@@ -344,8 +352,8 @@ class FieldFit:
 
     def magnitude(self, u, t) -> tuple[np.ndarray, np.ndarray]:
         """Predicted magnitude (n,) and its parameter (epistemic) standard deviation (n,)."""
-        return _magnitude(self.model, jnp.asarray(self.theta), jnp.asarray(self.cov), jnp.asarray(u, jnp.float64),
-                          jnp.asarray(t, jnp.float64))
+        return _magnitude(_static(self.model), jnp.asarray(self.theta), jnp.asarray(self.cov),
+                          jnp.asarray(u, jnp.float64), jnp.asarray(t, jnp.float64) - self.model.t0)
 
     def predict_magnitude(self, u, t) -> dict:
         """Predictive distribution of the reference magnitude: mean, epistemic, noise and total sd."""
@@ -373,6 +381,12 @@ class FieldFit:
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
+def _invariants_jac(model: FieldModel, theta):
+    g = lambda th: invariants(*model.unpack(th)[:4])
+    return g(theta), jax.jacfwd(g)(theta)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
 def _magnitude(model: FieldModel, theta, cov, u, t):
     def mag(th):
         return jnp.linalg.norm(model.calibrate(th, u, t), axis=1)
@@ -395,7 +409,8 @@ def gauge_text(meas: MeasurementModel) -> str:
 
 def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = "mean",
               temperature_terms: bool | str = "auto", covariance: str = "white", run=None,
-              prior: FieldPrior = FieldPrior()) -> FieldFit:
+              prior: FieldPrior = FieldPrior(), keep=None, start: "FieldFit | None" = None,
+              diagnostics: bool = True) -> FieldFit:
     """Fit the thermo-affine model to what ``measurement`` knows per row.
 
     Args:
@@ -405,6 +420,10 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
       temperature_terms: True/False, or ``"auto"`` (on when the temperature spans >= 1 C).
       covariance: ``"white"`` or ``"ar1"`` (the white precision deflated by :math:`(1-\rho_1)/(1+\rho_1)`).
       run: (n,) run ids (AR(1) lags stay inside runs).
+      keep: optional (n,) bool, the rows the fit uses (the others are carried with weight 0, so refits on
+        different subsets of the same rows share one compiled solver: cross-validation folds).
+      start: a fit of the same model to start from (its estimate and noise level), e.g. a refit without a fold.
+      diagnostics: False skips the direction coverage and identifiability notes (refits that only predict).
     Returns:
       :class:`FieldFit`.
 
@@ -420,34 +439,50 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     u = np.asarray(u, np.float64)
     t = np.asarray(t, np.float64).reshape(-1)
     target = np.asarray(target, np.float64)
+    kp = np.ones(len(u), bool) if keep is None else np.asarray(keep, bool).reshape(-1)
     if temperature_terms == "auto":
-        temperature_terms = bool(np.ptp(t) >= 1.0)
-    t0v = float(np.mean(t)) if t0 == "mean" else float(t0)
+        temperature_terms = bool(np.ptp(t[kp]) >= 1.0)
+    t0v = float(np.mean(t[kp])) if t0 == "mean" else float(t0)
     model = FieldModel(measurement, t0=t0v, temperature=bool(temperature_terms))
-    theta0 = _init(model, u, t, target)
-    mu, sd = model.prior(prior, u)
-    uj, tj, yj = jnp.asarray(u), jnp.asarray(t), jnp.asarray(target)
-    r0, _ = _jac_resid(model, jnp.asarray(theta0), uj, tj, yj)
-    sig = max(float(np.sqrt(np.mean(np.asarray(r0) ** 2))), 1e-6)
+    theta0 = _init(model, u[kp], t[kp], target[kp]) if start is None else np.asarray(start.theta, np.float64)
+    mu, sd = model.prior(prior, u[kp])
+    ms, uj, tj, yj = _static(model), jnp.asarray(u), jnp.asarray(t - t0v), jnp.asarray(target)
+    kj = jnp.asarray(np.repeat(kp, measurement.per_row).astype(np.float64))
+    n_res = int(kp.sum()) * measurement.per_row
+    r0, _ = _jac_resid(ms, jnp.asarray(theta0), uj, tj, yj, kj)
+    sig = max(float(np.sqrt(np.sum(np.asarray(r0) ** 2) / n_res)), 1e-6)
+    if start is not None:
+        sig = math.sqrt(start.s2 * start.inflation)
     infl, rho, steps, ok = 1.0, 0.0, 0, True
     theta = theta0
-    for _ in range(2):                       # second pass: prior weights with the fitted noise level
-        sol = _solve(model, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd))
+    # The prior enters the LM cost as w (theta - mu) with w = sig / sd, so the mode is the posterior mode only
+    # when sig is the noise level the fit itself implies: iterate to that fixed point. (Two passes were not
+    # enough: from a poor algebraic start the second pass ran with sig 25x too large, i.e. a prior 600x too
+    # strong, which moved the mode by up to 0.6 posterior sd; NUTS showed it, tests/test_field.py.)
+    for k in range(_MAX_PASSES):
+        sol = _solve(ms, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd), kj)
         theta = np.asarray(sol.theta)
         steps += int(sol.n_steps)
         ok = int(sol.result) == 0
-        r, J = (np.asarray(a) for a in _jac_resid(model, jnp.asarray(theta), uj, tj, yj))
-        s2 = float(r @ r / max(len(r) - model.n_params, 1))
+        r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj))
+        s2 = float(r @ r / max(n_res - model.n_params, 1))
         if covariance == "ar1":
-            rr = r.reshape(len(u), -1)
-            rho = float(np.mean([lag1_autocorrelation(rr[:, k], run) for k in range(rr.shape[1])]))
+            rr = r.reshape(len(u), -1)[kp]
+            rk = None if run is None else np.asarray(run)[kp]
+            rho = float(np.mean([lag1_autocorrelation(rr[:, k], rk) for k in range(rr.shape[1])]))
             infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99))
-        sig = math.sqrt(s2 * infl)
+        sig_new = math.sqrt(s2 * infl)
+        done = k > 0 and abs(sig_new / sig - 1.0) < _SIG_RTOL
+        sig = sig_new
+        if done:
+            break
     P = J.T @ J / (s2 * infl) + np.diag(1.0 / sd**2)
     cov = np.linalg.inv(P)
     cov = 0.5 * (cov + cov.T)
-    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, len(u), ok, steps, covariance, {}, ())
-    cov_diag = direction_coverage(fit0.calibrate(u, t), t)
+    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, ())
+    if not diagnostics:
+        return fit0
+    cov_diag = direction_coverage(fit0.calibrate(u[kp], t[kp]), t[kp])
     fit1 = dataclasses.replace(fit0, coverage=cov_diag)
     return dataclasses.replace(fit1, notes=tuple(identifiability_notes(fit1, cov_diag)))
 
@@ -583,10 +618,11 @@ def heading_with_uncertainty(fit: FieldFit, u, t, R=None, *, noise_sd: float | N
     t = jnp.asarray(t, jnp.float64)
     n = u.shape[0]
     R = jnp.broadcast_to(jnp.eye(3) if R is None else jnp.asarray(R, jnp.float64), (n, 3, 3))
-    val, Gt = _heading_jac(fit.model, jnp.asarray(fit.theta), u, t, R)
+    ms, tc = _static(fit.model), t - fit.model.t0
+    val, Gt = _heading_jac(ms, jnp.asarray(fit.theta), u, tc, R)
     Gt = np.asarray(Gt)
     var_p = np.sum((Gt @ fit.cov) * Gt, axis=1)
-    gu = np.asarray(_heading_row_grad(fit.model, jnp.asarray(fit.theta), u, t, R))
+    gu = np.asarray(_heading_row_grad(ms, jnp.asarray(fit.theta), u, tc, R))
     ns = math.sqrt(fit.s2) if noise_sd is None else float(noise_sd)
     var_n = ns**2 * np.sum(gu**2, axis=1)
     deg = 180.0 / np.pi

@@ -17,7 +17,8 @@ from bayesmag._src.core.field import (INVARIANT_NAMES, FieldFit, FieldPrior, fit
                                       gaussian_scores, heading_with_uncertainty, invariants, wrap_deg)
 from bayesmag._src.core.measurement import MeasurementModel, Vector
 
-__all__ = ["FieldStage", "run_field_stage", "vector_comparison", "heading_check"]
+__all__ = ["FieldStage", "run_field_stage", "vector_comparison", "heading_check", "conformal_plan",
+           "magnitude_interval_scale"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,21 +101,97 @@ def vector_comparison(fit: FieldFit, train: CalibrationData, *, covariance: str 
     return {"rows": rows, "counts": counts, "t0": fit.model.t0, "vector_covariance": vf.covariance_method}
 
 
+def conformal_plan(test_fraction: float, n_blocks: int, split_kind: str, folds: int) -> tuple[float, int]:
+    """``(fraction, folds)``: each fold one contiguous block of ``fraction`` of every run's training rows.
+
+    The blocks are as long as the held-out test blocks (a time-block split: ``test_fraction / n_blocks`` of a
+    run, i.e. ``test_fraction / n_blocks / (1 - test_fraction)`` of its training rows; otherwise 0.1), so the
+    folds' errors are as hard as the test rows'; at most ``folds`` of them, fewer where they would not fit.
+
+    Example:
+      >>> conformal_plan(0.2, 4, "time_blocks", 5)
+      (0.0625, 5)
+    """
+    fraction = test_fraction / n_blocks / (1.0 - test_fraction) if split_kind == "time_blocks" else 0.1
+    while folds > 2 and folds * fraction >= 1.0:
+        folds -= 1
+    return min(fraction, 0.49), folds
+
+
+def _time_block_folds(run: np.ndarray, *, fraction: float, folds: int, seed: int) -> np.ndarray:
+    """Fold id per row (-1: in no fold): fold k is one contiguous block of ``fraction`` of every run, at a seeded
+    place inside the k-th of ``folds`` equal stretches of the run (as the hybrid stage's cross-conformal folds)."""
+    from bayesmag._src.core.data import split_time_blocks
+    sp = split_time_blocks(run, test_fraction=folds * fraction, n_blocks=folds, seed=seed)
+    held = np.zeros(run.size, bool)
+    held[sp.test] = True
+    fold = np.full(run.size, -1)
+    for r in np.unique(run):
+        rows = np.flatnonzero(run == r)
+        slot = np.minimum(np.arange(rows.size) // max(rows.size // folds, 1), folds - 1)
+        fold[rows[held[rows]]] = slot[held[rows]]
+    return fold
+
+
+def magnitude_interval_scale(train: CalibrationData, measurement: MeasurementModel, y_tr, *, fraction: float,
+                             folds: int, level: float = 0.95, seed: int = 0, start: FieldFit | None = None,
+                             **fit_kw) -> dict:
+    r"""Cross-conformal scale c of the magnitude predictive sd, from time-block folds of the training rows.
+
+    Each fold (:func:`_time_block_folds`: one contiguous block of ``fraction`` of every run) is predicted by a fit that did not see it; c is the split-conformal quantile of
+    :math:`|y - \hat y| / (z_{level}\, sd_{total})` over all fold rows (Vovk et al. 2005). The Laplace predictive
+    assumes independent reading noise at the training level; slow unmodelled structure (drift, a block offset,
+    autocorrelated residuals) makes a new time block err more than that, and c says by how much (c ~ 1 when the
+    model's noise is right).
+    """
+    import scipy.stats
+
+    from bayesmag._src.core.predictor import conformal_quantile
+    fold = _time_block_folds(train.run, fraction=fraction, folds=folds, seed=seed)
+    if start is not None:                   # the same model (T0, terms) as the fit it starts from
+        fit_kw = {**fit_kw, "t0": start.model.t0, "temperature_terms": start.model.temperature}
+    zk = scipy.stats.norm.ppf(0.5 + level / 2)
+    ratios = []
+    for k in range(folds):
+        held = fold == k
+        if not held.any() or held.all():
+            continue
+        f = fit_field(train.b_meas, train.temperature, y_tr, measurement, keep=~held, run=train.run, start=start,
+                      diagnostics=False, **fit_kw)
+        pr = f.predict_magnitude(train.b_meas, train.temperature)          # all rows: one compiled shape
+        _, _, _, _, extra = f.matrices()
+        y = np.linalg.norm(y_tr, axis=1) if isinstance(measurement, Vector) else np.asarray(measurement.magnitude(y_tr, extra))
+        ratios.append(np.abs(y[held] - pr["mean"][held]) / (zk * pr["total"][held]))
+    r = np.concatenate(ratios)
+    c = float(conformal_quantile(r[:, None], level)[0])
+    return {"scale": c, "folds": folds, "fraction": fraction, "n": int(r.size),
+            "fold_coverage_before": float(np.mean(r <= 1.0))}
+
+
 def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: MeasurementModel, *,
                     f_ref_train=None, f_ref_test=None, t0="mean", temperature_terms="auto", covariance="white",
                     level: float = 0.95, prior: FieldPrior = FieldPrior(), heading: dict | None = None,
-                    compare_vector: bool = True) -> FieldStage:
+                    compare_vector: bool = True, conformal: tuple[float, int] | None = None,
+                    seed: int = 0) -> FieldStage:
     """Fit on ``train`` (the vector reference withheld down to what ``measurement`` sees), score ``test``.
 
     ``heading`` = ``{"rows": bool mask of test rows, "true": degrees, "alignment": (k, 3, 3)}`` when heading
-    can be checked (simulated attitudes, or a heading reference).
+    can be checked (simulated attitudes, or a heading reference). ``conformal`` = ``(fraction, folds)``
+    (:func:`conformal_plan`) scales the magnitude intervals by :func:`magnitude_interval_scale`; ``None``
+    keeps the Laplace predictive as it is.
     """
     timings = {}
     t = time.perf_counter()
     y_tr = field_target(measurement, b_ref=train.b_ref, f_ref=f_ref_train, n=train.n)
-    fit = fit_field(train.b_meas, train.temperature, y_tr, measurement, t0=t0, temperature_terms=temperature_terms,
-                    covariance=covariance, run=train.run, prior=prior)
+    fit_kw = dict(t0=t0, temperature_terms=temperature_terms, covariance=covariance, prior=prior)
+    fit = fit_field(train.b_meas, train.temperature, y_tr, measurement, run=train.run, **fit_kw)
     timings["field_fit"] = time.perf_counter() - t
+    cal = None
+    if conformal is not None:
+        t = time.perf_counter()
+        cal = magnitude_interval_scale(train, measurement, y_tr, fraction=conformal[0], folds=conformal[1],
+                                       level=level, seed=seed, start=fit, **fit_kw)
+        timings["conformal"] = time.perf_counter() - t
     t = time.perf_counter()
     pred = fit.predict_magnitude(test.b_meas, test.temperature)
     y_te = field_target(measurement, b_ref=test.b_ref, f_ref=f_ref_test, n=test.n)
@@ -123,7 +200,13 @@ def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: 
     else:
         _, _, _, _, extra = fit.matrices()
         y_mag = np.asarray(measurement.magnitude(y_te, extra))
+    raw = gaussian_scores(y_mag, pred["mean"], pred["total"], level)
+    if cal is not None:
+        pred = {**pred, "laplace_total": pred["total"], "scale": cal["scale"], "total": cal["scale"] * pred["total"]}
     scores = gaussian_scores(y_mag, pred["mean"], pred["total"], level)
+    scores["interval_calibration"] = (None if cal is None else
+                                      {**cal, "laplace_coverage": raw["coverage"], "laplace_nll": raw["nll"],
+                                       "laplace_crps": raw["crps"], "laplace_mean_width": raw["mean_width"]})
     timings["field_predict"] = time.perf_counter() - t
     hd = None
     if heading is not None and np.any(heading["rows"]):
