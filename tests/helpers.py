@@ -89,3 +89,20 @@ class Logistic(Likelihood):
 # Defining the class registered it; a test module that uses it registers it only while its tests run,
 # so "logistic" does not leak into every other module's valid-name lists.
 _likelihoods_src._REGISTRY.pop("logistic", None)
+
+
+#: A small physics job on a CSV (``{data}``: its path): analytic UQ, no figures, no progress (the safety tests).
+SMALL_JOB_CONFIG = """name = "t"
+[data]
+path = "{data}"
+[split]
+kind = "random"
+test_fraction = 0.2
+[uq]
+method = "analytic"
+n_params = 10
+n_qmc = 16
+[output]
+figures = false
+progress = false
+"""

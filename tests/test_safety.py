@@ -26,20 +26,7 @@ from bayesmag._src.core.fit import RANK_RTOL, fit_physics, unidentifiable
 from bayesmag._src.app.outdir import MARKER, OutputError, marker_status, recover, staging_dir
 from bayesmag.simulate import simulate
 
-CONFIG = """name = "t"
-[data]
-path = "{data}"
-[split]
-kind = "random"
-test_fraction = 0.2
-[uq]
-method = "analytic"
-n_params = 10
-n_qmc = 16
-[output]
-figures = false
-progress = false
-"""
+from helpers import SMALL_JOB_CONFIG as CONFIG  # noqa: E402
 
 
 def _recording(n=200, seed=0) -> CalibrationData:

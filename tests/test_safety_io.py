@@ -26,20 +26,7 @@ from bayesmag._src.app.outdir import MARKER, OutputError, marker_status, recover
 from bayesmag.simulate import simulate
 
 
-CONFIG = """name = "t"
-[data]
-path = "{data}"
-[split]
-kind = "random"
-test_fraction = 0.2
-[uq]
-method = "analytic"
-n_params = 10
-n_qmc = 16
-[output]
-figures = false
-progress = false
-"""
+from helpers import SMALL_JOB_CONFIG as CONFIG  # noqa: E402
 
 
 def _recording(path: Path, n=200, seed=0) -> Path:

@@ -118,27 +118,12 @@ def conformal_plan(test_fraction: float, n_blocks: int, split_kind: str, folds: 
     return min(fraction, 0.49), folds
 
 
-def _time_block_folds(run: np.ndarray, *, fraction: float, folds: int, seed: int) -> np.ndarray:
-    """Fold id per row (-1: in no fold): fold k is one contiguous block of ``fraction`` of every run, at a seeded
-    place inside the k-th of ``folds`` equal stretches of the run (as the hybrid stage's cross-conformal folds)."""
-    from bayesmag._src.core.data import split_time_blocks
-    sp = split_time_blocks(run, test_fraction=folds * fraction, n_blocks=folds, seed=seed)
-    held = np.zeros(run.size, bool)
-    held[sp.test] = True
-    fold = np.full(run.size, -1)
-    for r in np.unique(run):
-        rows = np.flatnonzero(run == r)
-        slot = np.minimum(np.arange(rows.size) // max(rows.size // folds, 1), folds - 1)
-        fold[rows[held[rows]]] = slot[held[rows]]
-    return fold
-
-
 def magnitude_interval_scale(train: CalibrationData, measurement: MeasurementModel, y_tr, *, fraction: float,
                              folds: int, level: float = 0.95, seed: int = 0, start: FieldFit | None = None,
                              **fit_kw) -> dict:
     r"""Cross-conformal scale c of the magnitude predictive sd, from time-block folds of the training rows.
 
-    Each fold (:func:`_time_block_folds`: one contiguous block of ``fraction`` of every run) is predicted by a fit that did not see it; c is the split-conformal quantile of
+    Each fold (:func:`~bayesmag._src.pipeline.conformal.conformal_folds`: one contiguous block of ``fraction`` of every run) is predicted by a fit that did not see it; c is the split-conformal quantile of
     :math:`|y - \hat y| / (z_{level}\, sd_{total})` over all fold rows (Vovk et al. 2005). The Laplace predictive
     assumes independent reading noise at the training level; slow unmodelled structure (drift, a block offset,
     autocorrelated residuals) makes a new time block err more than that, and c says by how much (c ~ 1 when the
@@ -147,7 +132,8 @@ def magnitude_interval_scale(train: CalibrationData, measurement: MeasurementMod
     import scipy.stats
 
     from bayesmag._src.core.predictor import conformal_quantile
-    fold = _time_block_folds(train.run, fraction=fraction, folds=folds, seed=seed)
+    from bayesmag._src.pipeline.conformal import conformal_folds
+    fold = conformal_folds(train.run, fraction=fraction, folds=folds, seed=seed)
     if start is not None:                   # the same model (T0, terms) as the fit it starts from
         fit_kw = {**fit_kw, "t0": start.model.t0, "temperature_terms": start.model.temperature}
     zk = scipy.stats.norm.ppf(0.5 + level / 2)
