@@ -558,6 +558,9 @@ def split_rows(cal) -> tuple[CalibrationData, CalibrationData]:
     from bayesmag._src.core.data import make_split
     from bayesmag._src.app.job import load_data
 
+    if "sensor_id" in cal.config:                  # a sensor folder of `bayesmag fleet`
+        from bayesmag._src.app.fleet import sensor_split_rows
+        return sensor_split_rows(cal.config)
     raw = {k: v for k, v in cal.config.items() if v is not None}
     cfg = config_from_dict(_drop_none(raw))
     data = load_data(cfg)
@@ -618,6 +621,10 @@ def _register(run_dir: Path, path: Path) -> None:
 
     from bayesmag._src.app.outdir import MARKER, marker_status
 
+    for owner in (run_dir, *Path(run_dir).resolve().parents[:2]):    # a fleet's sensors/<id>: the fleet folder's
+        if marker_status(owner) is not None:
+            run_dir = Path(owner)
+            break
     mark = marker_status(run_dir)
     try:
         rel = path.resolve().relative_to(run_dir.resolve()).as_posix()

@@ -11,7 +11,7 @@ import numpy as np
 __all__ = ["write_fleet_outputs", "write_fleet_report"]
 
 
-def _sensor_fit(fit, i: int):
+def sensor_fit(fit, i: int):
     """Sensor ``i``'s :class:`~bayesmag.PhysicsFit` (diagnostics from its covariance) from the batched fit."""
     from bayesmag._src.core.fit import RESULTS, PhysicsFit, identifiability
     names = fit.model.param_names
@@ -23,26 +23,20 @@ def _sensor_fit(fit, i: int):
                       diagnostics=tuple(identifiability(fit.cov[i, a], names) for a in range(3)))
 
 
-def write_fleet_outputs(folder: Path, cfg, summary: dict, *, fit, train, sigma_in, residual_sd, ids, feats, feat_names,
-                        z, flagged) -> None:
-    """Sensor folders (``sensors/<id>/`` with calibration.json/.npz, params.json, metrics.json), ``fleet_table.csv``
-    and the figures, into ``folder``."""
-    from bayesmag._src.app.artifact import save_calibration
-    from bayesmag._src.core.domain import Domain
-    from bayesmag._src.core.predictor import Predictor, UQOptions
+def write_fleet_outputs(folder: Path, cfg, summary: dict, *, stages, sigma_in, ids, feats, feat_names, z, flagged,
+                        timings: dict, sources) -> None:
+    """Sensor folders (``sensors/<id>/``: the files of a single ``bayesmag run`` folder,
+    :func:`~bayesmag._src.app.fleet_sensors.write_sensor_folder`), ``fleet_table.csv`` and the figures, into
+    ``folder``."""
+    from bayesmag._src.app.fleet_sensors import write_sensor_folder
 
     folder = Path(folder)
     if cfg.sensor_folders:
-        conf = cfg.to_dict()
+        n = max(len(ids), 1)
+        per = {f"fleet_{k}_per_sensor": round(v / n, 5) for k, v in timings.items()}
         for i, sid in enumerate(ids):
-            d = folder / "sensors" / sid
-            d.mkdir(parents=True)
-            pf = _sensor_fit(fit, i)
-            pred = Predictor(fit=pf, sigma_in=np.asarray(sigma_in[i]), residual_sd=np.asarray(residual_sd[i]),
-                             domain=Domain.from_data(train[i]), uq=UQOptions(method="analytic"))
-            save_calibration(d, pred, config={**conf, "sensor_id": sid}, level=cfg.level)
-            (d / "params.json").write_text(json.dumps(pf.to_json(), indent=2))
-            (d / "metrics.json").write_text(json.dumps(summary["sensors"][i], indent=2))
+            write_sensor_folder(folder / "sensors" / sid, stages[i], cfg=cfg, verdict=summary["sensors"][i],
+                                sigma_in=np.asarray(sigma_in[i]), source=sources[i], timings=per)
     with open(folder / "fleet_table.csv", "w", newline="") as f:
         w = csv.writer(f)
         lim = list(summary["sensors"][0]["limits_quantities"]) if summary["sensors"] else []
