@@ -420,7 +420,11 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         stages = None
         if cfg.sensor_folders or cfg.network.enabled:
             from bayesmag._src.app.fleet_sensors import fleet_networks, sensor_stages
-            stages = sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, residual_sd)
+            t = time.perf_counter()
+            from bayesmag._src.core.fleet_fit import fleet_predict
+            stages = sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, residual_sd,
+                                   fleet_predict(fit, train, batch_size=cfg.batch_size))
+            timings["sensor_predictions"] = time.perf_counter() - t
         physics_rmse, physics_cover = rmse, cover
         if cfg.network.enabled:
             say(f"training {len(ids)} residual networks in batches of {cfg.batch_size}")
