@@ -282,9 +282,15 @@ def test_fleet_network_batched_equals_single_sensor_training(tmp_path):
     cfg = fleet_config_from_dict(raw, base=tmp_path)
     s = run_fleet(cfg, tmp_path / "out", progress=False)
     recs, ids, _ = load_recordings(cfg)
+    shortest = int(np.argmin([r.n for r in recs]))            # the most padded one
     for i, sid in enumerate(ids):
         x = s["sensors"][i]
         assert x["prediction"] == "hybrid (gaussian)" and "physics_test_rmse" in x
+        m = json.loads((tmp_path / "out" / "sensors" / sid / "metrics.json").read_text())
+        np.testing.assert_allclose(list(m["hybrid"]["gaussian"]["rmse"].values()), list(x["test_rmse"].values()),
+                                   rtol=1e-9)
+        if i != shortest:                                      # one single-sensor training (each length compiles)
+            continue
         sp = make_split(recs[i], kind="time_blocks", test_fraction=0.25, seed=0)
         train = recs[i].subset(sp.train)
         cal = load(tmp_path / "out" / "sensors" / sid)
@@ -297,11 +303,8 @@ def test_fleet_network_batched_equals_single_sensor_training(tmp_path):
         assert net is not None
         for a, b in zip(jax.tree.leaves(net.params), jax.tree.leaves(ref.params)):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=ATOL_WEIGHTS)
-        m = json.loads((tmp_path / "out" / "sensors" / sid / "metrics.json").read_text())
         assert [m["network"]["training"]["gaussian"][ax]["epochs_run"] for ax in "xyz"] == \
             [int(e) for e in ref.info.epochs_run]
-        np.testing.assert_allclose(list(m["hybrid"]["gaussian"]["rmse"].values()), list(x["test_rmse"].values()),
-                                   rtol=1e-9)
     assert "hybrid_predicted" in (tmp_path / "out" / "sensors" / ids[0] / "predictions.csv").read_text().split("\n")[0]
     assert s["timings"]["network_train"] > 0
 
