@@ -102,6 +102,11 @@ def write_fleet_report(folder: Path, summary: dict) -> Path:
     lines = [f"# Fleet report: {s['name']}", "",
              f"{s['n_sensors']} sensors; **{s['n_pass']} pass, {s['n_fail']} flagged** (a limit failed or an outlier "
              f"against the fleet). Parameters at t0 = {s['t0']:g} C; intervals at level {s['level']:g}.", ""]
+    net = s.get("network") or {}
+    if net.get("enabled"):
+        lines += [f"Residual network per sensor ({net['likelihoods'][0]}, {net['hidden_layers']} x {net['width']}, "
+                  f"fusion {net['fusion']}), trained in one batch: the test RMSE and coverage in the verdicts are the "
+                  f"hybrid prediction's (physics-only ones in `fleet.json`).", ""]
     ot = s["outlier_test"]
     if ot["computed"]:
         lines.append(f"Outliers: robust z = (x - median) / (1.4826 MAD) of every parameter and of log test RMSE over "

@@ -90,8 +90,8 @@ def fleet_networks(stages: list[SensorStage], net_cfg, *, level: float, batch_si
         import sys
 
         def report(p):
-            print(f"  fleet: network training, {int(p.done.sum())} of {p.done.size} networks stopped, "
-                  f"epoch {int(p.epochs.max())}", file=sys.stderr, flush=True)
+            print(f"  fleet: network training, {int(p.done.sum())} of {p.done.size} (sensor, axis) networks of this "
+                  f"batch stopped, epoch {int(p.epochs.max())}", file=sys.stderr, flush=True)
     t = time.perf_counter()
     nets = fit_residual_networks(xs, rs, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
                                  validation=net_cfg.validation, groups=[s.train.run for s in stages],
