@@ -317,6 +317,19 @@ def test_bad_fleet_network_config_names_the_key(net, key):
         fleet_config_from_dict({"fleet": {"source": "simulated"}, "network": {"enabled": True, **net}})
 
 
+def test_fleet_network_too_large_for_a_sensor_is_one_line(tmp_path, capsys):
+    """A network too large for a sensor's rows stops the fleet before any training: one line naming the sensor and
+    the key, exit status 2, nothing written."""
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('[fleet]\nsource = "simulated"\nfigures = false\n'
+                   '[fleet.simulate]\nn_sensors = 2\nn_rows = 300\nn_defective = 0\n'
+                   '[network]\nenabled = true\nwidth = 64\nhidden_layers = 4\n')
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bayesmag: error: sensor SN00000") and "network.width" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.slow
 def test_sensor_folder_with_network_and_figures_has_the_single_run_file_set(tmp_path):
     """With [network] and [output] figures = true a sensor folder holds the single run's figures too (slow:

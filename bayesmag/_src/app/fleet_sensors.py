@@ -82,7 +82,17 @@ def fleet_networks(stages: list[SensorStage], net_cfg, *, level: float, batch_si
     from bayesmag._src.core.network_batch import fit_residual_networks, mc_predict_many
     from bayesmag._src.pipeline.hybrid import HybridStage, _warn_nan
 
+    from bayesmag._src.app.config import config_error
+    from bayesmag._src.core.network import check_network_size, validation_rows
     spec = net_cfg.spec(net_cfg.likelihoods[0])
+    for s in stages:                        # sizes first, before any training: one line naming the sensor
+        try:
+            fit_rows, _ = validation_rows(s.train.n, net_cfg.validation_fraction, seed=net_cfg.seed,
+                                          kind=net_cfg.validation, groups=s.train.run)
+            check_network_size(spec, fit_rows.size)
+        except ValueError as e:
+            err = config_error(e, "network", net_cfg.table())
+            raise type(err)(f"sensor {s.sid}: {err}") from None
     xs = [network_inputs(s.train) for s in stages]
     rs = [s.train_residual for s in stages]
     report = None
