@@ -26,7 +26,6 @@ import numpy as np
 
 from bayesmag._src.core import metrics as M
 from bayesmag._src.core.data import AXES, CalibrationData
-from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.physics_uq import PhysicsUQ
 from bayesmag._src.core.predictor import Components, Predictor, TransferEstimate, UQOptions, network_inputs
 
