@@ -136,6 +136,25 @@ def test_absurd_parquet_value_names_row(cal_dir, archive, cluster, tmp_path):
     assert "row(s) 151" in msg and "temperature" in msg and "1e+09" in msg
 
 
+def test_each_apply_scatters_the_calibration_under_its_own_key(cal_dir, archive, cluster, tmp_path, monkeypatch):
+    """Back-to-back applies of one calibration on one running cluster (as these tests do) must not share the scattered
+    key: the first client's release of a content-hashed key can reach the scheduler after the second client's scatter
+    of the same key, and the data is forgotten (dask/distributed#8576) -- the intermittent failure of this file."""
+    import distributed
+    keys = []
+    scatter = distributed.Client.scatter
+
+    def spy(self, data, *a, **kw):
+        fut = scatter(self, data, *a, **kw)
+        keys.append(fut.key)
+        return fut
+    monkeypatch.setattr(distributed.Client, "scatter", spy)
+    for k in range(3):
+        s = apply_dask(cal_dir, str(archive / "pq"), tmp_path / f"out{k}", scheduler=cluster)
+        assert s["n_rows"] == 2400
+    assert len(keys) == 3 and len(set(keys)) == 3
+
+
 @pytest.mark.parametrize("where", ["input", "model", "file"])
 def test_nothing_overwritten(cal_dir, archive, tmp_path, where):
     out = {"input": archive / "pq", "model": cal_dir / "sub", "file": tmp_path / "x.parquet"}[where]

@@ -181,3 +181,180 @@ def test_fleet_from_a_folder_of_csv_files(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("bayesmag: error: sensor unit-1") and len(err.splitlines()) == 1
     assert not (tmp_path / "out2").exists()
+
+
+# ------------------------------------------------------------------ sensor folders = single-run folders (#27)
+
+
+def _single_run_files(tmp_path, *, network: bool, figures: bool) -> set:
+    """The file set of a small single `bayesmag run` folder (simulated, analytic UQ)."""
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag._src.app.job import run_job
+    raw = {"name": "one", "data": {"source": "simulated", "simulate": {"n": 800, "design": "campaign", "seed": 1}},
+           "split": {"test_fraction": 0.25}, "physics": {"t0": 25.0}, "uq": {"method": "analytic", "transfer": "off"},
+           "output": {"figures": figures}}
+    if network:
+        raw["network"] = {**NET, "interval_calibration": "none"}
+    run_job(config_from_dict(raw), tmp_path / "single", progress=False)
+    return {p.name for p in (tmp_path / "single").iterdir() if not p.name.startswith(".")}
+
+
+#: A small network (1 hidden layer of 8 units, 4 epochs): the tests check the plumbing, not the accuracy.
+NET = {"enabled": True, "hidden_layers": 1, "width": 8, "max_epochs": 4, "batch_size": 32, "mc_passes": 10,
+       "seed": 2}
+
+
+def test_sensor_folder_has_the_single_run_file_set(small_fleet, tmp_path):
+    """Every sensor folder holds the files of a single `bayesmag run` folder (the fleet folder's marker lists
+    them; a sensor folder has no marker of its own)."""
+    s, out = small_fleet
+    want = _single_run_files(tmp_path, network=False, figures=False)
+    assert {"predictions.csv", "report.md", "report.html", "metrics.json", "calibration.json"} <= want
+    for x in s["sensors"]:
+        d = out / "sensors" / x["id"]
+        assert {p.name for p in d.iterdir()} == want, x["id"]
+    m = json.loads((d / "metrics.json").read_text())
+    assert m["fleet"]["verdict"] == x["verdict"] and m["split"]["n_test"] == x["n_test"]
+    np.testing.assert_allclose(list(m["physics"]["rmse"].values()), list(x["test_rmse"].values()), rtol=1e-9)
+    np.testing.assert_allclose(list(m["physics"]["coverage"].values()), list(x["test_coverage"].values()), rtol=1e-9)
+    pred = np.genfromtxt(d / "predictions.csv", delimiter=",", names=True)
+    assert len(pred) == x["n_test"]
+    np.testing.assert_allclose(np.sqrt(np.mean((pred["x_reference"] - pred["x_predicted"]) ** 2)), x["test_rmse"]["x"],
+                               rtol=1e-6)
+    assert "# Calibration report" in (d / "report.md").read_text()
+
+
+def test_score_rows_equals_score_per_axis():
+    """The fleet's row-block scorer gives the numbers of metrics.score_per_axis (blocks of 512, last one padded)."""
+    from bayesmag._src.app.fleet_sensors import score_rows
+    from bayesmag._src.core.likelihoods import get_likelihood
+    from bayesmag._src.core.metrics import score_per_axis
+    rng = np.random.default_rng(0)
+    y, loc, scale = rng.normal(size=(1100, 3)), rng.normal(size=(1100, 3)), rng.uniform(0.5, 2, (1100, 3))
+    for fam, extra in (("gaussian", {}), ("student_t", {"df": np.full((1100, 3), 5.0)})):
+        dist = get_likelihood(fam)(loc=loc, scale=scale, **extra)
+        got, want = score_rows(y, dist, 0.9), score_per_axis(y, dist, 0.9)
+        for k in want:
+            np.testing.assert_allclose(list(got[k].values()), list(want[k].values()), rtol=1e-9, err_msg=k)
+
+
+def test_apply_and_export_take_a_sensor_folder(small_fleet, tmp_path, capsys):
+    """`bayesmag apply --model sensors/<id>` and `bayesmag export sensors/<id>` work; the export is listed in the
+    fleet folder's marker, so the fleet folder may still be replaced by a later fleet run."""
+    import shutil
+
+    from bayesmag._src.app.outdir import check_out, marker_status
+    from bayesmag._src.core.data import write_csv
+    s, out0 = small_fleet
+    out = tmp_path / "fleet"
+    shutil.copytree(out0, out)
+    sid = s["sensors"][3]["id"]
+    recs, truth = simulate_fleet(40, 800, seed=1, n_defective=5, rows_spread=0.2)
+    write_csv(recs[truth.ids.index(sid)], tmp_path / "rec.csv")
+    assert main(["apply", "--model", str(out / "sensors" / sid), "--data", str(tmp_path / "rec.csv"), "--out",
+                 str(tmp_path / "cal.csv"), "--no-progress"]) == 0
+    cal = np.genfromtxt(tmp_path / "cal.csv", delimiter=",", names=True)
+    assert len(cal) == recs[truth.ids.index(sid)].n
+    capsys.readouterr()
+    assert main(["export", str(out / "sensors" / sid), "--format", "c-header"]) == 0
+    said = capsys.readouterr()
+    assert "could not be reloaded" not in said.out + said.err        # the sensor's held-out rows were found
+    listed = marker_status(out)["files"]
+    assert any(f.startswith(f"sensors/{sid}/") and f.endswith(".h") for f in listed)
+    check_out(out)                                                  # not refused: every file is the fleet's
+
+
+def test_fleet_network_batched_equals_single_sensor_training(tmp_path):
+    """[network] enabled: each sensor's network is the single-sensor training of its residuals with the same seed
+    (tolerance of tests/test_network_batch.py), fused into its predictions, saved with its calibration."""
+    import jax
+
+    from bayesmag._src.app.artifact import load
+    from bayesmag._src.app.fleet import load_recordings
+    from bayesmag._src.core.data import make_split
+    from bayesmag._src.core.network import fit_residual_network
+    from bayesmag._src.core.predictor import network_inputs
+    from test_network_batch import ATOL_WEIGHTS
+    raw = {"name": "net", "fleet": {"source": "simulated", "batch_size": 2, "figures": False,
+                                    "simulate": {"n_sensors": 3, "n_rows": 700, "seed": 3, "n_defective": 0,
+                                                 "rows_spread": 0.2}},
+           "split": {"test_fraction": 0.25}, "physics": {"t0": 25.0}, "network": NET}
+    cfg = fleet_config_from_dict(raw, base=tmp_path)
+    s = run_fleet(cfg, tmp_path / "out", progress=False)
+    recs, ids, _ = load_recordings(cfg)
+    shortest = int(np.argmin([r.n for r in recs]))            # the most padded one
+    for i, sid in enumerate(ids):
+        x = s["sensors"][i]
+        assert x["prediction"] == "hybrid (gaussian)" and "physics_test_rmse" in x
+        m = json.loads((tmp_path / "out" / "sensors" / sid / "metrics.json").read_text())
+        np.testing.assert_allclose(list(m["hybrid"]["gaussian"]["rmse"].values()), list(x["test_rmse"].values()),
+                                   rtol=1e-9)
+        if i != shortest:                                      # one single-sensor training (each length compiles)
+            continue
+        sp = make_split(recs[i], kind="time_blocks", test_fraction=0.25, seed=0)
+        train = recs[i].subset(sp.train)
+        cal = load(tmp_path / "out" / "sensors" / sid)
+        pr = cal.predictor()
+        r = train.b_ref - pr.fit.predict(inputs_from_data(train))
+        spec = cfg.network.spec("gaussian")
+        ref = fit_residual_network(network_inputs(train), r, spec, seed=NET["seed"], validation=cfg.network.validation,
+                                   validation_fraction=cfg.network.validation_fraction, groups=train.run)
+        net = pr.network                                   # the network saved with the sensor's calibration
+        assert net is not None
+        for a, b in zip(jax.tree.leaves(net.params), jax.tree.leaves(ref.params)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=ATOL_WEIGHTS)
+        assert [m["network"]["training"]["gaussian"][ax]["epochs_run"] for ax in "xyz"] == \
+            [int(e) for e in ref.info.epochs_run]
+    assert "hybrid_predicted" in (tmp_path / "out" / "sensors" / ids[0] / "predictions.csv").read_text().split("\n")[0]
+    assert s["timings"]["network_train"] > 0
+
+
+@pytest.mark.parametrize("net, key", [({"interval_calibration": "conformal"}, "interval_calibration"),
+                                      ({"likelihoods": ["gaussian", "laplace"]}, "likelihoods"),
+                                      ({"width": 0}, "network.width")])
+def test_bad_fleet_network_config_names_the_key(net, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        fleet_config_from_dict({"fleet": {"source": "simulated"}, "network": {"enabled": True, **net}})
+
+
+def test_fleet_network_too_large_for_a_sensor_is_one_line(tmp_path, capsys):
+    """A network too large for a sensor's rows stops the fleet before any training: one line naming the sensor and
+    the key, exit status 2, nothing written."""
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('[fleet]\nsource = "simulated"\nfigures = false\n'
+                   '[fleet.simulate]\nn_sensors = 2\nn_rows = 300\nn_defective = 0\n'
+                   '[network]\nenabled = true\nwidth = 64\nhidden_layers = 4\n')
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bayesmag: error: sensor SN00000") and "network.width" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_sensor_folder_with_network_and_figures_has_the_single_run_file_set(tmp_path):
+    """With [network] and [output] figures = true a sensor folder holds the single run's figures too (slow:
+    figures of a single run and of 2 sensors)."""
+    want = _single_run_files(tmp_path, network=True, figures=True)
+    raw = {"name": "f", "fleet": {"source": "simulated", "batch_size": 2, "figures": False,
+                                  "simulate": {"n_sensors": 2, "n_rows": 800, "seed": 1, "n_defective": 0}},
+           "split": {"test_fraction": 0.25}, "physics": {"t0": 25.0}, "network": NET, "output": {"figures": True}}
+    run_fleet(fleet_config_from_dict(raw, base=tmp_path), tmp_path / "out", progress=False)
+    for d in (tmp_path / "out" / "sensors").iterdir():
+        assert {p.name for p in d.iterdir()} == want
+
+
+def test_fast_prediction_writer_writes_the_same_bytes(tmp_path):
+    """The fleet's column-wise predictions.csv writer equals the single run's row-by-row one, byte for byte."""
+    from bayesmag._src.app.fleet_sensors import write_predictions
+    from bayesmag._src.app.job import write_predictions as single
+    from bayesmag._src.core.simulate import simulate
+    rng = np.random.default_rng(1)
+    d = simulate(300, design="campaign", seed=5)
+    cols = {"predicted": rng.normal(size=(300, 3)) * 10.0 ** rng.integers(-9, 9, (300, 3)), "covered": rng.random((300, 3)) > .5,
+            "in_domain_reason": np.broadcast_to(np.where(rng.random(300) > .5, "ok", "temperature,rate")[:, None],
+                                                (300, 3)), "n": rng.integers(0, 5, (300, 3)),
+            "obj": np.broadcast_to(np.array(["", "x", "rate"], dtype=object)[rng.integers(0, 3, 300)][:, None], (300, 3))}
+    rows = np.sort(rng.choice(1000, 300, replace=False))
+    write_predictions(tmp_path / "a.csv", d, rows, cols)
+    single(tmp_path / "b.csv", d, rows, cols)
+    assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()

@@ -348,7 +348,11 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
             client = Client(cluster)
         try:
             with dask.config.set({"dataframe.convert-string": False}):
-                cal_f = client.scatter(cal, broadcast=True)          # sent once to every worker
+                # sent once to every worker, under a key of its own (hash=False): with the default content-hash
+                # key, a second apply of the same calibration on a running cluster reuses the key the previous
+                # client has just released, and the scheduler can handle that release after the new scatter and
+                # forget the data (dask/distributed#8576): an intermittent lost-dependency failure
+                cal_f = client.scatter(cal, broadcast=True, hash=False)
                 stats = dd.from_map(calibrate_piece, pieces, range(len(pieces)), args=(cal_f, opts, str(tmp)),
                                     meta=meta, enforce_metadata=False, label="bayesmag-apply")
                 fut = client.compute(stats)

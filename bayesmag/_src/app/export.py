@@ -600,6 +600,9 @@ def split_rows(cal) -> tuple[CalibrationData, CalibrationData]:
     from bayesmag._src.core.data import make_split
     from bayesmag._src.app.inputs import load_data
 
+    if "sensor_id" in cal.config:                  # a sensor folder of `bayesmag fleet`
+        from bayesmag._src.app.fleet import sensor_split_rows
+        return sensor_split_rows(cal.config)
     raw = {k: v for k, v in cal.config.items() if v is not None}
     cfg = config_from_dict(_drop_none(raw))
     data = load_data(cfg)
@@ -722,5 +725,15 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # changed meanwhile?
     recover(out.parent, files_only=True)        # partial files of killed exports (never a live pid's)
     atomic_write_text(out, text)
-    register(Path(run_dir), out)
+    register(_marker_owner(Path(run_dir)), out)
     return out, ex
+
+
+def _marker_owner(run_dir: Path) -> Path:
+    """The folder whose marker lists the run's files: the run folder, or for a fleet's ``sensors/<id>``
+    (no marker of its own) the fleet folder two levels up."""
+    from bayesmag._src.app.outdir import marker_status
+    for owner in (run_dir, *run_dir.resolve().parents[:2]):
+        if marker_status(owner) is not None:
+            return Path(owner)
+    return run_dir

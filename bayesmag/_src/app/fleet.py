@@ -11,8 +11,15 @@ is propagated (:func:`~bayesmag._src.core.fleet_fit.fleet_uncertainty`), and eve
   test coverage, converged, identifiable);
 * robust z-scores of each parameter and of log test RMSE against the fleet (outlier when
   ``max |z| > outlier_z``; computed only with at least :data:`MIN_SENSORS_OUTLIERS` sensors);
-* its own folder ``sensors/<id>/`` with ``calibration.json``/``.npz`` (``bayesmag apply --model`` takes it),
-  ``params.json`` and ``metrics.json``.
+* its own folder ``sensors/<id>/`` with the files of a single ``bayesmag run`` folder: ``calibration.json``/``.npz``
+  (``bayesmag apply --model`` and ``bayesmag export`` take it), ``params.json``, ``predictions.csv``,
+  ``metrics.json``, ``config.resolved.toml``, ``report.md``/``report.html`` and, with ``[output] figures = true``,
+  the single run's figures (:mod:`~bayesmag._src.app.fleet_sensors`).
+
+With ``[network] enabled = true`` every sensor's residual network is trained in one compiled batch
+(:func:`~bayesmag._src.core.network_batch.fit_residual_networks`: each equals the single-sensor training with the
+same seed up to float32 rounding) and fused with its physics prediction as a single run fuses it; the verdict's
+test RMSE and coverage are then the hybrid prediction's.
 
 The fleet gets ``fleet.json``, ``fleet_table.csv``, ``fleet_report.md`` and figures. The output folder is
 staged and swapped in whole (``outdir``), so a failed fleet leaves nothing half-written.
@@ -22,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import glob as globlib
-import json
 import re
 import sys
 import time
@@ -31,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayesmag._src.app.config import ConfigError, apply_overrides
+from bayesmag._src.app.config import ConfigError, NetworkConfig, apply_overrides
 from bayesmag._src.core.data import AXES, CalibrationData, DataError, make_split, validate
 from bayesmag._src.core.fleet_fit import FleetData, fit_fleet, fleet_input_noise, fleet_uncertainty, robust_z
 from bayesmag._src.core.physics import PhysicsModel
@@ -89,6 +95,8 @@ class FleetConfig:
     covariance: str = "white"
     level: float = 0.95
     sigma_in: str | list = "auto"
+    network: NetworkConfig = dataclasses.field(default_factory=lambda: NetworkConfig(interval_calibration="none"))
+    sensor_figures: bool = False         # [output] figures: each sensor folder gets the single run's figures
     base: Path = Path(".")               # folder of the config file (relative paths)
 
     def to_dict(self) -> dict:
@@ -98,7 +106,7 @@ class FleetConfig:
 
 
 _TABLES = {
-    "": {"name", "fleet", "split", "physics", "uq"},
+    "": {"name", "fleet", "split", "physics", "uq", "network", "output"},
     "fleet": {"source", "recordings", "manifest", "batch_size", "outlier_z", "sensor_folders", "figures", "simulate",
               "limits"},
     "fleet.simulate": {f.name for f in dataclasses.fields(SimulateFleet)},
@@ -106,6 +114,7 @@ _TABLES = {
     "split": {"test_fraction", "seed", "n_blocks", "kind"},
     "physics": {"t0", "temperature_terms", "covariance"},
     "uq": {"level", "sigma_in", "method"},
+    "output": {"figures"},
 }
 
 
@@ -150,6 +159,7 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
         raise ConfigError("This is not a fleet config: it has no [fleet] table (see configs/fleet_simulated.toml).")
     _check_keys(raw, "")
     fl, sp, ph, uq = (raw.get(k, {}) for k in ("fleet", "split", "physics", "uq"))
+    network = _network_config(raw.get("network", {}))
     chosen = [k for k in ("source", "recordings", "manifest") if fl.get(k) not in (None, "")]
     if len(chosen) != 1:
         raise ConfigError(f"[fleet] needs exactly one of source = \"simulated\", recordings = \"FOLDER or GLOB\" or "
@@ -189,7 +199,8 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
         split_seed=_typed(sp.get("seed", 0), int, "split.seed"), n_blocks=_typed(sp.get("n_blocks", 1), int, "split.n_blocks"),
         t0=float(t0), temperature_terms=_typed(ph.get("temperature_terms", True), bool, "physics.temperature_terms"),
         covariance=ph.get("covariance", "white"), level=_typed(uq.get("level", 0.95), float, "uq.level"),
-        sigma_in=sig, base=Path(base))
+        sigma_in=sig, network=network,
+        sensor_figures=_typed(raw.get("output", {}).get("figures", False), bool, "output.figures"), base=Path(base))
     s, lim = cfg.simulate, cfg.limits
     checks = [("fleet.batch_size", cfg.batch_size, cfg.batch_size >= 1, ">= 1"),
               ("fleet.outlier_z", cfg.outlier_z, cfg.outlier_z > 0, "> 0"),
@@ -207,6 +218,24 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
         if not ok:
             raise ConfigError(f"Fleet config key {key!r} is {value!r}; it must be {what}.")
     return cfg
+
+
+def _network_config(raw) -> NetworkConfig:
+    """``[network]`` of a fleet: the single run's table (same keys, defaults and checks), one likelihood, no
+    conformal folds (``interval_calibration = "none"``, the fleet's default)."""
+    from bayesmag._src.app.config import _build
+    if not isinstance(raw, dict):
+        raise ConfigError(f"Fleet config key 'network' must be a table; got {raw!r}.")
+    raw = {"interval_calibration": "none", **raw}
+    if raw["interval_calibration"] != "none":
+        raise ConfigError(f"[network] interval_calibration = {raw['interval_calibration']!r}: a fleet trains one "
+                          f"network per sensor (no cross-conformal fold networks); set it to \"none\" or calibrate "
+                          f"that sensor alone with bayesmag run.")
+    net = _build(NetworkConfig, raw, "network")
+    if len(net.likelihoods) != 1:
+        raise ConfigError(f"[network] likelihoods = {list(net.likelihoods)}: a fleet trains one likelihood per sensor; "
+                          f"name one (compare likelihoods on one sensor with bayesmag run).")
+    return net
 
 
 def load_fleet_config(path, overrides=()) -> FleetConfig:
@@ -287,6 +316,26 @@ def load_recordings(cfg: FleetConfig) -> tuple[list[CalibrationData], tuple[str,
     return recs, tuple(ids), None
 
 
+def sensor_split_rows(saved: dict) -> tuple[CalibrationData, CalibrationData]:
+    """A fleet sensor's training and test rows, reloaded through the fleet config saved with its calibration
+    (``calibration.json``'s ``config``: :meth:`FleetConfig.to_dict` plus ``sensor_id`` and ``fleet_base``);
+    ``bayesmag export`` measures the accuracy an export loses on them."""
+    d = dict(saved)
+    sid, base = d.pop("sensor_id"), Path(d.pop("fleet_base", "."))
+    names = {f.name for f in dataclasses.fields(FleetConfig)} - {"simulate", "limits", "network", "base"}
+    cfg = FleetConfig(**{k: v for k, v in d.items() if k in names}, simulate=SimulateFleet(**d["simulate"]),
+                      limits=Limits(**d["limits"]), base=base)
+    if cfg.source == "simulated":
+        recs, ids, _ = load_recordings(cfg)
+        rec = recs[ids.index(sid)]
+    else:
+        from bayesmag._src.core.frames import load_table
+        rec = load_table(dict(_recording_paths(cfg))[sid], require_reference=True)
+    sp = make_split(rec, kind="time_blocks", test_fraction=cfg.test_fraction, seed=cfg.split_seed,
+                    n_blocks=cfg.n_blocks)
+    return rec.subset(sp.train), rec.subset(sp.test)
+
+
 # --------------------------------------------------------------------------- job
 
 
@@ -323,7 +372,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         t_all = t = time.perf_counter()
         recs, ids, truth = load_recordings(cfg)
         model = PhysicsModel.paper(t0=cfg.t0, temperature=cfg.temperature_terms)
-        trains, tests = [], []
+        trains, tests, test_rows, splits = [], [], [], []
         for sid, d in zip(ids, recs):
             try:
                 validate(d, n_params=model.n_params, origin=f"sensor {sid}",
@@ -334,6 +383,8 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                 raise DataError(f"sensor {sid}: {' '.join(str(e).split())}") from None
             trains.append(d.subset(sp.train))
             tests.append(d.subset(sp.test))
+            test_rows.append(sp.test)
+            splits.append(sp.as_dict())
         train = FleetData.from_recordings(trains, ids)
         test = FleetData.from_recordings(tests, ids)
         timings["load"] = time.perf_counter() - t
@@ -364,6 +415,28 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         rmse = np.sqrt(np.where(mt, err**2, 0).sum(axis=1) / nt)
         cover = np.where(mt, np.abs(err) <= zq * total, False).sum(axis=1) / nt
         raw_rmse = np.sqrt(np.where(mt, (test.b_ref - test.b_meas) ** 2, 0).sum(axis=1) / nt)
+
+        stages = None
+        if cfg.sensor_folders or cfg.network.enabled:
+            from bayesmag._src.app.fleet_sensors import fleet_networks, sensor_stages
+            t = time.perf_counter()
+            from bayesmag._src.core.fleet_fit import fleet_predict
+            stages = sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, residual_sd,
+                                   fleet_predict(fit, train, batch_size=cfg.batch_size))
+            timings["sensor_predictions"] = time.perf_counter() - t
+        physics_rmse, physics_cover = rmse, cover
+        if cfg.network.enabled:
+            say(f"training {len(ids)} residual networks in batches of {cfg.batch_size}")
+            t = time.perf_counter()
+            stages, timings["network_train"] = fleet_networks(stages, cfg.network, level=cfg.level,
+                                                              batch_size=cfg.batch_size, progress=progress)
+            timings["hybrid"] = time.perf_counter() - t - timings["network_train"]
+            name = cfg.network.likelihoods[0]
+            hyb = [st.hybrid.predictions[name] for st in stages]
+            rmse = np.array([np.sqrt(np.mean((st.test.b_ref - h.mean) ** 2, axis=0)) for st, h in zip(stages, hyb)])
+            from bayesmag._src.app.fleet_sensors import interval
+            cover = np.array([np.mean((st.test.b_ref >= lo) & (st.test.b_ref <= hi), axis=0)
+                              for st, h in zip(stages, hyb) for lo, hi in [interval(h, cfg.level)]])
 
         names = model.param_names
         q = _limits_quantities(fit.theta, names, rmse, cover)
@@ -398,6 +471,10 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                 "limits_quantities": {k: float(v[i]) for k, v in q.items()},
                 "test_rmse": dict(zip(AXES, map(float, rmse[i]))), "raw_rmse": dict(zip(AXES, map(float, raw_rmse[i]))),
                 "test_coverage": dict(zip(AXES, map(float, cover[i]))),
+                "prediction": f"hybrid ({cfg.network.likelihoods[0]})" if cfg.network.enabled else "physics",
+                **({"physics_test_rmse": dict(zip(AXES, map(float, physics_rmse[i]))),
+                    "physics_test_coverage": dict(zip(AXES, map(float, physics_cover[i])))}
+                   if cfg.network.enabled else {}),
                 "residual_sd": dict(zip(AXES, map(float, residual_sd[i]))),
                 "sigma_in_sd": dict(zip(["bx", "by", "bz", "T"], map(float, np.sqrt(np.diagonal(sigma_in[i]))))),
                 "solver": {"result": [int(r) for r in fit.result[i]], "steps": [int(s) for s in fit.n_steps[i]]},
@@ -417,6 +494,8 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                              {"computed": False, "reason": f"{N} sensors < {MIN_SENSORS_OUTLIERS}: the fleet median "
                                                            f"and MAD are too uncertain for robust z-scores"}),
             "limits": dataclasses.asdict(cfg.limits), "level": cfg.level, "t0": cfg.t0,
+            "network": ({**cfg.network.table(), "verdicts_use": "the hybrid prediction's test RMSE and coverage"}
+                        if cfg.network.enabled else {"enabled": False}),
             "param_names": list(names), "distribution": distribution, "sensors": sensors,
         }
         if truth is not None:
@@ -429,12 +508,15 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         say(f"uncertainty {timings['physics_uq']:.1f} s; writing {out}")
         with staging_dir(out) as tmp:
             from bayesmag._src.app.fleet_report import write_fleet_outputs
-            write_fleet_outputs(tmp, cfg, summary, fit=fit, train=trains, sigma_in=sigma_in, residual_sd=residual_sd,
-                                ids=ids, feats=feats, feat_names=feat_names, z=z, flagged=flagged)
+            sources = ([f"simulated fleet sensor {sid}" for sid in ids] if cfg.source == "simulated" else
+                       [str(p) for _, p in _recording_paths(cfg)])
+            write_fleet_outputs(tmp, cfg, summary, stages=stages, sigma_in=sigma_in, ids=ids, feats=feats,
+                                feat_names=feat_names, z=z, flagged=flagged, timings=timings, sources=sources)
             timings["write"] = time.perf_counter() - t
             timings["total"] = time.perf_counter() - t_all
             summary["timings"] = {k: round(v, 3) for k, v in timings.items()}
-            (tmp / "fleet.json").write_text(json.dumps(summary, indent=2))
+            from bayesmag._src.core.jsonio import write_json
+            write_json(tmp / "fleet.json", summary)
             from bayesmag._src.app.fleet_report import write_fleet_report
             write_fleet_report(tmp, summary)
     return summary

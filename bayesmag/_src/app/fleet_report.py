@@ -11,38 +11,20 @@ import numpy as np
 __all__ = ["write_fleet_outputs", "write_fleet_report"]
 
 
-def _sensor_fit(fit, i: int):
-    """Sensor ``i``'s :class:`~bayesmag.PhysicsFit` (diagnostics from its covariance) from the batched fit."""
-    from bayesmag._src.core.fit import RESULTS, PhysicsFit, identifiability
-    names = fit.model.param_names
-    infos = tuple({"s2": float(fit.s2[i, a]), "dof": int(fit.n[i] - fit.model.n_params), "rho1": float(fit.rho1[i, a]),
-                   "method": fit.covariance_method} for a in range(3))
-    return PhysicsFit(model=fit.model, theta=fit.theta[i], cov=fit.cov[i], s2=fit.s2[i], n=int(fit.n[i]),
-                      rmse_in_sample=fit.rmse[i], result=tuple(RESULTS[int(r)] for r in fit.result[i]),
-                      n_steps=fit.n_steps[i], covariance_method=fit.covariance_method, cov_info=infos,
-                      diagnostics=tuple(identifiability(fit.cov[i, a], names) for a in range(3)))
-
-
-def write_fleet_outputs(folder: Path, cfg, summary: dict, *, fit, train, sigma_in, residual_sd, ids, feats, feat_names,
-                        z, flagged) -> None:
-    """Sensor folders (``sensors/<id>/`` with calibration.json/.npz, params.json, metrics.json), ``fleet_table.csv``
-    and the figures, into ``folder``."""
-    from bayesmag._src.app.artifact import save_calibration
-    from bayesmag._src.core.domain import Domain
-    from bayesmag._src.core.predictor import Predictor, UQOptions
+def write_fleet_outputs(folder: Path, cfg, summary: dict, *, stages, sigma_in, ids, feats, feat_names, z, flagged,
+                        timings: dict, sources) -> None:
+    """Sensor folders (``sensors/<id>/``: the files of a single ``bayesmag run`` folder,
+    :func:`~bayesmag._src.app.fleet_sensors.write_sensor_folder`), ``fleet_table.csv`` and the figures, into
+    ``folder``."""
+    from bayesmag._src.app.fleet_sensors import write_sensor_folder
 
     folder = Path(folder)
     if cfg.sensor_folders:
-        conf = cfg.to_dict()
+        n = max(len(ids), 1)
+        per = {f"fleet_{k}_per_sensor": round(v / n, 5) for k, v in timings.items()}
         for i, sid in enumerate(ids):
-            d = folder / "sensors" / sid
-            d.mkdir(parents=True)
-            pf = _sensor_fit(fit, i)
-            pred = Predictor(fit=pf, sigma_in=np.asarray(sigma_in[i]), residual_sd=np.asarray(residual_sd[i]),
-                             domain=Domain.from_data(train[i]), uq=UQOptions(method="analytic"))
-            save_calibration(d, pred, config={**conf, "sensor_id": sid}, level=cfg.level)
-            (d / "params.json").write_text(json.dumps(pf.to_json(), indent=2))
-            (d / "metrics.json").write_text(json.dumps(summary["sensors"][i], indent=2))
+            write_sensor_folder(folder / "sensors" / sid, stages[i], cfg=cfg, verdict=summary["sensors"][i],
+                                sigma_in=np.asarray(sigma_in[i]), source=sources[i], timings=per)
     with open(folder / "fleet_table.csv", "w", newline="") as f:
         w = csv.writer(f)
         lim = list(summary["sensors"][0]["limits_quantities"]) if summary["sensors"] else []
@@ -108,6 +90,11 @@ def write_fleet_report(folder: Path, summary: dict) -> Path:
     lines = [f"# Fleet report: {s['name']}", "",
              f"{s['n_sensors']} sensors; **{s['n_pass']} pass, {s['n_fail']} flagged** (a limit failed or an outlier "
              f"against the fleet). Parameters at t0 = {s['t0']:g} C; intervals at level {s['level']:g}.", ""]
+    net = s.get("network") or {}
+    if net.get("enabled"):
+        lines += [f"Residual network per sensor ({net['likelihoods'][0]}, {net['hidden_layers']} x {net['width']}, "
+                  f"fusion {net['fusion']}), trained in one batch: the test RMSE and coverage in the verdicts are the "
+                  f"hybrid prediction's (physics-only ones in `fleet.json`).", ""]
     ot = s["outlier_test"]
     if ot["computed"]:
         lines.append(f"Outliers: robust z = (x - median) / (1.4826 MAD) of every parameter and of log test RMSE over "

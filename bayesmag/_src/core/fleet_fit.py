@@ -38,7 +38,7 @@ from bayesmag._src.core.fit import RANK_RTOL, RESULTS, levenberg_marquardt
 from bayesmag._src.core.physics import Inputs, PhysicsModel
 
 __all__ = ["FleetData", "FleetFit", "FleetUQ", "fit_fleet", "fleet_uncertainty", "fleet_input_noise",
-           "robust_z"]
+           "fleet_predict", "robust_z"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -248,6 +248,24 @@ def fit_fleet(fleet: FleetData, model: PhysicsModel | None = None, *, covariance
         functools.partial(_fit_jit, model, covariance_method),
         [th0, f.b_meas, f.temperature, f.time, f.run, f.b_ref, f.mask.astype(np.float64)], batch_size)
     return FleetFit(model, theta, cov, s2, rmse, rho, ratio, result, steps, n, covariance_method)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _predict_jit(model: PhysicsModel, theta, b, t, time, run):
+    def one_sensor(th, b_, t_, time_, run_):
+        inputs = Inputs(b_, t_, time_, run_)
+        return (jax.vmap(lambda q: model.predict(q, inputs), out_axes=-1)(th),)
+    return jax.vmap(one_sensor)(theta, b, t, time, run)
+
+
+def fleet_predict(fit: FleetFit, fleet: FleetData, *, batch_size: int = 64) -> np.ndarray:
+    """The plug-in physics prediction :math:`f(x; \\hat\\theta_i)` of every row of every sensor, ``(N, n, 3)``
+    (padded rows 0): :meth:`~bayesmag.PhysicsFit.predict` of each sensor, one compiled program for the fleet."""
+    f = _pad_rows(fleet)
+    n = fleet.mask.shape[1]
+    (pred,) = _batched(functools.partial(_predict_jit, fit.model),
+                       [fit.theta, f.b_meas, f.temperature, f.time, f.run], batch_size)
+    return np.where(fleet.mask[..., None], pred[:, :n], 0.0)
 
 
 def fleet_input_noise(fleet: FleetData) -> np.ndarray:

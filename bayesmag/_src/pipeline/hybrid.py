@@ -340,12 +340,14 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                        other)
 
 
-def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int) -> dict:
-    """``hybrid``, ``hybrid_<other>_fusion``, ``hybrid_vs_physics`` and ``network`` blocks of metrics.json."""
+def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int, *,
+                   scorer=M.score_per_axis) -> dict:
+    """``hybrid``, ``hybrid_<other>_fusion``, ``hybrid_vs_physics`` and ``network`` blocks of metrics.json
+    (``scorer``: :func:`~bayesmag.metrics.score_per_axis` or one with its results, e.g. the fleet's)."""
     scores, other, paired = {}, {}, {}
     for name, pred in hs.predictions.items():
-        scores[name] = M.score_per_axis(y, pred.dist, level, mean=pred.mean)
-        alt = M.score_per_axis(y, hs.alternates[name].dist, level, mean=hs.alternates[name].mean)
+        scores[name] = scorer(y, pred.dist, level, mean=pred.mean)
+        alt = scorer(y, hs.alternates[name].dist, level, mean=hs.alternates[name].mean)
         other[name] = {k: alt[k] for k in ("coverage", "nll", "crps", "mean_width")}
         pt = M.paired_test(y - physics_mean, y - pred.mean)
         paired[name] = {ax: {"mean_diff": float(pt["mean_diff"][a]), "t": float(pt["t"][a]),

@@ -102,6 +102,12 @@ def mc_predict(net: ResidualNetwork | NetworkEnsemble, x: np.ndarray, *, passes:
     st = net.standardizer
     mean, alea, epi, shape = jax.device_get(_mc_axes(net.spec.compiled_key(), net.params, embed(st.x(x), net.frequencies),
                                                          jax.random.key(seed), passes))
+    return _mc_in_units(net, mean, alea, epi, shape)
+
+
+def _mc_in_units(net: ResidualNetwork, mean, alea, epi, shape) -> MCPrediction:
+    """The :class:`MCPrediction` in uT from :func:`_mc_axes`' standardised moments (recalibration factor applied)."""
+    st = net.standardizer
     rs = st.r_scale
     if net.variance_scale is not None:
         rs_var = rs * np.sqrt(np.asarray(net.variance_scale, np.float64))

@@ -55,11 +55,34 @@ class TrainState(NamedTuple):
 
 
 
+def shuffle_rounds(n: int) -> int:
+    """Sort rounds of ``jax.random.permutation(key, n)``: ``ceil(3 ln n / ln(2^32 - 1))`` (JAX's ``_shuffle``)."""
+    return int(np.ceil(3 * np.log(max(1, int(n))) / np.log(np.iinfo(np.uint32).max)))
+
+
+def masked_permutation(key: jax.Array, n, size: int, rounds) -> jax.Array:
+    """``(size,)``: ``jax.random.permutation(key, n)`` for a traced ``n <= size``, then ``n .. size-1``.
+
+    The same algorithm as JAX's (``rounds = shuffle_rounds(n)`` stable sorts by fresh 32-bit keys), with the
+    padding elements sorted last in every round, so the real elements meet the same random bits at the same
+    positions: under the partitionable threefry (``jax_threefry_partitionable``, JAX's default) the bits of a
+    longer shape start with those of a shorter one (``tests/test_network_batch.py`` checks it).
+    """
+    x = jnp.arange(size)
+    for r in range(shuffle_rounds(size)):
+        key, sub = jax.random.split(key)
+        bits = jax.random.bits(sub, (size,), jnp.uint32)
+        _, _, xs = jax.lax.sort(((x >= n).astype(jnp.int32), bits, x), num_keys=2)
+        x = jnp.where(r < rounds, xs, x)
+    return x
+
+
 class _Trainer(NamedTuple):
     init_state: Callable      # (params, key) -> TrainState
     epoch: Callable           # (state, x_fit, r_fit, x_val, r_val) -> state after one epoch
     running: Callable         # state -> bool: not stopped (max_epochs, patience, non-finite loss)
     info: Callable            # state -> TrainInfo
+    masked_epoch: Callable    # (state, x_fit, r_fit, n_fit, x_val, r_val, n_val, rounds) -> state (padded rows)
 
 
 
@@ -103,6 +126,41 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
                                                    unroll=SCAN_UNROLL)
         train_loss = jnp.sum(losses) / n
         val = regularized_nll(spec, apply(params, x_val, activation=spec.activation), r_val)
+        return finish(s, params, opt_state, key, train_loss, val)
+
+    def masked_epoch(s: TrainState, x_fit, r_fit, n_fit, x_val, r_val, n_val, rounds) -> TrainState:
+        """:func:`epoch` on the first ``n_fit`` of the padded fitting rows and ``n_val`` validation rows: the same
+        permutation of the real rows (:func:`masked_permutation`), the same minibatches and keys, steps past the
+        real rows' last minibatch left out (so it traces under ``vmap`` over recordings of different lengths)."""
+        size = x_fit.shape[0]
+        n_batches_max = -(-size // bs)
+        p = jnp.arange(n_batches_max * bs)
+        n_safe = jnp.maximum(n_fit, 1)
+        key, k_perm, k_steps = jax.random.split(s.key, 3)
+        perm = masked_permutation(k_perm, n_fit, size, rounds)
+        src = jnp.minimum(jnp.where(p < n_fit, p, (p - n_fit) % n_safe), size - 1)   # a short last batch wraps
+        idx = perm[src].reshape(n_batches_max, bs)
+        weight = (p < n_fit).astype(DTYPE).reshape(n_batches_max, bs)
+        active = jnp.arange(n_batches_max) < -(-n_fit // bs)
+        step_keys = jax.random.split(k_steps, n_batches_max)   # a prefix is the unpadded epoch's keys
+
+        def step(carry, batch):
+            params, opt_state = carry
+            idx, w, k, on = batch
+            loss, g = grad_fn(params, k, x_fit[idx], r_fit[idx], w)
+            updates, new_state = opt.update(g, opt_state, params)
+            new = (optax.apply_updates(params, updates), new_state)
+            return jax.tree.map(lambda a, b: jnp.where(on, a, b), new, carry), jnp.where(on, loss * jnp.sum(w), 0.0)
+
+        (params, opt_state), losses = jax.lax.scan(step, (s.params, s.opt_state), (idx, weight, step_keys, active),
+                                                   unroll=SCAN_UNROLL)
+        train_loss = jnp.sum(losses) / n_safe
+        wv = (jnp.arange(x_val.shape[0]) < n_val).astype(DTYPE)
+        val = regularized_nll(spec, apply(params, x_val, activation=spec.activation), r_val, wv)
+        return finish(s, params, opt_state, key, train_loss, val)
+
+    def finish(s: TrainState, params, opt_state, key, train_loss, val) -> TrainState:
+        """Early stopping, best weights, learning-rate plateau and loss history after one epoch."""
         finite = jnp.isfinite(train_loss) & jnp.isfinite(val)
         improved = finite & (val < s.best_loss - spec.min_delta)
         best_params = jax.tree.map(lambda new, old: jnp.where(improved, new, old), params, s.best_params)
@@ -129,7 +187,7 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
         return TrainInfo(epochs_run=s.epoch, best_epoch=s.best_epoch, best_val_loss=s.best_loss,
                          nan_epoch=s.nan_epoch, train_loss=s.train_loss, val_loss=s.val_loss)
 
-    return _Trainer(init_state, epoch, running, info)
+    return _Trainer(init_state, epoch, running, info, masked_epoch)
 
 
 
