@@ -536,14 +536,20 @@ def test_a_script_without_main_guard_fits_once_and_spawns_nothing(tmp_path):
                 open(f"/proc/{{p}}/stat").read().rsplit(")", 1)[1].split()[1] == str(os.getpid())]
         print("children", kids)
         print("multiprocessing", "multiprocessing.resource_tracker" in sys.modules)
-        print("figures", sorted(p.name for p in cal.run_dir_.glob("*.png")))
+        cfg = bayesmag.load_config({str(Path(__file__).resolve().parents[1] / 'configs' / 'paper_physics.toml')!r},
+                                   ["uq.n_params=20", "uq.n_qmc=32", "output.progress=false"])
+        bayesmag.run_job(cfg, {str(tmp_path / 'job')!r})                  # a job from Python draws its figures here
+        kids = [p for p in os.listdir("/proc") if p.isdigit() and
+                open(f"/proc/{{p}}/stat").read().rsplit(")", 1)[1].split()[1] == str(os.getpid())]
+        print("children after the job", kids)
+        print("figures", sorted(p.name for p in __import__("pathlib").Path({str(tmp_path / 'job')!r}).glob("*.png")))
     """))
     r = subprocess.run([sys.executable, str(script)], capture_output=True, timeout=300, env=_env(), cwd=tmp_path)
     out = r.stdout.decode()
     assert r.returncode == 0, r.stderr.decode()[-3000:]
     assert out.count("script body ran") == 1
-    assert "children []" in out and "multiprocessing False" in out
-    assert "calibration.png" in out                      # paper_physics draws figures: here, in this process
+    assert "children []" in out and "children after the job []" in out and "multiprocessing False" in out
+    assert ".png" in out.split("figures", 1)[1]           # paper_physics draws figures: here, in this process
 
 
 def test_figure_worker_refuses_functions_of_main():

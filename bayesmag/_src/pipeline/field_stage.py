@@ -131,7 +131,7 @@ def magnitude_interval_scale(train: CalibrationData, measurement: MeasurementMod
     """
     import scipy.stats
 
-    from bayesmag._src.core.predictor import conformal_quantile
+    from bayesmag._src.pipeline.conformal import conformal_quantile
     from bayesmag._src.pipeline.conformal import conformal_folds
     fold = conformal_folds(train.run, fraction=fraction, folds=folds, seed=seed)
     if start is not None:                   # the same model (T0, terms) as the fit it starts from
