@@ -146,3 +146,46 @@ def test_config_option_end_to_end(tmp_path):
     np.savez(tmp_path / "out" / "calibration.npz", **arrays)
     with pytest.raises(ArtifactError, match="sessions/w_cov"):
         load(tmp_path / "out")
+
+
+def test_hybrid_predictor_carries_the_session_model(tmp_path):
+    """Network enabled with `transfer = "hierarchical"`: the hybrid predictor keeps the session posterior,
+    its new-session variance is the within-session hybrid variance plus the row-dependent transfer sd
+    squared (closed form of the composition), and the saved calibration (network + sessions) reloads to
+    the same transfer column and the same totals."""
+    import csv
+
+    from bayesmag._src.app.artifact import load
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag._src.app.job import run_job
+    from bayesmag._src.core.data import write_csv
+
+    d = _session(2, 6, rows=120)
+    csv_path = tmp_path / "d.csv"
+    write_csv(d, csv_path)
+    cfg = config_from_dict({"name": "hh", "data": {"path": str(csv_path)},
+                            "split": {"kind": "by_run", "test_runs": [6]}, "physics": {"t0": "mean"},
+                            "uq": {"method": "analytic", "transfer": "hierarchical"},
+                            "network": {"enabled": True, "likelihoods": ["gaussian"], "hidden_layers": 1, "width": 8,
+                                        "batch_size": 128, "max_epochs": 4, "mc_passes": 4, "seed": 2},
+                            "output": {"figures": False, "progress": False}})
+    res = run_job(cfg, tmp_path / "out")
+    run = res["run"]
+    pr = res["predictor"]
+    assert pr.network is not None and pr.sessions is not None and pr.transfer_sd is None
+    assert run.hybrid.predictors["gaussian"].sessions is pr.sessions
+    test = d.subset(np.flatnonzero(d.run == 6))
+    want = pr.transfer_part(test)
+    assert np.ptp(want[:, 0]) > 0                                        # row-dependent, not an axis constant
+    pred = run.hybrid.predictions["gaussian"]
+    np.testing.assert_allclose(pred.parts["transfer"], want, rtol=1e-10)
+    comp = pr.components(test)
+    same = pr.compose(comp, new_session=False)
+    np.testing.assert_allclose(pred.total**2, same.total**2 + want**2, rtol=1e-6)
+    cal = load(tmp_path / "out")
+    assert cal.sessions is not None and cal.network is not None
+    out = cal.predict(test)
+    np.testing.assert_allclose(out["transfer"], want, rtol=1e-10)
+    rows = list(csv.DictReader(open(tmp_path / "out" / "predictions.csv")))
+    for a, ax in enumerate("xyz"):
+        np.testing.assert_allclose(out["total"][:, a], [float(r[f"{ax}_hybrid_total"]) for r in rows], rtol=1e-6)
