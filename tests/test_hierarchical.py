@@ -141,6 +141,7 @@ def test_config_option_end_to_end(tmp_path):
     want = pr.transfer_part(test)
     np.testing.assert_allclose(out["transfer"], want, rtol=1e-10)
     assert np.ptp(want[:, 0]) > 0                       # row-dependent
+    _check_condition_table(tmp_path / "out", m, res)
     arrays = dict(np.load(tmp_path / "out" / "calibration.npz"))
     arrays["sessions/w_cov"] = arrays["sessions/w_cov"][:, :1]
     np.savez(tmp_path / "out" / "calibration.npz", **arrays)
@@ -189,3 +190,40 @@ def test_hybrid_predictor_carries_the_session_model(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "out" / "predictions.csv")))
     for a, ax in enumerate("xyz"):
         np.testing.assert_allclose(out["total"][:, a], [float(r[f"{ax}_hybrid_total"]) for r in rows], rtol=1e-6)
+
+
+def _check_condition_table(out, m, res):
+    """report.md's per-condition U for a new session (issue 24 item 6): the six corners (training min / zero /
+    max field x min / max temperature) with the predictor's transfer sd there, and U = k sqrt(u_same^2 + sd^2),
+    k from Welch-Satterthwaite with the transfer at infinite dof (recomputed here with scipy's t quantile)."""
+    import re
+
+    from bayesmag._src.core.data import CalibrationData
+
+    train = res["data"].subset(res["split"].train)
+    conds = m["transfer"]["per_run"]["conditions"]
+    assert len(conds) == 6
+    lo, hi = train.b_meas.min(0), train.b_meas.max(0)
+    np.testing.assert_allclose(conds[0]["field"], lo)
+    np.testing.assert_allclose(conds[5]["field"], hi)
+    assert conds[0]["temperature"] == pytest.approx(train.temperature.min())
+    assert conds[5]["temperature"] == pytest.approx(train.temperature.max())
+    b = np.array([c["field"] for c in conds])
+    t = np.array([c["temperature"] for c in conds])
+    sd = res["predictor"].transfer_part(CalibrationData(b, t, None, np.arange(6.0), np.zeros(6, int)))
+    got = np.array([[c["transfer_sd"][a] for a in "xyz"] for c in conds])
+    np.testing.assert_allclose(got, sd, rtol=1e-9)
+    assert np.ptp(got[:, 0]) > 0                                       # differs between the corners
+    text = (out / "report.md").read_text()
+    assert "U new session x / y / z" in text
+    table = [ln for ln in text.splitlines() if re.match(r"\| -?[0-9.]+ / -?[0-9.]+ / -?[0-9.]+ \| ", ln)]
+    assert len(table) == 6, table
+    ex = bayesmag._src.app.report.expanded_uncertainties(m, json.loads((out / "params.json").read_text()))
+    for row, c in zip(table, got):
+        U = [float(v) for v in row.split("|")[4].split("/")]
+        for a, ax in enumerate("xyz"):
+            same = ex["same_session"][ax]
+            uc2 = same["u_c"] ** 2 + c[a] ** 2
+            nu = uc2**2 / (same["u_c"] ** 4 / same["nu_eff"])      # Welch-Satterthwaite, transfer dof inf
+            k = scipy.stats.t.ppf(0.975, nu)
+            assert U[a] == pytest.approx(k * np.sqrt(uc2), rel=0.03)  # the table rounds to 2 significant digits

@@ -56,7 +56,7 @@ import scipy.stats
 from bayesmag._src.core.physics import AXES, inputs_from_data
 
 __all__ = ["DEFAULT_EFFECTS", "TAU_PRIOR_SCALE", "SIGMA_PRIOR_SCALE", "RunStats", "SessionPosterior", "run_stats",
-           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "run_loglik", "loro_elpd", "whitened_gram"]
+           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "condition_table", "run_loglik", "loro_elpd", "whitened_gram"]
 
 #: Parameters with per-session random effects (the others are shared by all sessions).
 DEFAULT_EFFECTS = ("O", "Ko", "S_x", "S_y", "S_z")
@@ -569,7 +569,30 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
                    f"transfer model are then set largely by their prior (half-normal, scale {TAU_PRIOR_SCALE} uT), "
                    f"and new-session intervals are wide. Record at least {FEW_RUNS} sessions.")
     summary = {**post.as_dict(), "dropped_effects_informing_runs": select_effects(train, fit, effects)[1]}
-    return TransferEstimate(sd, f"hierarchical_{post.method}", {"model": summary}, warning), post
+    return (TransferEstimate(sd, f"hierarchical_{post.method}",
+                             {"model": summary, "conditions": condition_table(post, fit, train)}, warning), post)
+
+
+def condition_table(post: SessionPosterior, fit, train) -> list[dict]:
+    """The row-dependent transfer sd at the corners of the training domain, for the certificate.
+
+    Conditions: measured field at the training rows' per-axis minimum, at zero (clipped into the training
+    range) and at the per-axis maximum, each at the lowest and the highest training temperature (6 rows).
+    Returns ``[{"field": [bx, by, bz], "temperature": T, "transfer_sd": {axis: sd}}, ...]`` (uT, C).
+
+    Example: ``condition_table(post, fit, train)[0]["transfer_sd"]["x"]``.
+    """
+    from bayesmag._src.core.data import CalibrationData
+
+    lo, hi = train.b_meas.min(axis=0), train.b_meas.max(axis=0)
+    fields = [lo, np.clip(np.zeros(3), lo, hi), hi]
+    temps = [float(train.temperature.min()), float(train.temperature.max())]
+    b = np.array([f for _ in temps for f in fields], np.float64)
+    t = np.repeat(temps, len(fields))
+    rows = CalibrationData(b, t, None, np.arange(t.size, dtype=np.float64), np.zeros(t.size, int))
+    sd = post.transfer_sd_for(fit, rows)
+    return [{"field": [float(v) for v in b[i]], "temperature": float(t[i]),
+             "transfer_sd": {ax: float(sd[i, a]) for a, ax in enumerate(AXES)}} for i in range(t.size)]
 
 
 def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> SessionPosterior:
