@@ -78,6 +78,7 @@ class UQConfig:
     reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
     transfer_likelihood: str = "gaussian"    # hierarchical transfer: "gaussian" | "student_t" (per run, docs/sessions.md)
     transfer_df: float = 4.0                 # its Student-t degrees of freedom (> 2)
+    transfer_uninformed: str = "prior"       # hierarchical: effects < 3 runs inform: "prior" (their prior) | "fixed" (no change)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,7 +190,7 @@ class Config:
         uq = S.UQSettings(method=u.method, n_params=u.n_params, n_qmc=u.n_qmc, sigma_in=u.sigma_in, level=u.level,
                           seed=u.seed, chunk_size=u.chunk_size, residual_term=u.residual_term, transfer=u.transfer,
                           reference_sd=u.reference_sd, transfer_likelihood=u.transfer_likelihood,
-                          transfer_df=u.transfer_df)
+                          transfer_df=u.transfer_df, transfer_uninformed=u.transfer_uninformed)
         network = conformal = nuts = None
         if self.network.enabled:
             network = self.network.settings()
@@ -218,6 +219,7 @@ _CHOICES = {
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
     "uq.transfer_likelihood": ("gaussian", "student_t"),
+    "uq.transfer_uninformed": ("prior", "fixed"),
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),
 }

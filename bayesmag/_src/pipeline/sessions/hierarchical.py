@@ -272,7 +272,7 @@ def _mu_cov(hs, m0, m1, m2, first, n, effects, ts, ss, reml=0.0, df=None):
 #: Likelihoods of the hierarchical model (registered families with a Gaussian scale-mixture form, per run).
 LIKELIHOODS = ("gaussian", "student_t")
 #: 1: integrate the flat ``mu`` out of the hyperparameter posterior (restricted likelihood); 0: profile it.
-REML = 0.0
+REML = 1.0
 
 
 def _check_likelihood(likelihood: str, df) -> float | None:
@@ -299,7 +299,10 @@ class SessionPosterior:
     ``method``: "laplace" or "nuts"; ``mu`` (3, p): posterior mean of ``mu`` in model units; ``df``: the
     likelihood's dof (inf: Gaussian; finite: Student-t, every run's effects and noise share one
     Gamma(df/2, df/2) precision scale, so a new session's error is itself t with ``df`` dof given the
-    hyperparameters; ``w_mean`` and ``w_cov`` then hold the variances, i.e. the shapes times df/(df-2)).
+    hyperparameters; ``w_mean`` and ``w_cov`` then hold the variances, i.e. the shapes times df/(df-2));
+    ``centre`` (3, q): the scaled Jacobian value each effect is measured from (None: 0); ``prior_only``: the
+    effects too few runs inform, carried with their prior moments about the training mean of their
+    column (:func:`with_prior_effects`).
     """
 
     w_mean: np.ndarray
@@ -313,6 +316,8 @@ class SessionPosterior:
     mu: np.ndarray
     effect_index: tuple = ()
     df: float = math.inf
+    centre: np.ndarray | None = None
+    prior_only: tuple = ()
 
     @property
     def tau(self) -> np.ndarray:
@@ -325,7 +330,7 @@ class SessionPosterior:
         ``J``: (3, n, p) Jacobian in model units. Returns three (n, 3) arrays.
         """
         return _moments(np.asarray(J) / self.scale[:, None, :], self.w_mean, self.w_cov, self.mu_cov,
-                        np.asarray(self.effect_index, int))
+                        np.asarray(self.effect_index, int), self.centre)
 
     def predictive_t(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row-wise Student-t of the new-session error: ``(df, scale)`` (n, 3) each (moment matched)."""
@@ -362,12 +367,13 @@ class SessionPosterior:
 
     def as_arrays(self) -> dict:
         return {"w_mean": self.w_mean, "w_cov": self.w_cov, "mu_cov": self.mu_cov, "scale": self.scale,
-                "mu": self.mu}
+                "mu": self.mu, **({} if self.centre is None else {"centre": self.centre})}
 
     def meta(self) -> dict:
         return {"effects": list(self.effects), "effect_index": list(map(int, self.effect_index)),
                 "level": float(self.level), "n_runs": int(self.n_runs), "method": self.method,
-                "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None}
+                "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None,
+                "prior_only": list(self.prior_only)}
 
     @property
     def likelihood(self) -> str:
@@ -378,13 +384,15 @@ class SessionPosterior:
         """JSON summary: per axis the random-effect sds and the noise sd (posterior root means)."""
         return {"method": self.method, "n_runs": int(self.n_runs), "effects": list(self.effects),
                 "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None,
+                "prior_only": list(self.prior_only),
                 "tau": {ax: dict(zip(self.effects, map(float, self.tau[a]))) for a, ax in enumerate(AXES)},
                 "noise_sd": {ax: float(np.sqrt(self.w_mean[a, -1])) for a, ax in enumerate(AXES)}}
 
 
-def _moments(f, w_mean, w_cov, mu_cov, eidx):
-    """Mean / variance of ``v = sum_j tau_j^2 f_j^2 + noise + f^T C f`` per row: (n, 3) each, plus noise mean."""
-    fe2 = f[:, :, eidx] ** 2                                                # (3, n, q)
+def _moments(f, w_mean, w_cov, mu_cov, eidx, centre=None):
+    """Mean / variance of ``v = sum_j tau_j^2 (f_j - c_j)^2 + noise + f^T C f`` per row: (n, 3) each, plus noise mean."""
+    fe = f[:, :, eidx] - (0.0 if centre is None else np.asarray(centre)[:, None, :])
+    fe2 = fe**2                                                             # (3, n, q)
     wvec = np.concatenate([fe2, np.ones(fe2.shape[:2] + (1,))], axis=2)     # (3, n, q+1)
     m = np.einsum("anq,aq->na", wvec, w_mean) + np.einsum("anp,apk,ank->na", f, mu_cov, f)
     v = np.einsum("anq,aqk,ank->na", wvec, w_cov, wvec)
@@ -540,22 +548,69 @@ def select_effects(train, fit, effects: Sequence[str] = DEFAULT_EFFECTS,
 
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
                  level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float = 4.0,
-                 **kw) -> SessionPosterior:
+                 uninformed: str | None = None, **kw) -> SessionPosterior:
     """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
     effects are the ``effects`` that enough runs inform (:func:`select_effects`)."""
     runs = np.unique(train.run)
     if runs.size < 2:
         raise ValueError(f"the hierarchical transfer model needs at least 2 training runs (sessions); the "
                          f"training data hold {runs.size}. Use [uq] transfer = \"loro\" or \"off\".")
-    eff, _ = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
+    eff, dropped = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
     if not eff:
         eff = ("O",) if "O" in fit.model.param_names else ()
     stats = run_stats(train, fit, eff)
     if method == "laplace":
-        return fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
-    if method == "nuts":
-        return fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
-    raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
+        post = fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
+    elif method == "nuts":
+        post = fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
+    else:
+        raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
+    uninformed = ("prior" if PRIOR_FOR_UNINFORMED else "fixed") if uninformed is None else uninformed
+    if uninformed not in ("prior", "fixed"):
+        raise ValueError(f"uninformed = {uninformed!r} must be 'prior' or 'fixed'.")
+    if uninformed == "fixed":
+        return post
+    prior = [e for e in effects if e in dropped and e not in eff]
+    return with_prior_effects(post, fit, train, prior, kw.get("tau_scale", TAU_PRIOR_SCALE))
+
+
+#: Carry the candidate effects too few runs inform with their prior (:func:`with_prior_effects`) instead of
+#: taking them as fixed between sessions.
+PRIOR_FOR_UNINFORMED = True
+
+
+def with_prior_effects(post: SessionPosterior, fit, train, names: Sequence[str],
+                       tau_scale: float = TAU_PRIOR_SCALE) -> SessionPosterior:
+    r"""Add the random effects ``names`` that the training runs cannot inform, with their prior.
+
+    A parameter that fewer than :data:`MIN_INFORMING_RUNS` runs sweep (e.g. the x gain on Belsten, with
+    the run that sweeps the x field left out) is seen by the others as a constant, confounded with the
+    offset: its session-to-session change *at the training runs' inputs* is already in the learned
+    offset spread, and nothing in the data says how it changes elsewhere. Taking it as fixed between
+    sessions (zero variance) is the strongest possible assumption; the Bayesian answer is the prior,
+    :math:`	au_j \sim \mathrm{HalfNormal}(s_	au)`, so :math:`E	au_j^2 = s_	au^2` and
+    :math:`\mathrm{Var}\,	au_j^2 = 2 s_	au^4`, acting on the scaled Jacobian column measured from its
+    training mean :math:`ar f_j` (the part at the training inputs is the offset's): the row's variance
+    gains :math:`s_	au^2 (f_j - ar f_j)^2`, zero where the training runs sat and growing as the row
+    moves along the unswept input.
+    """
+    names = [e for e in names if e not in post.effects]
+    if not names:
+        return post
+    param = list(fit.model.param_names)
+    idx = [param.index(e) for e in names]
+    f = _jacobian(fit, train)[:, :, idx] / post.scale[:, None, idx]          # (3, n, k)
+    k, q = len(idx), len(post.effects)
+    t2 = tau_scale**2 * (post.df / (post.df - 2) if math.isfinite(post.df) else 1.0)
+    w_mean = np.concatenate([post.w_mean[:, :q], np.full((3, k), t2), post.w_mean[:, q:]], axis=1)
+    w_cov = np.zeros((3, q + k + 1, q + k + 1))
+    keep = np.r_[np.arange(q), q + k]
+    w_cov[:, keep[:, None], keep[None, :]] = post.w_cov
+    w_cov[:, q + np.arange(k), q + np.arange(k)] = 2 * t2**2
+    centre = np.concatenate([np.zeros((3, q)) if post.centre is None else post.centre, f.mean(axis=1)], axis=1)
+    return dataclasses.replace(post, w_mean=w_mean, w_cov=w_cov, effects=tuple(post.effects) + tuple(names),
+                               effect_index=tuple(post.effect_index) + tuple(idx), centre=centre,
+                               prior_only=tuple(post.prior_only) + tuple(names))
 
 
 def loro_elpd(stats: RunStats, names, *, pooling: str = "partial", seed: int = 0,
@@ -591,7 +646,7 @@ def _elpd_fold(tr: RunStats, te: RunStats, modes, seed) -> np.ndarray:
     for a in range(3):
         args = (jnp.asarray(tr.m0[a]), jnp.asarray(tr.m1[a]), jnp.asarray(tr.m2[a]), jnp.asarray(tr.first[a]),
                 jnp.asarray(tr.n), jnp.asarray(tr.effects), TAU_PRIOR_SCALE, SIGMA_PRIOR_SCALE)
-        Hh = np.asarray(_hessian(jnp.asarray(modes[a]), *args))
+        Hh = np.asarray(_hessian(jnp.asarray(modes[a]), *args, reml=REML))
         w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
         hs = rng.multivariate_normal(modes[a], (V / np.maximum(w, 1e-8)) @ V.T, size=200, method="eigh")
         lp = np.asarray(_fold_lp(jnp.asarray(hs), *args, jnp.asarray(te.m0[a, 0]), jnp.asarray(te.m1[a, 0]),
@@ -667,7 +722,8 @@ FEW_RUNS = 6
 
 
 def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
-                          effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float = 4.0):
+                          effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float = 4.0,
+                          uninformed: str | None = None):
     """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
 
     The estimate's ``sd`` is the root-mean-square row-dependent transfer sd over the training rows (a
@@ -680,7 +736,7 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
     if runs.size < 2:
         return estimate_transfer(train, fit), None
     post = fit_sessions(train, fit, method=method, effects=effects, level=level, seed=seed, likelihood=likelihood,
-                        df=df)
+                        df=df, uninformed=uninformed)
     sd = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
     warning = None
     if runs.size < FEW_RUNS:
@@ -724,6 +780,9 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
     if not isinstance(effects, list) or not effects or any(e not in param_names for e in effects):
         raise ValueError(f"field 'sessions.effects' = {effects!r} must name parameters of the model {list(param_names)}.")
     q = len(effects)
+    prior_only = meta.get("prior_only", [])
+    if not isinstance(prior_only, list) or any(e not in effects for e in prior_only):
+        raise ValueError(f"field 'sessions.prior_only' = {prior_only!r} must list some of sessions.effects.")
     level, n_runs = meta.get("level"), meta.get("n_runs")
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
         raise ValueError(f"field 'sessions.level' = {level!r} must be a number in (0, 1).")
@@ -740,6 +799,13 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
         if v.shape != shape or v.dtype.kind != "f" or not np.isfinite(v).all():
             raise ValueError(f"array 'sessions/{k}' must be finite floats of shape {shape}; got {v.dtype} {v.shape}.")
         out[k] = v.astype(np.float64)
+    centre = None
+    if "centre" in arrays:
+        centre = np.asarray(arrays["centre"])
+        if centre.shape != (3, q) or centre.dtype.kind != "f" or not np.isfinite(centre).all():
+            raise ValueError(f"array 'sessions/centre' must be finite floats of shape {(3, q)}; got {centre.dtype} "
+                             f"{centre.shape}.")
+        centre = centre.astype(np.float64)
     if (out["w_mean"] < 0).any() or (out["scale"] <= 0).any():
         raise ValueError("array 'sessions/w_mean' or 'sessions/scale' is negative (variances and scales are >= 0).")
     for k in ("w_cov", "mu_cov"):
@@ -757,4 +823,5 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
     idx = tuple(list(param_names).index(e) for e in effects)
     return SessionPosterior(out["w_mean"], out["w_cov"], out["mu_cov"], out["scale"], tuple(effects), float(level),
                             int(n_runs), meta["method"], out["mu"], effect_index=idx,
-                            df=math.inf if lik == "gaussian" else float(df))
+                            df=math.inf if lik == "gaussian" else float(df), centre=centre,
+                            prior_only=tuple(prior_only))
