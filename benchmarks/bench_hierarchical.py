@@ -101,13 +101,14 @@ def generators(args):
                   f"width ratio {' / '.join(f'{v:.2f}' for v in ratio[-1])}; fit {secs[-1]:.2f} s", flush=True)
         for key in ok:
             o, w = np.array(ok[key]), np.array(wid[key])
-            rows[(name, key)] = (f(o.mean(0)), f(np.percentile(o, 10, axis=0)), " / ".join(map(str, (o < 0.95).sum(0))),
+            rows[(name, key)] = (f(o.mean(0)), f(o.std(0, ddof=1)), f(np.percentile(o, 10, axis=0)),
+                                 " / ".join(map(str, (o < 0.95).sum(0))),
                                  " / ".join(f"{v:.3f}" for v in w.mean(0)),
                                  " / ".join(f"{v:.2f}" for v in np.mean(ratio, 0)) if key == "hier" else "1")
     print(f"\n### {args.draws} training draws x {args.sessions} new sessions (x / y / z)\n")
-    print("| generator | transfer | covered or flagged, mean (%) | 10th percentile over draws (%) | draws under 95 % "
-          "| mean in-domain width (uT) | width / loro's where loro covers |")
-    print("|---|---|---|---|---|---|---|")
+    print("| generator | transfer | covered or flagged, mean (%) | sd over draws (%) | 10th percentile over draws (%) "
+          "| draws under 95 % | mean in-domain width (uT) | width / loro's where loro covers |")
+    print("|---|---|---|---|---|---|---|---|")
     for (name, key), r in rows.items():
         print(f"| {name} | {key} | " + " | ".join(r) + " |")
 
