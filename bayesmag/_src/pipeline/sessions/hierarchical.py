@@ -271,6 +271,12 @@ def _mu_cov(hs, m0, m1, m2, first, n, effects, ts, ss, reml=0.0, df=None):
 
 #: Likelihoods of the hierarchical model (registered families with a Gaussian scale-mixture form, per run).
 LIKELIHOODS = ("gaussian", "student_t")
+#: sd of log tau under the half-normal prior (of log|z|, z ~ N(0, 1)): pi / sqrt(8).
+LOG_TAU_PRIOR_SD = math.pi / math.sqrt(8)
+#: Floor of the Laplace precision of ``h`` in every direction: the posterior is never wider than the prior of
+#: log tau. A mode near tau = 0 has an almost flat left tail in log tau (the half-normal's density ~ tau there);
+#: its Gaussian approximation would be symmetric and nearly unbounded, and its right tail gave tau^2 = inf.
+MIN_CURVATURE = 1.0 / LOG_TAU_PRIOR_SD**2
 #: 1: integrate the flat ``mu`` out of the hyperparameter posterior (restricted likelihood); 0: profile it.
 REML = 1.0
 
@@ -402,6 +408,9 @@ def _moments(f, w_mean, w_cov, mu_cov, eidx, centre=None):
 def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level, method,
                df: float = math.inf) -> SessionPosterior:
     w = np.concatenate([tau2, noise[..., None]], axis=-1)                   # (3, K, q+1)
+    if not (np.isfinite(w).all() and np.isfinite(mu_draws_cov).all() and np.isfinite(mu_mean).all()):
+        raise RuntimeError("the hierarchical transfer model's posterior is not finite (a between-session sd "
+                           "without a bound); use [uq] transfer = \"loro\" for these data.")
     if math.isfinite(df):
         w = w * df / (df - 2)                      # shape -> variance of the scale mixture
     w_mean = w.mean(1)
@@ -451,7 +460,7 @@ def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float
         h0 = res.x
         Hh = np.asarray(_hessian(jnp.asarray(h0), *args, df=dfs))
         w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
-        cov_h = (V / np.maximum(w, 1e-8)) @ V.T
+        cov_h = (V / np.maximum(w, MIN_CURVATURE)) @ V.T
         hs = rng.multivariate_normal(h0, cov_h, size=draws, method="eigh")
         tau2.append(np.exp(2 * hs[:, :q]))
         rho = np.tanh(hs[:, q + 1])
@@ -648,7 +657,7 @@ def _elpd_fold(tr: RunStats, te: RunStats, modes, seed) -> np.ndarray:
                 jnp.asarray(tr.n), jnp.asarray(tr.effects), TAU_PRIOR_SCALE, SIGMA_PRIOR_SCALE)
         Hh = np.asarray(_hessian(jnp.asarray(modes[a]), *args, reml=REML))
         w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
-        hs = rng.multivariate_normal(modes[a], (V / np.maximum(w, 1e-8)) @ V.T, size=200, method="eigh")
+        hs = rng.multivariate_normal(modes[a], (V / np.maximum(w, MIN_CURVATURE)) @ V.T, size=200, method="eigh")
         lp = np.asarray(_fold_lp(jnp.asarray(hs), *args, jnp.asarray(te.m0[a, 0]), jnp.asarray(te.m1[a, 0]),
                                  jnp.asarray(te.m2[a, 0]), jnp.asarray(te.first[a, 0]), float(te.n[0])))
         lp = lp[np.isfinite(lp)]
