@@ -78,7 +78,7 @@ class UQConfig:
     reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
     transfer_likelihood: str = "gaussian"    # hierarchical transfer: "gaussian" | "student_t" (per run, docs/sessions.md)
     transfer_df: float = 4.0                 # its Student-t degrees of freedom (> 2)
-    transfer_uninformed: str = "prior"       # hierarchical: effects < 3 runs inform: "prior" (their prior) | "fixed" (no change)
+    transfer_uninformed: str = "pooled"      # hierarchical: effects < 3 runs inform: "pooled" (as the learned ones) | "prior" | "fixed" (no change)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,7 +219,7 @@ _CHOICES = {
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
     "uq.transfer_likelihood": ("gaussian", "student_t"),
-    "uq.transfer_uninformed": ("prior", "fixed"),
+    "uq.transfer_uninformed": ("pooled", "prior", "fixed"),
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),
 }

@@ -38,8 +38,9 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
                         '(random-effects model, Laplace; docs/sessions.md) | "hierarchical_nuts" | "off"'),
     "uq.transfer_likelihood": ("", 'likelihood of the hierarchical transfer model: "gaussian" | "student_t" (every '
                                    'run jointly multivariate t: heavy-tailed sessions; docs/sessions.md)'),
-    "uq.transfer_uninformed": ("", 'hierarchical transfer: parameters fewer than 3 runs sweep keep their prior '
-                                   'between-session spread ("prior") or are taken as fixed ("fixed"); docs/sessions.md'),
+    "uq.transfer_uninformed": ("", 'hierarchical transfer: parameters fewer than 3 runs sweep change between sessions '
+                                   'as much as the learned ones ("pooled"), by their prior ("prior") or not at all '
+                                   '("fixed"); docs/sessions.md'),
     "uq.transfer_df": ("", "degrees of freedom of the Student-t transfer likelihood (> 2)"),
     "uq.reference_sd": ("uT", "standard uncertainty of the reference magnetometer (one value or per axis)"),
     "network.enabled": ("", "train the residual network (hybrid stage)"),

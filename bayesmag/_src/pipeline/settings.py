@@ -72,7 +72,7 @@ class UQSettings:
     residual variance beyond the input noise; ``transfer``: ``"loro"`` (leave one run out),
     ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them);
     ``transfer_likelihood`` / ``transfer_df``: the hierarchical model's likelihood, ``"gaussian"`` or
-    ``"student_t"`` with ``transfer_df`` dof; ``transfer_uninformed``: ``"prior"`` or ``"fixed"``
+    ``"student_t"`` with ``transfer_df`` dof; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
     (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`).
     """
 
@@ -88,7 +88,7 @@ class UQSettings:
     reference_sd: Union[float, Any] = 0.0
     transfer_likelihood: str = "gaussian"
     transfer_df: float = 4.0
-    transfer_uninformed: str = "prior"
+    transfer_uninformed: str = "pooled"
 
     def options(self) -> UQOptions:
         """The :class:`~bayesmag._src.core.predictor.UQOptions` a :class:`Predictor` keeps."""

@@ -574,22 +574,29 @@ def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] 
         post = fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
     else:
         raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
-    uninformed = ("prior" if PRIOR_FOR_UNINFORMED else "fixed") if uninformed is None else uninformed
-    if uninformed not in ("prior", "fixed"):
-        raise ValueError(f"uninformed = {uninformed!r} must be 'prior' or 'fixed'.")
+    uninformed = (UNINFORMED if PRIOR_FOR_UNINFORMED else "fixed") if uninformed is None else uninformed
+    if uninformed not in UNINFORMED_CHOICES:
+        raise ValueError(f"uninformed = {uninformed!r} must be one of {list(UNINFORMED_CHOICES)}.")
     if uninformed == "fixed":
         return post
     prior = [e for e in effects if e in dropped and e not in eff]
+    if uninformed == "pooled":
+        q = len(post.effects)
+        mom = (post.w_mean[:, :q].mean(axis=1), np.diagonal(post.w_cov[:, :q, :q], axis1=1, axis2=2).mean(axis=1))
+        return with_prior_effects(post, fit, train, prior, moments=mom)
     return with_prior_effects(post, fit, train, prior, kw.get("tau_scale", TAU_PRIOR_SCALE))
 
 
-#: Carry the candidate effects too few runs inform with their prior (:func:`with_prior_effects`) instead of
-#: taking them as fixed between sessions.
+#: Carry the candidate effects too few runs inform (:func:`with_prior_effects`) instead of taking them as fixed.
 PRIOR_FOR_UNINFORMED = True
+#: How: ``"pooled"`` (exchangeable with the learned effects of the axis: their mean second moments),
+#: ``"prior"`` (the half-normal prior's) or ``"fixed"`` (not carried: no change between sessions).
+UNINFORMED_CHOICES = ("pooled", "prior", "fixed")
+UNINFORMED = "pooled"
 
 
 def with_prior_effects(post: SessionPosterior, fit, train, names: Sequence[str],
-                       tau_scale: float = TAU_PRIOR_SCALE) -> SessionPosterior:
+                       tau_scale: float = TAU_PRIOR_SCALE, moments=None) -> SessionPosterior:
     r"""Add the random effects ``names`` that the training runs cannot inform, with their prior.
 
     A parameter that fewer than :data:`MIN_INFORMING_RUNS` runs sweep (e.g. the x gain on Belsten, with
@@ -597,11 +604,17 @@ def with_prior_effects(post: SessionPosterior, fit, train, names: Sequence[str],
     offset: its session-to-session change *at the training runs' inputs* is already in the learned
     offset spread, and nothing in the data says how it changes elsewhere. Taking it as fixed between
     sessions (zero variance) is the strongest possible assumption; the Bayesian answer is the prior,
-    :math:`	au_j \sim \mathrm{HalfNormal}(s_	au)`, so :math:`E	au_j^2 = s_	au^2` and
-    :math:`\mathrm{Var}\,	au_j^2 = 2 s_	au^4`, acting on the scaled Jacobian column measured from its
-    training mean :math:`ar f_j` (the part at the training inputs is the offset's): the row's variance
-    gains :math:`s_	au^2 (f_j - ar f_j)^2`, zero where the training runs sat and growing as the row
+    :math:`\tau_j \sim \mathrm{HalfNormal}(s_\tau)`, so :math:`E\tau_j^2 = s_\tau^2` and
+    :math:`\mathrm{Var}\,\tau_j^2 = 2 s_\tau^4`, acting on the scaled Jacobian column measured from its
+    training mean :math:`\bar f_j` (the part at the training inputs is the offset's): the row's variance
+    gains :math:`s_\tau^2 (f_j - \bar f_j)^2`, zero where the training runs sat and growing as the row
     moves along the unswept input.
+
+    ``moments``: ``(mean, var)`` of :math:`\tau_j^2`, (3,) each, to use instead of the prior's: the job's
+    default (``uninformed = "pooled"``) takes the effects of one axis as exchangeable (their sds drawn
+    from one distribution, as the sessions are), so an effect no run informs gets the mean posterior
+    moments of the axis's learned ones (on Belsten: the offset's), each row's variance gaining
+    :math:`E[\tau_O^2] (f_j - \bar f_j)^2`.
     """
     names = [e for e in names if e not in post.effects]
     if not names:
@@ -610,12 +623,16 @@ def with_prior_effects(post: SessionPosterior, fit, train, names: Sequence[str],
     idx = [param.index(e) for e in names]
     f = _jacobian(fit, train)[:, :, idx] / post.scale[:, None, idx]          # (3, n, k)
     k, q = len(idx), len(post.effects)
-    t2 = tau_scale**2 * (post.df / (post.df - 2) if math.isfinite(post.df) else 1.0)
-    w_mean = np.concatenate([post.w_mean[:, :q], np.full((3, k), t2), post.w_mean[:, q:]], axis=1)
+    if moments is None:
+        t2 = np.full(3, tau_scale**2 * (post.df / (post.df - 2) if math.isfinite(post.df) else 1.0))
+        v2 = 2 * t2**2
+    else:
+        t2, v2 = (np.broadcast_to(np.asarray(m, np.float64), (3,)) for m in moments)
+    w_mean = np.concatenate([post.w_mean[:, :q], np.repeat(t2[:, None], k, axis=1), post.w_mean[:, q:]], axis=1)
     w_cov = np.zeros((3, q + k + 1, q + k + 1))
     keep = np.r_[np.arange(q), q + k]
     w_cov[:, keep[:, None], keep[None, :]] = post.w_cov
-    w_cov[:, q + np.arange(k), q + np.arange(k)] = 2 * t2**2
+    w_cov[:, q + np.arange(k), q + np.arange(k)] = v2[:, None]
     centre = np.concatenate([np.zeros((3, q)) if post.centre is None else post.centre, f.mean(axis=1)], axis=1)
     return dataclasses.replace(post, w_mean=w_mean, w_cov=w_cov, effects=tuple(post.effects) + tuple(names),
                                effect_index=tuple(post.effect_index) + tuple(idx), centre=centre,
