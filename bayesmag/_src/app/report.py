@@ -572,7 +572,9 @@ def condition_table_lines(table: list[dict], level: float) -> list[str]:
     lines = [f"Expanded uncertainty U ({level:.0%}) for a new session by condition: the transfer sd of the "
              "hierarchical model at the corners of the training domain (field at the per-axis minimum, zero and "
              "maximum of the training rows; lowest and highest training temperature), added in quadrature to "
-             "the same-session u_c of the budget above (uT):", "",
+             "the same-session u_c of the budget above (uT). A corner of the per-input ranges may combine inputs "
+             "no training row combined (e.g. the highest temperature with a large field): the model's "
+             "extrapolation there is what the large values say.", "",
              "| B x / y / z (uT) | T (C) | transfer sd x / y / z | U new session x / y / z |", "|---|---|---|---|"]
     for r in table:
         lines.append(f"| {' / '.join(f'{v:.4g}' for v in r['field'])} | {r['temperature']:.4g} | "
