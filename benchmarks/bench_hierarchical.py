@@ -84,7 +84,7 @@ def generators(args):
             train = _session(draw, args.runs, rows=100, session_params=gen)
             pr = _calibrate(train)
             t = time.perf_counter()
-            post = H.fit_sessions(train, pr.fit, seed=draw)
+            post = H.fit_sessions(train, pr.fit, seed=draw, likelihood=args.likelihood, df=args.df)
             secs.append(time.perf_counter() - t)
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
@@ -101,13 +101,14 @@ def generators(args):
                   f"width ratio {' / '.join(f'{v:.2f}' for v in ratio[-1])}; fit {secs[-1]:.2f} s", flush=True)
         for key in ok:
             o, w = np.array(ok[key]), np.array(wid[key])
-            rows[(name, key)] = (f(o.mean(0)), f(np.percentile(o, 10, axis=0)), " / ".join(map(str, (o < 0.95).sum(0))),
+            rows[(name, key)] = (f(o.mean(0)), f(o.std(0, ddof=1)), f(np.percentile(o, 10, axis=0)),
+                                 " / ".join(map(str, (o < 0.95).sum(0))),
                                  " / ".join(f"{v:.3f}" for v in w.mean(0)),
                                  " / ".join(f"{v:.2f}" for v in np.mean(ratio, 0)) if key == "hier" else "1")
     print(f"\n### {args.draws} training draws x {args.sessions} new sessions (x / y / z)\n")
-    print("| generator | transfer | covered or flagged, mean (%) | 10th percentile over draws (%) | draws under 95 % "
-          "| mean in-domain width (uT) | width / loro's where loro covers |")
-    print("|---|---|---|---|---|---|---|")
+    print("| generator | transfer | covered or flagged, mean (%) | sd over draws (%) | 10th percentile over draws (%) "
+          "| draws under 95 % | mean in-domain width (uT) | width / loro's where loro covers |")
+    print("|---|---|---|---|---|---|---|---|")
     for (name, key), r in rows.items():
         print(f"| {name} | {key} | " + " | ".join(r) + " |")
 
@@ -195,6 +196,8 @@ def main():
     ap.add_argument("--sessions", type=int, default=40)
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--generator", nargs="+", default=list(GENERATORS), choices=sorted(GENERATORS))
+    ap.add_argument("--likelihood", default="gaussian", choices=list(H.LIKELIHOODS), help="hierarchical model's likelihood")
+    ap.add_argument("--df", type=float, default=4.0, help="its Student-t dof")
     args = ap.parse_args()
     print(f"## `python benchmarks/bench_hierarchical.py {' '.join(sys.argv[1:])}`\n")
     {"generators": generators, "belsten": belsten, "pooling": pooling}[args.what](args)

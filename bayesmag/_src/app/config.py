@@ -76,6 +76,9 @@ class UQConfig:
     residual_term: bool = True          # add the fit's unexplained residual variance (false = the paper's total)
     transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" (per-run random effects, Laplace; docs/sessions.md) | "hierarchical_nuts" (the same by NUTS) | "off"
     reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
+    transfer_likelihood: str = "gaussian"    # hierarchical transfer: "gaussian" | "student_t" (per run, docs/sessions.md)
+    transfer_df: float = 4.0                 # its Student-t degrees of freedom (> 2)
+    transfer_uninformed: str = "pooled"      # hierarchical: effects < 3 runs inform: "pooled" (as the learned ones) | "prior" | "fixed" (no change)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,7 +192,8 @@ class Config:
                                     extra_terms=tuple(p.extra_terms), covariance=p.covariance)
         uq = S.UQSettings(method=u.method, n_params=u.n_params, n_qmc=u.n_qmc, sigma_in=u.sigma_in, level=u.level,
                           seed=u.seed, chunk_size=u.chunk_size, residual_term=u.residual_term, transfer=u.transfer,
-                          reference_sd=u.reference_sd)
+                          reference_sd=u.reference_sd, transfer_likelihood=u.transfer_likelihood,
+                          transfer_df=u.transfer_df, transfer_uninformed=u.transfer_uninformed)
         network = conformal = nuts = None
         if self.network.enabled:
             network = self.network.settings()
@@ -217,6 +221,8 @@ _CHOICES = {
     "data.field_unit": ("uT", "nT", "mT", "G"),
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
+    "uq.transfer_likelihood": ("gaussian", "student_t"),
+    "uq.transfer_uninformed": ("pooled", "prior", "fixed"),
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),
     "measurement.interval_calibration": ("conformal", "none"),
@@ -406,6 +412,10 @@ def _check_semantics(cfg: Config) -> None:
         if bad:
             raise ConfigError(f"Config key 'uq.sigma_in' = {s!r} holds {bad[0]!r}: each standard deviation "
                               f"[Bx, By, Bz (uT), T (C)] must be >= 0 and at most {_MAX_SD:g}.")
+    tdf = cfg.uq.transfer_df
+    if isinstance(tdf, bool) or not isinstance(tdf, (int, float)) or not 2 < tdf < 1e6:
+        raise ConfigError(f"Config key 'uq.transfer_df' = {tdf!r} must be a number > 2 (Student-t degrees of freedom "
+                          "with a finite variance; e.g. 4).")
     r = cfg.uq.reference_sd
     if not (isinstance(r, (int, float)) and r >= 0 or isinstance(r, list) and len(r) == 3
             and all(isinstance(v, (int, float)) and v >= 0 for v in r)):

@@ -36,6 +36,12 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "uq.residual_term": ("", "add the fit's unexplained residual variance (false: the paper's total)"),
     "uq.transfer": ("", 'between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" '
                         '(random-effects model, Laplace; docs/sessions.md) | "hierarchical_nuts" | "off"'),
+    "uq.transfer_likelihood": ("", 'likelihood of the hierarchical transfer model: "gaussian" | "student_t" (every '
+                                   'run jointly multivariate t: heavy-tailed sessions; docs/sessions.md)'),
+    "uq.transfer_uninformed": ("", 'hierarchical transfer: parameters fewer than 3 runs sweep change between sessions '
+                                   'as much as the learned ones ("pooled"), by their prior ("prior") or not at all '
+                                   '("fixed"); docs/sessions.md'),
+    "uq.transfer_df": ("", "degrees of freedom of the Student-t transfer likelihood (> 2)"),
     "uq.reference_sd": ("uT", "standard uncertainty of the reference magnetometer (one value or per axis)"),
     "network.enabled": ("", "train the residual network (hybrid stage)"),
     "network.likelihoods": ("", "likelihood families, one network each (the first is the primary)"),

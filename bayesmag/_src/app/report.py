@@ -31,7 +31,7 @@ import numpy as np
 
 __all__ = ["write_report", "render_report", "render_html", "welch_satterthwaite", "coverage_factor",
            "parameter_unit", "uncertainty_budget", "fit_statistics", "gum_round", "gum_format",
-           "expanded_uncertainties", "certificate_record", "ReportContext", "SECTIONS"]
+           "expanded_uncertainties", "condition_uncertainties", "certificate_record", "ReportContext", "SECTIONS"]
 
 AXES = ("x", "y", "z")
 
@@ -533,7 +533,54 @@ def _fit_section(c: ReportContext) -> list[str]:
 
 
 def _transfer_section(c: ReportContext) -> list[str]:
-    return transfer_section(c.metrics)
+    lines = transfer_section(c.metrics)
+    table = condition_uncertainties(c.metrics, c.params, c.reference_sd)
+    if table:
+        lines += condition_table_lines(table, c.metrics["uq"]["level"])
+    return lines
+
+
+def condition_uncertainties(m: dict, params: dict, reference_sd=0.0) -> list[dict]:
+    r"""U for a new session at the training domain's corners (hierarchical transfer only; else ``[]``).
+
+    Per condition and axis: :math:`u_c^2 = u_{c,\mathrm{same}}^2 + \tau(x)^2` with the budget's
+    same-session :math:`u_c` (mean over the test rows) and the row-dependent transfer sd :math:`\tau(x)` of the
+    hierarchical model at that condition (``metrics["transfer"]["per_run"]["conditions"]``), ``k`` by
+    Welch-Satterthwaite with the transfer part at infinite dof, ``U = k u_c``. Returns
+    ``[{"field", "temperature", "transfer_sd", "U"}]`` (``transfer_sd`` and ``U`` per axis, uT).
+    """
+    tr = m.get("transfer") or {}
+    conds = (tr.get("per_run") or {}).get("conditions") if str(tr.get("method", "")).startswith("hierarchical") else None
+    if not conds:
+        return []
+    level = m["uq"]["level"]
+    comps = _components(m, params, reference_sd)
+    out = []
+    for c in conds:
+        U = {}
+        for a in AXES:
+            uu = [x[1][a] for x in comps] + [c["transfer_sd"][a]]
+            nn = [x[3] for x in comps] + [math.inf]
+            uc = math.sqrt(sum(v * v for v in uu))
+            U[a] = coverage_factor(welch_satterthwaite(uu, nn), level) * uc
+        out.append({"field": c["field"], "temperature": c["temperature"], "transfer_sd": c["transfer_sd"], "U": U})
+    return out
+
+
+def condition_table_lines(table: list[dict], level: float) -> list[str]:
+    """The report.md table of :func:`condition_uncertainties`."""
+    lines = [f"Expanded uncertainty U ({level:.0%}) for a new session by condition: the transfer sd of the "
+             "hierarchical model at the corners of the training domain (field at the per-axis minimum, zero and "
+             "maximum of the training rows; lowest and highest training temperature), added in quadrature to "
+             "the same-session u_c of the budget above (uT). A corner of the per-input ranges may combine inputs "
+             "no training row combined (e.g. the highest temperature with a large field): the model's "
+             "extrapolation there is what the large values say.", "",
+             "| B x / y / z (uT) | T (C) | transfer sd x / y / z | U new session x / y / z |", "|---|---|---|---|"]
+    for r in table:
+        lines.append(f"| {' / '.join(f'{v:.4g}' for v in r['field'])} | {r['temperature']:.4g} | "
+                     + " / ".join(_u2(r["transfer_sd"][a]) for a in AXES) + " | "
+                     + " / ".join(_u2(r["U"][a]) for a in AXES) + " |")
+    return lines + [""]
 
 
 def _domain_section(c: ReportContext) -> list[str]:

@@ -70,7 +70,10 @@ class UQSettings:
     ``"auto"`` (estimated from the training rows), 4 standard deviations ``[bx, by, bz, T]`` or a
     4x4 covariance; ``level``: the central interval's level; ``residual_term``: add the fit's
     residual variance beyond the input noise; ``transfer``: ``"loro"`` (leave one run out),
-    ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them).
+    ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them);
+    ``transfer_likelihood`` / ``transfer_df``: the hierarchical model's likelihood, ``"gaussian"`` or
+    ``"student_t"`` with ``transfer_df`` dof; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
+    (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`).
     """
 
     method: str = UQOptions.method
@@ -83,6 +86,9 @@ class UQSettings:
     residual_term: bool = True
     transfer: str = "loro"
     reference_sd: Union[float, Any] = 0.0
+    transfer_likelihood: str = "gaussian"
+    transfer_df: float = 4.0
+    transfer_uninformed: str = "pooled"
 
     def options(self) -> UQOptions:
         """The :class:`~bayesmag._src.core.predictor.UQOptions` a :class:`Predictor` keeps."""

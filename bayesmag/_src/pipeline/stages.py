@@ -99,7 +99,9 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
     elif uq_settings.transfer.startswith("hierarchical"):
         from bayesmag._src.pipeline.sessions import hierarchical_transfer
         tr, sessions = hierarchical_transfer(train, fit, method="nuts" if uq_settings.transfer.endswith("nuts") else
-                                             "laplace", level=uq_settings.level, seed=uq_settings.seed)
+                                             "laplace", level=uq_settings.level, seed=uq_settings.seed,
+                                             likelihood=uq_settings.transfer_likelihood, df=uq_settings.transfer_df,
+                                             uninformed=uq_settings.transfer_uninformed)
     else:
         tr = TransferEstimate(np.zeros(3), "off", {})
     predictor = dataclasses.replace(predictor, transfer_sd=None if sessions is not None else tr.sd,

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import NamedTuple, Sequence
 
 import jax
@@ -56,7 +57,7 @@ import scipy.stats
 from bayesmag._src.core.physics import AXES, inputs_from_data
 
 __all__ = ["DEFAULT_EFFECTS", "TAU_PRIOR_SCALE", "SIGMA_PRIOR_SCALE", "RunStats", "SessionPosterior", "run_stats",
-           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "run_loglik", "loro_elpd", "whitened_gram"]
+           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "condition_table", "run_loglik", "loro_elpd", "whitened_gram"]
 
 #: Parameters with per-session random effects (the others are shared by all sessions).
 DEFAULT_EFFECTS = ("O", "Ko", "S_x", "S_y", "S_z")
@@ -130,23 +131,29 @@ def whitened_gram(m0, m1, m2, first, rho):
     return m0 - rho * (m1 + jnp.swapaxes(m1, -1, -2)) + rho**2 * m2 + (1 - rho**2) * first
 
 
-def run_loglik(G, n, mu, L, sigma2, rho):
+def run_loglik(G, n, mu, L, sigma2, rho, df=None):
     r"""Log density of one run's rows, the random effect :math:`u = L z`, :math:`z \sim N(0, I)` integrated out.
 
     ``G``: whitened Gram (p+1, p+1) of ``[J, y]``; ``mu``: (p,) centre; ``L``: (p, k) factor of the
     random-effect covariance (k = 0: none). Woodbury with :math:`P = I + L^\top G_{XX} L / \sigma^2`.
+    ``df`` None: Gaussian; a number: the multivariate Student-t with that shape matrix and ``df`` dof
+    (:func:`_collapsed_t`).
     """
     p = mu.shape[0]
     gxx, gxy, gyy = G[:p, :p], G[:p, p], G[p, p]
-    rr = gyy - 2 * mu @ gxy + mu @ gxx @ mu
-    out = -0.5 * n * jnp.log(2 * jnp.pi * sigma2) + 0.5 * jnp.log1p(-rho**2) - 0.5 * rr / sigma2
-    if L.shape[1] == 0:
-        return out
-    b = L.T @ (gxy - gxx @ mu)
-    P = jnp.eye(L.shape[1]) + L.T @ gxx @ L / sigma2
-    c = jnp.linalg.cholesky(P)
-    v = jax.scipy.linalg.solve_triangular(c, b, lower=True)
-    return out - jnp.sum(jnp.log(jnp.diag(c))) + 0.5 * (v @ v) / sigma2**2
+    quad = (gyy - 2 * mu @ gxy + mu @ gxx @ mu) / sigma2
+    logdet = n * jnp.log(sigma2) - jnp.log1p(-rho**2)
+    if L.shape[1] > 0:
+        b = L.T @ (gxy - gxx @ mu)
+        P = jnp.eye(L.shape[1]) + L.T @ gxx @ L / sigma2
+        c = jnp.linalg.cholesky(P)
+        v = jax.scipy.linalg.solve_triangular(c, b, lower=True)
+        logdet = logdet + 2 * jnp.sum(jnp.log(jnp.diag(c)))
+        quad = quad - (v @ v) / sigma2**2
+    if df is None:
+        return -0.5 * n * jnp.log(2 * jnp.pi) - 0.5 * logdet - 0.5 * quad
+    return (jax.scipy.special.gammaln((df + n) / 2) - jax.scipy.special.gammaln(df / 2) - 0.5 * n * jnp.log(df * jnp.pi)
+            - 0.5 * logdet - 0.5 * (df + n) * jnp.log1p(quad / df))
 
 
 def _unpack(h, q):
@@ -185,21 +192,106 @@ def _collapsed(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.
     return lp, mu, cov
 
 
-@functools.partial(jax.jit, static_argnums=())
-def _neg_lp_and_grad(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
-    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml)[0]  # noqa: E731
+def _collapsed_t(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0, df=4.0, iters=60):
+    r"""The Student-t counterpart of :func:`_collapsed`: every run's rows jointly multivariate-t with ``df``
+    dof and shape matrix :math:`V_r = J E T^2 E^\top J^\top + \Sigma_{AR(1)}` (the Gaussian's covariance), i.e.
+    the run's random effects and noise share one scale :math:`w_r \sim \mathrm{Gamma}(\nu/2, \nu/2)`,
+    :math:`(u_r, \varepsilon_r) \mid w_r \sim N(0, \cdot / w_r)` (a session whose deviation and noise are
+    both large); log density per run, :math:`Q_r = (y_r - J_r\mu)^\top V_r^{-1} (y_r - J_r\mu)`:
+
+    .. math:: \log\Gamma(\tfrac{\nu+n_r}{2}) - \log\Gamma(\tfrac\nu2) - \tfrac{n_r}{2}\log(\nu\pi)
+              - \tfrac12\log|V_r| - \tfrac{\nu+n_r}{2}\log(1 + Q_r/\nu).
+
+    ``mu`` has no closed form here: its mode by iteratively reweighted GLS (the EM update of the scale
+    mixture, weights :math:`(\nu+n_r)/(\nu+Q_r)`, ``iters`` steps from the Gaussian solution), its
+    covariance the inverse observed information there; ``reml`` = 1 adds the Laplace approximation of
+    integrating a flat ``mu`` (exact in the Gaussian case).
+    """
+    q = effects.shape[0]
+    p = m0.shape[-1] - 1
+    tau, sigma, rho = _unpack(h, q)
+    s2 = sigma**2
+    G = whitened_gram(m0, m1, m2, first, rho)
+    E = jnp.zeros((p, q)).at[effects, jnp.arange(q)].set(tau)
+
+    def per_run(Gr, nr):
+        P = jnp.eye(q) + E.T @ Gr[:p, :p] @ E / s2
+        c = jnp.linalg.cholesky(P)
+        A = jax.scipy.linalg.solve_triangular(c, E.T @ Gr[:p, :], lower=True)
+        logdet = nr * jnp.log(s2) - jnp.log1p(-rho**2) + 2 * jnp.sum(jnp.log(jnp.diag(c)))
+        return (Gr - A.T @ A / s2) / s2, logdet
+
+    Vinv, logdet = jax.vmap(per_run)(G, n)
+    vxx, vxy, vyy = Vinv[:, :p, :p], Vinv[:, :p, p], Vinv[:, p, p]
+    quad = lambda mu: jnp.einsum("i,rij,j->r", mu, vxx, mu) - 2 * vxy @ mu + vyy  # noqa: E731
+
+    def step(_, mu):
+        w = (df + n) / (df + jnp.maximum(quad(mu), 0.0))
+        return jnp.linalg.solve(jnp.einsum("r,rij->ij", w, vxx), jnp.einsum("r,ri->i", w, vxy))
+
+    mu0 = jnp.linalg.solve(vxx.sum(0), vxy.sum(0))
+    mu = jax.lax.fori_loop(0, iters, step, mu0)
+
+    def loglik(m):
+        return jnp.sum(jax.scipy.special.gammaln((df + n) / 2) - jax.scipy.special.gammaln(df / 2)
+                       - 0.5 * n * jnp.log(df * jnp.pi) - 0.5 * logdet - 0.5 * (df + n) * jnp.log1p(quad(m) / df))
+
+    info = -jax.hessian(loglik)(mu)
+    info = 0.5 * (info + info.T)
+    ch = jnp.linalg.cholesky(info)
+    lp = loglik(mu) + reml * (0.5 * p * jnp.log(2 * jnp.pi) - jnp.sum(jnp.log(jnp.diag(ch))))
+    lp += jnp.sum(-0.5 * (tau / tau_scale) ** 2 + h[:q]) - 0.5 * (sigma / sigma_scale) ** 2 + h[q]
+    lp += jnp.log1p(-rho**2)
+    return lp, mu, jax.scipy.linalg.cho_solve((ch, True), jnp.eye(p))
+
+
+def _lp(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0, df=None):
+    """:func:`_collapsed` (Gaussian, ``df`` None) or :func:`_collapsed_t` (Student-t with ``df`` dof)."""
+    if df is None:
+        return _collapsed(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml)
+    return _collapsed_t(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml, df)
+
+
+@functools.partial(jax.jit, static_argnames=("df",))
+def _neg_lp_and_grad(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0, df=None):
+    f = lambda hh: -_lp(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml, df)[0]  # noqa: E731
     return jax.value_and_grad(f)(h)
 
 
-@jax.jit
-def _hessian(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0):
-    f = lambda hh: -_collapsed(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml)[0]  # noqa: E731
+@functools.partial(jax.jit, static_argnames=("df",))
+def _hessian(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0, df=None):
+    f = lambda hh: -_lp(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml, df)[0]  # noqa: E731
     return jax.hessian(f)(h)
 
 
-_mu_cov = jax.jit(jax.vmap(lambda h, m0, m1, m2, first, n, effects, ts, ss:
-                           _collapsed(h, m0, m1, m2, first, n, effects, ts, ss)[1:],
-                           in_axes=(0, None, None, None, None, None, None, None, None)))
+@functools.partial(jax.jit, static_argnames=("df",))
+def _mu_cov(hs, m0, m1, m2, first, n, effects, ts, ss, reml=0.0, df=None):
+    return jax.vmap(lambda h: _lp(h, m0, m1, m2, first, n, effects, ts, ss, reml, df)[1:])(hs)
+
+
+#: Likelihoods of the hierarchical model (registered families with a Gaussian scale-mixture form, per run).
+LIKELIHOODS = ("gaussian", "student_t")
+#: sd of log tau under the half-normal prior (of log|z|, z ~ N(0, 1)): pi / sqrt(8).
+LOG_TAU_PRIOR_SD = math.pi / math.sqrt(8)
+#: Floor of the Laplace precision of ``h`` in every direction: the posterior is never wider than the prior of
+#: log tau. A mode near tau = 0 has an almost flat left tail in log tau (the half-normal's density ~ tau there);
+#: its Gaussian approximation would be symmetric and nearly unbounded, and its right tail gave tau^2 = inf.
+MIN_CURVATURE = 1.0 / LOG_TAU_PRIOR_SD**2
+#: 1: integrate the flat ``mu`` out of the hyperparameter posterior (restricted likelihood); 0: profile it.
+REML = 1.0
+
+
+def _check_likelihood(likelihood: str, df) -> float | None:
+    """``None`` (Gaussian) or the Student-t dof; ValueError naming the bad value."""
+    from bayesmag._src.core.likelihoods import get_likelihood
+
+    if likelihood not in LIKELIHOODS:
+        raise ValueError(f"the hierarchical transfer likelihood {likelihood!r} is not supported; it must be one of "
+                         f"{list(LIKELIHOODS)} (a Gaussian scale mixture per run).")
+    if likelihood == "gaussian":
+        return None
+    get_likelihood(likelihood).shape_params["df"].check("uq.transfer_df", df, likelihood)
+    return float(df)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,7 +302,13 @@ class SessionPosterior:
     ``(tau_1^2..tau_q^2, sigma^2/(1-rho^2))``; ``mu_cov`` (3, p, p): posterior covariance of ``mu``
     (scaled units); ``scale`` (3, p): Jacobian column scales; ``effects``: names with random effects;
     ``level``: the central level the equivalent sd is matched at; ``n_runs``: training runs;
-    ``method``: "laplace" or "nuts"; ``mu`` (3, p): posterior mean of ``mu`` in model units.
+    ``method``: "laplace" or "nuts"; ``mu`` (3, p): posterior mean of ``mu`` in model units; ``df``: the
+    likelihood's dof (inf: Gaussian; finite: Student-t, every run's effects and noise share one
+    Gamma(df/2, df/2) precision scale, so a new session's error is itself t with ``df`` dof given the
+    hyperparameters; ``w_mean`` and ``w_cov`` then hold the variances, i.e. the shapes times df/(df-2));
+    ``centre`` (3, q): the scaled Jacobian value each effect is measured from (None: 0); ``prior_only``: the
+    effects too few runs inform, carried with their prior moments about the training mean of their
+    column (:func:`with_prior_effects`).
     """
 
     w_mean: np.ndarray
@@ -223,6 +321,9 @@ class SessionPosterior:
     method: str
     mu: np.ndarray
     effect_index: tuple = ()
+    df: float = math.inf
+    centre: np.ndarray | None = None
+    prior_only: tuple = ()
 
     @property
     def tau(self) -> np.ndarray:
@@ -235,12 +336,19 @@ class SessionPosterior:
         ``J``: (3, n, p) Jacobian in model units. Returns three (n, 3) arrays.
         """
         return _moments(np.asarray(J) / self.scale[:, None, :], self.w_mean, self.w_cov, self.mu_cov,
-                        np.asarray(self.effect_index, int))
+                        np.asarray(self.effect_index, int), self.centre)
 
     def predictive_t(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row-wise Student-t of the new-session error: ``(df, scale)`` (n, 3) each (moment matched)."""
         m, v, _ = self.variance_moments(J)
         ratio = v / np.maximum(m, 1e-300) ** 2
+        if math.isfinite(self.df):
+            # v = a s, a the posterior part, s = (1/w) (df-2)/df (mean 1, Var s = 2/(df-4)), independent:
+            # Var v / (E v)^2 = (1 + ratio)(1 + 2/(df-4)) - 1; df <= 4 (infinite Var s): the likelihood's df
+            if self.df <= 4:
+                df = np.full_like(m, self.df)
+                return df, np.sqrt(m * (df - 2) / df)
+            ratio = (1 + ratio) * (1 + 2 / (self.df - 4)) - 1
         df = 4.0 + 2.0 / np.maximum(ratio, 1e-12)
         df = np.minimum(df, 1e6)
         return df, np.sqrt(m * (df - 2) / df)
@@ -265,35 +373,51 @@ class SessionPosterior:
 
     def as_arrays(self) -> dict:
         return {"w_mean": self.w_mean, "w_cov": self.w_cov, "mu_cov": self.mu_cov, "scale": self.scale,
-                "mu": self.mu}
+                "mu": self.mu, **({} if self.centre is None else {"centre": self.centre})}
 
     def meta(self) -> dict:
         return {"effects": list(self.effects), "effect_index": list(map(int, self.effect_index)),
-                "level": float(self.level), "n_runs": int(self.n_runs), "method": self.method}
+                "level": float(self.level), "n_runs": int(self.n_runs), "method": self.method,
+                "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None,
+                "prior_only": list(self.prior_only)}
+
+    @property
+    def likelihood(self) -> str:
+        """``"gaussian"`` or ``"student_t"``."""
+        return "student_t" if math.isfinite(self.df) else "gaussian"
 
     def as_dict(self) -> dict:
         """JSON summary: per axis the random-effect sds and the noise sd (posterior root means)."""
         return {"method": self.method, "n_runs": int(self.n_runs), "effects": list(self.effects),
+                "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None,
+                "prior_only": list(self.prior_only),
                 "tau": {ax: dict(zip(self.effects, map(float, self.tau[a]))) for a, ax in enumerate(AXES)},
                 "noise_sd": {ax: float(np.sqrt(self.w_mean[a, -1])) for a, ax in enumerate(AXES)}}
 
 
-def _moments(f, w_mean, w_cov, mu_cov, eidx):
-    """Mean / variance of ``v = sum_j tau_j^2 f_j^2 + noise + f^T C f`` per row: (n, 3) each, plus noise mean."""
-    fe2 = f[:, :, eidx] ** 2                                                # (3, n, q)
+def _moments(f, w_mean, w_cov, mu_cov, eidx, centre=None):
+    """Mean / variance of ``v = sum_j tau_j^2 (f_j - c_j)^2 + noise + f^T C f`` per row: (n, 3) each, plus noise mean."""
+    fe = f[:, :, eidx] - (0.0 if centre is None else np.asarray(centre)[:, None, :])
+    fe2 = fe**2                                                             # (3, n, q)
     wvec = np.concatenate([fe2, np.ones(fe2.shape[:2] + (1,))], axis=2)     # (3, n, q+1)
     m = np.einsum("anq,aq->na", wvec, w_mean) + np.einsum("anp,apk,ank->na", f, mu_cov, f)
     v = np.einsum("anq,aqk,ank->na", wvec, w_cov, wvec)
     return m, np.maximum(v, 0.0), np.broadcast_to(w_mean[:, -1], m.shape).copy()
 
 
-def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level, method) -> SessionPosterior:
+def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level, method,
+               df: float = math.inf) -> SessionPosterior:
     w = np.concatenate([tau2, noise[..., None]], axis=-1)                   # (3, K, q+1)
+    if not (np.isfinite(w).all() and np.isfinite(mu_draws_cov).all() and np.isfinite(mu_mean).all()):
+        raise RuntimeError("the hierarchical transfer model's posterior is not finite (a between-session sd "
+                           "without a bound); use [uq] transfer = \"loro\" for these data.")
+    if math.isfinite(df):
+        w = w * df / (df - 2)                      # shape -> variance of the scale mixture
     w_mean = w.mean(1)
     w_cov = np.einsum("aki,akj->aij", w - w_mean[:, None], w - w_mean[:, None]) / max(w.shape[1] - 1, 1)
     return SessionPosterior(w_mean, w_cov, mu_draws_cov, stats.scale, tuple(names[i] for i in stats.effects),
                             float(level), int(stats.n.size), method, mu_mean / stats.scale,
-                            effect_index=tuple(int(i) for i in stats.effects))
+                            effect_index=tuple(int(i) for i in stats.effects), df=float(df))
 
 
 def _init_h(stats: RunStats, a: int, tau_scale: float) -> np.ndarray:
@@ -308,47 +432,53 @@ def _init_h(stats: RunStats, a: int, tau_scale: float) -> np.ndarray:
 
 def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
                 sigma_scale: float = SIGMA_PRIOR_SCALE, draws: int = N_DRAWS, seed: int = 0,
-                return_modes: bool = False) -> SessionPosterior:
+                return_modes: bool = False, likelihood: str = "gaussian", df: float = 4.0,
+                reml: float = REML) -> SessionPosterior:
     """Laplace approximation of the collapsed hyperparameter posterior (module docstring), per axis.
 
     The mode by BFGS (JAX gradients), the covariance the inverse Hessian there; ``draws`` draws of
-    ``h`` from it give the variance moments and, averaged, the covariance of ``mu``.
+    ``h`` from it give the variance moments and, averaged, the covariance of ``mu``. ``likelihood``:
+    ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`); ``reml``: 1 integrates
+    the flat ``mu`` out (restricted likelihood), 0 profiles it (maximum).
     """
+    dfs = _check_likelihood(likelihood, df)
     rng = np.random.default_rng(seed)
     q = stats.effects.size
     eff = jnp.asarray(stats.effects)
     tau2, noise, covs, mus, modes = [], [], [], [], []
     for a in range(3):
         args = (jnp.asarray(stats.m0[a]), jnp.asarray(stats.m1[a]), jnp.asarray(stats.m2[a]),
-                jnp.asarray(stats.first[a]), jnp.asarray(stats.n), eff, tau_scale, sigma_scale)
+                jnp.asarray(stats.first[a]), jnp.asarray(stats.n), eff, tau_scale, sigma_scale, float(reml))
 
         def fg(h):
-            v, g = _neg_lp_and_grad(jnp.asarray(h), *args)
+            v, g = _neg_lp_and_grad(jnp.asarray(h), *args, df=dfs)
             v, g = float(v), np.asarray(g, np.float64)
             return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
 
         res = scipy.optimize.minimize(fg, _init_h(stats, a, tau_scale), jac=True, method="BFGS",
                                       options={"gtol": 1e-6, "maxiter": 500})
         h0 = res.x
-        Hh = np.asarray(_hessian(jnp.asarray(h0), *args))
+        Hh = np.asarray(_hessian(jnp.asarray(h0), *args, df=dfs))
         w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
-        cov_h = (V / np.maximum(w, 1e-8)) @ V.T
+        cov_h = (V / np.maximum(w, MIN_CURVATURE)) @ V.T
         hs = rng.multivariate_normal(h0, cov_h, size=draws, method="eigh")
         tau2.append(np.exp(2 * hs[:, :q]))
         rho = np.tanh(hs[:, q + 1])
         noise.append(np.exp(2 * hs[:, q]) / (1 - rho**2))
-        mu_k, cov_k = _mu_cov(jnp.asarray(hs), *args)
+        mu_k, cov_k = _mu_cov(jnp.asarray(hs), *args, df=dfs)
         mu_k, cov_k = np.asarray(mu_k), np.asarray(cov_k)
         ok = np.isfinite(mu_k).all(1) & np.isfinite(cov_k).all((1, 2))
         covs.append(cov_k[ok].mean(0) + np.cov(mu_k[ok].T))       # law of total covariance over h
         mus.append(mu_k[ok].mean(0))
         modes.append(h0)
-    post = _summarise(np.stack(tau2), np.stack(noise), np.stack(covs), np.stack(mus), stats, names, level, "laplace")
+    post = _summarise(np.stack(tau2), np.stack(noise), np.stack(covs), np.stack(mus), stats, names, level, "laplace",
+                      df=math.inf if dfs is None else dfs)
     return (post, np.stack(modes)) if return_modes else post
 
 
-def _nuts_model(m0, m1, m2, first, n, effects, mu0, tau_scale, sigma_scale):
-    """The non-centred hierarchical model of one axis in NumPyro (explicit per-run effects)."""
+def _nuts_model(m0, m1, m2, first, n, effects, mu0, tau_scale, sigma_scale, df=None):
+    """The non-centred hierarchical model of one axis in NumPyro (explicit per-run effects; with ``df``, every
+    run's effects and noise scaled by its own ``w_r ~ Gamma(df/2, df/2)`` precision: the Student-t model)."""
     import numpyro
     import numpyro.distributions as dist
 
@@ -359,18 +489,20 @@ def _nuts_model(m0, m1, m2, first, n, effects, mu0, tau_scale, sigma_scale):
     sigma = numpyro.sample("sigma", dist.HalfNormal(sigma_scale))
     rho = numpyro.sample("rho", dist.Uniform(-1.0, 1.0))
     z = numpyro.sample("z", dist.Normal(jnp.zeros((R, q)), 1.0).to_event(2))
-    theta = mu[None, :] + jnp.zeros((R, p)).at[:, effects].set(tau * z)    # (R, p)
+    w = jnp.ones(R) if df is None else numpyro.sample("w", dist.Gamma(df / 2 * jnp.ones(R), df / 2).to_event(1))
+    theta = mu[None, :] + jnp.zeros((R, p)).at[:, effects].set(tau * z / jnp.sqrt(w)[:, None])    # (R, p)
     G = whitened_gram(m0, m1, m2, first, rho)
-    ll = jax.vmap(lambda Gr, nr, th: run_loglik(Gr, nr, th, jnp.zeros((p, 0)), sigma**2, rho))(G, n, theta)
+    ll = jax.vmap(lambda Gr, nr, th, wr: run_loglik(Gr, nr, th, jnp.zeros((p, 0)), sigma**2 / wr, rho))(G, n, theta, w)
     numpyro.factor("runs", ll.sum())
 
 
 def fit_nuts(stats: RunStats, names, fit, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
              sigma_scale: float = SIGMA_PRIOR_SCALE, warmup: int = 500, samples: int = 500, seed: int = 0,
-             return_draws: bool = False):
+             return_draws: bool = False, likelihood: str = "gaussian", df: float = 4.0):
     """NUTS (NumPyro) on the non-centred model, one chain per axis, initialised at the LM fit."""
     from numpyro.infer import MCMC, NUTS, init_to_value
 
+    dfs = _check_likelihood(likelihood, df)
     q = stats.effects.size
     tau2, noise, covs, mus, raw = [], [], [], [], []
     for a in range(3):
@@ -378,17 +510,19 @@ def fit_nuts(stats: RunStats, names, fit, *, level: float = 0.95, tau_scale: flo
         mu0 = jnp.asarray(np.asarray(fit.theta[a]) * stats.scale[a])
         h = _init_h(stats, a, tau_scale)
         init = {"mu": mu0, "tau": jnp.exp(jnp.asarray(h[:q])), "sigma": float(np.exp(h[q])),
-                "rho": float(np.tanh(h[q + 1])), "z": jnp.zeros((stats.n.size, q))}
+                "rho": float(np.tanh(h[q + 1])), "z": jnp.zeros((stats.n.size, q)),
+                **({} if dfs is None else {"w": jnp.ones(stats.n.size)})}
         kernel = NUTS(_nuts_model, init_strategy=init_to_value(values=init), target_accept_prob=0.9)
         mcmc = MCMC(kernel, num_warmup=warmup, num_samples=samples, progress_bar=False)
-        mcmc.run(jax.random.PRNGKey(seed + a), *args, jnp.asarray(stats.effects), mu0, tau_scale, sigma_scale)
+        mcmc.run(jax.random.PRNGKey(seed + a), *args, jnp.asarray(stats.effects), mu0, tau_scale, sigma_scale, dfs)
         s = {k: np.asarray(v) for k, v in mcmc.get_samples().items()}
         tau2.append(s["tau"] ** 2)
         noise.append(s["sigma"] ** 2 / (1 - s["rho"] ** 2))
         covs.append(np.cov(s["mu"].T))
         mus.append(s["mu"].mean(0))
         raw.append(s)
-    post = _summarise(np.stack(tau2), np.stack(noise), np.stack(covs), np.stack(mus), stats, names, level, "nuts")
+    post = _summarise(np.stack(tau2), np.stack(noise), np.stack(covs), np.stack(mus), stats, names, level, "nuts",
+                      df=math.inf if dfs is None else dfs)
     return (post, raw) if return_draws else post
 
 
@@ -422,22 +556,87 @@ def select_effects(train, fit, effects: Sequence[str] = DEFAULT_EFFECTS,
 
 
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
-                 level: float = 0.95, seed: int = 0, **kw) -> SessionPosterior:
+                 level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float = 4.0,
+                 uninformed: str | None = None, **kw) -> SessionPosterior:
     """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
     effects are the ``effects`` that enough runs inform (:func:`select_effects`)."""
     runs = np.unique(train.run)
     if runs.size < 2:
         raise ValueError(f"the hierarchical transfer model needs at least 2 training runs (sessions); the "
                          f"training data hold {runs.size}. Use [uq] transfer = \"loro\" or \"off\".")
-    eff, _ = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
+    eff, dropped = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
     if not eff:
         eff = ("O",) if "O" in fit.model.param_names else ()
     stats = run_stats(train, fit, eff)
     if method == "laplace":
-        return fit_laplace(stats, fit.model.param_names, level=level, seed=seed, **kw)
-    if method == "nuts":
-        return fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, **kw)
-    raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
+        post = fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
+    elif method == "nuts":
+        post = fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
+    else:
+        raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
+    uninformed = (UNINFORMED if PRIOR_FOR_UNINFORMED else "fixed") if uninformed is None else uninformed
+    if uninformed not in UNINFORMED_CHOICES:
+        raise ValueError(f"uninformed = {uninformed!r} must be one of {list(UNINFORMED_CHOICES)}.")
+    if uninformed == "fixed":
+        return post
+    prior = [e for e in effects if e in dropped and e not in eff]
+    if uninformed == "pooled":
+        q = len(post.effects)
+        mom = (post.w_mean[:, :q].mean(axis=1), np.diagonal(post.w_cov[:, :q, :q], axis1=1, axis2=2).mean(axis=1))
+        return with_prior_effects(post, fit, train, prior, moments=mom)
+    return with_prior_effects(post, fit, train, prior, kw.get("tau_scale", TAU_PRIOR_SCALE))
+
+
+#: Carry the candidate effects too few runs inform (:func:`with_prior_effects`) instead of taking them as fixed.
+PRIOR_FOR_UNINFORMED = True
+#: How: ``"pooled"`` (exchangeable with the learned effects of the axis: their mean second moments),
+#: ``"prior"`` (the half-normal prior's) or ``"fixed"`` (not carried: no change between sessions).
+UNINFORMED_CHOICES = ("pooled", "prior", "fixed")
+UNINFORMED = "pooled"
+
+
+def with_prior_effects(post: SessionPosterior, fit, train, names: Sequence[str],
+                       tau_scale: float = TAU_PRIOR_SCALE, moments=None) -> SessionPosterior:
+    r"""Add the random effects ``names`` that the training runs cannot inform, with their prior.
+
+    A parameter that fewer than :data:`MIN_INFORMING_RUNS` runs sweep (e.g. the x gain on Belsten, with
+    the run that sweeps the x field left out) is seen by the others as a constant, confounded with the
+    offset: its session-to-session change *at the training runs' inputs* is already in the learned
+    offset spread, and nothing in the data says how it changes elsewhere. Taking it as fixed between
+    sessions (zero variance) is the strongest possible assumption; the Bayesian answer is the prior,
+    :math:`\tau_j \sim \mathrm{HalfNormal}(s_\tau)`, so :math:`E\tau_j^2 = s_\tau^2` and
+    :math:`\mathrm{Var}\,\tau_j^2 = 2 s_\tau^4`, acting on the scaled Jacobian column measured from its
+    training mean :math:`\bar f_j` (the part at the training inputs is the offset's): the row's variance
+    gains :math:`s_\tau^2 (f_j - \bar f_j)^2`, zero where the training runs sat and growing as the row
+    moves along the unswept input.
+
+    ``moments``: ``(mean, var)`` of :math:`\tau_j^2`, (3,) each, to use instead of the prior's: the job's
+    default (``uninformed = "pooled"``) takes the effects of one axis as exchangeable (their sds drawn
+    from one distribution, as the sessions are), so an effect no run informs gets the mean posterior
+    moments of the axis's learned ones (on Belsten: the offset's), each row's variance gaining
+    :math:`E[\tau_O^2] (f_j - \bar f_j)^2`.
+    """
+    names = [e for e in names if e not in post.effects]
+    if not names:
+        return post
+    param = list(fit.model.param_names)
+    idx = [param.index(e) for e in names]
+    f = _jacobian(fit, train)[:, :, idx] / post.scale[:, None, idx]          # (3, n, k)
+    k, q = len(idx), len(post.effects)
+    if moments is None:
+        t2 = np.full(3, tau_scale**2 * (post.df / (post.df - 2) if math.isfinite(post.df) else 1.0))
+        v2 = 2 * t2**2
+    else:
+        t2, v2 = (np.broadcast_to(np.asarray(m, np.float64), (3,)) for m in moments)
+    w_mean = np.concatenate([post.w_mean[:, :q], np.repeat(t2[:, None], k, axis=1), post.w_mean[:, q:]], axis=1)
+    w_cov = np.zeros((3, q + k + 1, q + k + 1))
+    keep = np.r_[np.arange(q), q + k]
+    w_cov[:, keep[:, None], keep[None, :]] = post.w_cov
+    w_cov[:, q + np.arange(k), q + np.arange(k)] = v2[:, None]
+    centre = np.concatenate([np.zeros((3, q)) if post.centre is None else post.centre, f.mean(axis=1)], axis=1)
+    return dataclasses.replace(post, w_mean=w_mean, w_cov=w_cov, effects=tuple(post.effects) + tuple(names),
+                               effect_index=tuple(post.effect_index) + tuple(idx), centre=centre,
+                               prior_only=tuple(post.prior_only) + tuple(names))
 
 
 def loro_elpd(stats: RunStats, names, *, pooling: str = "partial", seed: int = 0,
@@ -473,9 +672,9 @@ def _elpd_fold(tr: RunStats, te: RunStats, modes, seed) -> np.ndarray:
     for a in range(3):
         args = (jnp.asarray(tr.m0[a]), jnp.asarray(tr.m1[a]), jnp.asarray(tr.m2[a]), jnp.asarray(tr.first[a]),
                 jnp.asarray(tr.n), jnp.asarray(tr.effects), TAU_PRIOR_SCALE, SIGMA_PRIOR_SCALE)
-        Hh = np.asarray(_hessian(jnp.asarray(modes[a]), *args))
+        Hh = np.asarray(_hessian(jnp.asarray(modes[a]), *args, reml=REML))
         w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
-        hs = rng.multivariate_normal(modes[a], (V / np.maximum(w, 1e-8)) @ V.T, size=200, method="eigh")
+        hs = rng.multivariate_normal(modes[a], (V / np.maximum(w, MIN_CURVATURE)) @ V.T, size=200, method="eigh")
         lp = np.asarray(_fold_lp(jnp.asarray(hs), *args, jnp.asarray(te.m0[a, 0]), jnp.asarray(te.m1[a, 0]),
                                  jnp.asarray(te.m2[a, 0]), jnp.asarray(te.first[a, 0]), float(te.n[0])))
         lp = lp[np.isfinite(lp)]
@@ -549,7 +748,8 @@ FEW_RUNS = 6
 
 
 def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
-                          effects: Sequence[str] = DEFAULT_EFFECTS):
+                          effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float = 4.0,
+                          uninformed: str | None = None):
     """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
 
     The estimate's ``sd`` is the root-mean-square row-dependent transfer sd over the training rows (a
@@ -561,7 +761,8 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
     runs = np.unique(train.run)
     if runs.size < 2:
         return estimate_transfer(train, fit), None
-    post = fit_sessions(train, fit, method=method, effects=effects, level=level, seed=seed)
+    post = fit_sessions(train, fit, method=method, effects=effects, level=level, seed=seed, likelihood=likelihood,
+                        df=df, uninformed=uninformed)
     sd = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
     warning = None
     if runs.size < FEW_RUNS:
@@ -569,7 +770,30 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
                    f"transfer model are then set largely by their prior (half-normal, scale {TAU_PRIOR_SCALE} uT), "
                    f"and new-session intervals are wide. Record at least {FEW_RUNS} sessions.")
     summary = {**post.as_dict(), "dropped_effects_informing_runs": select_effects(train, fit, effects)[1]}
-    return TransferEstimate(sd, f"hierarchical_{post.method}", {"model": summary}, warning), post
+    return (TransferEstimate(sd, f"hierarchical_{post.method}",
+                             {"model": summary, "conditions": condition_table(post, fit, train)}, warning), post)
+
+
+def condition_table(post: SessionPosterior, fit, train) -> list[dict]:
+    """The row-dependent transfer sd at the corners of the training domain, for the certificate.
+
+    Conditions: measured field at the training rows' per-axis minimum, at zero (clipped into the training
+    range) and at the per-axis maximum, each at the lowest and the highest training temperature (6 rows).
+    Returns ``[{"field": [bx, by, bz], "temperature": T, "transfer_sd": {axis: sd}}, ...]`` (uT, C).
+
+    Example: ``condition_table(post, fit, train)[0]["transfer_sd"]["x"]``.
+    """
+    from bayesmag._src.core.data import CalibrationData
+
+    lo, hi = train.b_meas.min(axis=0), train.b_meas.max(axis=0)
+    fields = [lo, np.clip(np.zeros(3), lo, hi), hi]
+    temps = [float(train.temperature.min()), float(train.temperature.max())]
+    b = np.array([f for _ in temps for f in fields], np.float64)
+    t = np.repeat(temps, len(fields))
+    rows = CalibrationData(b, t, None, np.arange(t.size, dtype=np.float64), np.zeros(t.size, int))
+    sd = post.transfer_sd_for(fit, rows)
+    return [{"field": [float(v) for v in b[i]], "temperature": float(t[i]),
+             "transfer_sd": {ax: float(sd[i, a]) for a, ax in enumerate(AXES)}} for i in range(t.size)]
 
 
 def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> SessionPosterior:
@@ -582,6 +806,9 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
     if not isinstance(effects, list) or not effects or any(e not in param_names for e in effects):
         raise ValueError(f"field 'sessions.effects' = {effects!r} must name parameters of the model {list(param_names)}.")
     q = len(effects)
+    prior_only = meta.get("prior_only", [])
+    if not isinstance(prior_only, list) or any(e not in effects for e in prior_only):
+        raise ValueError(f"field 'sessions.prior_only' = {prior_only!r} must list some of sessions.effects.")
     level, n_runs = meta.get("level"), meta.get("n_runs")
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
         raise ValueError(f"field 'sessions.level' = {level!r} must be a number in (0, 1).")
@@ -598,6 +825,13 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
         if v.shape != shape or v.dtype.kind != "f" or not np.isfinite(v).all():
             raise ValueError(f"array 'sessions/{k}' must be finite floats of shape {shape}; got {v.dtype} {v.shape}.")
         out[k] = v.astype(np.float64)
+    centre = None
+    if "centre" in arrays:
+        centre = np.asarray(arrays["centre"])
+        if centre.shape != (3, q) or centre.dtype.kind != "f" or not np.isfinite(centre).all():
+            raise ValueError(f"array 'sessions/centre' must be finite floats of shape {(3, q)}; got {centre.dtype} "
+                             f"{centre.shape}.")
+        centre = centre.astype(np.float64)
     if (out["w_mean"] < 0).any() or (out["scale"] <= 0).any():
         raise ValueError("array 'sessions/w_mean' or 'sessions/scale' is negative (variances and scales are >= 0).")
     for k in ("w_cov", "mu_cov"):
@@ -605,6 +839,15 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
         if not np.allclose(m, np.swapaxes(m, 1, 2), rtol=1e-8, atol=1e-300) or \
                 (np.linalg.eigvalsh(m).min(axis=1) < -1e-8 * np.abs(m).max(axis=(1, 2))).any():
             raise ValueError(f"array 'sessions/{k}' is not a stack of symmetric positive semi-definite matrices.")
+    lik, df = meta.get("likelihood", "gaussian"), meta.get("df")
+    if lik not in LIKELIHOODS:
+        raise ValueError(f"field 'sessions.likelihood' = {lik!r} must be one of {list(LIKELIHOODS)}.")
+    if lik == "gaussian" and df is not None:
+        raise ValueError(f"field 'sessions.df' = {df!r} must be null for the Gaussian likelihood.")
+    if lik == "student_t" and (isinstance(df, bool) or not isinstance(df, (int, float)) or not 2 < df < math.inf):
+        raise ValueError(f"field 'sessions.df' = {df!r} must be a number > 2 for the Student-t likelihood.")
     idx = tuple(list(param_names).index(e) for e in effects)
     return SessionPosterior(out["w_mean"], out["w_cov"], out["mu_cov"], out["scale"], tuple(effects), float(level),
-                            int(n_runs), meta["method"], out["mu"], effect_index=idx)
+                            int(n_runs), meta["method"], out["mu"], effect_index=idx,
+                            df=math.inf if lik == "gaussian" else float(df), centre=centre,
+                            prior_only=tuple(prior_only))
