@@ -87,7 +87,7 @@ from bayesmag._src.core.version import __version__ as __version__  # noqa: E402
 
 #: public name -> module in bayesmag._src that defines it
 _EXPORTS = {
-    "app.config": ("Config", "ConfigError", "load_config"),
+    "app.config": ("Config", "ConfigError", "load_config", "config_from_dict"),
     "core.data": (
         "CalibrationData", "DataError", "Split", "load_belsten", "load_csv", "make_split", "validate",
         "write_csv",
@@ -162,6 +162,6 @@ __all__ = [  # noqa: F822 (resolved lazily by __getattr__)
     "EXTRA_TERMS", "Inputs", "InputTransform", "JobError", "LMSolution", "PhysicsFit", "PhysicsModel",
     "PhysicsUQ", "Split", "Term", "TemperatureQuadratic", "ThermalLag", "ThermoAffine", "covariance",
     "estimate_input_noise", "fetch_dataset", "find_dataset", "fit_physics", "identifiability",
-    "inputs_from_data", "levenberg_marquardt", "load_belsten", "load_config", "load_csv", "load_dataset",
+    "inputs_from_data", "levenberg_marquardt", "load_belsten", "load_config", "config_from_dict", "load_csv", "load_dataset",
     "make_split", "physics_uncertainty", "run_job", "sobol_normal", "validate", "write_csv",
 ]

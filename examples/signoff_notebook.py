@@ -12,7 +12,7 @@
 # # From the real recordings to a signed-off calibration
 #
 # The Belsten et al. (2023) recordings of a Honeywell HMC1053 AMR magnetometer against a MEDA
-# FVM400 fluxgate, loaded with pandas, calibrated with `bayesmag.Calibrator`, the certificate's
+# FVM400 fluxgate, loaded with pandas, calibrated by a `bayesmag.run_job` from Python, the certificate's
 # numbers and figures, and the PX4 parameters. A Jupyter notebook in jupytext's percent format
 # (`jupytext --to notebook examples/signoff_notebook.py`), and a plain script:
 # `python examples/signoff_notebook.py` (output in `$BAYESMAG_EXAMPLE_OUT`, default
@@ -63,9 +63,16 @@ config = {
                     "reference": "MEDA FVM400 fluxgate, rotated into the DUT's axes"},
     "output": {"figures": True, "progress": False},
 }
-cal = bayesmag.Calibrator(config, out=out, temperature_unit="K").fit(df)
-run_dir = cal.run_dir_
-m = cal.metrics_
+# The job reads its recording from a file (the run folder's certificate names it and its sha256):
+# the pandas table, saved next to the run folder. (`bayesmag.Calibrator(config).fit(df)` fits the
+# same calibration without files, for pipelines; the job writes the whole signed-off folder.)
+out.parent.mkdir(parents=True, exist_ok=True)
+csv = out.parent / f"{out.name}_recording.csv"
+df.to_csv(csv, index=False)
+config["data"] = {"path": str(csv), "temperature_unit": "K"}
+result = bayesmag.run_job(bayesmag.config_from_dict(config), out)
+run_dir = out
+m = result["metrics"]
 
 # %% [markdown]
 # ## The certificate's numbers

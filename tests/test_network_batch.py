@@ -5,8 +5,8 @@ import jax
 import numpy as np
 import pytest
 
-from bayesmag._src.core.network import (NetworkSpec, fit_residual_network, masked_permutation, mc_predict,
-                                        shuffle_rounds)
+from bayesmag._src.core.network import NetworkSpec, fit_residual_network, mc_predict
+from bayesmag._src.core.network.train import masked_permutation, shuffle_rounds
 from bayesmag._src.core.network_batch import fit_residual_networks, mc_predict_many
 
 #: float32 rounding: the padded, vmapped program sums the same numbers in another order (2.4e-7 apart per epoch).
