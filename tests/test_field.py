@@ -225,13 +225,14 @@ def test_conformal_scale_is_one_when_the_noise_model_is_right():
     """White reading noise (the Laplace predictive is right): the fold scale c is ~1 (declared band 0.85-1.2)
     and every training row of a fold is scored once. (On the Belsten recordings c = 1.27:
     tests/test_field_job.py::test_scalar_belsten_against_vector_fit.)"""
-    from bayesmag._src.pipeline.field_stage import _time_block_folds, magnitude_interval_scale
+    from bayesmag._src.pipeline.conformal import conformal_folds
+    from bayesmag._src.pipeline.field_stage import magnitude_interval_scale
     c = simulate_field("dance", n=1000, seed=5, temperature=(15.0, 35.0))
     d = c.data
     f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar())
     white = magnitude_interval_scale(d, Scalar(), c.f_ref, fraction=0.08, folds=5, start=f)
     assert 0.85 <= white["scale"] <= 1.2
-    assert white["n"] == int(np.sum(_time_block_folds(d.run, fraction=0.08, folds=5, seed=0) >= 0)) == 400
+    assert white["n"] == int(np.sum(conformal_folds(d.run, fraction=0.08, folds=5, seed=0) >= 0)) == 400
 
 
 def test_fit_with_keep_equals_the_fit_of_the_kept_rows():
