@@ -27,7 +27,8 @@ import numpy as np
 from bayesmag._src.core.network import (DTYPE, MCPrediction, NetworkSpec, ResidualNetwork, Standardizer, TrainProgress,
                                         check_network_size, embed, fourier_frequencies, validation_rows)
 from bayesmag._src.core.network.infer import _mc_axes, _mc_in_units
-from bayesmag._src.core.network.train import TRAIN_CHUNK_EPOCHS, _axis_keys, _init_axes, _trainer, shuffle_rounds
+from bayesmag._src.core.network.train import (TRAIN_CHUNK_EPOCHS, _axis_keys, _init_axes, _trainer, report_chunk,
+                                              shuffle_rounds)
 
 __all__ = ["fit_residual_networks", "mc_predict_many", "ROW_BUCKET"]
 
@@ -129,10 +130,7 @@ def fit_residual_networks(xs: Sequence[np.ndarray], rs: Sequence[np.ndarray], sp
                                              jnp.asarray(nf), jnp.asarray(xv, DTYPE), jnp.asarray(rv, DTYPE),
                                              jnp.asarray(nv), jnp.asarray(rounds))
             running = np.asarray(running)
-            if progress is not None:
-                ep = np.asarray(s.epoch)
-                last = np.asarray(s.val_loss)[np.arange(ep.size), np.maximum(ep - 1, 0)]
-                progress(TrainProgress(ep, np.asarray(s.best_loss), last, ~running, spec.max_epochs))
+            report_chunk(progress, s, running, spec.max_epochs)
             if not running.any():
                 break
         keep = min(b, n_rec - lo)

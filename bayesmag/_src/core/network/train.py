@@ -269,14 +269,20 @@ def _train_axes(spec: NetworkSpec, keys, x_fit, r_fit, x_val, r_val, *,
         stop = min(stop + chunk, spec.max_epochs)
         s, running = _train_chunk(spec, s, stop, x_fit, r_fit, x_val, r_val)
         running = np.asarray(running)
-        if progress is not None:
-            ep = np.asarray(s.epoch)
-            last = np.asarray(s.val_loss)[np.arange(ep.size), np.maximum(ep - 1, 0)]
-            progress(TrainProgress(ep, np.asarray(s.best_loss), last, ~running, spec.max_epochs))
+        report_chunk(progress, s, running, spec.max_epochs)
         if not running.any():
             break
     t = _trainer(spec)
     return s.best_params, jax.vmap(t.info)(s)
+
+
+def report_chunk(progress: Callable[[TrainProgress], None] | None, s: TrainState, running: np.ndarray,
+                 max_epochs: int) -> None:
+    """Tell ``progress`` (if any) where the networks of ``s`` stand after a chunk of epochs."""
+    if progress is not None:
+        ep = np.asarray(s.epoch)
+        last = np.asarray(s.val_loss)[np.arange(ep.size), np.maximum(ep - 1, 0)]
+        progress(TrainProgress(ep, np.asarray(s.best_loss), last, ~running, max_epochs))
 
 
 
