@@ -10,8 +10,13 @@
   of 30-600 s mean delay, or none (clean). ``tau_in_interval``: the planted mean delay lies in
   the finding's 95 % interval of tau.
 
-    python benchmarks/bench_discovery.py --generator simulate,independent --seeds 20 [--kinds cubic,clean]
-        [--jobs 2] [--out bench_discovery.json] [--resume] [--table]
+    python benchmarks/bench_discovery.py --generator all --seeds 20 [--kinds cubic,clean]
+        [--jobs 2] [--out bench_discovery.json] [--md bench_discovery.md] [--resume] [--table]
+
+``--generator`` takes one name, a comma list, or ``all`` (simulate, independent, chamber: the
+three tables of docs/discovery.md from one command). The JSON (``--out``) holds the summary and
+every campaign's row; ``--md`` also writes the per-kind markdown tables (named rate, tau inside its
+interval, false findings on clean campaigns, misses and extras listed).
 
 ``--jobs N`` runs campaigns in N worker processes, each single-threaded (XLA and OpenBLAS
 threads off, set before jax is imported), with the same results as ``--jobs 1`` (discovery is
@@ -321,17 +326,19 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--seeds", type=int, default=20)
     p.add_argument("--first-seed", type=int, default=0)
-    p.add_argument("--generator", default="simulate,independent", help="simulate, independent, chamber (comma list)")
+    p.add_argument("--generator", default="all", help="simulate, independent, chamber (comma list), or all")
     p.add_argument("--kinds", default=None, help="comma list (default: all kinds of each generator)")
     p.add_argument("--out", default="bench_discovery.json")
     p.add_argument("--jobs", type=int, default=1, help="worker processes, each single-threaded")
     p.add_argument("--resume", action="store_true", help="keep stored rows of OUT and run only missing campaigns")
     p.add_argument("--table", action="store_true", help="print the per-kind markdown tables at the end")
+    p.add_argument("--md", default=None, help="also write the per-kind markdown tables to this file")
     a = p.parse_args(argv)
     if a.jobs < 1:
         p.error(f"--jobs is {a.jobs}; it must be >= 1.")
     todo = []
-    for g in a.generator.split(","):
+    gens = ["chamber", "independent", "simulate"] if a.generator == "all" else a.generator.split(",")
+    for g in gens:
         if g not in GENERATORS:
             p.error(f"--generator {g!r} is not one of {sorted(GENERATORS)}.")
         kinds = a.kinds.split(",") if a.kinds else GENERATORS[g][1]
@@ -368,6 +375,10 @@ def main(argv=None) -> int:
     print(json.dumps(summary, indent=1))
     if a.table:
         print(table(order))
+    if a.md:
+        with open(a.md + ".tmp", "w") as f:
+            f.write(table(order) + "\n")
+        os.replace(a.md + ".tmp", a.md)
     tmp = a.out + ".tmp"
     with open(tmp, "w") as f:
         json.dump({"summary": summary, "rows": order}, f, indent=1, default=str)
