@@ -333,6 +333,9 @@ def main(argv=None) -> int:
     p.add_argument("--resume", action="store_true", help="keep stored rows of OUT and run only missing campaigns")
     p.add_argument("--table", action="store_true", help="print the per-kind markdown tables at the end")
     p.add_argument("--md", default=None, help="also write the per-kind markdown tables to this file")
+    p.add_argument("--order", choices=("kind", "seed"), default="kind",
+                   help="run order: every seed of a kind in turn (kind), or seed 0 of every kind first (seed: an "
+                        "interrupted run then has the same seeds for every kind)")
     a = p.parse_args(argv)
     if a.jobs < 1:
         p.error(f"--jobs is {a.jobs}; it must be >= 1.")
@@ -348,6 +351,8 @@ def main(argv=None) -> int:
     if not a.resume and os.path.exists(a.out + ".rows.jsonl"):
         os.remove(a.out + ".rows.jsonl")
     todo = [k for k in todo if k not in stored]
+    if a.order == "seed":
+        todo.sort(key=lambda k: k[2])        # stable: generator and kind order kept within a seed
     if stored:
         print(f"resuming: {len(stored)} campaigns stored, {len(todo)} to run", file=sys.stderr)
     rows = dict(stored)
