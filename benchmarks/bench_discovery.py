@@ -224,7 +224,7 @@ def score(res, truth) -> dict:
         iv = lag[0]["parameters"]["tau"].get("interval95") if lag else None
         tau_in = bool(iv and iv[0] <= truth["tau"] <= iv[1]) if hit else False
     return {"findings": [f"{fe}@{fc}" for fe, fc in fs], "unexplained": unexpl, "hit": hit,
-            "tau_in_interval": tau_in,
+            "tau_in_interval": tau_in, "rejected": [x["reason"] for x in getattr(res, "rejected", [])],
             "magnitude": magnitude(res, truth) if hit else None,
             "extra_findings": extra,
             "clean_ok": (not fs and not unexpl) if truth["name"] is None and not truth["out_of_catalogue"] else None,
