@@ -10,7 +10,7 @@
   of 30-600 s mean delay, or none (clean). ``tau_in_interval``: the planted mean delay lies in
   the finding's 95 % interval of tau.
 
-    python benchmarks/bench_discovery.py --generator all --seeds 20 [--kinds cubic,clean]
+    python benchmarks/bench_discovery.py --generator all --seeds 20 [--kinds cubic,clean] [--order seed]
         [--jobs 2] [--out bench_discovery.json] [--md bench_discovery.md] [--resume] [--table]
 
 ``--generator`` takes one name, a comma list, or ``all`` (simulate, independent, chamber: the
@@ -344,9 +344,13 @@ def main(argv=None) -> int:
     for g in gens:
         if g not in GENERATORS:
             p.error(f"--generator {g!r} is not one of {sorted(GENERATORS)}.")
-        kinds = a.kinds.split(",") if a.kinds else GENERATORS[g][1]
+        kinds = [k for k in a.kinds.split(",") if k in GENERATORS[g][1]] if a.kinds else GENERATORS[g][1]
         for kind in kinds:
             todo += [(g, kind, seed) for seed in range(a.first_seed, a.first_seed + a.seeds)]
+    if a.kinds:
+        unknown = [k for k in a.kinds.split(",") if not any(k in GENERATORS[g][1] for g in gens)]
+        if unknown:
+            p.error(f"--kinds {','.join(unknown)}: no such kind in {', '.join(gens)}.")
     stored = _load_rows(a.out) if a.resume else {}
     if not a.resume and os.path.exists(a.out + ".rows.jsonl"):
         os.remove(a.out + ".rows.jsonl")
