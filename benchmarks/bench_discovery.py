@@ -10,8 +10,13 @@
   of 30-600 s mean delay, or none (clean). ``tau_in_interval``: the planted mean delay lies in
   the finding's 95 % interval of tau.
 
-    python benchmarks/bench_discovery.py --generator simulate,independent --seeds 20 [--kinds cubic,clean]
-        [--jobs 2] [--out bench_discovery.json] [--resume] [--table]
+    python benchmarks/bench_discovery.py --generator all --seeds 20 [--kinds cubic,clean] [--order seed]
+        [--jobs 2] [--out bench_discovery.json] [--md bench_discovery.md] [--resume] [--table]
+
+``--generator`` takes one name, a comma list, or ``all`` (simulate, independent, chamber: the
+three tables of docs/discovery.md from one command). The JSON (``--out``) holds the summary and
+every campaign's row; ``--md`` also writes the per-kind markdown tables (named rate, tau inside its
+interval, false findings on clean campaigns, misses and extras listed).
 
 ``--jobs N`` runs campaigns in N worker processes, each single-threaded (XLA and OpenBLAS
 threads off, set before jax is imported), with the same results as ``--jobs 1`` (discovery is
@@ -219,7 +224,7 @@ def score(res, truth) -> dict:
         iv = lag[0]["parameters"]["tau"].get("interval95") if lag else None
         tau_in = bool(iv and iv[0] <= truth["tau"] <= iv[1]) if hit else False
     return {"findings": [f"{fe}@{fc}" for fe, fc in fs], "unexplained": unexpl, "hit": hit,
-            "tau_in_interval": tau_in,
+            "tau_in_interval": tau_in, "rejected": [x["reason"] for x in getattr(res, "rejected", [])],
             "magnitude": magnitude(res, truth) if hit else None,
             "extra_findings": extra,
             "clean_ok": (not fs and not unexpl) if truth["name"] is None and not truth["out_of_catalogue"] else None,
@@ -321,26 +326,37 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--seeds", type=int, default=20)
     p.add_argument("--first-seed", type=int, default=0)
-    p.add_argument("--generator", default="simulate,independent", help="simulate, independent, chamber (comma list)")
+    p.add_argument("--generator", default="all", help="simulate, independent, chamber (comma list), or all")
     p.add_argument("--kinds", default=None, help="comma list (default: all kinds of each generator)")
     p.add_argument("--out", default="bench_discovery.json")
     p.add_argument("--jobs", type=int, default=1, help="worker processes, each single-threaded")
     p.add_argument("--resume", action="store_true", help="keep stored rows of OUT and run only missing campaigns")
     p.add_argument("--table", action="store_true", help="print the per-kind markdown tables at the end")
+    p.add_argument("--md", default=None, help="also write the per-kind markdown tables to this file")
+    p.add_argument("--order", choices=("kind", "seed"), default="kind",
+                   help="run order: every seed of a kind in turn (kind), or seed 0 of every kind first (seed: an "
+                        "interrupted run then has the same seeds for every kind)")
     a = p.parse_args(argv)
     if a.jobs < 1:
         p.error(f"--jobs is {a.jobs}; it must be >= 1.")
     todo = []
-    for g in a.generator.split(","):
+    gens = ["chamber", "independent", "simulate"] if a.generator == "all" else a.generator.split(",")
+    for g in gens:
         if g not in GENERATORS:
             p.error(f"--generator {g!r} is not one of {sorted(GENERATORS)}.")
-        kinds = a.kinds.split(",") if a.kinds else GENERATORS[g][1]
+        kinds = [k for k in a.kinds.split(",") if k in GENERATORS[g][1]] if a.kinds else GENERATORS[g][1]
         for kind in kinds:
             todo += [(g, kind, seed) for seed in range(a.first_seed, a.first_seed + a.seeds)]
+    if a.kinds:
+        unknown = [k for k in a.kinds.split(",") if not any(k in GENERATORS[g][1] for g in gens)]
+        if unknown:
+            p.error(f"--kinds {','.join(unknown)}: no such kind in {', '.join(gens)}.")
     stored = _load_rows(a.out) if a.resume else {}
     if not a.resume and os.path.exists(a.out + ".rows.jsonl"):
         os.remove(a.out + ".rows.jsonl")
     todo = [k for k in todo if k not in stored]
+    if a.order == "seed":
+        todo.sort(key=lambda k: k[2])        # stable: generator and kind order kept within a seed
     if stored:
         print(f"resuming: {len(stored)} campaigns stored, {len(todo)} to run", file=sys.stderr)
     rows = dict(stored)
@@ -368,6 +384,10 @@ def main(argv=None) -> int:
     print(json.dumps(summary, indent=1))
     if a.table:
         print(table(order))
+    if a.md:
+        with open(a.md + ".tmp", "w") as f:
+            f.write(table(order) + "\n")
+        os.replace(a.md + ".tmp", a.md)
     tmp = a.out + ".tmp"
     with open(tmp, "w") as f:
         json.dump({"summary": summary, "rows": order}, f, indent=1, default=str)

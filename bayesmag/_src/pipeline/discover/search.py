@@ -281,14 +281,16 @@ def _relocate(designs, current, ext, folds3, ctx):
     return best
 
 
-def _refine(designs, current, ext, folds3, rounds: int = 2, max_moves: int = 8):
+def _refine(designs, current, ext, folds3, rounds: int = 3, max_moves: int = 8):
     """The whole-sensor extension with its nonlinear value refined by in-sample SSE on finer grids.
 
     Each round scans 9 values across +-step around the current value; while the best lies on
     the edge of that window the window is moved (at most ``max_moves`` times), so a value beyond
     the coarse grid (e.g. a thermal lag longer than the grid's top) is bracketed before the step
     shrinks. A value left at a window edge leaves a misfit (for a lag: proportional to dT/dt,
-    whose mean differs between runs) that later steps would otherwise take up as per-run offsets."""
+    whose mean differs between runs) that later steps would otherwise take up as per-run offsets.
+    Three rounds end on a spacing of 0.55 % in tau (two ended on 2.2 %, coarser than the 0.15 %
+    se of independent thermal_lag seed 10, whose 1 % misfit was then taken up as run offsets on z)."""
     is_log = ext.name == "thermal_lag"
     step = 0.35 if is_log else 0.25 * max(abs(ext.setting.nl), 1e-3)
     for _ in range(rounds):
