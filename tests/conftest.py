@@ -42,3 +42,21 @@ def belsten():
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after every test module.
+
+    Every XLA:CPU executable maps its code into the process, and JAX keeps them in its caches: one
+    process running the whole suite compiled enough programs to pass the kernel's limit of memory
+    mappings (``vm.max_map_count``, 65530), after which the next compilation crashed with SIGSEGV
+    (inside ``backend_compile_and_load``). Clearing the caches between modules keeps the count
+    bounded; the modules only recompile what they use.
+    """
+    yield
+    import gc
+
+    import jax
+    jax.clear_caches()
+    gc.collect()
