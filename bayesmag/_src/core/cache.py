@@ -3,8 +3,11 @@
 Most of a job's first-run time is XLA compilation. With the cache on, a second run of the same
 job (same shapes, same jax/jaxlib, same device) loads the compiled executables from disk
 instead. It is **off by default**: reading entries back crashed the interpreter (SIGSEGV inside
-``jax._src.compilation_cache.get_executable_and_time``, jax/jaxlib 0.10.2 on CPU) in our CI, and a
-calibration tool must not crash to save ten seconds. Opt in with ``[output] compile_cache = true``
+``jax._src.compilation_cache.get_executable_and_time``, jax/jaxlib 0.10.2 on CPU) in our CI. That
+crash was later traced to the test process passing the kernel's limit of memory mappings
+(``vm.max_map_count``: every compiled executable maps its code), not to the cache itself, but the
+cache stays opt-in until a clean run shows it safe: a calibration tool must not crash to save ten
+seconds. Opt in with ``[output] compile_cache = true``
 (for that job) or the environment variable ``BAYESMAG_COMPILE_CACHE=1`` (every job and every
 import); ``BAYESMAG_COMPILE_CACHE=/some/dir`` opts in with another folder, ``=0`` forces it off.
 The folder is ``$XDG_CACHE_HOME/bayesmag/jax`` (``~/.cache/bayesmag/jax``) on Linux,
