@@ -406,6 +406,14 @@ def _env(worker: bool = True):
             "BAYESMAG_FIGURE_WORKER": "1" if worker else "0"}
 
 
+def _cmdline(pid: int) -> str:
+    """The command line of ``pid`` ('' when it is gone)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
 def _children(pid: int) -> list[int]:
     """Live (not zombie) direct children of ``pid``, from /proc."""
     out = []
@@ -489,7 +497,8 @@ def test_no_process_outlives_a_sigkilled_run_and_capture_output_returns(tmp_path
     cmd_pid, kids = None, []
     while time.monotonic() < deadline and not kids:
         time.sleep(0.1)
-        cmd_pid = next(iter(_children(os.getpid())), None)
+        # this test's command among the suite's children (earlier tests may have left others, e.g. Dask)
+        cmd_pid = next((c for c in _children(os.getpid()) if str(tmp_path / "out") in _cmdline(c)), None)
         kids = _children(cmd_pid) if cmd_pid else []
     assert kids, "no figure worker started"
     time.sleep(2.0)
