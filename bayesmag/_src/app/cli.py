@@ -155,13 +155,7 @@ def _cmd_apply(args) -> int:
                                 progress=_progress(args))
     print(f"bayesmag: calibrated {summary['n_valid']} of {summary['n_rows']} rows -> {args.out} "
           f"({summary['seconds']:.2f} s)")
-    for w in summary["warnings"]:
-        print(f"  WARNING: {w}", file=sys.stderr)
-    if summary.get("metrics"):
-        m = summary["metrics"]
-        print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
-              + f"   {summary['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
-    return 0
+    return _report_apply(summary)
 
 
 def _cmd_apply_dask(args) -> int:
@@ -174,12 +168,17 @@ def _cmd_apply_dask(args) -> int:
                    columns=_parse_columns(args.columns), progress=not args.no_progress)
     print(f"bayesmag: calibrated {s['n_valid']} of {s['n_rows']} rows in {s['n_partitions']} partitions -> {args.out}/ "
           f"({s['seconds']:.2f} s, {s['n_rows'] / max(s['seconds'], 1e-9):,.0f} rows/s)")
-    for w in s["warnings"]:
+    return _report_apply(s)
+
+
+def _report_apply(summary: dict) -> int:
+    """The lines after an apply's summary line: its warnings, and RMSE / coverage when the rows had a reference."""
+    for w in summary["warnings"]:
         print(f"  WARNING: {w}", file=sys.stderr)
-    if s.get("metrics"):
-        m = s["metrics"]
+    if summary.get("metrics"):
+        m = summary["metrics"]
         print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
-              + f"   {s['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
+              + f"   {summary['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
     return 0
 
 
