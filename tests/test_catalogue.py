@@ -171,3 +171,15 @@ def test_thermal_lag_of_a_few_samples_is_not_heat_flow():
     assert "smooths the noise" in lag.implausible(np.log(1.0), ctx)       # 4 samples
     assert lag.implausible(np.log(60.0), ctx) is None
     assert min(np.exp(s.nl) for s in C.ThermalLag.grid(ctx, None)) >= 10 * ctx.dt
+
+
+def test_t0_is_the_models_one_source():
+    """T0 lives on the model: every component that centres temperature takes the model's (issue #22.6)."""
+    extra = make_extra({"name": "temperature_quadratic"}, t0=0.0)      # built with another T0
+    model = PhysicsModel.paper(t0=27.5, extra=(extra,))
+    assert model.t0 == 27.5
+    assert all(c.t0 == 27.5 for c in model.components if hasattr(c, "t0"))
+    # rebuilt from its components (as a saved calibration is) it is the same model, one T0
+    assert PhysicsModel(model.terms, model.transforms) == model
+    with pytest.raises(ValueError, match="reference temperature is the model's"):
+        make_extra({"name": "temperature_quadratic", "t0": 20.0}, t0=27.5)

@@ -76,8 +76,8 @@ def thermo_affine_coefficients(cal) -> dict:
     k = len(base.param_names())
     th = np.asarray(cal.theta, dtype=np.float64)[:, :k]
     if base.temperature:
-        return {"S": th[:, 0:3], "Ks": th[:, 3:6], "O": th[:, 6], "Ko": th[:, 7], "t0": float(base.t0)}
-    return {"S": th[:, 0:3], "Ks": np.zeros((3, 3)), "O": th[:, 3], "Ko": np.zeros(3), "t0": float(base.t0)}
+        return {"S": th[:, 0:3], "Ks": th[:, 3:6], "O": th[:, 6], "Ko": th[:, 7], "t0": cal.model.t0}
+    return {"S": th[:, 0:3], "Ks": np.zeros((3, 3)), "O": th[:, 3], "Ko": np.zeros(3), "t0": cal.model.t0}
 
 
 def dropped_components(cal) -> list[str]:

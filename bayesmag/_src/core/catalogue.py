@@ -820,6 +820,9 @@ def make_extra(spec, *, t0: float = 0.0):
     unknown = set(spec) - fields
     if unknown:
         raise ValueError(f"physics extra term {name!r} has no parameter(s) {sorted(unknown)}; valid: {sorted(fields)}.")
-    if "t0" in fields and "t0" not in spec:
+    if "t0" in fields:
+        if "t0" in spec and float(spec["t0"]) != float(t0):
+            raise ValueError(f"physics extra term {name!r} has t0 = {spec['t0']!r}, but a term's reference "
+                             f"temperature is the model's ([physics] t0, here {t0:g} C): remove 't0' from the term.")
         spec["t0"] = t0
     return cls(**spec)

@@ -203,6 +203,20 @@ class PhysicsModel:
     terms: tuple[Term, ...]
     transforms: tuple[InputTransform, ...] = ()
 
+    def __post_init__(self):
+        # T0 has one source, the model: the base term's (the first component with a ``t0`` field).
+        # Every other component that centres temperature is given the same T0 here, so no term can
+        # silently use another reference temperature than the one the report and exports state.
+        t0 = self.t0
+        fix = lambda c: dataclasses.replace(c, t0=t0) if _has_t0(c) and c.t0 != t0 else c  # noqa: E731
+        object.__setattr__(self, "terms", tuple(fix(c) for c in self.terms))
+        object.__setattr__(self, "transforms", tuple(fix(c) for c in self.transforms))
+
+    @property
+    def t0(self) -> float:
+        """The model's reference temperature T0 (C): ``Tc = T - T0`` in every term that uses temperature."""
+        return next((float(c.t0) for c in self.terms + self.transforms if _has_t0(c)), 0.0)
+
     @classmethod
     def paper(cls, *, t0: float = 0.0, temperature: bool = True, extra: tuple = ()) -> "PhysicsModel":
         """The paper's thermo-affine model plus optional extra terms/transforms."""
@@ -288,6 +302,10 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
+
+
+def _has_t0(component) -> bool:
+    return dataclasses.is_dataclass(component) and any(f.name == "t0" for f in dataclasses.fields(component))
 
 
 @functools.partial(jax.jit, static_argnums=0)
