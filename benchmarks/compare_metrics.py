@@ -46,6 +46,22 @@ def differences(a, b, path: str = "") -> list[str]:
     return [] if a == b else [f"{path}: base {a!r} != this {b!r}"]
 
 
+def largest_relative(a, b, path: str = ""):
+    """``(|a - b| / max(|a|, |b|), path)`` of the number that differs most between ``a`` and ``b``
+    relative to its size (numbers present in both only), or None when no number differs."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        found = [largest_relative(a[k], b[k], f"{path}.{k}") for k in a.keys() & b.keys()]
+    elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        found = [largest_relative(u, v, f"{path}[{i}]") for i, (u, v) in enumerate(zip(a, b))]
+    elif (isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool)
+          and not isinstance(b, bool) and a != b):
+        return (abs(a - b) / max(abs(a), abs(b)), path)
+    else:
+        return None
+    found = [f for f in found if f is not None]
+    return max(found) if found else None
+
+
 def run(code: Path, config: str, out: Path) -> dict:
     env = {**os.environ, "PYTHONPATH": str(code)}
     cmd = [sys.executable, "-m", "bayesmag._src.app.cli", "run", str(code / config), "--out", str(out),
@@ -60,6 +76,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--base", required=True, help="the other checkout (its bayesmag/ and configs/)")
     ap.add_argument("--configs", nargs="+", default=["configs/paper_physics.toml", "configs/paper_hybrid.toml"])
+    ap.add_argument("--show", type=int, default=40, help="differences printed per config")
     args = ap.parse_args(argv)
     base = Path(args.base).resolve()
     ok = True
@@ -70,7 +87,10 @@ def main(argv=None) -> int:
             diff = differences(m_base, m_this)
             print(f"{config}: {'identical' if not diff else f'{len(diff)} differences'} "
                   f"({len(json.dumps(m_this))} characters of metrics.json compared, timings aside)")
-            for d in diff[:40]:
+            rel = largest_relative(m_base, m_this)
+            if rel is not None:
+                print(f"  largest relative difference of a number present in both: {rel[0]:.2g} at {rel[1]}")
+            for d in diff[:args.show]:
                 print("  " + d)
             ok &= not diff
     return 0 if ok else 1
