@@ -175,3 +175,24 @@ def test_command_sets_one_blas_thread_only_for_itself(argv0, preset, expected):
         env["OPENBLAS_NUM_THREADS"] = preset
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == expected
+
+
+@pytest.mark.parametrize("held, acts", [(40_000, True), (30_000, False), (100, False)])
+def test_compiled_programs_released_near_the_mapping_limit(monkeypatch, held, acts):
+    """Past half of vm.max_map_count the compiled programs are dropped (the CI SIGSEGV's cause), not before."""
+    from bayesmag._src.core import cache
+    calls = []
+    monkeypatch.setattr(cache, "_map_counts", lambda: (held, 65530))
+    monkeypatch.setattr("jax.clear_caches", lambda: calls.append(1))
+    assert cache.release_compiled_if_crowded() is acts
+    assert len(calls) == int(acts)
+
+
+def test_mapping_counts_read_on_linux():
+    from bayesmag._src.core import cache
+    counts = cache._map_counts()
+    if not sys.platform.startswith("linux"):
+        assert counts is None
+        return
+    held, limit = counts
+    assert 0 < held < limit

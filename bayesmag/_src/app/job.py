@@ -111,9 +111,10 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
     while this process draws the hybrid stage's. The output folder is swapped in only after they
     are all drawn.
     """
-    from bayesmag._src.core.cache import compile_cache
+    from bayesmag._src.core.cache import compile_cache, release_compiled_if_crowded
     from bayesmag._src.app.figure_worker import figures
     from bayesmag._src.app.outdir import reserve
+    release_compiled_if_crowded()           # many jobs in one process: stay under the kernel's mapping limit
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
         # [output] compile_cache: on or off for this job only (the environment variable wins)
         with compile_cache(cfg.output.compile_cache):

@@ -85,10 +85,11 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
       >>> run.predictor.predict(d).mean.shape
       (400, 3)
     """
-    from bayesmag._src.core.cache import ensure_compile_cache
+    from bayesmag._src.core.cache import ensure_compile_cache, release_compiled_if_crowded
     from bayesmag._src.core.domain import Domain
 
     ensure_compile_cache()
+    release_compiled_if_crowded()           # a long-lived process must not pass the kernel's mapping limit
     s = settings if settings is not None else CalibrationSettings()
     if data.b_ref is None:
         raise DataError("calibrate needs the reference field (bx_ref, by_ref, bz_ref).")
