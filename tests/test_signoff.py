@@ -414,20 +414,34 @@ def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
     cfg.write_text('[data]\nsource = "simulated"\n[data.simulate]\ndesign = "campaign"\nn = 600\nseed = 1\n'
                    '[split]\nkind = "time_blocks"\ntest_fraction = 0.2\n[physics]\nt0 = "mean"\n'
                    '[uq]\nmethod = "analytic"\ntransfer = "off"\n[output]\nfigures = false\n')
-    assert main(["run", str(cfg), "--out", str(tmp_path / "a")]) == 0
+    from bayesmag._src.app import job
+    real = job.run_job
+    seen, results = [], []
+
+    def recording_run_job(*a, progress=None, **k):
+        seen.append(progress)
+        results.append(real(*a, progress=progress, **k))
+        return results[-1]
+
+    monkeypatch.setattr(job, "run_job", recording_run_job)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "a")]) == 0    # one real run, stderr not a terminal
     err = capsys.readouterr().err
-    assert "\r" not in err and "physics UQ" not in err                   # captured stderr is not a terminal
+    assert "\r" not in err and "physics UQ" not in err and seen == [False]
+    # on a terminal the job is left to [output] progress (default on: bars drawn), unless --no-progress;
+    # the wiring only (a second job would take as long again): the job returns the first run's result
+    monkeypatch.setattr(job, "run_job", lambda *a, progress=None, **k: seen.append(progress) or results[0])
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
     assert main(["run", str(cfg), "--out", str(tmp_path / "b")]) == 0
-    assert "physics UQ" in capsys.readouterr().err                        # on a terminal the bar is drawn
+    assert main(["run", str(cfg), "--out", str(tmp_path / "d"), "--no-progress"]) == 0
+    assert seen == [False, None, False]
 
 
 # --------------------------------------------------------------------------- the walkthrough notebook (item 19)
 
 
 def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, monkeypatch, capsys):
-    """examples/signoff_notebook.py (jupytext percent format) end to end: pandas load, Calibrator fit,
-    certificate numbers and figures, PX4 export; its rows are the loader's rows."""
+    """examples/signoff_notebook.py (jupytext percent format) end to end: pandas load, job and Calibrator fit
+    (the same parameters), certificate numbers and figures, PX4 export; its rows are the loader's rows."""
     import runpy
     from pathlib import Path
     monkeypatch.setenv("BAYESMAG_EXAMPLE_OUT", str(tmp_path / "nb"))
@@ -442,3 +456,7 @@ def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, mon
     out = capsys.readouterr().out
     assert "U new_session" in out and "heading error RMS" in out and "CAL_MAG0_XOFF" in out
     assert all(ns["m"]["physics"]["rmse"][a] < 0.1 for a in "xyz")
+    # the Calibrator (no files) fits the job's calibration: same rows held out, same parameters and scores
+    assert ns["largest"] < 1e-12 and len(ns["cal"].params_) == 24
+    for a in "xyz":
+        assert ns["cal"].metrics_["physics"]["rmse"][a] == pytest.approx(ns["m"]["physics"]["rmse"][a], rel=1e-9)
