@@ -330,6 +330,25 @@ def test_physics_calibration_curve_matches_the_metric(tmp_path, monkeypatch):
     np.testing.assert_allclose(line.get_ydata(), observed[:, 2])
 
 
+def test_physics_pit_figure_is_the_histogram_of_the_predictive_cdf(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+    from bayesmag._src.app import plots
+    from bayesmag.likelihoods import Gaussian
+    saved = []
+    monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    r = np.random.default_rng(2)
+    y = 1.3 * r.standard_normal((800, 3))
+    u = M.pit(Gaussian(np.zeros((800, 3)), np.ones((800, 3))), y)
+    np.testing.assert_allclose(u, stats.norm.cdf(y), atol=1e-12)           # PIT = F(y), scipy's normal cdf
+    plots.pit_figure(tmp_path / "p.png", {"physics": u})
+    for a, ax in enumerate(saved[0].axes):
+        heights = np.array([p.get_height() for p in ax.patches])
+        want, _ = np.histogram(stats.norm.cdf(y[:, a]), bins=10, range=(0, 1), density=True)
+        np.testing.assert_allclose(heights, want, rtol=1e-12)
+        assert heights[0] > 1.3 and heights[-1] > 1.3 and heights[4] < 0.8     # too narrow: U-shaped
+
+
 def test_job_draws_the_physics_calibration_and_pit(run):
     out, _, _ = run
     for f in ("calibration.png", "physics_calibration.png", "physics_pit.png", "physics_residuals_vs_time.png"):
