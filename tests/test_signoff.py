@@ -200,6 +200,18 @@ def test_report_html_has_the_same_content_and_embedded_figures(run):
     assert "<script" not in page
 
 
+def test_report_command_rewrites_both_renderings(run, capsys):
+    from bayesmag._src.app.cli import main
+    out, _, _ = run
+    md, page = (out / "report.md").read_text(), (out / "report.html").read_text()
+    (out / "report.md").unlink()
+    (out / "report.html").unlink()
+    assert main(["report", str(out)]) == 0
+    # the same certificate from the run's files (its date is the run's, not the rewrite's), figures embedded
+    assert (out / "report.md").read_text() == md and (out / "report.html").read_text() == page
+    assert "report.md" in capsys.readouterr().out
+
+
 def test_render_html_escapes_and_handles_missing_figures(tmp_path):
     page = render_html("# T\n\na <b> & `x<y`\n\n![f.png](f.png)\n", tmp_path)
     assert "a &lt;b&gt; &amp; <code>x&lt;y</code>" in page and "[figure f.png not found]" in page
