@@ -158,6 +158,49 @@ def test_report_budget_states_which_U_applies(run):
     assert "U same session" in text and "U new session" in text and "in the field" in text
 
 
+@pytest.mark.parametrize("transfer, reason", [
+    ({"method": "off", "sd": dict.fromkeys("xyz", 0.0)}, '[uq] transfer = "off"'),
+    ({"method": "largest_offset_change", "sd": dict.fromkeys("xyz", 0.0)}, "one training run"),
+    (None, "no transfer estimate")])
+def test_no_new_session_U_without_a_transfer_term(run, transfer, reason):
+    from bayesmag._src.app.report import transfer_missing, uncertainty_budget
+    out, _, _ = run
+    m = json.loads((out / "metrics.json").read_text())
+    params = json.loads((out / "params.json").read_text())
+    m2 = {**m, "transfer": transfer}
+    assert reason in transfer_missing(m2) and transfer_missing(m) is None
+    ex = expanded_uncertainties(m2, params)
+    assert ex["new_session_missing"] == transfer_missing(m2)
+    text = "\n".join(uncertainty_budget(m2, params))
+    # not the same-session U relabelled: no new-session numbers, and the reason why
+    assert "U = k u_c, new session" not in text and "**No U for a new session**" in text and reason in text
+    assert "| **expanded uncertainty U, new session** | | | not stated | not stated | not stated |" in text
+    same = "\n".join(uncertainty_budget(m, params))                   # with the term: both U, as before
+    assert "U = k u_c, new session" in same and "No U for a new session" not in same
+    # two runs give a (rough) nonzero run-to-run change: stated, not missing
+    assert transfer_missing({"transfer": {"method": "largest_offset_change", "sd": {"x": 0.1, "y": 0, "z": 0}}}) is None
+
+
+def test_exports_state_no_new_session_U_without_a_transfer_term(run, tmp_path):
+    import shutil
+    from bayesmag._src.app.export import export_run
+    out, _, _ = run
+    folder = tmp_path / "run"
+    shutil.copytree(out, folder)
+    m = json.loads((folder / "metrics.json").read_text())
+    m["transfer"] = {**m["transfer"], "method": "off", "sd": dict.fromkeys("xyz", 0.0)}
+    (folder / "metrics.json").write_text(json.dumps(m))
+    path, _ = export_run(folder, "json", tmp_path / "cal.json")
+    doc = json.loads(path.read_text())["expanded_uncertainty"]
+    assert doc["new_session"] is None and "not estimated" in doc["applies"] and set(doc["same_session"]) == set("xyz")
+    path, _ = export_run(folder, "c-header", tmp_path / "cal.h")
+    header = path.read_text()
+    assert "BAYESMAG_U_SAME_SESSION[3] = {" in header and "BAYESMAG_U_NEW_SESSION[3] =" not in header
+    assert "/* No BAYESMAG_U_NEW_SESSION:" in header
+    path, _ = export_run(out, "json", tmp_path / "with.json")                  # the run itself has the term
+    assert set(json.loads(path.read_text())["expanded_uncertainty"]["new_session"]) == set("xyz")
+
+
 class _Checker(HTMLParser):
     VOID = {"meta", "img", "br", "hr"}
 

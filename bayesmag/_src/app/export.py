@@ -367,11 +367,14 @@ def _u_doc(ex: Export) -> dict | None:
     u = ex.uncertainty
     if not u:
         return None
+    missing = u.get("new_session_missing")
     return {"unit": "uT", "level": u["level"], "k_same_session": {a: u["same_session"][a]["k"] for a in AXES},
             "same_session": {a: u["same_session"][a]["U"] for a in AXES},
-            "new_session": {a: u["new_session"][a]["U"] for a in AXES},
+            "new_session": None if missing else {a: u["new_session"][a]["U"] for a in AXES},
             "applies": "same_session: rows of the recording session the calibration was fitted on; new_session: "
-                       "any later recording (in the field). Inside the training domain only."}
+                       "any later recording (in the field). Inside the training domain only."
+                       + (f" No new_session U: the transfer (between-session) term was not estimated ({missing})."
+                          if missing else "")}
 
 
 def _json_doc(ex: Export) -> dict:
@@ -506,8 +509,11 @@ def _c_header(ex: Export, notes: list[str], sign: str = SIGNATURE) -> str:
                   f"static const double BAYESMAG_LEVEL = {_c_num(u['level'], '.6g')};",
                   "static const double BAYESMAG_U_SAME_SESSION[3] = "
                   f"{_c_arr([u['same_session'][a]['U'] for a in AXES], '', '.6g')};",
-                  "static const double BAYESMAG_U_NEW_SESSION[3] = "
-                  f"{_c_arr([u['new_session'][a]['U'] for a in AXES], '', '.6g')};", ""]
+                  *(["static const double BAYESMAG_U_NEW_SESSION[3] = "
+                     f"{_c_arr([u['new_session'][a]['U'] for a in AXES], '', '.6g')};"]
+                    if not u.get("new_session_missing") else
+                    [f"/* No BAYESMAG_U_NEW_SESSION: the transfer (between-session) term was not estimated "
+                     f"({u['new_session_missing'].replace('*/', '')}). */"]), ""]
     else:
         lines += ["/* Expanded uncertainty U: not known (the run folder has no metrics.json). */", ""]
     lines += ["/* Hard/soft-iron form at T = BAYESMAG_TREF: out = (B - b) A, row vectors. */",
