@@ -20,3 +20,16 @@ def test_calibrate_from_python_recovers_the_simulated_truth(capsys):
     assert np.all(rmse < 0.08)                                    # 0.05 uT input noise through the model
     out = capsys.readouterr().out
     assert "truth" in out and "test RMSE (uT)" in out and "+- 0.00000" not in out
+
+
+def test_examples_use_only_the_public_api():
+    import ast
+    import bayesmag
+    for path in sorted(EXAMPLES.glob("*.py")):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                names = [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
+                assert not any("_src" in n for n in names), f"{path.name}: imports {names}"
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in ("bm", "bayesmag"):
+                assert node.attr in bayesmag.__all__, f"{path.name}: bayesmag.{node.attr} is not public"
