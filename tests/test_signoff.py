@@ -501,8 +501,14 @@ def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
     assert main(["run", str(cfg), "--out", str(tmp_path / "a")]) == 0    # one real run, stderr not a terminal
     err = capsys.readouterr().err
     assert "\r" not in err and "physics UQ" not in err and seen == [False]
+    # a job from Python, [output] progress = true (the default), stderr captured: no bars either
+    from bayesmag._src.app.config import load_config
+    assert load_config(cfg).output.progress is True
+    real(load_config(cfg), tmp_path / "py")
+    err = capsys.readouterr().err
+    assert "\r" not in err and "physics UQ" not in err
     # on a terminal the job is left to [output] progress (default on: bars drawn), unless --no-progress;
-    # the wiring only (a second job would take as long again): the job returns the first run's result
+    # the wiring only (a third job would take as long again): the job returns the first run's result
     monkeypatch.setattr(job, "run_job", lambda *a, progress=None, **k: seen.append(progress) or results[0])
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
     assert main(["run", str(cfg), "--out", str(tmp_path / "b")]) == 0
