@@ -479,6 +479,9 @@ def test_every_subcommand_help_has_a_description():
     for name, sp in sub.choices.items():
         assert sp.description and len(sp.description) > 30, name
         assert sp.description.split()[0] in sp.format_help(), name
+    # discover parses its own options: `bayesmag discover --help` prints that parser's description
+    from bayesmag._src.app.discover_cli import build_parser as discover_parser
+    assert len(discover_parser().description) > 60
 
 
 def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
