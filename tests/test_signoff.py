@@ -502,8 +502,11 @@ def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(job, "run_job", recording_run_job)
     assert main(["run", str(cfg), "--out", str(tmp_path / "a")]) == 0    # one real run, stderr not a terminal
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert "\r" not in err and "physics UQ" not in err and seen == [False]
+    f = results[0]["metrics"]["field"]["physics"]                        # item 12 on the command's summary too
+    assert (f"  physics: heading error RMS {f['heading']['rms']:.3g} deg (max {f['heading']['max_abs']:.3g}), "
+            f"|B| residual RMS {f['magnitude']['rms']:.3g} uT") in out
     # a job from Python, [output] progress = true (the default), stderr captured: no bars either
     from bayesmag._src.app.config import load_config
     assert load_config(cfg).output.progress is True

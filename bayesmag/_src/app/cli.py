@@ -55,6 +55,12 @@ def _cmd_run(args) -> int:
     for name, block in m.get("hybrid", {}).items():
         print(f"  hybrid[{name}] RMSE    " + "  ".join(f"{ax}: {block['rmse'][ax]:.4g}" for ax in "xyz")
               + "   coverage " + "  ".join(f"{ax}: {block['coverage'][ax]:.1%}" for ax in "xyz"))
+    for stage, fm in m.get("field", {}).items():      # the field metrics (issue 26 item 12), test rows
+        if stage != "raw" and "magnitude" in fm:
+            h = fm.get("heading", {})
+            head = (f"heading error RMS {h['rms']:.3g} deg (max {h['max_abs']:.3g})" if h.get("n_rows")
+                    else "no heading (horizontal field below 5 uT on every row)")
+            print(f"  {stage}: {head}, |B| residual RMS {fm['magnitude']['rms']:.3g} uT")
     for ax, block in m.get("nuts", {}).get("axes", {}).items():
         if "verdict" in block:
             print(f"  NUTS {ax}: {block['verdict']}")
