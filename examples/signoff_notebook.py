@@ -12,13 +12,15 @@
 # # From the real recordings to a signed-off calibration
 #
 # The Belsten et al. (2023) recordings of a Honeywell HMC1053 AMR magnetometer against a MEDA
-# FVM400 fluxgate, loaded with pandas, calibrated by a `bayesmag.run_job` from Python, the certificate's
-# numbers and figures, and the PX4 parameters. A Jupyter notebook in jupytext's percent format
+# FVM400 fluxgate, loaded with pandas, calibrated by a `bayesmag.run_job` from Python (the signed-off
+# folder) and by `bayesmag.Calibrator` (the same fit, no files), the certificate's numbers and figures,
+# and the PX4 parameters. A Jupyter notebook in jupytext's percent format
 # (`jupytext --to notebook examples/signoff_notebook.py`), and a plain script:
 # `python examples/signoff_notebook.py` (output in `$BAYESMAG_EXAMPLE_OUT`, default
 # `runs/signoff_notebook`). `tests/test_signoff.py` runs it.
 
 # %%
+import json
 import os
 from pathlib import Path
 
@@ -73,6 +75,21 @@ config["data"] = {"path": str(csv), "temperature_unit": "K"}
 result = bayesmag.run_job(bayesmag.config_from_dict(config), out)
 run_dir = out
 m = result["metrics"]
+
+# %% [markdown]
+# ## The same fit with `Calibrator`, without files
+#
+# The scikit-learn-style estimator fits the DataFrame directly (no CSV, no run folder): the same
+# config, the same held-out rows (`holdout="config"`), hence the same parameters as the job's
+# `params.json`; `cal.predict(new_df)` then calibrates a new recording with intervals.
+
+# %%
+cal = bayesmag.Calibrator({k: v for k, v in config.items() if k != "data"}, temperature_unit="K",
+                          holdout="config").fit(df)
+print(cal.params_[cal.params_["axis"] == "y"].to_string(index=False))
+job_params = json.loads((run_dir / "params.json").read_text())["axes"]
+largest = max(abs(r.value - job_params[r.axis]["values"][r.parameter]) for r in cal.params_.itertuples())
+print(f"largest difference to the job's parameters: {largest:.1e}")
 
 # %% [markdown]
 # ## The certificate's numbers

@@ -175,6 +175,16 @@ def test_cli_routes_archives_to_dask(cal_dir, archive, cluster, tmp_path, capsys
     assert err.startswith("bayesmag: error: --data") and len(err.splitlines()) == 1
 
 
+def test_cli_dask_progress_only_on_a_terminal(cal_dir, archive, cluster, tmp_path, capsys):
+    """Without --no-progress, Dask's text progress bar (carriage returns) is still off when output is not a
+    terminal (issue 26 item 18: logs stay free of carriage-return noise)."""
+    rc = main(["apply", "--model", str(cal_dir), "--data", str(archive / "pq"), "--out", str(tmp_path / "o"),
+               "--scheduler", cluster])
+    out = capsys.readouterr()
+    assert rc == 0 and "2400 of 2400 rows" in out.out
+    assert "\r" not in out.out and "\r" not in out.err
+
+
 @pytest.mark.slow
 def test_cli_default_local_cluster(cal_dir, archive, tmp_path, capsys):
     """Without --scheduler, a local cluster of --workers processes is started and closed (slow: process start-up)."""

@@ -3,6 +3,7 @@ target's own formula (written out here from the firmware sources cited in docs/e
 the physics model wherever the target can hold it (to 1e-9), and the CLI reports what is lost."""
 
 import json
+import re
 import shutil
 import subprocess
 
@@ -306,6 +307,25 @@ def test_c_header_float_variant_domain_check_and_test_vector(run_dir, tmp_path):
     U = expanded_uncertainties(m, json.loads((run_dir / "params.json").read_text()))
     same = [float(v) for v in header.split("BAYESMAG_U_SAME_SESSION[3] = {")[1].split("}")[0].split(",")]
     np.testing.assert_allclose(same, [U["same_session"][a]["U"] for a in "xyz"], rtol=1e-5)
+
+
+def test_every_export_names_its_certificate(run_dir, tmp_path):
+    """Traceability: each exported file carries the calibration ID, date and data sha256 of the run's report.md."""
+    cert = json.loads((run_dir / "metrics.json").read_text())["certificate"]
+    assert re.fullmatch(r"[0-9a-f]{16}", cert["calibration_id"]) and len(cert["data_sha256"]) == 64
+    assert f"| calibration ID | {cert['calibration_id']} |" in (run_dir / "report.md").read_text()
+    for fmt in E.FORMATS:
+        path, _ = E.export_run(run_dir, fmt, tmp_path / f"cal{E.FORMATS[fmt]}")
+        text = path.read_text()
+        if fmt in ("json", "magcal"):
+            assert json.loads(text)["certificate"] == cert, fmt
+        else:
+            line = next(ln for ln in text.splitlines()[:8] if "certificate: calibration ID" in ln)   # near the top
+            assert cert["calibration_id"] in line and cert["data_sha256"] in line and cert["date_utc"] in line, fmt
+            assert "device under test: not stated" in line                         # the fixture names no DUT
+    # a calibration without metrics.json (no certificate known): no line, nothing invented
+    ex = E.build_export(bayesmag.load(run_dir))
+    assert E.certificate_line(ex) is None and "certificate:" not in E.render("px4", ex)
 
 
 def test_unknown_format_is_an_error_naming_the_valid_ones(tmp_path):

@@ -158,6 +158,49 @@ def test_report_budget_states_which_U_applies(run):
     assert "U same session" in text and "U new session" in text and "in the field" in text
 
 
+@pytest.mark.parametrize("transfer, reason", [
+    ({"method": "off", "sd": dict.fromkeys("xyz", 0.0)}, '[uq] transfer = "off"'),
+    ({"method": "largest_offset_change", "sd": dict.fromkeys("xyz", 0.0)}, "one training run"),
+    (None, "no transfer estimate")])
+def test_no_new_session_U_without_a_transfer_term(run, transfer, reason):
+    from bayesmag._src.app.report import transfer_missing, uncertainty_budget
+    out, _, _ = run
+    m = json.loads((out / "metrics.json").read_text())
+    params = json.loads((out / "params.json").read_text())
+    m2 = {**m, "transfer": transfer}
+    assert reason in transfer_missing(m2) and transfer_missing(m) is None
+    ex = expanded_uncertainties(m2, params)
+    assert ex["new_session_missing"] == transfer_missing(m2)
+    text = "\n".join(uncertainty_budget(m2, params))
+    # not the same-session U relabelled: no new-session numbers, and the reason why
+    assert "U = k u_c, new session" not in text and "**No U for a new session**" in text and reason in text
+    assert "| **expanded uncertainty U, new session** | | | not stated | not stated | not stated |" in text
+    same = "\n".join(uncertainty_budget(m, params))                   # with the term: both U, as before
+    assert "U = k u_c, new session" in same and "No U for a new session" not in same
+    # two runs give a (rough) nonzero run-to-run change: stated, not missing
+    assert transfer_missing({"transfer": {"method": "largest_offset_change", "sd": {"x": 0.1, "y": 0, "z": 0}}}) is None
+
+
+def test_exports_state_no_new_session_U_without_a_transfer_term(run, tmp_path):
+    import shutil
+    from bayesmag._src.app.export import export_run
+    out, _, _ = run
+    folder = tmp_path / "run"
+    shutil.copytree(out, folder)
+    m = json.loads((folder / "metrics.json").read_text())
+    m["transfer"] = {**m["transfer"], "method": "off", "sd": dict.fromkeys("xyz", 0.0)}
+    (folder / "metrics.json").write_text(json.dumps(m))
+    path, _ = export_run(folder, "json", tmp_path / "cal.json")
+    doc = json.loads(path.read_text())["expanded_uncertainty"]
+    assert doc["new_session"] is None and "not estimated" in doc["applies"] and set(doc["same_session"]) == set("xyz")
+    path, _ = export_run(folder, "c-header", tmp_path / "cal.h")
+    header = path.read_text()
+    assert "BAYESMAG_U_SAME_SESSION[3] = {" in header and "BAYESMAG_U_NEW_SESSION[3] =" not in header
+    assert "/* No BAYESMAG_U_NEW_SESSION:" in header
+    path, _ = export_run(out, "json", tmp_path / "with.json")                  # the run itself has the term
+    assert set(json.loads(path.read_text())["expanded_uncertainty"]["new_session"]) == set("xyz")
+
+
 class _Checker(HTMLParser):
     VOID = {"meta", "img", "br", "hr"}
 
@@ -198,6 +241,18 @@ def test_report_html_has_the_same_content_and_embedded_figures(run):
     for phrase in ("Uncertainty budget", "Acme AMR-3 s/n 0042", "U new session"):
         assert phrase in page
     assert "<script" not in page
+
+
+def test_report_command_rewrites_both_renderings(run, capsys):
+    from bayesmag._src.app.cli import main
+    out, _, _ = run
+    md, page = (out / "report.md").read_text(), (out / "report.html").read_text()
+    (out / "report.md").unlink()
+    (out / "report.html").unlink()
+    assert main(["report", str(out)]) == 0
+    # the same certificate from the run's files (its date is the run's, not the rewrite's), figures embedded
+    assert (out / "report.md").read_text() == md and (out / "report.html").read_text() == page
+    assert "report.md" in capsys.readouterr().out
 
 
 def test_render_html_escapes_and_handles_missing_figures(tmp_path):
@@ -330,6 +385,25 @@ def test_physics_calibration_curve_matches_the_metric(tmp_path, monkeypatch):
     np.testing.assert_allclose(line.get_ydata(), observed[:, 2])
 
 
+def test_physics_pit_figure_is_the_histogram_of_the_predictive_cdf(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+    from bayesmag._src.app import plots
+    from bayesmag.likelihoods import Gaussian
+    saved = []
+    monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    r = np.random.default_rng(2)
+    y = 1.3 * r.standard_normal((800, 3))
+    u = M.pit(Gaussian(np.zeros((800, 3)), np.ones((800, 3))), y)
+    np.testing.assert_allclose(u, stats.norm.cdf(y), atol=1e-12)           # PIT = F(y), scipy's normal cdf
+    plots.pit_figure(tmp_path / "p.png", {"physics": u})
+    for a, ax in enumerate(saved[0].axes):
+        heights = np.array([p.get_height() for p in ax.patches])
+        want, _ = np.histogram(stats.norm.cdf(y[:, a]), bins=10, range=(0, 1), density=True)
+        np.testing.assert_allclose(heights, want, rtol=1e-12)
+        assert heights[0] > 1.3 and heights[-1] > 1.3 and heights[4] < 0.8     # too narrow: U-shaped
+
+
 def test_job_draws_the_physics_calibration_and_pit(run):
     out, _, _ = run
     for f in ("calibration.png", "physics_calibration.png", "physics_pit.png", "physics_residuals_vs_time.png"):
@@ -405,6 +479,9 @@ def test_every_subcommand_help_has_a_description():
     for name, sp in sub.choices.items():
         assert sp.description and len(sp.description) > 30, name
         assert sp.description.split()[0] in sp.format_help(), name
+    # discover parses its own options: `bayesmag discover --help` prints that parser's description
+    from bayesmag._src.app.discover_cli import build_parser as discover_parser
+    assert len(discover_parser().description) > 60
 
 
 def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
@@ -414,20 +491,43 @@ def test_progress_bars_only_on_a_terminal(tmp_path, capsys, monkeypatch):
     cfg.write_text('[data]\nsource = "simulated"\n[data.simulate]\ndesign = "campaign"\nn = 600\nseed = 1\n'
                    '[split]\nkind = "time_blocks"\ntest_fraction = 0.2\n[physics]\nt0 = "mean"\n'
                    '[uq]\nmethod = "analytic"\ntransfer = "off"\n[output]\nfigures = false\n')
-    assert main(["run", str(cfg), "--out", str(tmp_path / "a")]) == 0
+    from bayesmag._src.app import job
+    real = job.run_job
+    seen, results = [], []
+
+    def recording_run_job(*a, progress=None, **k):
+        seen.append(progress)
+        results.append(real(*a, progress=progress, **k))
+        return results[-1]
+
+    monkeypatch.setattr(job, "run_job", recording_run_job)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "a")]) == 0    # one real run, stderr not a terminal
+    out, err = capsys.readouterr()
+    assert "\r" not in err and "physics UQ" not in err and seen == [False]
+    f = results[0]["metrics"]["field"]["physics"]                        # item 12 on the command's summary too
+    assert (f"  physics: heading error RMS {f['heading']['rms']:.3g} deg (max {f['heading']['max_abs']:.3g}), "
+            f"|B| residual RMS {f['magnitude']['rms']:.3g} uT") in out
+    # a job from Python, [output] progress = true (the default), stderr captured: no bars either
+    from bayesmag._src.app.config import load_config
+    assert load_config(cfg).output.progress is True
+    real(load_config(cfg), tmp_path / "py")
     err = capsys.readouterr().err
-    assert "\r" not in err and "physics UQ" not in err                   # captured stderr is not a terminal
+    assert "\r" not in err and "physics UQ" not in err
+    # on a terminal the job is left to [output] progress (default on: bars drawn), unless --no-progress;
+    # the wiring only (a third job would take as long again): the job returns the first run's result
+    monkeypatch.setattr(job, "run_job", lambda *a, progress=None, **k: seen.append(progress) or results[0])
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
     assert main(["run", str(cfg), "--out", str(tmp_path / "b")]) == 0
-    assert "physics UQ" in capsys.readouterr().err                        # on a terminal the bar is drawn
+    assert main(["run", str(cfg), "--out", str(tmp_path / "d"), "--no-progress"]) == 0
+    assert seen == [False, None, False]
 
 
 # --------------------------------------------------------------------------- the walkthrough notebook (item 19)
 
 
 def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, monkeypatch, capsys):
-    """examples/signoff_notebook.py (jupytext percent format) end to end: pandas load, Calibrator fit,
-    certificate numbers and figures, PX4 export; its rows are the loader's rows."""
+    """examples/signoff_notebook.py (jupytext percent format) end to end: pandas load, job and Calibrator fit
+    (the same parameters), certificate numbers and figures, PX4 export; its rows are the loader's rows."""
     import runpy
     from pathlib import Path
     monkeypatch.setenv("BAYESMAG_EXAMPLE_OUT", str(tmp_path / "nb"))
@@ -442,3 +542,7 @@ def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, mon
     out = capsys.readouterr().out
     assert "U new_session" in out and "heading error RMS" in out and "CAL_MAG0_XOFF" in out
     assert all(ns["m"]["physics"]["rmse"][a] < 0.1 for a in "xyz")
+    # the Calibrator (no files) fits the job's calibration: same rows held out, same parameters and scores
+    assert ns["largest"] < 1e-12 and len(ns["cal"].params_) == 24
+    for a in "xyz":
+        assert ns["cal"].metrics_["physics"]["rmse"][a] == pytest.approx(ns["m"]["physics"]["rmse"][a], rel=1e-9)

@@ -55,6 +55,12 @@ def _cmd_run(args) -> int:
     for name, block in m.get("hybrid", {}).items():
         print(f"  hybrid[{name}] RMSE    " + "  ".join(f"{ax}: {block['rmse'][ax]:.4g}" for ax in "xyz")
               + "   coverage " + "  ".join(f"{ax}: {block['coverage'][ax]:.1%}" for ax in "xyz"))
+    for stage, fm in m.get("field", {}).items():      # the field metrics (issue 26 item 12), test rows
+        if stage != "raw" and "magnitude" in fm:
+            h = fm.get("heading", {})
+            head = (f"heading error RMS {h['rms']:.3g} deg (max {h['max_abs']:.3g})" if h.get("n_rows")
+                    else "no heading (horizontal field below 5 uT on every row)")
+            print(f"  {stage}: {head}, |B| residual RMS {fm['magnitude']['rms']:.3g} uT")
     for ax, block in m.get("nuts", {}).get("axes", {}).items():
         if "verdict" in block:
             print(f"  NUTS {ax}: {block['verdict']}")
@@ -165,7 +171,7 @@ def _cmd_apply_dask(args) -> int:
                    threads_per_worker=args.threads_per_worker, memory_limit=args.memory_limit,
                    blocksize=int(args.blocksize_mb * 2**20), level=args.level, method=args.uq, n_params=args.n_params,
                    n_qmc=args.n_qmc, temperature_unit=args.temperature_unit, field_unit=args.field_unit,
-                   columns=_parse_columns(args.columns), progress=not args.no_progress)
+                   columns=_parse_columns(args.columns), progress=_progress(args))
     print(f"bayesmag: calibrated {s['n_valid']} of {s['n_rows']} rows in {s['n_partitions']} partitions -> {args.out}/ "
           f"({s['seconds']:.2f} s, {s['n_rows'] / max(s['seconds'], 1e-9):,.0f} rows/s)")
     return _report_apply(s)
@@ -327,7 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--no-progress", action="store_true")
     st.set_defaults(func=_cmd_study)
 
-    rp = sub.add_parser("report", help="(re)write report.md in a run folder")
+    rp = sub.add_parser("report", help="(re)write report.md and report.html in a run folder")
     rp.add_argument("run_dir")
     rp.set_defaults(func=_cmd_report)
 

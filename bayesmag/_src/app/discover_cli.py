@@ -51,7 +51,10 @@ def default_out(name: str) -> Path:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="bayesmag discover", description="Find physics missing from the calibration model.")
+    p = argparse.ArgumentParser(prog="bayesmag discover", description=(
+        "Find physics missing from the calibration model: fit the thermo-affine model, search the catalogue of "
+        "candidate physics terms on the residuals, check the findings and name what is left unexplained "
+        "(docs/discovery.md)."))
     p.add_argument("config", nargs="?", help="config file with [data] and optional [discover], or the name of a "
                                              "packaged config (e.g. discover_belsten)")
     p.add_argument("--data", help="a canonical CSV instead of a config (defaults for everything else)")

@@ -47,7 +47,7 @@ from bayesmag._src.core.data import AXES, CalibrationData
 __all__ = ["FORMATS", "ExportError", "affine_at", "hard_soft_iron", "fit_symmetric_affine", "px4_params",
            "ardupilot_params", "apply_magcal", "apply_px4", "apply_ardupilot", "exported_prediction",
            "accuracy_loss", "render", "export_run", "thermo_affine_coefficients", "split_rows", "test_vector",
-           "c_domain_code", "check_export_out", "is_export", "SIGNATURE"]
+           "c_domain_code", "check_export_out", "is_export", "SIGNATURE", "certificate_line", "run_certificate"]
 
 #: File suffix per format (never plain ".json": calibration.json is the artifact itself).
 from bayesmag._src.app.formats import FORMATS  # noqa: E402  (re-exported: the export formats)
@@ -216,6 +216,7 @@ class Export:
     uncertainty: dict | None = None         # report.expanded_uncertainties of the run (None: not known)
     domain: object = None                   # the training Domain (ranges of field, temperature, rates)
     warnings: tuple[str, ...] = ()
+    certificate: dict | None = None         # the run's certificate identity (metrics.json), None: not known
 
 
 def exported_prediction(fmt: str, ex: Export, b_meas, temperature) -> np.ndarray:
@@ -363,15 +364,27 @@ def limitations(fmt: str, ex: Export) -> list[str]:
     return lines
 
 
+def certificate_line(ex: Export) -> str | None:
+    """One line tying an exported file to its certificate (report.md): calibration ID, date, DUT, data sha256."""
+    c = ex.certificate
+    if not c:
+        return None
+    return (f"certificate: calibration ID {c.get('calibration_id', '?')}, {c.get('date_utc', '?')}, device under "
+            f"test: {c.get('dut') or 'not stated'}, data sha256 {c.get('data_sha256', '?')} (report.md of the run)")
+
+
 def _u_doc(ex: Export) -> dict | None:
     u = ex.uncertainty
     if not u:
         return None
+    missing = u.get("new_session_missing")
     return {"unit": "uT", "level": u["level"], "k_same_session": {a: u["same_session"][a]["k"] for a in AXES},
             "same_session": {a: u["same_session"][a]["U"] for a in AXES},
-            "new_session": {a: u["new_session"][a]["U"] for a in AXES},
+            "new_session": None if missing else {a: u["new_session"][a]["U"] for a in AXES},
             "applies": "same_session: rows of the recording session the calibration was fitted on; new_session: "
-                       "any later recording (in the field). Inside the training domain only."}
+                       "any later recording (in the field). Inside the training domain only."
+                       + (f" No new_session U: the transfer (between-session) term was not estimated ({missing})."
+                          if missing else "")}
 
 
 def _json_doc(ex: Export) -> dict:
@@ -394,6 +407,7 @@ def _json_doc(ex: Export) -> dict:
                        if d.rate_high is not None else None} if d is not None else {})},
         "dropped_components": list(ex.dropped),
         "residual_network_dropped": ex.has_network, "accuracy": ex.accuracy,
+        "certificate": ex.certificate,
     }
 
 
@@ -484,6 +498,8 @@ def _c_header(ex: Export, notes: list[str], sign: str = SIGNATURE) -> str:
              " * Units: field uT, temperature C. Valid inside the training domain: check it with bayesmag_in_domain.",
              " * bayesmag_calibrate (double) and bayesmag_calibrate_f (float: no double arithmetic, for an FPU",
              " * without double precision such as the Cortex-M4F); bayesmag_self_test runs the test vector."]
+    cert = certificate_line(ex)
+    lines += [f" * {cert.replace('*/', '* /')}"] if cert else []
     lines += [f" * {n}" for n in notes] + [" */",
               "#ifndef BAYESMAG_CALIBRATION_H", "#define BAYESMAG_CALIBRATION_H", "", "#include <stddef.h>", "",
               f"static const double BAYESMAG_T0 = {_c_num(c['t0'], '.17g')};",
@@ -506,8 +522,11 @@ def _c_header(ex: Export, notes: list[str], sign: str = SIGNATURE) -> str:
                   f"static const double BAYESMAG_LEVEL = {_c_num(u['level'], '.6g')};",
                   "static const double BAYESMAG_U_SAME_SESSION[3] = "
                   f"{_c_arr([u['same_session'][a]['U'] for a in AXES], '', '.6g')};",
-                  "static const double BAYESMAG_U_NEW_SESSION[3] = "
-                  f"{_c_arr([u['new_session'][a]['U'] for a in AXES], '', '.6g')};", ""]
+                  *(["static const double BAYESMAG_U_NEW_SESSION[3] = "
+                     f"{_c_arr([u['new_session'][a]['U'] for a in AXES], '', '.6g')};"]
+                    if not u.get("new_session_missing") else
+                    [f"/* No BAYESMAG_U_NEW_SESSION: the transfer (between-session) term was not estimated "
+                     f"({u['new_session_missing'].replace('*/', '')}). */"]), ""]
     else:
         lines += ["/* Expanded uncertainty U: not known (the run folder has no metrics.json). */", ""]
     lines += ["/* Hard/soft-iron form at T = BAYESMAG_TREF: out = (B - b) A, row vectors. */",
@@ -564,6 +583,11 @@ def _c_header(ex: Export, notes: list[str], sign: str = SIGNATURE) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _cert_comment(ex: Export) -> list[str]:
+    line = certificate_line(ex)
+    return [f"# {line}"] if line else []
+
+
 def render(fmt: str, ex: Export) -> str:
     """The file text of format ``fmt``."""
     from bayesmag._src.core.version import __version__
@@ -574,10 +598,11 @@ def render(fmt: str, ex: Export) -> str:
     if fmt == "magcal":
         return dumps({"written_by": sign,
                       "form": "B_cal = (B - b) * A  (row vectors, MATLAB magcal convention)", "units": "uT",
-                           "temperature_C": ex.t_ref, "A": ex.A.tolist(), "b": ex.b.tolist(), "notes": notes},
+                           "temperature_C": ex.t_ref, "A": ex.A.tolist(), "b": ex.b.tolist(),
+                           **({"certificate": ex.certificate} if ex.certificate else {}), "notes": notes},
                           indent=2) + "\n"
     if fmt == "px4":
-        head = [f"# written by {sign} (bayesmag export --format px4)",
+        head = [f"# written by {sign} (bayesmag export --format px4)"] + _cert_comment(ex) + [
                 "# PX4 parameters (QGroundControl .params: vehicle-id component-id name value type)",
                 "# B_cal = D (B - thermal(T) - CAL_MAG0_OFF), gauss; thermal(T) = sum_k TC_M0_Xk * (T - TC_M0_TREF)^k,",
                 "# T clamped to [TC_M0_TMIN, TC_M0_TMAX].", f"# Fitted by least squares on {ex.source}."]
@@ -585,7 +610,7 @@ def render(fmt: str, ex: Export) -> str:
         body = [f"1\t1\t{k}\t{v:.9g}\t{6 if isinstance(v, int) else 9}" for k, v in ex.px4.items()]
         return "\n".join(head + body) + "\n"
     if fmt == "ardupilot":
-        head = [f"# written by {sign} (bayesmag export --format ardupilot)",
+        head = [f"# written by {sign} (bayesmag export --format ardupilot)"] + _cert_comment(ex) + [
                 "# ArduPilot compass parameters (.parm): B_cal = [DIA/ODI] * SCALE * (B + OFS), milligauss",
                 f"# Fitted by least squares on {ex.source}."] + _ARDUPILOT_HEAD + [f"# {n}" for n in notes]
         return "\n".join(head + [f"{k},{v:.9g}" for k, v in ex.ardupilot.items()]) + "\n"
@@ -627,6 +652,15 @@ def run_uncertainty(run_dir: str | Path) -> dict | None:
         return expanded_uncertainties(m, params, run_reference_sd(run_dir))
     except (OSError, ValueError, KeyError):
         return None
+
+
+def run_certificate(run_dir: str | Path) -> dict | None:
+    """The run's certificate identity (``metrics.json: certificate``), or None."""
+    try:
+        c = json.loads((Path(run_dir) / "metrics.json").read_text()).get("certificate")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return c if isinstance(c, dict) else None
 
 
 def _drop_none(d):
@@ -721,6 +755,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
             import warnings
             warnings.warn(f"the run's rows could not be reloaded ({e}); accuracy loss not measured.", stacklevel=2)
     ex = build_export(cal, train, t_ref=t_ref, held_out=test, uncertainty=run_uncertainty(run_dir))
+    ex = dataclasses.replace(ex, certificate=run_certificate(run_dir))
     text = render(fmt, ex)
     check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # changed meanwhile?
     recover(out.parent, files_only=True)        # partial files of killed exports (never a live pid's)

@@ -109,7 +109,8 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
     the physics stage's figures in one child process
     (:class:`~bayesmag._src.app.figure_worker.FigureWorker`), which exits when this process does,
     while this process draws the hybrid stage's. The output folder is swapped in only after they
-    are all drawn.
+    are all drawn. ``progress``: None (default) draws bars as ``[output] progress`` says, but only where
+    someone watches (stderr a terminal, or a Jupyter kernel: never into a log); True / False force it.
     """
     from bayesmag._src.core.cache import compile_cache, release_compiled_if_crowded
     from bayesmag._src.app.figure_worker import figures
@@ -124,7 +125,9 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
 
 
 def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None) -> JobResult:
-    progress = cfg.output.progress if progress is None else progress
+    if progress is None:                    # [output] progress, and only where someone watches (no \r in logs)
+        from bayesmag._src.app.terminal import interactive_output
+        progress = cfg.output.progress and interactive_output()
     if cfg.measurement.kind != "vector" or cfg.data.source == "field_simulated":   # field calibration (docs/field.md)
         from bayesmag._src.app.field_job import run_field_job
         return JobResult(run_field_job(cfg, out, progress=progress))

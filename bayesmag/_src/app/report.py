@@ -31,7 +31,7 @@ import numpy as np
 
 __all__ = ["write_report", "render_report", "render_html", "welch_satterthwaite", "coverage_factor",
            "parameter_unit", "uncertainty_budget", "fit_statistics", "gum_round", "gum_format",
-           "expanded_uncertainties", "condition_uncertainties", "certificate_record", "ReportContext", "SECTIONS"]
+           "expanded_uncertainties", "transfer_missing", "condition_uncertainties", "certificate_record", "ReportContext", "SECTIONS"]
 
 AXES = ("x", "y", "z")
 
@@ -176,17 +176,32 @@ def _transfer_sd(m: dict) -> dict:
     return {a: float(sd[a]) if sd else 0.0 for a in AXES}
 
 
+def transfer_missing(m: dict) -> str | None:
+    """Why a run has no between-session (transfer) sd, so no U for a new session can be stated; None when it has
+    one. ``[uq] transfer = "off"``, or one training run (the fallback's run-to-run change is then zero)."""
+    tr = m.get("transfer") or {}
+    method = tr.get("method")
+    if method in (None, "off"):
+        return '`[uq] transfer = "off"`' if method == "off" else "the run holds no transfer estimate"
+    if method == "largest_offset_change" and not any(float(v) > 0 for v in (tr.get("sd") or {}).values()):
+        return "one training run: no change between sessions can be seen"
+    return None
+
+
 def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0) -> dict:
     """Combined ``u_c``, ``nu_eff``, ``k`` and ``U = k u_c`` per axis for a same-session and a new-session
     recording (the latter with the between-session transfer sd in quadrature, counted with infinite dof:
     it is already an upper confidence bound over the training runs, ``core/predictor.estimate_transfer``).
 
-    Returns ``{"level", "same_session": {axis: {u_c, nu_eff, k, U}}, "new_session": {...}, "transfer_sd"}``.
+    Returns ``{"level", "same_session": {axis: {u_c, nu_eff, k, U}}, "new_session": {...}, "transfer_sd",
+    "new_session_missing"}``; ``new_session_missing`` (:func:`transfer_missing`) is None, or why the transfer
+    term was not estimated: then ``new_session`` lacks it and understates U for a new session.
     """
     level = m["uq"]["level"]
     comps = _components(m, params, reference_sd)
     tau = _transfer_sd(m)
-    out = {"level": level, "transfer_sd": tau, "same_session": {}, "new_session": {}}
+    out = {"level": level, "transfer_sd": tau, "same_session": {}, "new_session": {},
+           "new_session_missing": transfer_missing(m)}
     for a in AXES:
         us, nus = [c[1][a] for c in comps], [c[3] for c in comps]
         for key, extra_u in (("same_session", []), ("new_session", [tau[a]])):
@@ -228,17 +243,31 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     else:
         how = (f"{tr['method'].replace('_', ' ')} over the training runs; already an upper confidence bound, so "
                "counted with infinite dof")
-    lines.append("| transfer (between sessions; new session only) | A | inf | "
-                 + " | ".join(_u2(tau[a]) for a in AXES) + f" | {how} |")
-    lines += block("new_session", "new session")
+    missing = ex["new_session_missing"]
     dom = {a: max(comps, key=lambda c: c[1][a])[0].split(" (")[0] for a in AXES}
     same, new = ex["same_session"], ex["new_session"]
-    lines += ["", f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y / z) "
-              "holds for rows of the recording session this calibration was fitted on (same mounting, same "
-              "power-up, the conditions of the test rows above); **U new session** "
-              f"({' / '.join(_u2(new[a]['U']) for a in AXES)} uT) holds for any later recording, i.e. in the field "
-              "(`bayesmag apply` adds the transfer term to every row of a new recording; column `transfer`). "
-              "Inside the calibration domain only (section Calibration domain)."]
+    if missing:                 # no transfer term: a "U new session" would be the same-session U, understated
+        lines += ["| transfer (between sessions; new session only) | A | | not estimated | not estimated | "
+                  f"not estimated | {missing} |",
+                  "| **expanded uncertainty U, new session** | | | not stated | not stated | not stated | needs the "
+                  "transfer term |"]
+        lines += ["", f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
+                  "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
+                  "power-up, the conditions of the test rows above). **No U for a new session** (any later recording, "
+                  f"in the field) can be stated: the between-session (transfer) term was not estimated ({missing}), "
+                  "and a new session can be off by more than U same session. Record at least 3 sessions (runs) and "
+                  "set `[uq] transfer = \"loro\"` (the default). Inside the calibration domain only (section "
+                  "Calibration domain)."]
+    else:
+        lines.append("| transfer (between sessions; new session only) | A | inf | "
+                     + " | ".join(_u2(tau[a]) for a in AXES) + f" | {how} |")
+        lines += block("new_session", "new session")
+        lines += ["", f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
+                  "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
+                  "power-up, the conditions of the test rows above); **U new session** "
+                  f"({' / '.join(_u2(new[a]['U']) for a in AXES)} uT) holds for any later recording, i.e. in the "
+                  "field (`bayesmag apply` adds the transfer term to every row of a new recording; column "
+                  "`transfer`). Inside the calibration domain only (section Calibration domain)."]
     if network_parts:
         lines += ["", "Hybrid stage (residual network), for comparison:", "",
                   "| component | type | x | y | z |", "|---|---|---|---|---|"]
