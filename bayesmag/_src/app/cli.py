@@ -416,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str]) -> int:
     from bayesmag._src.core.cache import ensure_compile_cache
-    ensure_compile_cache()                  # before the first compilation (opt-in: BAYESMAG_COMPILE_CACHE=1)
+    ensure_compile_cache(default=True)      # before the first compilation: on unless BAYESMAG_COMPILE_CACHE=0
     from bayesmag._src.app.artifact import ArtifactError
     from bayesmag._src.app.config import ConfigError
     from bayesmag._src.core.data import DataError

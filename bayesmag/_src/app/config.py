@@ -142,7 +142,8 @@ class CertificateConfig:
 class OutputConfig:
     figures: bool = True
     progress: bool = True
-    compile_cache: bool = False         # JAX persistent compilation cache in the user cache folder (opt-in, cache.py)
+    compile_cache: Union[bool, str] = "auto"   # JAX persistent compilation cache (cache.py): "auto" = on from the
+                                                # command line, the caller's setting from Python; true / false for this job
 
 
 @dataclasses.dataclass(frozen=True)
@@ -380,6 +381,8 @@ _MAX_REFERENCE_SD = 1e3
 def _check_semantics(cfg: Config) -> None:
     _check_numbers(cfg)
     _check_measurement(cfg.measurement)
+    if isinstance(cfg.output.compile_cache, str) and cfg.output.compile_cache != "auto":
+        raise ConfigError(f"Config key 'output.compile_cache' = {cfg.output.compile_cache!r} must be true, false or \"auto\".")
     if cfg.measurement.scalar_column and cfg.data.path is None:
         raise ConfigError(f"Config key 'measurement.scalar_column' = {cfg.measurement.scalar_column!r} names a CSV "
                           "column, but [data] names no 'path'; give data.path (a CSV with that column).")

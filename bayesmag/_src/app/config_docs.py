@@ -87,7 +87,7 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "study.per_size": ("", "[network] overrides per size"),
     "output.figures": ("", "draw the PNG figures"),
     "output.progress": ("", "progress bars (off anyway when the output is not a terminal)"),
-    "output.compile_cache": ("", "JAX persistent compilation cache in the user cache folder"),
+    "output.compile_cache": ("", 'JAX persistent compilation cache in the user cache folder: "auto" (on from the command line, the caller\'s setting from Python), true, false'),
     "measurement.kind": ("", 'what the reference gives: "vector" (reference magnetometer) | "scalar" (a magnitude per '
                          'row) | "constant" (one field magnitude for the recording); docs/field.md'),
     "measurement.field": ("uT", 'constant: the site field magnitude (e.g. from IGRF/WMM), or "free"'),

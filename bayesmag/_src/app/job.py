@@ -10,6 +10,7 @@ half-written folder that looks complete.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import time
 from pathlib import Path
@@ -117,8 +118,10 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
     from bayesmag._src.app.outdir import reserve
     release_compiled_if_crowded()           # many jobs in one process: stay under the kernel's mapping limit
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
-        # [output] compile_cache: on or off for this job only (the environment variable wins)
-        with compile_cache(cfg.output.compile_cache):
+        # [output] compile_cache: on or off for this job only (the environment variable wins); "auto" leaves
+        # the process's setting (on from the command line, the caller's from Python)
+        cc = cfg.output.compile_cache
+        with contextlib.nullcontext() if cc == "auto" else compile_cache(bool(cc)):
             with figures(cfg.output.figures, worker=figure_worker) as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)

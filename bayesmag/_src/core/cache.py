@@ -2,14 +2,18 @@
 
 Most of a job's first-run time is XLA compilation. With the cache on, a second run of the same
 job (same shapes, same jax/jaxlib, same device) loads the compiled executables from disk
-instead. It is **off by default**: reading entries back crashed the interpreter (SIGSEGV inside
-``jax._src.compilation_cache.get_executable_and_time``, jax/jaxlib 0.10.2 on CPU) in our CI. That
-crash was later traced to the test process passing the kernel's limit of memory mappings
-(``vm.max_map_count``: every compiled executable maps its code), not to the cache itself, but the
-cache stays opt-in until a clean run shows it safe: a calibration tool must not crash to save ten
-seconds. Opt in with ``[output] compile_cache = true``
-(for that job) or the environment variable ``BAYESMAG_COMPILE_CACHE=1`` (every job and every
-import); ``BAYESMAG_COMPILE_CACHE=/some/dir`` opts in with another folder, ``=0`` forces it off.
+instead. The **command line** switches it on (``bayesmag run``, ``apply``, ``discover``, ...);
+**from Python** it stays as the caller left it (off unless asked). Its history: reading entries
+back crashed the interpreter (SIGSEGV inside
+``jax._src.compilation_cache.get_executable_and_time``, jax/jaxlib 0.10.2 on CPU) in our CI, so
+it was made opt-in. The crash was then traced to the test process passing the kernel's limit of
+memory mappings (``vm.max_map_count``: every compiled executable maps its code; guarded now by
+:func:`release_compiled_if_crowded`), not to the cache, and every packaged vector and field job
+ran twice against one fresh cache folder (cold, then reading every entry back) with exit status
+0 and identical ``metrics.json`` (``python benchmarks/cache_stress.py``).
+Per job: ``[output] compile_cache = true | false`` (``"auto"``, the default, keeps the process's
+setting); for every job and every import: the environment variable ``BAYESMAG_COMPILE_CACHE=1``
+(``=/some/dir`` another folder, ``=0`` off, also for the command line).
 The folder is ``$XDG_CACHE_HOME/bayesmag/jax`` (``~/.cache/bayesmag/jax``) on Linux,
 ``~/Library/Caches/bayesmag/jax`` on macOS and ``%LOCALAPPDATA%\\bayesmag\\jax`` on Windows.
 
@@ -94,10 +98,12 @@ def configure_compile_cache(enabled: bool = True, directory: str | Path | None =
 _configured = False
 
 
-def ensure_compile_cache() -> None:
-    """Switch the cache on at first use when ``BAYESMAG_COMPILE_CACHE`` asks for it (opt-in), once per
-    process and unless it was configured already; otherwise the process's JAX settings are left alone."""
-    if not _configured and _env_setting() == "on":
+def ensure_compile_cache(default: bool = False) -> None:
+    """Switch the cache on at first use when ``BAYESMAG_COMPILE_CACHE`` asks for it, or when it is unset
+    and ``default`` (the command line), once per process and unless it was configured already; otherwise
+    the process's JAX settings are left alone (the library's first use)."""
+    env = _env_setting()
+    if not _configured and (env == "on" or (default and env == "")):
         configure_compile_cache()
 
 
