@@ -252,7 +252,8 @@ def test_report_command_rewrites_both_renderings(run, capsys):
     assert main(["report", str(out)]) == 0
     # the same certificate from the run's files (its date is the run's, not the rewrite's), figures embedded
     assert (out / "report.md").read_text() == md and (out / "report.html").read_text() == page
-    assert "report.md" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "report.md" in printed and "report.html" in printed
 
 
 def test_render_html_escapes_and_handles_missing_figures(tmp_path):

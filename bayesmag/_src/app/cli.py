@@ -272,7 +272,8 @@ DESCRIPTIONS = {
 def _cmd_report(args) -> int:
     from bayesmag._src.app.report import write_report
 
-    print(f"bayesmag: wrote {write_report(args.run_dir)}")
+    md = write_report(args.run_dir)
+    print(f"bayesmag: wrote {md} and {md.with_suffix('.html')} (figures embedded)")
     return 0
 
 
