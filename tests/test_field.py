@@ -221,6 +221,21 @@ def test_nuts_agrees_with_the_laplace_posterior():
 # --------------------------------------------------------------------------- interval calibration (cross-conformal)
 
 
+def test_conformal_scale_is_one_when_the_noise_model_is_right_quick():
+    """The quick version (the full one below is slow): a 500-row dance at 20 C (9 parameters), 4 folds of 10 %:
+    c within the declared band 0.8-1.25 (wider: 200 fold rows) and every fold row scored once."""
+    from bayesmag._src.pipeline.conformal import conformal_folds
+    from bayesmag._src.pipeline.field_stage import magnitude_interval_scale
+    c = simulate_field("dance", n=500, seed=5)
+    d = c.data
+    y = field_target(Constant(50.0), n=d.n)
+    f = fit_field(d.b_meas, d.temperature, y, Constant(50.0), diagnostics=False)
+    white = magnitude_interval_scale(d, Constant(50.0), y, fraction=0.1, folds=4, start=f)
+    assert 0.8 <= white["scale"] <= 1.25
+    assert white["n"] == int(np.sum(conformal_folds(d.run, fraction=0.1, folds=4, seed=0) >= 0)) == 200
+
+
+@pytest.mark.slow
 def test_conformal_scale_is_one_when_the_noise_model_is_right():
     """White reading noise (the Laplace predictive is right): the fold scale c is ~1 (declared band 0.85-1.2)
     and every training row of a fold is scored once. (On the Belsten recordings c = 1.27:
