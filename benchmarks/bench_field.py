@@ -88,6 +88,7 @@ def kabsch(Bm, Bt):
 def run_one(kind, seed, temperature, n_orient, sim=None):
     sim = dict(sim or {})
     scalar = sim.pop("measurement", "constant") == "scalar"   # the scalar model sees f_ref (reference noise too)
+    sim_ref_sd = sim.pop("model_ref_sd", 0.0)                # the reference noise sd the scalar model is told
     kw = dict(n=2000, seed=seed, n_orient=n_orient, **sim)
     if kind != "two_temperature":
         kw["temperature"] = temperature
@@ -103,7 +104,7 @@ def run_one(kind, seed, temperature, n_orient, sim=None):
     res = {}
     t1 = time.perf_counter()
     if scalar:
-        f = fit_field(u[train], t[train], c.f_ref[train], Scalar())
+        f = fit_field(u[train], t[train], c.f_ref[train], Scalar(sim_ref_sd))
     else:
         f = fit_field(u[train], t[train], field_target(Constant(F), n=int(train.sum())), Constant(F))
     pm = f.predict_magnitude(u[test], t[test])
@@ -153,7 +154,9 @@ UNSEEN = [("two_temperature", "unseen: turns at 0 and 30 C, incl. 30 deg, noise 
           ("few_orientations", "unseen: 16 orientations, 10->30 C ramp, incl. 75 deg", (10.0, 30.0), 16,
            {"inclination": 75.0}),
           ("level_turns", "unseen: level turns, 20 C, scalar reference (bayesmag: scalar model)", (20.0, 20.0), 12,
-           {"measurement": "scalar"})]
+           {"measurement": "scalar"}),
+          ("level_turns", "level turns, 20 C, scalar reference 0.01 uT (bayesmag: scalar model told ref_sd)",
+           (20.0, 20.0), 12, {"measurement": "scalar", "model_ref_sd": 0.01})]
 
 
 def null_band(corrs, draws=20000, seed=0):
@@ -181,6 +184,7 @@ def main():
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--seed-start", type=int, default=0, help="first seed (seeds seed_start .. seed_start + seeds - 1)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--only", default=None, help="run only the campaigns whose label contains this text")
     ap.add_argument("--speed", action="store_true", help="time a 10,000-row fit with its uncertainty, warm")
     a = ap.parse_args()
     if a.speed:
@@ -197,6 +201,8 @@ def main():
         return
     table, per_seed = {}, {}
     for kind, label, temp, no, *sim in [c + (None,) for c in CAMPAIGNS] + UNSEEN:
+        if a.only and a.only not in label:
+            continue
         runs = [run_one(kind, s, temp, no, sim[0]) for s in range(a.seed_start, a.seed_start + a.seeds)]
         per_seed[label] = {m: {"offset_err": [r[m]["offset_err"] for r in runs]} for m in ("bayesmag", "ellipsoid")}
         per_seed[label]["bayesmag"]["inv_hits"] = [r["bayesmag"]["inv_hits"] for r in runs]

@@ -69,7 +69,7 @@ def field_nuts(fit: FieldFit, u, t, target, *, chains: int = 2, warmup: int = 30
 
     def potential(z):                       # z: standardised around the Laplace mode
         th = centre + scale * z
-        r = model.residual(th, u, t, y)
+        r = model.residual(th, u, t, y, fit.kappa2)
         return 0.5 * jnp.sum(r * r) / sig2 + 0.5 * jnp.sum(((th - mu) / sd) ** 2)
 
     kernel = NUTS(potential_fn=potential, dense_mass=True, target_accept_prob=target_accept)
@@ -77,7 +77,8 @@ def field_nuts(fit: FieldFit, u, t, target, *, chains: int = 2, warmup: int = 30
               progress_bar=False)
     init = jnp.zeros((chains, model.n_params)) + 0.1 * jax.random.normal(jax.random.PRNGKey(seed + 1),
                                                                           (chains, model.n_params))
-    mc.run(jax.random.PRNGKey(seed), init_params=init, extra_fields=("diverging",))
+    mc.run(jax.random.PRNGKey(seed), init_params=init[0] if chains == 1 else init,   # one chain: (p,)
+           extra_fields=("diverging",))
     z = np.asarray(mc.get_samples(group_by_chain=True))              # (chains, draws, p)
     div = int(np.sum(np.asarray(mc.get_extra_fields()["diverging"])))
     th = np.asarray(centre) + np.asarray(scale) * z
