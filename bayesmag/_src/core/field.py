@@ -140,14 +140,11 @@ class FieldModel:
         tc = (t - self.t0)[:, None]
         return u @ S.T + tc * (u @ Ks.T) + O + tc * Ko
 
-    def residual(self, theta, u, t, target, kappa2=0.0):
-        r"""Residuals in reading units: a magnitude residual is divided by :math:`\sqrt{g^2 + \kappa^2}`, g its
-        noise gain (:meth:`gain`) and :math:`\kappa = \sigma_{ref}/\sigma` the reference's noise relative to the
-        reading noise (0 for an exact reference): the residual's own sd in reading units, so that no weight
-        depends on M through a mis-stated noise level (the errors-in-variables pull, :meth:`gain`)."""
+    def residual(self, theta, u, t, target):
+        """Residuals in reading units: a magnitude residual is divided by its noise gain :meth:`gain`."""
         _, _, _, _, extra = self.unpack(theta)
         r = self.measurement.residual(self.calibrate(theta, u, t), target, extra)
-        return r if self.measurement.per_row > 1 else r / jnp.sqrt(self.gain(theta, u, t) ** 2 + kappa2)
+        return r if self.measurement.per_row > 1 else r / self.gain(theta, u, t)
 
     def gain(self, theta, u, t):
         r"""How reading noise reaches the magnitude, :math:`g = \lVert M(T)^T \hat B\rVert` (n,).
@@ -239,15 +236,15 @@ def _static(model: FieldModel) -> FieldModel:
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _solve(model: FieldModel, theta0, u, t, target, mu, w, keep, kappa2):
+def _solve(model: FieldModel, theta0, u, t, target, mu, w, keep):
     def r(th):
-        return jnp.concatenate([model.residual(th, u, t, target, kappa2) * keep, w * (th - mu)])
+        return jnp.concatenate([model.residual(th, u, t, target) * keep, w * (th - mu)])
     return levenberg_marquardt(r, theta0, max_steps=2000)
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _jac_resid(model: FieldModel, theta, u, t, target, keep, kappa2):
-    f = lambda th: model.residual(th, u, t, target, kappa2) * keep
+def _jac_resid(model: FieldModel, theta, u, t, target, keep):
+    f = lambda th: model.residual(th, u, t, target) * keep
     return f(theta), jax.jacfwd(f)(theta)
 
 
@@ -309,7 +306,6 @@ class FieldFit:
     covariance_method: str
     coverage: dict
     notes: tuple[str, ...]
-    kappa2: float = 0.0       # (reference noise sd / reading noise sd)^2 in the magnitude residual's weight
 
     @property
     def param_names(self):
@@ -363,7 +359,7 @@ class FieldFit:
         """Predictive distribution of the reference magnitude: mean, epistemic, noise and total sd."""
         mean, epi = (np.asarray(a) for a in self.magnitude(u, t))
         g = np.asarray(self.model.gain(jnp.asarray(self.theta), jnp.asarray(u, jnp.float64), jnp.asarray(t, jnp.float64)))
-        noise = math.sqrt(self.s2) * np.sqrt(g**2 + self.kappa2)
+        noise = math.sqrt(self.s2) * g
         return {"mean": mean, "epistemic": epi, "noise": noise, "total": np.sqrt(epi**2 + noise**2)}
 
     def to_json(self) -> dict:
@@ -453,26 +449,22 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     ms, uj, tj, yj = _static(model), jnp.asarray(u), jnp.asarray(t - t0v), jnp.asarray(target)
     kj = jnp.asarray(np.repeat(kp, measurement.per_row).astype(np.float64))
     n_res = int(kp.sum()) * measurement.per_row
-    ref2 = float(measurement.reference_sd) ** 2 if measurement.per_row == 1 else 0.0
-    r0, _ = _jac_resid(ms, jnp.asarray(theta0), uj, tj, yj, kj, 0.0)
+    r0, _ = _jac_resid(ms, jnp.asarray(theta0), uj, tj, yj, kj)
     sig = max(float(np.sqrt(np.sum(np.asarray(r0) ** 2) / n_res)), 1e-6)
-    s2 = sig**2
     if start is not None:
-        sig, s2 = math.sqrt(start.s2 * start.inflation), start.s2
+        sig = math.sqrt(start.s2 * start.inflation)
     infl, rho, steps, ok = 1.0, 0.0, 0, True
     theta = theta0
     # The prior enters the LM cost as w (theta - mu) with w = sig / sd, so the mode is the posterior mode only
     # when sig is the noise level the fit itself implies: iterate to that fixed point. (Two passes were not
     # enough: from a poor algebraic start the second pass ran with sig 25x too large, i.e. a prior 600x too
     # strong, which moved the mode by up to 0.6 posterior sd; NUTS showed it, tests/test_field.py.)
-    # kappa2 = ref_sd^2 / s2 (the reference's noise in units of the reading noise) is part of the same fixed point
     for k in range(_MAX_PASSES):
-        kappa2 = ref2 / max(s2, 1e-300)
-        sol = _solve(ms, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd), kj, kappa2)
+        sol = _solve(ms, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd), kj)
         theta = np.asarray(sol.theta)
         steps += int(sol.n_steps)
         ok = int(sol.result) == 0
-        r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2))
+        r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj))
         s2 = float(r @ r / max(n_res - model.n_params, 1))
         if covariance == "ar1":
             rr = r.reshape(len(u), -1)[kp]
@@ -487,7 +479,7 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     P = J.T @ J / (s2 * infl) + np.diag(1.0 / sd**2)
     cov = np.linalg.inv(P)
     cov = 0.5 * (cov + cov.T)
-    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, (), kappa2)
+    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, ())
     if not diagnostics:
         return fit0
     cov_diag = direction_coverage(fit0.calibrate(u[kp], t[kp]), t[kp])
