@@ -171,14 +171,14 @@ def test_scalar_column_config_errors(raw, match):
 
 
 def test_field_run_with_nuts_writes_the_outputs_quick(tmp_path, capsys):
-    """The quick version of the NUTS cross-check job (the full one is slow): a 300-row campaign, 1 chain x 20
-    draws, no statistics judged (too few draws), only what is written: the summary's rows name every parameter
+    """The quick version of the NUTS cross-check job (the full one is slow): a 300-row campaign, 1 chain x 30
+    draws (60 warm-up), no statistics judged (too few draws), only what is written: the summary's rows name every parameter
     and invariant, the draws' shape, the verdict in the report and the CLI line."""
     import csv
     from bayesmag._src.app.cli import main
     p = tmp_path / "c.toml"
     p.write_text((CONFIGS / "field_simulated.toml").read_text()
-                 + "\n[nuts]\nenabled = true\nchains = 1\nwarmup = 20\ndraws = 20\nseed = 3\n")
+                 + "\n[nuts]\nenabled = true\nchains = 1\nwarmup = 60\ndraws = 30\nseed = 3\n")
     rc = main(["run", str(p), "--out", str(tmp_path / "o"), "--no-progress", "--set", "measurement.simulate.n=300",
                "--set", "output.figures=false", "--set", 'measurement.exports=["json"]',
                "--set", "measurement.interval_calibration=\"none\"", "--set", "measurement.compare_vector=false"])
@@ -186,13 +186,13 @@ def test_field_run_with_nuts_writes_the_outputs_quick(tmp_path, capsys):
     assert "NUTS: max R-hat" in capsys.readouterr().out
     out = tmp_path / "o"
     m = json.loads((out / "metrics.json").read_text())["field"]["nuts"]
-    assert m["chains"] == 1 and m["draws"] == 20
+    assert m["chains"] == 1 and m["draws"] == 30
     rows = list(csv.DictReader(open(out / "nuts_summary.csv")))
     assert [r["name"] for r in rows if r["kind"] == "parameter"] == json.loads((out / "field_params.json").read_text())["param_names"]
     assert "### NUTS cross-check" in (out / "report.md").read_text()
     import xarray as xr
     ds = xr.open_dataset(out / "nuts.nc", group="posterior", engine="h5netcdf")
-    assert ds["theta"].shape == (1, 20, len(rows) - 18)
+    assert ds["theta"].shape == (1, 30, len(rows) - 18)
 
 
 @pytest.mark.slow
