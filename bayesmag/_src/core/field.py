@@ -426,7 +426,8 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
       run: (n,) run ids (AR(1) lags stay inside runs).
       keep: optional (n,) bool, the rows the fit uses (the others are carried with weight 0, so refits on
         different subsets of the same rows share one compiled solver: cross-validation folds).
-      start: a fit of the same model to start from (its estimate and noise level), e.g. a refit without a fold.
+      start: a fit of the same model to start from (its estimate and noise level), e.g. a refit without a fold;
+        such a refit ends after one pass when its noise level moved < 1 % (``_REFIT_SIG_RTOL``).
       diagnostics: False skips the direction coverage and identifiability notes (refits that only predict).
     Returns:
       :class:`FieldFit`.
