@@ -221,6 +221,21 @@ def test_nuts_agrees_with_the_laplace_posterior():
 # --------------------------------------------------------------------------- interval calibration (cross-conformal)
 
 
+def test_conformal_scale_is_one_when_the_noise_model_is_right_quick():
+    """The quick version (the full one below is slow): a 500-row dance at 20 C (9 parameters), 4 folds of 10 %:
+    c within the declared band 0.8-1.25 (wider: 200 fold rows) and every fold row scored once."""
+    from bayesmag._src.pipeline.conformal import conformal_folds
+    from bayesmag._src.pipeline.field_stage import magnitude_interval_scale
+    c = simulate_field("dance", n=500, seed=5)
+    d = c.data
+    y = field_target(Constant(50.0), n=d.n)
+    f = fit_field(d.b_meas, d.temperature, y, Constant(50.0), diagnostics=False)
+    white = magnitude_interval_scale(d, Constant(50.0), y, fraction=0.1, folds=4, start=f)
+    assert 0.8 <= white["scale"] <= 1.25
+    assert white["n"] == int(np.sum(conformal_folds(d.run, fraction=0.1, folds=4, seed=0) >= 0)) == 200
+
+
+@pytest.mark.slow
 def test_conformal_scale_is_one_when_the_noise_model_is_right():
     """White reading noise (the Laplace predictive is right): the fold scale c is ~1 (declared band 0.85-1.2)
     and every training row of a fold is scored once. (On the Belsten recordings c = 1.27:
@@ -245,3 +260,26 @@ def test_fit_with_keep_equals_the_fit_of_the_kept_rows():
     b = fit_field(d.b_meas[keep], d.temperature[keep], c.f_ref[keep], Scalar())
     assert a.n == b.n == 700 and a.model.t0 == b.model.t0
     assert np.allclose(a.theta, b.theta, rtol=1e-7, atol=1e-9) and np.allclose(a.cov, b.cov, rtol=1e-6, atol=1e-14)
+
+
+# --------------------------------------------------------------------------- training domain of held-out rows
+
+
+@pytest.mark.parametrize("dt, scale, reason", [(20.0, 1.0, "temperature"), (0.0, 1.2, "magnitude"), (0.0, 1.0, "")])
+def test_field_domain_check_flags_rows_outside_the_training_ranges(dt, scale, reason):
+    """Held-out rows of the same campaign (every 4th row of a 15 -> 25 C dance) lie inside; moved 20 C warmer, or
+    predicted at 1.2 times the field, every row is flagged with that reason. The temperature limit is the rule's
+    (5 % of the span plus 0.5 C below the training minimum)."""
+    import dataclasses
+    from bayesmag._src.pipeline.field_stage import field_domain_check
+    d = simulate_field("dance", n=400, seed=1, temperature=(15.0, 25.0)).data
+    held = np.arange(400) % 4 == 0
+    tr, te = d.subset(np.flatnonzero(~held)), d.subset(np.flatnonzero(held))
+    te = dataclasses.replace(te, temperature=te.temperature + dt)
+    r = field_domain_check(tr, np.linalg.norm(tr.b_ref, axis=1), te, scale * np.linalg.norm(te.b_ref, axis=1))
+    if reason:
+        assert not r["in_domain"].any() and set(r["reason"]) == {reason} and r["by_reason"] == {reason: 100}
+    else:
+        assert r["in_domain"].all() and r["n_outside"] == 0 and set(r["reason"]) == {""}
+    lo, hi = r["training_ranges"]["temperature"]
+    assert np.isclose(lo, tr.temperature.min() - 0.05 * np.ptp(tr.temperature) - 0.5)

@@ -66,6 +66,17 @@ def test_scalar_belsten_against_vector_fit(belsten, tmp_path):
     # folds of the training rows see it too, and scaling by their conformal c must bring the coverage closer
     ic = m["scores"]["interval_calibration"]
     assert ic["scale"] > 1.1 and m["scores"]["coverage"] > ic["laplace_coverage"]
+    # held-out rows outside the training domain are flagged (predictions.csv in_domain) and counted: the 7 rows of
+    # run 4 at 65.4 uT lie above every training magnitude (61.1 uT; the rule's margin takes it to 64.4 uT)
+    import csv
+    pr = list(csv.DictReader(open(tmp_path / "b" / "predictions.csv")))
+    inside = np.array([r["in_domain"] == "True" for r in pr])
+    covered = np.array([r["covered"] == "True" for r in pr])
+    ref = np.array([float(r["reference_magnitude"]) for r in pr])
+    assert not inside[ref > 65.0].any() and (ref > 65.0).sum() == m["scores"]["n_outside_domain"] == 7
+    assert m["domain"]["by_reason"] == {"magnitude": 7}
+    assert np.isclose(m["scores"]["covered_or_flagged"], np.mean(covered | ~inside))
+    assert np.isclose(m["scores"]["coverage_in_domain"], np.mean(covered[inside]))
 
 
 # --------------------------------------------------------------------------- a scalar-magnetometer column in a CSV
@@ -159,11 +170,38 @@ def test_scalar_column_config_errors(raw, match):
 # --------------------------------------------------------------------------- the NUTS cross-check as a job stage
 
 
+def test_field_run_with_nuts_writes_the_outputs_quick(tmp_path, capsys):
+    """The quick version of the NUTS cross-check job (the full one is slow): a 300-row campaign, 1 chain x 30
+    draws (60 warm-up), no statistics judged (too few draws), only what is written: the summary's rows name every parameter
+    and invariant, the draws' shape, the verdict in the report and the CLI line."""
+    import csv
+    from bayesmag._src.app.cli import main
+    p = tmp_path / "c.toml"
+    p.write_text((CONFIGS / "field_simulated.toml").read_text()
+                 + "\n[nuts]\nenabled = true\nchains = 1\nwarmup = 60\ndraws = 30\nseed = 3\n")
+    rc = main(["run", str(p), "--out", str(tmp_path / "o"), "--no-progress", "--set", "measurement.simulate.n=300",
+               "--set", "output.figures=false", "--set", 'measurement.exports=["json"]',
+               "--set", "measurement.interval_calibration=\"none\"", "--set", "measurement.compare_vector=false"])
+    assert rc == 0
+    assert "NUTS: max R-hat" in capsys.readouterr().out
+    out = tmp_path / "o"
+    m = json.loads((out / "metrics.json").read_text())["field"]["nuts"]
+    assert m["chains"] == 1 and m["draws"] == 30
+    rows = list(csv.DictReader(open(out / "nuts_summary.csv")))
+    assert [r["name"] for r in rows if r["kind"] == "parameter"] == json.loads((out / "field_params.json").read_text())["param_names"]
+    assert "### NUTS cross-check" in (out / "report.md").read_text()
+    import xarray as xr
+    ds = xr.open_dataset(out / "nuts.nc", group="posterior", engine="h5netcdf")
+    assert ds["theta"].shape == (1, 30, len(rows) - 18)
+
+
+@pytest.mark.slow
 def test_field_run_with_nuts_writes_the_cross_check(tmp_path, capsys):
     """``[nuts] enabled = true`` in a field config: NUTS on the same posterior, summary files, verdict in the report.
 
     A 600-row two-temperature campaign, 2 chains x 150 draws: R-hat below 1.05 and the Laplace sds within 25 %
     of NUTS (looser than the job's verdict thresholds, which need more draws than a quick test affords).
+    About 45 s on the loaded 2-core machine: slow; the quick version above runs by default.
     """
     import csv
     from bayesmag._src.app.cli import main

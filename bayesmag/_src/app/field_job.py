@@ -55,6 +55,9 @@ def print_summary(m: dict) -> int:
     s = f["scores"]
     print(f"  held-out magnitude RMSE {s['rmse']:.4g} uT, {s['level']:.0%} coverage {s['coverage']:.1%}, "
           f"CRPS {s['crps']:.4g} uT")
+    if s.get("n_outside_domain"):
+        print(f"  {s['n_outside_domain']} held-out rows outside the training domain; inside it coverage "
+              f"{s['coverage_in_domain']:.1%}, covered or flagged {s['covered_or_flagged']:.1%}")
     if f.get("heading"):
         h = f["heading"]
         print(f"  heading error RMSE {h['rmse_deg']:.3g} deg on {h['n']} level rows, coverage {h['coverage']:.1%}")
@@ -113,6 +116,15 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
          "| RMSE (uT) | coverage | mean width (uT) | NLL | CRPS (uT) |", "|---|---|---|---|---|",
          f"| {_fmt(f['scores']['rmse'])} | {f['scores']['coverage']:.3f} (nominal {f['scores']['level']:g}) | "
          f"{_fmt(f['scores']['mean_width'])} | {_fmt(f['scores']['nll'])} | {_fmt(f['scores']['crps'])} |", ""]
+    sc = f["scores"]
+    if sc.get("n_outside_domain"):
+        dm = f.get("domain") or {}
+        L += [f"{sc['n_outside_domain']} held-out rows lie outside the training domain ("
+              + ", ".join(f"{k}: {v}" for k, v in dm.get("by_reason", {}).items())
+              + f"; in_domain = false in predictions.csv). Inside it ({sc['n_in_domain']} rows) the intervals cover "
+              f"{sc['coverage_in_domain']:.3f}; covered or flagged: {sc['covered_or_flagged']:.3f}.", ""]
+    else:
+        L += ["Every held-out row lies inside the training domain (measured inputs, temperature, magnitude).", ""]
     ic = f["scores"].get("interval_calibration")
     if ic:
         L += [f"Intervals: the Laplace predictive sd times the conformal scale c = {ic['scale']:.3g}, from {ic['folds']} "
@@ -171,17 +183,28 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
     return L
 
 
-def _write_predictions(path: Path, test, rows, y, pred, level):
+def _write_predictions(path: Path, test, rows, y, pred, level, domain=None):
     k = scipy.stats.norm.ppf(0.5 + level / 2)
     lo, hi = pred["mean"] - k * pred["total"], pred["mean"] + k * pred["total"]
+    inside = np.ones(test.n, bool) if domain is None else domain["in_domain"]
+    reason = np.full(test.n, "", object) if domain is None else domain["reason"]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["row", "time", "run", "temperature", "reference_magnitude", "predicted_magnitude", "epistemic",
-                    "noise", "total", "lower", "upper", "covered"])
+                    "noise", "total", "lower", "upper", "covered", "in_domain", "in_domain_reason"])
         for i in range(test.n):
             w.writerow([int(rows[i]), f"{test.time[i]:.6f}", int(test.run[i]), f"{test.temperature[i]:.6g}",
                         f"{y[i]:.8g}", f"{pred['mean'][i]:.8g}", f"{pred['epistemic'][i]:.6g}", f"{pred['noise'][i]:.6g}",
-                        f"{pred['total'][i]:.6g}", f"{lo[i]:.8g}", f"{hi[i]:.8g}", bool(lo[i] <= y[i] <= hi[i])])
+                        f"{pred['total'][i]:.6g}", f"{lo[i]:.8g}", f"{hi[i]:.8g}", bool(lo[i] <= y[i] <= hi[i]),
+                        bool(inside[i]), reason[i]])
+
+
+def _domain_warning(dom, n) -> list[str]:
+    if not dom or not dom["n_outside"]:
+        return []
+    why = ", ".join(f"{k} ({v} rows)" for k, v in dom["by_reason"].items())
+    return [f"{dom['n_outside']} of {n} held-out rows lie outside the training domain ({why}; in_domain=false in "
+            "predictions.csv): their predictions are extrapolation and their intervals may be too narrow."]
 
 
 def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> dict:
@@ -247,7 +270,9 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                "min_magnitude": mc.min_magnitude, "scores": fs.scores,
                "heading": None if fs.heading is None else {k: v for k, v in fs.heading.items()
                                                            if not isinstance(v, np.ndarray)},
-               "vector_comparison": fs.vector, "exports": list(mc.exports)}
+               "vector_comparison": fs.vector, "exports": list(mc.exports),
+               "domain": None if fs.domain is None else {k: v for k, v in fs.domain.items()
+                                                         if not isinstance(v, np.ndarray)}}
     if campaign is not None:
         inv, truth = fs.fit.invariants(), campaign.truth.invariants(fs.fit.model.t0)
         z = (inv["value"] - truth) / np.maximum(inv["sd"], 1e-300)
@@ -260,12 +285,14 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         field_m["nuts"] = {k: v for k, v in nuts.items() if k not in ("samples", "rows")}
     metrics = {"field": field_m, "split": split.as_dict(),
                "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs]},
-               "warnings": [n for n in fs.fit.notes] + ([] if nuts is None else list(nuts["warnings"]))}
+               "warnings": [n for n in fs.fit.notes] + ([] if nuts is None else list(nuts["warnings"]))
+               + _domain_warning(fs.domain, test.n)}
     with staging_dir(Path(out)) as tmp:
         t = time.perf_counter()
         (tmp / "field_params.json").write_text(json.dumps(params, indent=2))
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
-        _write_predictions(tmp / "predictions.csv", test, split.test, fs.target_test, fs.prediction, cfg.uq.level)
+        _write_predictions(tmp / "predictions.csv", test, split.test, fs.target_test, fs.prediction, cfg.uq.level,
+                           fs.domain)
         for fmt, text in field_export_texts(fs.fit, train, mc.exports).items():
             from bayesmag._src.app.formats import FORMATS
             (tmp / f"calibration{FORMATS[fmt]}").write_text(text)

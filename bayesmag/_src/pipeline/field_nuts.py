@@ -77,7 +77,8 @@ def field_nuts(fit: FieldFit, u, t, target, *, chains: int = 2, warmup: int = 30
               progress_bar=False)
     init = jnp.zeros((chains, model.n_params)) + 0.1 * jax.random.normal(jax.random.PRNGKey(seed + 1),
                                                                           (chains, model.n_params))
-    mc.run(jax.random.PRNGKey(seed), init_params=init, extra_fields=("diverging",))
+    mc.run(jax.random.PRNGKey(seed), init_params=init[0] if chains == 1 else init,   # one chain: (p,)
+           extra_fields=("diverging",))
     z = np.asarray(mc.get_samples(group_by_chain=True))              # (chains, draws, p)
     div = int(np.sum(np.asarray(mc.get_extra_fields()["diverging"])))
     th = np.asarray(centre) + np.asarray(scale) * z

@@ -18,7 +18,7 @@ from bayesmag._src.core.field import (INVARIANT_NAMES, FieldFit, FieldPrior, fit
 from bayesmag._src.core.measurement import MeasurementModel, Vector
 
 __all__ = ["FieldStage", "run_field_stage", "vector_comparison", "heading_check", "conformal_plan",
-           "magnitude_interval_scale"]
+           "magnitude_interval_scale", "field_domain_check"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,6 +34,7 @@ class FieldStage:
     heading: dict | None       # heading check (None when heading cannot be checked)
     vector: dict | None        # comparison with a vector fit (None without a vector reference)
     timings: dict
+    domain: dict | None = None  # training-domain check of the test rows (:func:`field_domain_check`)
 
 
 def heading_check(fit: FieldFit, data: CalibrationData, rows: np.ndarray, true_heading: np.ndarray,
@@ -54,6 +55,44 @@ def heading_check(fit: FieldFit, data: CalibrationData, rows: np.ndarray, true_h
             "coverage_params_only": float(np.mean(np.abs(err) <= k * np.sqrt(h["sd_params"]**2 + 1e-30))),
             "level": level, "conditional_on": "the gauge-to-body rotation (from the known attitudes)",
             "error": err, "sd": h["sd"]}
+
+
+def field_domain_check(train: CalibrationData, y_train_mag, test: CalibrationData, predicted_mag, *,
+                       margin: float = 0.05) -> dict:
+    """Which test rows lie outside the training domain of a field calibration.
+
+    The rule of the vector predictor's :class:`~bayesmag._src.core.domain.Domain` (ranges widened by ``margin``
+    of their span plus 0.5 uT / 0.5 C): each measured input Bx, By, Bz and the temperature against its
+    training range (reasons ``field_range``, ``temperature``), and the predicted field magnitude against the
+    training reference magnitudes (``magnitude``: a magnitude calibration is fitted on those magnitudes only;
+    outside them an error that grows with the field is extrapolated). Rates are not checked.
+
+    Returns ``in_domain`` (n,) bool, ``reason`` (n,) strings ('' inside, else reasons joined by ``;``) and the
+    ranges and counts.
+
+    Example:
+      >>> from bayesmag.simulate import simulate_field
+      >>> d = simulate_field("dance", n=200, seed=0).data
+      >>> r = field_domain_check(d, np.full(200, 50.0), d, np.full(200, 60.0))
+      >>> int(r["in_domain"].sum()), r["by_reason"]
+      (0, {'magnitude': 200})
+    """
+    from bayesmag._src.core.domain import Domain, _box
+
+    lo, hi = _box(np.column_stack([train.b_meas, train.temperature]), margin, 0.5)
+    out = Domain(lo, hi, margin).outside(test)                                        # (n, 4): Bx, By, Bz, T
+    mlo, mhi = _box(np.asarray(y_train_mag, np.float64).reshape(-1, 1), margin, 0.5)
+    pm = np.asarray(predicted_mag, np.float64)
+    out_mag = (pm < mlo[0]) | (pm > mhi[0])
+    hits = {"field_range": out[:, :3].any(axis=1), "temperature": out[:, 3], "magnitude": out_mag}
+    reason = np.full(test.n, "", dtype=object)
+    for k, h in hits.items():
+        reason[h] = np.where(reason[h] == "", k, reason[h] + ";" + k)
+    inside = reason == ""
+    return {"in_domain": inside, "reason": reason, "margin": margin, "n_outside": int((~inside).sum()),
+            "by_reason": {k: int(h.sum()) for k, h in hits.items() if h.any()},
+            "training_ranges": {"bx_meas": [lo[0], hi[0]], "by_meas": [lo[1], hi[1]], "bz_meas": [lo[2], hi[2]],
+                                "temperature": [lo[3], hi[3]], "magnitude": [mlo[0], mhi[0]]}}
 
 
 def vector_comparison(fit: FieldFit, train: CalibrationData, *, covariance: str = "white") -> dict:
@@ -190,6 +229,10 @@ def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: 
     if cal is not None:
         pred = {**pred, "laplace_total": pred["total"], "scale": cal["scale"], "total": cal["scale"] * pred["total"]}
     scores = gaussian_scores(y_mag, pred["mean"], pred["total"], level)
+    y_tr_mag = (np.linalg.norm(y_tr, axis=1) if isinstance(measurement, Vector)
+                else np.asarray(measurement.magnitude(y_tr, fit.matrices()[4])))
+    dom = field_domain_check(train, y_tr_mag, test, pred["mean"])
+    scores.update(_domain_scores(y_mag, pred["mean"], pred["total"], dom["in_domain"], level))
     scores["interval_calibration"] = (None if cal is None else
                                       {**cal, "laplace_coverage": raw["coverage"], "laplace_nll": raw["nll"],
                                        "laplace_crps": raw["crps"], "laplace_mean_width": raw["mean_width"]})
@@ -204,4 +247,14 @@ def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: 
         t = time.perf_counter()
         vec = vector_comparison(fit, train, covariance=covariance)
         timings["vector_comparison"] = time.perf_counter() - t
-    return FieldStage(fit, train, test, y_mag, pred, scores, hd, vec, timings)
+    return FieldStage(fit, train, test, y_mag, pred, scores, hd, vec, timings, dom)
+
+
+def _domain_scores(y, mean, sd, inside, level) -> dict:
+    """Scores split by the domain flag: coverage inside, and "covered or flagged" over all rows."""
+    import scipy.stats
+    covered = np.abs(np.asarray(y) - mean) <= scipy.stats.norm.ppf(0.5 + level / 2) * sd
+    return {"n_in_domain": int(inside.sum()), "n_outside_domain": int((~inside).sum()),
+            "coverage_in_domain": float(np.mean(covered[inside])) if inside.any() else None,
+            "rmse_in_domain": float(np.sqrt(np.mean((y - mean)[inside] ** 2))) if inside.any() else None,
+            "covered_or_flagged": float(np.mean(covered | ~inside))}
