@@ -29,6 +29,7 @@ from bayesmag._src.core import metrics as M
     (27.6234, 0.0123, ("27.623", "0.012")),
     (12.345, 0.996, ("12.3", "1.0")),                 # u rounds up to 1.0: the value follows to one decimal
     (-3.2e-05, 4.87e-07, ("-3.200e-05", "4.9e-07")),  # small numbers: scientific, same last decimal place
+    (3.2475e-03, 9.7e-06, ("0.0032475", "0.0000097")),  # a thermal gain: fixed, as its neighbours in the table
     (123456.7, 12.3, ("123457", "12")),
     (0.00001, 0.02, ("0.000", "0.020")),              # no "-0.000"
     (2.5, 0.0, ("2.5", "0")),                         # no uncertainty: value to 6 significant figures

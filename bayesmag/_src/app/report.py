@@ -98,7 +98,8 @@ def gum_round(value: float, u: float, sig: int = 2) -> tuple[str, str]:
     vr = round(value, -d)
     if vr == 0:
         vr = 0.0                                 # no "-0.000"
-    fixed = -6 <= d and max(abs(vr), ur) < 1e6      # one notation for the pair
+    fixed = -7 <= d and max(abs(vr), ur) < 1e6      # one notation for the pair (fixed down to 1e-7: a table of
+                                                    # thermal gains reads 0.0032475 beside 0.007999, not 3.2475e-03)
     return _digits(vr, d, fixed), _digits(ur, d, fixed)
 
 
