@@ -269,6 +269,47 @@ def _mu_cov(hs, m0, m1, m2, first, n, effects, ts, ss, reml=0.0, df=None):
     return jax.vmap(lambda h: _lp(h, m0, m1, m2, first, n, effects, ts, ss, reml, df)[1:])(hs)
 
 
+@functools.partial(jax.jit, static_argnames=("df",))
+def _lp_mu_cov(hs, m0, m1, m2, first, n, effects, ts, ss, reml=0.0, df=None):
+    """The collapsed log posterior, ``mu_hat`` and its covariance at every row of ``hs`` (vmapped)."""
+    return jax.vmap(lambda h: _lp(h, m0, m1, m2, first, n, effects, ts, ss, reml, df))(hs)
+
+
+#: Proposals drawn for the importance correction of the Laplace posterior (:func:`fit_laplace`).
+N_PROPOSALS = 4000
+#: Degrees of freedom of the multivariate-t proposal (heavier tails than the posterior's, so the weights are bounded).
+PROPOSAL_DF = 4.0
+
+
+def _importance_draws(rng, h0, cov_h, lp_fn, draws: int, proposals: int = N_PROPOSALS):
+    r"""``draws`` draws of ``h`` from the exact collapsed posterior by importance resampling.
+
+    Proposal: a multivariate t with :data:`PROPOSAL_DF` dof around the mode with the (floored) Laplace
+    covariance; weights :math:`\exp(\mathrm{lp}(h) - \log q(h))`, resampled (systematic). The Gaussian
+    approximation in :math:`\log\tau` has lighter tails than the posterior of a between-session variance
+    estimated from a few sessions (for a variance from ``R`` groups the exact posterior is close to a scaled
+    inverse chi-square with ``R - 1`` dof, whose right tail is a power law): with 7 sessions the Laplace
+    draws alone gave a new session's predictive 9-20 dof instead of about 6. Returns ``(draws, ess)``: the
+    resampled ``h`` (draws, d) and the importance sample's effective size.
+    """
+    d = h0.size
+    z = rng.multivariate_normal(np.zeros(d), cov_h, size=proposals, method="eigh")
+    g = rng.chisquare(PROPOSAL_DF, size=proposals) / PROPOSAL_DF
+    hs = h0 + z / np.sqrt(g)[:, None]
+    w_, V = np.linalg.eigh(cov_h)
+    maha = np.sum(((hs - h0) @ V) ** 2 / np.maximum(w_, 1e-300), axis=1)
+    logq = -0.5 * (PROPOSAL_DF + d) * np.log1p(maha / PROPOSAL_DF)
+    lp = np.asarray(lp_fn(hs), np.float64)
+    logw = np.where(np.isfinite(lp), lp - logq, -np.inf)
+    if not np.isfinite(logw).any():
+        return hs[:draws], 0.0
+    w = np.exp(logw - logw.max())
+    w /= w.sum()
+    ess = float(1.0 / np.sum(w**2))
+    idx = np.searchsorted(np.cumsum(w), (rng.uniform() + np.arange(draws)) / draws)
+    return hs[np.minimum(idx, proposals - 1)], ess
+
+
 #: Likelihoods of the hierarchical model (registered families with a Gaussian scale-mixture form, per run).
 LIKELIHOODS = ("gaussian", "student_t")
 #: sd of log tau under the half-normal prior (of log|z|, z ~ N(0, 1)): pi / sqrt(8).
@@ -433,19 +474,21 @@ def _init_h(stats: RunStats, a: int, tau_scale: float) -> np.ndarray:
 def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
                 sigma_scale: float = SIGMA_PRIOR_SCALE, draws: int = N_DRAWS, seed: int = 0,
                 return_modes: bool = False, likelihood: str = "gaussian", df: float = 4.0,
-                reml: float = REML) -> SessionPosterior:
+                reml: float = REML, importance: bool = True) -> SessionPosterior:
     """Laplace approximation of the collapsed hyperparameter posterior (module docstring), per axis.
 
     The mode by BFGS (JAX gradients), the covariance the inverse Hessian there; ``draws`` draws of
     ``h`` from it give the variance moments and, averaged, the covariance of ``mu``. ``likelihood``:
     ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`); ``reml``: 1 integrates
-    the flat ``mu`` out (restricted likelihood), 0 profiles it (maximum).
+    the flat ``mu`` out (restricted likelihood), 0 profiles it (maximum); ``importance``: the draws are
+    corrected to the exact collapsed posterior by importance resampling (:func:`_importance_draws`; False:
+    the Gaussian approximation's own draws).
     """
     dfs = _check_likelihood(likelihood, df)
     rng = np.random.default_rng(seed)
     q = stats.effects.size
     eff = jnp.asarray(stats.effects)
-    tau2, noise, covs, mus, modes = [], [], [], [], []
+    tau2, noise, covs, mus, modes, esss = [], [], [], [], [], []
     for a in range(3):
         args = (jnp.asarray(stats.m0[a]), jnp.asarray(stats.m1[a]), jnp.asarray(stats.m2[a]),
                 jnp.asarray(stats.first[a]), jnp.asarray(stats.n), eff, tau_scale, sigma_scale, float(reml))
@@ -461,7 +504,12 @@ def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float
         Hh = np.asarray(_hessian(jnp.asarray(h0), *args, df=dfs))
         w, V = np.linalg.eigh(0.5 * (Hh + Hh.T))
         cov_h = (V / np.maximum(w, MIN_CURVATURE)) @ V.T
-        hs = rng.multivariate_normal(h0, cov_h, size=draws, method="eigh")
+        if importance:
+            hs, ess = _importance_draws(rng, h0, cov_h, lambda x: _lp_mu_cov(jnp.asarray(x), *args, df=dfs)[0],
+                                        draws)
+            esss.append(ess)
+        else:
+            hs = rng.multivariate_normal(h0, cov_h, size=draws, method="eigh")
         tau2.append(np.exp(2 * hs[:, :q]))
         rho = np.tanh(hs[:, q + 1])
         noise.append(np.exp(2 * hs[:, q]) / (1 - rho**2))
