@@ -245,7 +245,7 @@ def _collapsed_t(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=
     ``mu`` has no closed form here: its mode by iteratively reweighted GLS (the EM update of the scale
     mixture, weights :math:`E[w_r^{-1} \mid y_r] = -2\,\partial g/\partial Q_r`, for the t
     :math:`(\nu+n_r)/(\nu+Q_r)`; from the Gaussian solution until the relative change is below 1e-11, at
-    most ``iters`` steps, outside the gradient), then one
+    most ``iters`` steps, and one Newton step, outside the gradient), then one
     Newton step that carries the derivative of the mode (implicit differentiation: at the mode the step is
     zero and its derivative is :math:`-H^{-1}\partial_h \nabla_\mu`), its covariance the inverse observed
     information there; ``reml`` = 1 adds the Laplace approximation of integrating a flat ``mu`` (exact in
@@ -289,11 +289,16 @@ def _collapsed_t(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=
     def loglik(m):
         return jnp.sum(_mix_log_g(jnp.maximum(quad(m), 0.0), n, df) - 0.5 * logdet)
 
+    def newton(m):
+        return m - jnp.linalg.solve(jax.hessian(loglik)(m), jax.grad(loglik)(m))
+
+    mu_s = jax.lax.stop_gradient(newton(mu_s))           # polish: the EM steps converge linearly
     grad_mu = jax.grad(loglik)(mu_s)
     info = -jax.hessian(loglik)(mu_s)
     info = 0.5 * (info + info.T)
     mu = mu_s + jnp.linalg.solve(info, grad_mu)          # zero step at the mode; carries d mu / d h
-    ch = jnp.linalg.cholesky(info)
+    info = -jax.hessian(loglik)(mu)                      # at mu: the REML term's derivative goes through mu too
+    ch = jnp.linalg.cholesky(0.5 * (info + info.T))
     lp = loglik(mu) + reml * (0.5 * p * jnp.log(2 * jnp.pi) - jnp.sum(jnp.log(jnp.diag(ch))))
     lp += jnp.sum(-0.5 * (tau / tau_scale) ** 2 + h[:q]) - 0.5 * (sigma / sigma_scale) ** 2 + h[q]
     lp += jnp.log1p(-rho**2)
