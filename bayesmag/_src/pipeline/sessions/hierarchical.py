@@ -466,6 +466,7 @@ class SessionPosterior:
     centre: np.ndarray | None = None
     prior_only: tuple = ()
     laplace: bool = False
+    ess: tuple = ()     # per axis: effective sample size of the importance correction (Laplace path; () if none)
 
     @property
     def tau(self) -> np.ndarray:
@@ -542,6 +543,7 @@ class SessionPosterior:
         return {"method": self.method, "n_runs": int(self.n_runs), "effects": list(self.effects),
                 "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None,
                 "prior_only": list(self.prior_only),
+                **({"importance_ess": [round(float(e), 1) for e in self.ess]} if self.ess else {}),
                 "tau": {ax: dict(zip(self.effects, map(float, self.tau[a]))) for a, ax in enumerate(AXES)},
                 "noise_sd": {ax: float(np.sqrt(self.w_mean[a, -1])) for a, ax in enumerate(AXES)}}
 
@@ -632,6 +634,7 @@ def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float
         modes.append(h0)
     post = _summarise(np.stack(tau2), np.stack(noise), np.stack(covs), np.stack(mus), stats, names, level, "laplace",
                       df=math.inf if dfs is None else dfs)
+    post = dataclasses.replace(post, ess=tuple(esss))
     return (post, np.stack(modes)) if return_modes else post
 
 
