@@ -84,7 +84,8 @@ def generators(args):
             train = _session(draw, args.runs, rows=100, session_params=gen)
             pr = _calibrate(train)
             t = time.perf_counter()
-            post = H.fit_sessions(train, pr.fit, seed=draw, likelihood=args.likelihood, df=args.df)
+            post = H.fit_sessions(train, pr.fit, seed=draw, likelihood=args.likelihood, df=args.df,
+                                  importance=args.laplace_draws == "importance")
             secs.append(time.perf_counter() - t)
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
@@ -198,6 +199,8 @@ def main():
     ap.add_argument("--generator", nargs="+", default=list(GENERATORS), choices=sorted(GENERATORS))
     ap.add_argument("--likelihood", default="gaussian", choices=list(H.LIKELIHOODS), help="hierarchical model's likelihood")
     ap.add_argument("--df", type=float, default=4.0, help="its Student-t dof")
+    ap.add_argument("--laplace-draws", default="importance", choices=["importance", "gaussian"],
+                    help="Laplace path: draws corrected to the exact posterior (default) or the Gaussian's own")
     args = ap.parse_args()
     print(f"## `python benchmarks/bench_hierarchical.py {' '.join(sys.argv[1:])}`\n")
     {"generators": generators, "belsten": belsten, "pooling": pooling}[args.what](args)

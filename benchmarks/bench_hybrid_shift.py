@@ -62,13 +62,61 @@ def leave_one_out(path: Path, run: int, out: Path, transfer: str = "loro") -> di
             "tau": np.array([tau[a] for a in AXES])}
 
 
+def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("loro", "hierarchical")) -> dict:
+    """Both transfers from one calibration: the job's settings, ``calibrate`` in this process (compiled
+    programs reused across sessions), the hybrid predictor with each transfer part.
+
+    The network and its conformal scale do not depend on ``uq.transfer`` (the scale is computed on rows of
+    the training sessions, without the transfer part), so swapping the transfer part of the predictor
+    gives what a job with that transfer would predict (``--separate-jobs`` runs the jobs).
+    """
+    import dataclasses
+
+    from bayesmag._src.core.predictor import estimate_transfer
+    from bayesmag._src.pipeline.calibrate import calibrate
+
+    raw = {"name": "hybrid_shift", "data": {"path": "unused.csv"}, "split": {"kind": "by_run", "test_runs": [run]},
+           "physics": {"t0": "mean"}, "uq": {"method": "psqmc", "n_params": 100, "n_qmc": 128, "seed": 0,
+                                             "transfer": "hierarchical"},
+           "network": {"enabled": True, "learning_rate": 1e-3, "batch_size": 64, "max_epochs": 200, "patience": 20,
+                       "mc_passes": 50, "seed": 0},
+           "output": {"figures": False, "progress": False}}
+    train, test = data.subset(np.flatnonzero(data.run != run)), data.subset(np.flatnonzero(data.run == run))
+    cr = calibrate(train, config_from_dict(raw).settings(), test=test)
+    hyb, phys = cr.predictor, cr.physics.predictor
+    loro = estimate_transfer(train, cr.fit).sd
+    out = {}
+    for t in transfers:
+        if t == "loro":
+            hp, pp = (dataclasses.replace(p, sessions=None, transfer_sd=loro) for p in (hyb, phys))
+            tau = loro
+        else:
+            hp, pp = hyb, phys
+            tau = np.sqrt(np.mean(hyb.transfer_part(train) ** 2, axis=0))
+        res = {}
+        for key, pr in (("hybrid", hp), ("physics", pp)):
+            p = pr.predict(test)
+            lo, hi = p.interval(0.95)
+            res[key] = (test.b_ref >= lo) & (test.b_ref <= hi)
+        ind = np.asarray(p.in_domain, bool)
+        nan = np.full(3, np.nan)
+        out[t] = {"in_domain": ind.mean(), "hybrid": res["hybrid"][ind].mean(0) if ind.any() else nan,
+                  "flagged_or_covered": (res["hybrid"] | ~ind[:, None]).mean(0),
+                  "physics": res["physics"][ind].mean(0) if ind.any() else nan, "tau": tau}
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", type=int, default=8)
     ap.add_argument("--rows", type=int, default=600)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--transfer", default="loro", help="[uq] transfer of every job (loro, hierarchical, ...)")
+    ap.add_argument("--both", action="store_true",
+                    help="loro and hierarchical from one calibration per left-out session, in this process")
     a = ap.parse_args(argv)
+    if a.both:
+        return main_both(a)
     f = lambda v: " / ".join("-" if np.isnan(x) else f"{100 * x:.1f}" for x in v)   # noqa: E731
     print(f"## `python benchmarks/bench_hybrid_shift.py --sessions {a.sessions} --rows {a.rows} --seeds "
           f"{' '.join(map(str, a.seeds))}{'' if a.transfer == 'loro' else ' --transfer ' + a.transfer}`\n")
@@ -90,6 +138,33 @@ def main(argv=None) -> int:
           f"{f(np.nanmean([r['hybrid'] for r in allr], 0))}, rows covered or flagged {f(fc.mean(0))}, physics "
           f"in-domain {f(np.nanmean([r['physics'] for r in allr], 0))}; sessions under 95 % covered or flagged: "
           f"{' / '.join(str(int(v)) for v in (fc < 0.95).sum(0))} of {len(allr)}.")
+    return 0
+
+
+def main_both(a) -> int:
+    f = lambda v: " / ".join("-" if np.isnan(x) else f"{100 * x:.1f}" for x in v)   # noqa: E731
+    print(f"## `python benchmarks/bench_hybrid_shift.py --both --sessions {a.sessions} --rows {a.rows} --seeds "
+          f"{' '.join(map(str, a.seeds))}`\n")
+    print("| seed | left-out session | transfer | rows in domain (%) | hybrid in-domain coverage x / y / z (%) | rows "
+          "covered or flagged x / y / z (%) | physics in-domain coverage (%) | transfer sd x / y / z (uT) |")
+    print("|---|---|---|---|---|---|---|---|")
+    allr = {"loro": [], "hierarchical": []}
+    for seed in a.seeds:
+        d = sessions(a.sessions, a.rows, seed)
+        for run in range(1, a.sessions + 1):
+            for t, r in leave_one_out_both(d, run).items():
+                allr[t].append((seed, run, r))
+                print(f"| {seed} | {run} | {t} | {100 * r['in_domain']:.1f} | {f(r['hybrid'])} | "
+                      f"{f(r['flagged_or_covered'])} | {f(r['physics'])} | {' / '.join(f'{x:.3g}' for x in r['tau'])} |",
+                      flush=True)
+    for t, rows in allr.items():
+        fc = np.array([r["flagged_or_covered"] for _, _, r in rows])
+        miss = ", ".join(f"{s}-{u} {AXES[k]} {100 * r['flagged_or_covered'][k]:.1f}" for s, u, r in rows for k in range(3)
+                         if r["flagged_or_covered"][k] < 0.95)
+        print(f"\n{t}: mean over {len(rows)} left-out sessions: hybrid in-domain coverage "
+              f"{f(np.nanmean([r['hybrid'] for _, _, r in rows], 0))}, rows covered or flagged {f(fc.mean(0))}, "
+              f"physics in-domain {f(np.nanmean([r['physics'] for _, _, r in rows], 0))}; sessions under 95 % "
+              f"covered or flagged: {' / '.join(str(int(v)) for v in (fc < 0.95).sum(0))} of {len(rows)} ({miss}).")
     return 0
 
 

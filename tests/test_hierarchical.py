@@ -225,7 +225,9 @@ def _check_condition_table(out, m, res):
             uc2 = same["u_c"] ** 2 + c[a] ** 2
             nu = uc2**2 / (same["u_c"] ** 4 / same["nu_eff"])      # Welch-Satterthwaite, transfer dof inf
             k = scipy.stats.t.ppf(0.975, nu)
-            assert U[a] == pytest.approx(k * np.sqrt(uc2), rel=0.03)  # the table rounds to 2 significant digits
+            want = k * np.sqrt(uc2)             # the table rounds to 2 significant digits: half its last digit
+            half = 0.5 * max(10.0 ** (np.floor(np.log10(abs(v))) - 1) for v in (want, U[a]))
+            assert abs(U[a] - want) <= half * (1 + 1e-9), (U[a], want)
 
 
 @pytest.mark.parametrize("rho,df", [(0.0, 3.0), (0.6, 5.0), (-0.3, 30.0)])
@@ -355,3 +357,114 @@ def test_belsten_run_3_left_out_is_covered_or_flagged():
     lo, hi = p.interval(0.95)
     ok = ((test.b_ref >= lo) & (test.b_ref <= hi)) | ~p.in_domain[:, None]
     assert np.all(ok.mean(0) >= 0.95), ok.mean(0)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.6])
+def test_laplace_run_density_equals_scipy(rho):
+    """The Laplace session likelihood (issue 24 item 1): one run's rows jointly N(0, w V), w ~ Exp(1). One row:
+    scipy.stats.laplace with variance V (1e-5 relative: the 32-node quadrature is least exact for one row); 5 and 30 rows: the closed form with scipy's Bessel K
+    (``kve``) and the dense V (1e-8 relative), and for 5 rows scipy's numerical integral over w of
+    scipy.stats.multivariate_normal (1e-6 relative)."""
+    import scipy.integrate
+    import scipy.special
+
+    rng = np.random.default_rng(3)
+    p, k, sigma = 3, 2, 0.7
+    for n in (1, 5, 30):
+        X = rng.normal(size=(n, p))
+        y = rng.normal(size=n) * 1.5
+        mu, L = rng.normal(size=p), rng.normal(size=(p, k)) * 0.5
+        z = np.column_stack([X, y])
+        G = H.whitened_gram(z[1:].T @ z[1:], z[1:].T @ z[:-1], z[:-1].T @ z[:-1], np.outer(z[0], z[0]), rho)
+        got = float(H.run_loglik(jnp.asarray(G), n, jnp.asarray(mu), jnp.asarray(L), sigma**2, rho, "laplace"))
+        V = X @ L @ L.T @ X.T + _ar1_cov(n, sigma, rho)
+        r = y - X @ mu
+        if n == 1:
+            want = scipy.stats.laplace(0.0, np.sqrt(V[0, 0] / 2)).logpdf(r[0])
+            np.testing.assert_allclose(got, want, rtol=1e-5)
+            continue
+        Q = r @ np.linalg.solve(V, r)
+        nu = 1 - n / 2
+        want = (-n / 2 * np.log(2 * np.pi) - 0.5 * np.linalg.slogdet(V)[1] + np.log(2) + nu / 2 * np.log(Q / 2)
+                + np.log(scipy.special.kve(nu, np.sqrt(2 * Q))) - np.sqrt(2 * Q))
+        np.testing.assert_allclose(got, want, rtol=1e-8)
+        if n == 5:
+            dens = lambda w: scipy.stats.multivariate_normal(np.zeros(n), w * V).pdf(r) * np.exp(-w)  # noqa: E731
+            num = scipy.integrate.quad(dens, 0, np.inf, epsabs=0, epsrel=1e-10, limit=200)[0]
+            np.testing.assert_allclose(got, np.log(num), rtol=1e-6)
+
+
+def test_importance_draws_recover_an_inverse_chi_square_variance():
+    """The importance correction of the Laplace draws (``_importance_draws``): for a variance with the posterior of
+    few groups, tau^2 ~ scaled-Inv-chi^2(nu = 10, 1), in x = log tau^2 the Gaussian approximation at the mode
+    (mean 0, sd sqrt(2/nu)) gives E tau^2 = 1.105 and Var/mean^2 = 0.221; the exact values are nu/(nu-2) = 1.25
+    and 2/(nu-4) = 0.333. Resampled draws: within 3 % and 0.05 (20 000 draws; the seed-to-seed sd of the
+    ratio is about 0.015)."""
+    nu = 10.0
+
+    def lp(xs):
+        x = xs[:, 0]
+        return (-(nu / 2) * x - nu / (2 * np.exp(x)),)
+
+    rng = np.random.default_rng(0)
+    hs, _, ess = H._importance_draws(rng, np.zeros(1), np.array([[2 / nu]]), lp, 20_000, proposals=60_000)
+    t2 = np.exp(hs[:, 0])
+    assert ess > 20_000
+    assert t2.mean() == pytest.approx(nu / (nu - 2), rel=0.03)
+    assert t2.var() / t2.mean() ** 2 == pytest.approx(2 / (nu - 4), abs=0.05)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("df", [4.0, "laplace"])
+def test_scale_mixture_gradient_carries_the_mode_derivative(df):
+    """``_collapsed_t`` finds mu by reweighting outside the gradient and one differentiable Newton step: its
+    gradient in h (REML term included, which depends on d mu / d h) equals central differences of its value
+    (1e-5 relative), for the Student-t and the Laplace likelihood."""
+    d = _session(4, 6, rows=50, session_params=lambda g: _heavy_params(g))
+    fit = bayesmag.fit_physics(d, bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature))))
+    st = H.run_stats(d, fit, ("O", "S_x"))
+    args = [jnp.asarray(x) for x in (st.m0[1], st.m1[1], st.m2[1], st.first[1], st.n)]
+    f = lambda h: H._collapsed_t(h, *args, jnp.asarray(st.effects), 0.5, 1.0, 1.0, df)[0]  # noqa: E731
+    h = jnp.asarray([np.log(0.2), np.log(0.05), np.log(0.03), np.arctanh(0.6)])
+    g = np.asarray(jax.grad(f)(h))
+    eps = 1e-3                      # five-point stencil: truncation ~eps^4, the mode's stopping rule's noise / eps
+    v = lambda i, k: float(f(h.at[i].add(k * eps)))  # noqa: E731
+    fd = np.array([(v(i, -2) - 8 * v(i, -1) + 8 * v(i, 1) - v(i, 2)) / (12 * eps) for i in range(h.size)])
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_laplace_posterior_is_saved_and_its_interval_is_never_below_the_laplace_one():
+    """A Laplace session posterior: saved (meta + arrays) and read back as Laplace; its new-session equivalent
+    variance is at least the Laplace's own at the mean variance (the moment-matched t, 6 dof for exact
+    hyperparameters, has a 95 % interval 5.7 % shorter: scipy.stats.laplace against scipy.stats.t); a Gaussian
+    meta with a df, or an unknown likelihood, is refused naming the field."""
+    q, p = 1, 4
+    post = H.SessionPosterior(np.array([[0.04, 0.01]] * 3), np.zeros((3, 2, 2)), np.zeros((3, p, p)), np.ones((3, p)),
+                              ("O",), 0.95, 8, "laplace", np.zeros((3, p)), effect_index=(3,), laplace=True)
+    meta, arrays = post.meta(), post.as_arrays()
+    assert meta["likelihood"] == "laplace" and meta["df"] is None
+    back = H.posterior_from_artifact(json.loads(json.dumps(meta)), arrays, ("S_x", "S_y", "S_z", "O"))
+    assert back.laplace and back.likelihood == "laplace"
+    J = np.zeros((3, 2, p))
+    J[:, :, 3] = 1.0
+    v = back.new_session_variance(J)
+    z = scipy.stats.norm.ppf(0.975)
+    lap = (scipy.stats.laplace(0, np.sqrt(0.05 / 2)).ppf(0.975) / z) ** 2
+    np.testing.assert_allclose(v, lap, rtol=1e-9)
+    t6 = scipy.stats.t.ppf(0.975, 6) * np.sqrt(4 / 6) / scipy.stats.laplace(0, np.sqrt(1 / 2)).ppf(0.975)
+    assert t6 == pytest.approx(1 - 0.057, abs=0.002)
+    for bad, field in (({**meta, "likelihood": "gaussian", "df": 3.0}, "sessions.df"),
+                       ({**meta, "likelihood": "cauchy"}, "sessions.likelihood")):
+        with pytest.raises(ValueError, match=field):
+            H.posterior_from_artifact(bad, arrays, ("S_x", "S_y", "S_z", "O"))
+
+
+def test_laplace_likelihood_from_the_config():
+    """`[uq] transfer_likelihood = "laplace"` is accepted; an unknown family is refused naming the key and the
+    choices."""
+    from bayesmag._src.app.config import ConfigError, config_from_dict
+
+    raw = {"name": "hl", "data": {"path": "d.csv"}, "uq": {"transfer": "hierarchical", "transfer_likelihood": "laplace"}}
+    assert config_from_dict(raw).settings().uq.transfer_likelihood == "laplace"
+    with pytest.raises(ConfigError, match="uq.transfer_likelihood.*laplace"):
+        config_from_dict({**raw, "uq": {**raw["uq"], "transfer_likelihood": "cauchy"}})

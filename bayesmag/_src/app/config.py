@@ -76,7 +76,7 @@ class UQConfig:
     residual_term: bool = True          # add the fit's unexplained residual variance (false = the paper's total)
     transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" (per-run random effects, Laplace; docs/sessions.md) | "hierarchical_nuts" (the same by NUTS) | "off"
     reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
-    transfer_likelihood: str = "gaussian"    # hierarchical transfer: "gaussian" | "student_t" (per run, docs/sessions.md)
+    transfer_likelihood: str = "gaussian"    # hierarchical transfer: "gaussian" | "student_t" | "laplace" (per run, docs/sessions.md)
     transfer_df: float = 4.0                 # its Student-t degrees of freedom (> 2)
     transfer_uninformed: str = "pooled"      # hierarchical: effects < 3 runs inform: "pooled" (as the learned ones) | "prior" | "fixed" (no change)
 
@@ -222,7 +222,7 @@ _CHOICES = {
     "data.field_unit": ("uT", "nT", "mT", "G"),
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
-    "uq.transfer_likelihood": ("gaussian", "student_t"),
+    "uq.transfer_likelihood": ("gaussian", "student_t", "laplace"),
     "uq.transfer_uninformed": ("pooled", "prior", "fixed"),
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),

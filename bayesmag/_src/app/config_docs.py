@@ -39,7 +39,8 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "uq.transfer": ("", 'between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" '
                         '(random-effects model, Laplace; docs/sessions.md) | "hierarchical_nuts" | "off"'),
     "uq.transfer_likelihood": ("", 'likelihood of the hierarchical transfer model: "gaussian" | "student_t" (every '
-                                   'run jointly multivariate t: heavy-tailed sessions; docs/sessions.md)'),
+                                   'run jointly multivariate t: heavy-tailed sessions) | "laplace" (every run jointly '
+                                   'multivariate Laplace; docs/sessions.md)'),
     "uq.transfer_uninformed": ("", 'hierarchical transfer: parameters fewer than 3 runs sweep change between sessions '
                                    'as much as the learned ones ("pooled"), by their prior ("prior") or not at all '
                                    '("fixed"); docs/sessions.md'),

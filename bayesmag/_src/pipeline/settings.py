@@ -71,8 +71,8 @@ class UQSettings:
     4x4 covariance; ``level``: the central interval's level; ``residual_term``: add the fit's
     residual variance beyond the input noise; ``transfer``: ``"loro"`` (leave one run out),
     ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them);
-    ``transfer_likelihood`` / ``transfer_df``: the hierarchical model's likelihood, ``"gaussian"`` or
-    ``"student_t"`` with ``transfer_df`` dof; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
+    ``transfer_likelihood`` / ``transfer_df``: the hierarchical model's likelihood, ``"gaussian"``,
+    ``"student_t"`` with ``transfer_df`` dof or ``"laplace"``; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
     (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`).
     """
 
