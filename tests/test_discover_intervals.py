@@ -1,0 +1,145 @@
+"""Step-location intervals of discovery (issue #25, round 3): a step's time inside a run is
+estimated over every sample time by the exact least-squares profile, and its 95 % interval
+(moving-block bootstrap of that same profile) contains the estimate it is printed with.
+
+The interval used to be a bootstrap over a 41-point grid (2.2 s apart on a 0.25 s record)
+with parabolic interpolation of a profile that is flat between samples, printed next to a
+value placed by a different fit (forward selection's): independent hysteresis seed 9 got
+``at = 1810.57 s`` with the interval 1809.35 to 1809.70 s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from bayesmag._src.pipeline.discover.intervals import _profile, step_interval, step_profile
+
+DT = 0.5
+
+
+def _case(seed: int, frac: float, size: float, rho: float, n: int = 600, outputs: int = 1):
+    """Two runs of n/2 rows; ``outputs`` series share a design (intercept, a regressor, run 1's
+    offset) and a step of ``size`` noise sd at fraction ``frac`` of run 1 (a channel gain per
+    output row, as a sensor-frame step); AR(1) noise of lag-1 correlation ``rho``.
+    Returns (Z, col, y, rows, time, true step time)."""
+    rng = np.random.default_rng(seed)
+    run = np.repeat([0, 1], n // 2)
+    time = np.arange(n) * DT + 30.0 * run
+    rows = np.nonzero(run == 1)[0]
+    t_step = float(time[rows[0]] + frac * (time[rows[-1]] - time[rows[0]]) + rng.uniform(0, DT))
+    x = rng.standard_normal(n)
+    Z1 = np.column_stack([np.ones(n), x, (run == 1) * 1.0])
+    Z = np.kron(np.eye(outputs), Z1)
+    g = rng.uniform(0.5, 1.5, (outputs, 1)) * np.ones((1, n))
+    col = (g * (run == 1)).reshape(-1)
+    e = rng.standard_normal((outputs, n))
+    for k in range(1, n):
+        e[:, k] = rho * e[:, k - 1] + np.sqrt(1 - rho**2) * e[:, k]
+    on = np.tile((time >= t_step) * 1.0, outputs)
+    y = Z @ rng.standard_normal(Z.shape[1]) + size * col * on + e.reshape(-1)
+    return Z, col, y, rows, time, t_step
+
+
+def test_step_profile_is_the_least_squares_sse_at_every_sample():
+    """The cumulative-sum profile equals a full least-squares fit with the step at each candidate
+    (three outputs sharing the rows), to 1e-9 of the profile's range."""
+    Z, col, y, rows, time, _ = _case(3, 0.4, 2.0, 0.3, n=300, outputs=3)
+    cand = np.arange(3, rows.size - 2)
+    fast = step_profile(Z, col, y[:, None], rows, cand, outputs=3)[:, 0]
+    slow = []
+    for j in cand:
+        on = np.zeros(300)
+        on[rows[j:]] = 1.0
+        slow.append(_profile(np.column_stack([Z, col * np.tile(on, 3)]), y[:, None])[0][0])
+    slow = np.array(slow)
+    assert np.max(np.abs(fast - slow)) <= 1e-9 * np.ptp(slow) + 1e-7, np.max(np.abs(fast - slow))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), frac=st.floats(0.05, 0.95), size=st.floats(0.3, 8.0),
+       rho=st.floats(0.0, 0.6), outputs=st.sampled_from([1, 3]))
+def test_step_interval_contains_its_estimate(seed, frac, size, rho, outputs):
+    """Any step time, size (down to 0.3 noise sd, where the location is barely defined) and noise
+    correlation: the interval contains the estimate, both inside the run, and the estimate is the
+    minimiser of the profile (a midpoint between two samples)."""
+    Z, col, y, rows, time, _ = _case(seed, frac, size, rho, outputs=outputs)
+    s = step_interval(Z, col, y, rows, time, 20, outputs=outputs, n_boot=100, seed=seed)
+    assert time[rows[0]] <= s["lower"] <= s["estimate"] <= s["upper"] <= time[rows[-1]], s
+    k = int(np.searchsorted(time[rows], s["estimate"]))
+    assert time[rows[k - 1]] < s["estimate"] < time[rows[k]]
+    assert rows[k] == s["row"]
+
+
+def test_step_interval_covers_the_true_time_at_about_its_level():
+    """200 simulated steps (1.5 to 4 noise sd, AR(1) noise up to 0.5, at 15-85 % of the run): the
+    95 % interval contains the true step time in at least 88 % of them. Threshold: with a true
+    coverage of 95 % the chance of 176 or fewer of 200 is about 1e-4; the bootstrap of a change
+    point is known to run a little below its level for small steps (the replicates' minimisers
+    are centred on the estimate, not the truth), so 88 % is the claim, not 95 %."""
+    rng = np.random.default_rng(2025)
+    hits, widths = 0, []
+    for i in range(200):
+        frac, size, rho = rng.uniform(0.15, 0.85), rng.uniform(1.5, 4.0), rng.uniform(0.0, 0.5)
+        Z, col, y, rows, time, t_true = _case(i, frac, size, rho, outputs=1)
+        s = step_interval(Z, col, y, rows, time, 20, outputs=1, n_boot=200, seed=i)
+        hits += s["lower"] <= t_true <= s["upper"]
+        widths.append(s["upper"] - s["lower"])
+    assert hits >= 176, hits
+    assert np.median(widths) < 0.1 * (time[rows[-1]] - time[rows[0]]), np.median(widths)
+
+
+def _designs_with_step(seed: int, frac: float, factor: float):
+    """(designs, ctx, step extension placed on its 41-point grid, true step time, rows per block)
+    of an independent clean campaign (2000 rows) whose channel-0 reading steps by ``factor``
+    noise sd at fraction ``frac`` of run 1, as discovery builds them."""
+    import bayesmag
+    from bayesmag._src.core import catalogue as C
+    from bayesmag._src.core.physics import ThermoAffine, inputs_from_data, resolve_t0
+    from bayesmag._src.pipeline.discover import pipeline as P
+    from bayesmag._src.pipeline.discover.diagnostics import noise_floor
+    from bayesmag._src.pipeline.discover.frame import Designs, Extension, gain_matrix, lstsq
+    from independent_campaigns import campaign
+
+    d, p = campaign("clean", seed, n=2000)
+    run, time = np.asarray(d.run), np.asarray(d.time)
+    t1 = time[run == 1]
+    at = float(t1[0] + frac * (t1[-1] - t1[0]))
+    u = np.array(d.b_meas)
+    u[:, 0] += factor * p.params["noise_sd_sensor_units"][0] * ((run == 1) & (time >= at))
+    d = bayesmag.CalibrationData(u, d.temperature, d.b_ref, d.time, d.run, "step inside run 1")
+    t0 = resolve_t0("mean", d.temperature)
+    base = ThermoAffine(t0=t0, temperature=True)
+    inputs = inputs_from_data(d)
+    X0 = np.asarray(base.features(inputs))
+    y = np.asarray(d.b_ref)
+    W0 = np.stack([lstsq(X0, y[:, a]) for a in range(3)])
+    floors = np.array([noise_floor((y - X0 @ W0.T)[:, a], run) for a in range(3)])
+    designs = Designs(base, inputs, y, 1.0 / floors, gain_matrix(base, W0, np.asarray(d.temperature)))
+    ctx = P._context(d, t0, float(np.median(np.diff(t1))), W0)
+    ext = Extension(C.Setting(C.RunStep(run_id=1, at=0.0)), "sensor", 0)
+    lo, hi = t1[0] + 0.02 * np.ptp(t1), t1[-1] - 0.02 * np.ptp(t1)
+    grid = np.linspace(lo, hi, 41)
+    sse = [_profile(designs.matrix((dataclasses.replace(ext, setting=C.Setting(C.RunStep(run_id=1, at=float(v)))),)),
+                    designs.y[:, None])[0][0] for v in grid]
+    placed = dataclasses.replace(ext, setting=C.Setting(C.RunStep(run_id=1, at=float(grid[int(np.argmin(sse))]))))
+    return designs, ctx, placed, at, max(10, 2000 // 60)
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 50), frac=st.floats(0.2, 0.8), factor=st.floats(4.0, 12.0))
+def test_located_step_interval_contains_the_value_it_is_printed_with(seed, frac, factor):
+    """discover's statement of a step's place (``_locate_interval``, given the other findings):
+    its interval contains its value and the true step time, whatever value selection left
+    on the step (here the best of a 41-point grid over the run, as a coarse search gives).
+    Before the fix the value was the one selection left and the interval a grid bootstrap with
+    parabolic interpolation: on hysteresis seed 9 and on these campaigns it excluded the value."""
+    from bayesmag._src.pipeline.discover.pipeline import _locate_interval
+    designs, ctx, ext, t_true, block = _designs_with_step(seed, frac, factor)
+    loc = _locate_interval(designs, (), ext, ctx, block, seed)
+    lo, hi = loc["interval95"]
+    assert lo <= loc["value"] <= hi, loc
+    assert lo <= t_true <= hi, (loc, t_true)
