@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from bayesmag._src.pipeline.discover.intervals import _profile, step_interval, step_profile
+from bayesmag._src.pipeline.discover import intervals as I
+from bayesmag._src.pipeline.discover.intervals import _profile
 
 DT = 0.5
 
@@ -49,7 +50,7 @@ def test_step_profile_is_the_least_squares_sse_at_every_sample():
     (three outputs sharing the rows), to 1e-9 of the profile's range."""
     Z, col, y, rows, time, _ = _case(3, 0.4, 2.0, 0.3, n=300, outputs=3)
     cand = np.arange(3, rows.size - 2)
-    fast = step_profile(Z, col, y[:, None], rows, cand, outputs=3)[:, 0]
+    fast = I.step_profile(Z, col, y[:, None], rows, cand, outputs=3)[:, 0]
     slow = []
     for j in cand:
         on = np.zeros(300)
@@ -67,7 +68,7 @@ def test_step_interval_contains_its_estimate(seed, frac, size, rho, outputs):
     correlation: the interval contains the estimate, both inside the run, and the estimate is the
     minimiser of the profile (a midpoint between two samples)."""
     Z, col, y, rows, time, _ = _case(seed, frac, size, rho, outputs=outputs)
-    s = step_interval(Z, col, y, rows, time, 20, outputs=outputs, n_boot=100, seed=seed)
+    s = I.step_interval(Z, col, y, rows, time, 20, outputs=outputs, n_boot=100, seed=seed)
     assert time[rows[0]] <= s["lower"] <= s["estimate"] <= s["upper"] <= time[rows[-1]], s
     k = int(np.searchsorted(time[rows], s["estimate"]))
     assert time[rows[k - 1]] < s["estimate"] < time[rows[k]]
@@ -85,7 +86,7 @@ def test_step_interval_covers_the_true_time_at_about_its_level():
     for i in range(200):
         frac, size, rho = rng.uniform(0.15, 0.85), rng.uniform(1.5, 4.0), rng.uniform(0.0, 0.5)
         Z, col, y, rows, time, t_true = _case(i, frac, size, rho, outputs=1)
-        s = step_interval(Z, col, y, rows, time, 20, outputs=1, n_boot=200, seed=i)
+        s = I.step_interval(Z, col, y, rows, time, 20, outputs=1, n_boot=200, seed=i)
         hits += s["lower"] <= t_true <= s["upper"]
         widths.append(s["upper"] - s["lower"])
     assert hits >= 176, hits
