@@ -93,16 +93,33 @@ def test_step_interval_covers_the_true_time_at_about_its_level():
     assert np.median(widths) < 0.1 * (time[rows[-1]] - time[rows[0]]), np.median(widths)
 
 
-def _designs_with_step(seed: int, frac: float, factor: float):
-    """(designs, ctx, step extension placed on its 41-point grid, true step time, rows per block)
-    of an independent clean campaign (2000 rows) whose channel-0 reading steps by ``factor``
-    noise sd at fraction ``frac`` of run 1, as discovery builds them."""
-    import bayesmag
-    from bayesmag._src.core import catalogue as C
+def _designs(d):
+    """(designs, ctx) of a recording, as discovery builds them (thermo-affine base about the mean temperature)."""
     from bayesmag._src.core.physics import ThermoAffine, inputs_from_data, resolve_t0
     from bayesmag._src.pipeline.discover import pipeline as P
     from bayesmag._src.pipeline.discover.diagnostics import noise_floor
-    from bayesmag._src.pipeline.discover.frame import Designs, Extension, gain_matrix, lstsq
+    from bayesmag._src.pipeline.discover.frame import Designs, gain_matrix, lstsq
+
+    run = np.asarray(d.run)
+    t0 = resolve_t0("mean", d.temperature)
+    base = ThermoAffine(t0=t0, temperature=True)
+    inputs = inputs_from_data(d)
+    X0 = np.asarray(base.features(inputs))
+    y = np.asarray(d.b_ref)
+    W0 = np.stack([lstsq(X0, y[:, a]) for a in range(3)])
+    floors = np.array([noise_floor((y - X0 @ W0.T)[:, a], run) for a in range(3)])
+    designs = Designs(base, inputs, y, 1.0 / floors, gain_matrix(base, W0, np.asarray(d.temperature)))
+    dt = float(np.median(np.diff(np.asarray(d.time))))
+    return designs, P._context(d, t0, dt, W0)
+
+
+def _designs_with_step(seed: int, frac: float, factor: float):
+    """(designs, ctx, step extension placed on a 41-point grid over its run, true step time, rows
+    per block) of an independent clean campaign (2000 rows) whose channel-0 reading steps by
+    ``factor`` noise sd at fraction ``frac`` of run 1."""
+    import bayesmag
+    from bayesmag._src.core import catalogue as C
+    from bayesmag._src.pipeline.discover.frame import Extension
     from independent_campaigns import campaign
 
     d, p = campaign("clean", seed, n=2000)
@@ -112,18 +129,9 @@ def _designs_with_step(seed: int, frac: float, factor: float):
     u = np.array(d.b_meas)
     u[:, 0] += factor * p.params["noise_sd_sensor_units"][0] * ((run == 1) & (time >= at))
     d = bayesmag.CalibrationData(u, d.temperature, d.b_ref, d.time, d.run, "step inside run 1")
-    t0 = resolve_t0("mean", d.temperature)
-    base = ThermoAffine(t0=t0, temperature=True)
-    inputs = inputs_from_data(d)
-    X0 = np.asarray(base.features(inputs))
-    y = np.asarray(d.b_ref)
-    W0 = np.stack([lstsq(X0, y[:, a]) for a in range(3)])
-    floors = np.array([noise_floor((y - X0 @ W0.T)[:, a], run) for a in range(3)])
-    designs = Designs(base, inputs, y, 1.0 / floors, gain_matrix(base, W0, np.asarray(d.temperature)))
-    ctx = P._context(d, t0, float(np.median(np.diff(t1))), W0)
+    designs, ctx = _designs(d)
     ext = Extension(C.Setting(C.RunStep(run_id=1, at=0.0)), "sensor", 0)
-    lo, hi = t1[0] + 0.02 * np.ptp(t1), t1[-1] - 0.02 * np.ptp(t1)
-    grid = np.linspace(lo, hi, 41)
+    grid = np.linspace(t1[0] + 0.02 * np.ptp(t1), t1[-1] - 0.02 * np.ptp(t1), 41)
     sse = [_profile(designs.matrix((dataclasses.replace(ext, setting=C.Setting(C.RunStep(run_id=1, at=float(v)))),)),
                     designs.y[:, None])[0][0] for v in grid]
     placed = dataclasses.replace(ext, setting=C.Setting(C.RunStep(run_id=1, at=float(grid[int(np.argmin(sse))]))))
@@ -144,3 +152,27 @@ def test_located_step_interval_contains_the_value_it_is_printed_with(seed, frac,
     lo, hi = loc["interval95"]
     assert lo <= loc["value"] <= hi, loc
     assert lo <= t_true <= hi, (loc, t_true)
+
+
+def test_refined_hysteresis_threshold_explains_the_step_its_grid_value_left():
+    """Independent hysteresis seed 9 (z, driven by y): with the search grid's threshold (0.5 of
+    By's reach, 21.92 uT) the modelled state flips at an excursion the generator's state does
+    not flip at, and a run_step inside run 2 took up the misfit. The threshold refined after
+    selection (``search.refine_threshold``) fits better without any step than the grid's
+    threshold does with the best step (exact SSE over every sample time of the run)."""
+    from bayesmag._src.core import catalogue as C
+    from bayesmag._src.pipeline.discover.frame import Extension
+    from bayesmag._src.pipeline.discover.search import refine_threshold, relocate
+    from independent_campaigns import campaign
+
+    d, _ = campaign("hysteresis", 9, n=5000)
+    designs, ctx = _designs(d)
+    hyst = [s for s in C.Hysteresis.grid(ctx, 2) if s.component.axis == "y" and s.component.mode == "excursion"
+            and s.component.across_runs and abs(s.component.threshold - 0.5 * ctx.reach[1]) < 1e-3][0]
+    grid_ext = Extension(hyst, "sensor", 2)
+    folds3 = np.tile(np.arange(d.n) * 5 // d.n, 3)
+    step = relocate(designs, (grid_ext,), Extension(C.Setting(C.RunStep(run_id=2, at=0.0)), "sensor", 2), folds3, ctx)
+    sse = lambda exts: _profile(designs.matrix(exts), designs.y[:, None])[0][0]   # noqa: E731
+    refined = refine_threshold(designs, (), grid_ext, folds3)
+    assert refined.component.threshold != grid_ext.component.threshold
+    assert sse((refined,)) < sse((grid_ext, step)) < sse((grid_ext,)), (sse((refined,)), sse((grid_ext, step)))
