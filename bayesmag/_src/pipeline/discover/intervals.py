@@ -1,5 +1,8 @@
 r"""95 % intervals of a finding's located value (a thermal lag's tau, a step's time) by a block bootstrap of its profile.
 
+A step inside a run has its own exact profile over every sample time of the run
+(:func:`step_profile`, :func:`step_interval`); a thermal lag's tau uses the grid below.
+
 For each value ``v`` on a grid the model with the finding at ``v`` (the other findings as
 they are) is fitted by least squares; its residual sum of squares is the profile
 ``SSE(v)``. A bootstrap replicate keeps the designs and adds to the fitted values at the best
