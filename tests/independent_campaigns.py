@@ -109,8 +109,9 @@ def _rotation(rng):
     return q * np.sign(np.diag(r))
 
 
-def campaign(kind: str = "clean", seed: int = 0, n: int = 5000) -> tuple[CalibrationData, Planted]:
-    """One campaign of about ``n`` rows with the concealed effect ``kind`` (see :data:`KINDS`)."""
+def campaign(kind: str = "clean", seed: int = 0, n: int = 5000, log_noise: float = 0.02) -> tuple[CalibrationData, Planted]:
+    """One campaign of about ``n`` rows with the concealed effect ``kind`` (see :data:`KINDS`);
+    ``log_noise``: sd (C) of the temperature log's white noise (the same draws, scaled)."""
     if kind not in KINDS:
         raise ValueError(f"kind is {kind!r}; it must be one of {sorted(KINDS)}.")
     rng = np.random.default_rng([seed, 7919, list(KINDS).index(kind)])
@@ -210,7 +211,7 @@ def campaign(kind: str = "clean", seed: int = 0, n: int = 5000) -> tuple[Calibra
             e[k] = rho * e[k - 1] + np.sqrt(1 - rho**2) * e[k]
     u = u + e
     ref = B + sd_ref * rng.standard_normal(B.shape)
-    T_log = T_true + 0.02 * rng.standard_normal(T_true.size)
+    T_log = T_true + log_noise * rng.standard_normal(T_true.size)
     planted.params.update(size_sensor_units=float(size), noise_sd_sensor_units=sd_u.tolist(), dt=dt,
                           n_runs=n_runs)
     data = CalibrationData(u, T_log, ref, time, run, f"independent:{kind}:seed{seed}")

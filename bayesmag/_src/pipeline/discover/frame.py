@@ -218,6 +218,39 @@ _jac_jit = jax.jit(lambda model, th, inputs, w: jax.jacfwd(
     lambda t: (model.predict(t, inputs) * w).T.reshape(-1))(th), static_argnums=0)
 
 
+_tvjp_jit = jax.jit(lambda model, th, inputs, w, v: jax.vjp(
+    lambda T: (model.predict(th, inputs._replace(t=T)) * w).T.reshape(-1), inputs.t)[1](v)[0], static_argnums=0)
+
+
+def temperature_log_sd(t: np.ndarray, run: np.ndarray) -> float:
+    r"""Sd of white noise in a temperature log from its second differences within runs,
+    :math:`1.4826\,\mathrm{MAD}(\Delta^2 T) / \sqrt 6` (ramps and holds cancel; 0 for a noiseless log)."""
+    t, run = np.asarray(t, dtype=float), np.asarray(run)
+    d2 = t[2:] - 2 * t[1:-1] + t[:-2]
+    ok = (run[2:] == run[1:-1]) & (run[1:-1] == run[:-2])
+    return float(1.4826 * np.median(np.abs(d2[ok])) / np.sqrt(6)) if ok.any() else 0.0
+
+
+def log_noise_se(model: JointModel, theta: np.ndarray, inputs: Inputs, w: np.ndarray, index: int,
+                 sd_t: float) -> float:
+    r"""Standard error that white noise of sd ``sd_t`` in the logged temperature adds to
+    parameter ``index`` of the weighted least-squares fit (errors in the variable that the
+    model's transforms act on, e.g. a thermal lag's input and each run's starting state).
+
+    Linearised: :math:`\partial\hat\theta/\partial T = -(J^\top J)^{-1} J^\top \partial r/\partial T`,
+    so :math:`\mathrm{se} = \mathrm{sd}_T\,\lVert D^\top J (J^\top J)^{-1} e_i \rVert` with
+    :math:`D = \partial (w\,\hat y)/\partial T` applied by one vector-Jacobian product."""
+    if sd_t <= 0:
+        return 0.0
+    th, wj = jnp.asarray(theta), jnp.asarray(w)
+    J = np.asarray(_jac_jit(model, th, inputs, wj))
+    e = np.zeros(J.shape[1])
+    e[index] = 1.0
+    v = J @ np.linalg.lstsq(J.T @ J, e, rcond=None)[0]
+    a = np.asarray(_tvjp_jit(model, th, inputs, wj, jnp.asarray(v)))
+    return float(sd_t * np.linalg.norm(a))
+
+
 def refit(model: JointModel, theta0: np.ndarray, inputs: Inputs, y: np.ndarray, w: np.ndarray,
           run: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """(theta, cov, resid (n, 3), converged) of the exact joint model by one LM over all

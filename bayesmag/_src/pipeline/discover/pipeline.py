@@ -31,13 +31,15 @@ from bayesmag._src.core.fit import covariance, lag1_autocorrelation
 from bayesmag._src.core.physics import ThermoAffine, inputs_from_data
 from bayesmag._src.pipeline.discover.checks import drop_one, identified, lag_or_smoothing
 from bayesmag._src.pipeline.discover.diagnostics import block_z, block_ids, block_length, locate, make_variables, noise_floor, run_starts, structure
-from bayesmag._src.pipeline.discover.frame import Designs, Extension, JointModel, gain_matrix, lstsq, refit
-from bayesmag._src.pipeline.discover.intervals import profile_interval, profile_minimiser
+from bayesmag._src.pipeline.discover.frame import Designs, Extension, JointModel, gain_matrix, log_noise_se, lstsq, \
+    refit, temperature_log_sd
+from bayesmag._src.pipeline.discover.intervals import profile_interval, profile_minimiser, step_interval
 from bayesmag._src.pipeline.discover.options import DELTA_SYS_FRACTION, N_BOOT_LAG, ROWS_PER_PARAM, Z_DISTINCT, \
     Z_MIN, DiscoverOptions
 from bayesmag._src.core.physics import resolve_t0
 from bayesmag._src.pipeline.discover.result import DiscoveryResult
-from bayesmag._src.pipeline.discover.search import compare, cv_residuals, forward, groups, row_loss, score_group
+from bayesmag._src.pipeline.discover.search import compare, cv_residuals, forward, groups, relocate, row_loss, \
+    score_group, step_parts
 
 __all__ = ["discover"]
 
@@ -163,10 +165,12 @@ def _unstated_run(designs, kept, ext, run_k, e_fin, folds3, blocks, run) -> str 
             f"stated as a finding from these data")
 
 
-def _tau_interval(designs, others, lag, log_tau, se_log, block_rows, seed) -> dict:
+def _tau_interval(designs, others, lag, log_tau, se_log, block_rows, seed, se_t=0.0) -> dict:
     """95 % interval of a thermal lag's tau by the block bootstrap of its profile
     (:func:`~.intervals.profile_interval`, on log tau), moved so that the profile's minimiser
-    on all rows falls on the joint fit's value; widened while replicates pile up at a grid edge."""
+    on all rows falls on the joint fit's value; widened while replicates pile up at a grid edge.
+    ``se_t``: the se of log tau from the temperature log's noise (:func:`~.frame.log_noise_se`),
+    added in quadrature to each side of the bootstrap interval and to the Newey-West se."""
     half = float(np.clip(6 * se_log, 0.1, 1.5))
     for _ in range(3):
         grid = log_tau + np.linspace(-half, half, 25)
@@ -177,9 +181,14 @@ def _tau_interval(designs, others, lag, log_tau, se_log, block_rows, seed) -> di
             break
         half *= 2
     shift = log_tau - best
-    # never narrower than the joint fit's own +-1.96 Newey-West se (the bootstrap holds the
-    # designs fixed; on the chamber generator it alone covered tau in 15/18 first-order campaigns)
-    lo, hi = min(lo + shift, log_tau - 1.96 * se_log), max(hi + shift, log_tau + 1.96 * se_log)
+    # the bootstrap resamples residuals with the designs fixed: the log's noise (an input of the
+    # lag) is added in quadrature; never narrower than +-1.96 of the joint fit's Newey-West se
+    # with that share added (on the chamber generator the bootstrap alone covered tau in 15/18
+    # first-order campaigns)
+    se_all = math.hypot(se_log, se_t)
+    lo = log_tau - math.hypot(log_tau - (lo + shift), 1.96 * se_t)
+    hi = log_tau + math.hypot(hi + shift - log_tau, 1.96 * se_t)
+    lo, hi = min(lo, log_tau - 1.96 * se_all), max(hi, log_tau + 1.96 * se_all)
     form = {}
     comp = lag.component
     if int(getattr(comp, "nodes", 1)) == 2:
@@ -193,26 +202,43 @@ def _tau_interval(designs, others, lag, log_tau, se_log, block_rows, seed) -> di
         form = {"interval_form": "widened to cover tau for housing shares 0.2 to 0.8 of the delay"}
     return {"interval95": [float(math.exp(lo)), float(math.exp(hi))], **form,
             "interval_method": (f"moving-block bootstrap ({N_BOOT_LAG} replicates, blocks of {block_rows} rows) of "
-                                f"the least-squares profile over log tau, joined with +-1.96 Newey-West se"),
+                                f"the least-squares profile over log tau with the temperature log's noise added in "
+                                f"quadrature, joined with +-1.96 se (Newey-West and the log's noise)"),
             **({"interval_open": f"{edge:.0%} of the replicates at the edge of +-{half:.2g} in log tau"}
                if edge > 0.01 else {})}
 
 
 def _locate_interval(designs, others, ext, ctx, block_rows, seed) -> dict:
-    """Where a located effect (a step inside a run) sits, with a 95 % interval (block bootstrap of its profile)."""
+    """Where a located effect (a step inside a run) sits, with a 95 % interval (block bootstrap of its profile).
+
+    A step: the exact profile over every sample time of its run (:func:`~.intervals.step_interval`),
+    the estimate the minimiser of that same profile given the other findings (the value the
+    model uses once :func:`discover` has relocated it), so the interval is about the estimate
+    it is printed with."""
     comp = ext.component
     field = comp.located
-    grid = comp.located_grid(ctx)
-    move = lambda v: Extension(dataclasses.replace(ext.setting, component=dataclasses.replace(comp, **{field: float(v)})),  # noqa: E731
-                               ext.frame, ext.slot)
-    lo, hi, best, edge = profile_interval(lambda v: designs.matrix(others + (move(v),)), designs.y, grid, block_rows,
-                                          outputs=3, n_boot=N_BOOT_LAG, seed=seed)
-    return {"field": field, "value": float(getattr(comp, field)), "interval95": [lo, hi], "unit": "s",
+    if hasattr(comp, "run_id") and field == "at":
+        Z, col, rows, time = step_parts(designs, others, ext)
+        s = step_interval(Z, col, designs.y, rows, time, block_rows, n_boot=N_BOOT_LAG, seed=seed)
+        lo, hi, value, edge = s["lower"], s["upper"], s["estimate"], s["edge"]
+        method = (f"moving-block bootstrap ({N_BOOT_LAG} replicates, blocks of {block_rows} rows) of the exact "
+                  f"least-squares profile over every sample time of run {int(comp.run_id)}; the interval spans the "
+                  f"sample pairs between which the replicates place the step")
+        where = "the first or last 2 % of the run"
+    else:
+        grid = comp.located_grid(ctx)
+        move = lambda v: Extension(dataclasses.replace(ext.setting, component=dataclasses.replace(comp, **{field: float(v)})),  # noqa: E731
+                                   ext.frame, ext.slot)
+        lo, hi, _, edge = profile_interval(lambda v: designs.matrix(others + (move(v),)), designs.y, grid, block_rows,
+                                           outputs=3, n_boot=N_BOOT_LAG, seed=seed)
+        value = float(getattr(comp, field))
+        method = (f"moving-block bootstrap ({N_BOOT_LAG} replicates, blocks of {block_rows} rows) of "
+                  f"the least-squares profile over {field}")
+        where = "the searched window"
+    return {"field": field, "value": float(value), "interval95": [float(lo), float(hi)], "unit": "s",
             **({"run": int(comp.run_id)} if hasattr(comp, "run_id") else {}),
-            "interval_method": f"moving-block bootstrap ({N_BOOT_LAG} replicates, blocks of {block_rows} rows) of "
-                               f"the least-squares profile over {field}",
-            **({"interval_open": f"{edge:.0%} of the replicates at the edge of the searched window"}
-               if edge > 0.01 else {})}
+            "interval_method": method,
+            **({"interval_open": f"{edge:.0%} of the replicates at the edge of {where}"} if edge > 0.01 else {})}
 
 
 def discover(data, options: DiscoverOptions | None = None, *, progress=None, columns: dict | None = None,
@@ -353,6 +379,13 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
                          f"{math.exp(sm.ext.setting.nl):.3g} s) improves the fit out of sample (block z = {sm.z:.1f}): "
                          f"the temperature log is noisy. That is not heat flow, so no thermal lag is reported.")
 
+    # a located effect (a step's time) moved to its least-squares value given the final other
+    # findings: forward selection placed it given the findings before it, and its interval is
+    # computed given them all (the estimate must be the minimiser of the profile it is stated with)
+    for i, e in enumerate(kept):
+        if getattr(e.component, "located", None):
+            kept = kept[:i] + (relocate(designs, kept[:i] + kept[i + 1:], e, folds3, ctx),) + kept[i + 1:]
+
     # ---- exact joint refit, plausibility of nonlinear values
     while True:
         model = JointModel(base, kept)
@@ -383,6 +416,7 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
     findings, extra_terms, effects = [], [], []
     step_of = {st["score"].key: st for st in steps}
     block_rows = int(np.median(np.bincount(blocks)[np.bincount(blocks) > 0]))
+    sd_log = temperature_log_sd(data.temperature, run)
     for e in kept:
         others = tuple(x for x in kept if x != e)
         e_wo, r_wo, _, k_wo = cv_residuals(designs, others, [None], folds3)
@@ -401,8 +435,15 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
         if e.name == "thermal_lag":
             lt = params.pop("log_tau")
             tau = math.exp(lt["value"])
-            params["tau"] = {"value": tau, "se": tau * lt["se"], "unit": "s",
-                             **_tau_interval(designs, others, e, lt["value"], lt["se"], block_rows, options.seed)}
+            # the residuals' share (Newey-West) and the temperature log's noise, which the lag and
+            # each run's starting state take as input (errors in the variable; neither the
+            # residual covariance nor the bootstrap, which holds the designs fixed, sees it)
+            se_t = log_noise_se(model, theta, inputs, w, sl[e][0], sd_log)
+            params["tau"] = {"value": tau, "se": tau * math.hypot(lt["se"], se_t), "unit": "s",
+                             "se_residual": tau * lt["se"], "se_temperature_log": tau * se_t,
+                             "temperature_log_sd": sd_log,
+                             **_tau_interval(designs, others, e, lt["value"], lt["se"], block_rows, options.seed,
+                                             se_t)}
             if int(getattr(e.component, "nodes", 1)) == 2:
                 params["tau"]["nodes"] = 2
                 params["tau"]["tau_housing"] = float(e.component.split * tau)
