@@ -74,6 +74,17 @@ def profile_minimiser(design, y: np.ndarray, grid: np.ndarray) -> float:
     return float(_argmin(grid, full[None])[0])
 
 
+def _block_bootstrap(fit: np.ndarray, e: np.ndarray, block_rows: int, n_boot: int, seed: int) -> np.ndarray:
+    """``(outputs * n, n_boot)`` series ``fit`` plus residuals ``e`` (outputs, n) resampled in circular
+    blocks of ``block_rows`` rows (Politis & Romano 1992), the same blocks for every output."""
+    outputs, n = e.shape
+    L = int(np.clip(block_rows, 1, n))
+    rng = np.random.default_rng(seed)
+    starts = rng.integers(0, n, (n_boot, -(-n // L)))
+    idx = ((starts[:, :, None] + np.arange(L)[None, None, :]) % n).reshape(n_boot, -1)[:, :n]
+    return fit[:, None] + e[:, idx.T].reshape(outputs * n, n_boot)
+
+
 def profile_interval(design, y: np.ndarray, grid: np.ndarray, block_rows: int, *, outputs: int = 1,
                      n_boot: int = N_BOOT, seed: int = 0, level: float = 0.95):
     """(lower, upper, minimiser on the data, fraction of replicates at a grid edge).
@@ -94,13 +105,7 @@ def profile_interval(design, y: np.ndarray, grid: np.ndarray, block_rows: int, *
     best = float(_argmin(grid, full[None])[0])
     _, fit = _profile(designs[best_j], y[:, None])
     e = (y - fit).reshape(outputs, -1)
-    n = e.shape[1]
-    L = int(np.clip(block_rows, 1, n))
-    rng = np.random.default_rng(seed)
-    nblk = -(-n // L)
-    starts = rng.integers(0, n, (n_boot, nblk))
-    idx = ((starts[:, :, None] + np.arange(L)[None, None, :]) % n).reshape(n_boot, -1)[:, :n]    # circular blocks
-    Y = fit[:, None] + e[:, idx.T].reshape(outputs * n, n_boot)
+    Y = _block_bootstrap(fit, e, block_rows, n_boot, seed)
     sse = np.stack([_profile(X, Y)[0] for X in designs], axis=1)      # (R, V)
     mins = _argmin(grid, sse)
     a = (1 - level) / 2
@@ -202,12 +207,7 @@ def step_interval(Z: np.ndarray, col: np.ndarray, y: np.ndarray, rows: np.ndarra
     beta = np.linalg.lstsq(Xs, y, rcond=None)[0]
     fit = Xs @ beta
     e = (y - fit).reshape(outputs, -1)
-    L = int(np.clip(block_rows, 1, n))
-    rng = np.random.default_rng(seed)
-    nblk = -(-n // L)
-    starts = rng.integers(0, n, (n_boot, nblk))
-    idx = ((starts[:, :, None] + np.arange(L)[None, None, :]) % n).reshape(n_boot, -1)[:, :n]    # circular blocks
-    Yb = fit[:, None] + e[:, idx.T].reshape(outputs * n, n_boot)
+    Yb = _block_bootstrap(fit, e, block_rows, n_boot, seed)
     mins = np.argmin(step_profile(Z, col, Yb, rows, cand, outputs), axis=0)
     a = (1 - level) / 2
     qlo = int(np.quantile(mins, a, method="lower"))
