@@ -370,13 +370,20 @@ def test_time_figure_shows_train_and_test_from_the_run_start():
     assert sum(len(c.get_offsets()) for c in ax.collections if c.get_label() == "train rows") == 16
 
 
-def test_physics_calibration_curve_matches_the_metric(tmp_path, monkeypatch):
+@pytest.fixture
+def saved_figures(monkeypatch):
+    """The figures a plotting function saves, kept open instead of written."""
     import matplotlib.pyplot as plt
-    from bayesmag._src.app import plots
-    from bayesmag.likelihoods import Gaussian
     saved = []
     monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
     monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    return saved
+
+
+def test_physics_calibration_curve_matches_the_metric(tmp_path, saved_figures):
+    from bayesmag._src.app import plots
+    from bayesmag.likelihoods import Gaussian
+    saved = saved_figures
     r = np.random.default_rng(1)
     y = 1.3 * r.standard_normal((500, 3))
     dist = Gaussian(np.zeros((500, 3)), np.ones((500, 3)))   # too narrow: under-covers
@@ -387,13 +394,10 @@ def test_physics_calibration_curve_matches_the_metric(tmp_path, monkeypatch):
     np.testing.assert_allclose(line.get_ydata(), observed[:, 2])
 
 
-def test_physics_pit_figure_is_the_histogram_of_the_predictive_cdf(tmp_path, monkeypatch):
-    import matplotlib.pyplot as plt
+def test_physics_pit_figure_is_the_histogram_of_the_predictive_cdf(tmp_path, saved_figures):
     from bayesmag._src.app import plots
     from bayesmag.likelihoods import Gaussian
-    saved = []
-    monkeypatch.setattr(plt.Figure, "savefig", lambda self, *a, **k: saved.append(self))
-    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    saved = saved_figures
     r = np.random.default_rng(2)
     y = 1.3 * r.standard_normal((800, 3))
     u = M.pit(Gaussian(np.zeros((800, 3)), np.ones((800, 3))), y)
