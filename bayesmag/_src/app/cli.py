@@ -234,8 +234,9 @@ def _cmd_export(args) -> int:
 
 
 def _progress(args) -> bool:
-    """Progress bars unless ``--no-progress`` or stderr is not a terminal (no carriage returns in logs)."""
-    return not args.no_progress and sys.stderr.isatty()
+    """Progress bars unless ``--no-progress`` or nobody watches stderr (no carriage returns in logs)."""
+    from bayesmag._src.app.terminal import interactive_output
+    return not args.no_progress and interactive_output()
 
 
 def _cmd_config(args) -> int:

@@ -206,12 +206,16 @@ def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0) -> dict:
     for a in AXES:
         us, nus = [c[1][a] for c in comps], [c[3] for c in comps]
         for key, extra_u in (("same_session", []), ("new_session", [tau[a]])):
-            uu, nn = us + extra_u, nus + [math.inf] * len(extra_u)
-            uc = math.sqrt(sum(x * x for x in uu))
-            nu = welch_satterthwaite(uu, nn)
-            k = coverage_factor(nu, level)
-            out[key][a] = {"u_c": uc, "nu_eff": nu, "k": k, "U": k * uc}
+            out[key][a] = _combine(us + extra_u, nus + [math.inf] * len(extra_u), level)
     return out
+
+
+def _combine(uu: list, nn: list, level: float) -> dict:
+    """``u_c`` (root sum of squares of ``uu``), ``nu_eff`` (Welch-Satterthwaite over dof ``nn``), ``k`` and ``U = k u_c``."""
+    uc = math.sqrt(sum(x * x for x in uu))
+    nu = welch_satterthwaite(uu, nn)
+    k = coverage_factor(nu, level)
+    return {"u_c": uc, "nu_eff": nu, "k": k, "U": k * uc}
 
 
 def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None, reference_sd=0.0) -> list[str]:
@@ -247,14 +251,15 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     missing = ex["new_session_missing"]
     dom = {a: max(comps, key=lambda c: c[1][a])[0].split(" (")[0] for a in AXES}
     same, new = ex["same_session"], ex["new_session"]
+    same_applies = (f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
+                    "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
+                    "power-up, the conditions of the test rows above)")
     if missing:                 # no transfer term: a "U new session" would be the same-session U, understated
         lines += ["| transfer (between sessions; new session only) | A | | not estimated | not estimated | "
                   f"not estimated | {missing} |",
                   "| **expanded uncertainty U, new session** | | | not stated | not stated | not stated | needs the "
                   "transfer term |"]
-        lines += ["", f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
-                  "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
-                  "power-up, the conditions of the test rows above). **No U for a new session** (any later recording, "
+        lines += ["", same_applies + ". **No U for a new session** (any later recording, "
                   f"in the field) can be stated: the between-session (transfer) term was not estimated ({missing}), "
                   "and a new session can be off by more than U same session. Record at least 3 sessions (runs) and "
                   "set `[uq] transfer = \"loro\"` (the default). Inside the calibration domain only (section "
@@ -263,9 +268,7 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
         lines.append("| transfer (between sessions; new session only) | A | inf | "
                      + " | ".join(_u2(tau[a]) for a in AXES) + f" | {how} |")
         lines += block("new_session", "new session")
-        lines += ["", f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
-                  "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
-                  "power-up, the conditions of the test rows above); **U new session** "
+        lines += ["", same_applies + "; **U new session** "
                   f"({' / '.join(_u2(new[a]['U']) for a in AXES)} uT) holds for any later recording, i.e. in the "
                   "field (`bayesmag apply` adds the transfer term to every row of a new recording; column "
                   "`transfer`). Inside the calibration domain only (section Calibration domain)."]
@@ -587,12 +590,8 @@ def condition_uncertainties(m: dict, params: dict, reference_sd=0.0) -> list[dic
     comps = _components(m, params, reference_sd)
     out = []
     for c in conds:
-        U = {}
-        for a in AXES:
-            uu = [x[1][a] for x in comps] + [c["transfer_sd"][a]]
-            nn = [x[3] for x in comps] + [math.inf]
-            uc = math.sqrt(sum(v * v for v in uu))
-            U[a] = coverage_factor(welch_satterthwaite(uu, nn), level) * uc
+        U = {a: _combine([x[1][a] for x in comps] + [c["transfer_sd"][a]], [x[3] for x in comps] + [math.inf],
+                         level)["U"] for a in AXES}
         out.append({"field": c["field"], "temperature": c["temperature"], "transfer_sd": c["transfer_sd"], "U": U})
     return out
 

@@ -152,10 +152,7 @@ def run_loglik(G, n, mu, L, sigma2, rho, df=None):
         quad = quad - (v @ v) / sigma2**2
     if df is None:
         return -0.5 * n * jnp.log(2 * jnp.pi) - 0.5 * logdet - 0.5 * quad
-    if isinstance(df, str):
-        return _laplace_log_g(quad, n) - 0.5 * logdet
-    return (jax.scipy.special.gammaln((df + n) / 2) - jax.scipy.special.gammaln(df / 2) - 0.5 * n * jnp.log(df * jnp.pi)
-            - 0.5 * logdet - 0.5 * (df + n) * jnp.log1p(quad / df))
+    return _mix_log_g(quad, n, df) - 0.5 * logdet
 
 
 def _unpack(h, q):
@@ -323,11 +320,6 @@ def _neg_lp_and_grad(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, r
 def _hessian(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0, df=None):
     f = lambda hh: -_lp(hh, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml, df)[0]  # noqa: E731
     return jax.hessian(f)(h)
-
-
-@functools.partial(jax.jit, static_argnames=("df",))
-def _mu_cov(hs, m0, m1, m2, first, n, effects, ts, ss, reml=0.0, df=None):
-    return jax.vmap(lambda h: _lp(h, m0, m1, m2, first, n, effects, ts, ss, reml, df)[1:])(hs)
 
 
 @functools.partial(jax.jit, static_argnames=("df",))
