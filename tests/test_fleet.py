@@ -358,3 +358,22 @@ def test_fast_prediction_writer_writes_the_same_bytes(tmp_path):
     write_predictions(tmp_path / "a.csv", d, rows, cols)
     single(tmp_path / "b.csv", d, rows, cols)
     assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+
+
+def test_fleet_training_progress_in_a_log_is_one_line_per_stopped_network():
+    """In a log (not a terminal) the batched training reports a line only when another network stops."""
+    import io
+    import types
+
+    from bayesmag._src.app.fleet_sensors import training_reporter
+    log = io.StringIO()
+    report = training_reporter(log)
+    done = np.zeros(6, bool)
+    for epoch in range(1, 301):
+        if epoch % 50 == 0:
+            done[epoch // 50 - 1] = True
+        report(types.SimpleNamespace(done=done.copy(), epochs=np.full(6, epoch)))
+    lines = log.getvalue().splitlines()
+    assert len(lines) == 7                      # the first report, then one per stopped network
+    assert "\r" not in log.getvalue()
+    assert lines[-1].startswith("  fleet: network training, 6 of 6")

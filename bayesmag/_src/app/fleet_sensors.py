@@ -73,6 +73,36 @@ def sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, resi
     return out
 
 
+def training_reporter(stream=None):
+    """A progress callback for batched network training: one line redrawn in place on a terminal; in a log
+    (file, pipe) a new line only when another network stops, so a long run does not fill the log.
+
+    Example:
+        >>> import io, numpy as np, types
+        >>> log = io.StringIO(); report = training_reporter(log)
+        >>> for e, d in [(10, [0, 0]), (20, [0, 0]), (30, [1, 0])]:
+        ...     report(types.SimpleNamespace(done=np.array(d, bool), epochs=np.array([e, e])))
+        >>> len(log.getvalue().splitlines())
+        2
+    """
+    import sys
+
+    from bayesmag._src.app.terminal import interactive_output
+    stream = sys.stderr if stream is None else stream
+    live, last = interactive_output(stream), [None]
+
+    def report(p):
+        done = int(p.done.sum())
+        if not live and done == last[0]:
+            return
+        last[0] = done
+        msg = (f"  fleet: network training, {done} of {p.done.size} (sensor, axis) networks of this "
+               f"batch stopped, epoch {int(p.epochs.max())}")
+        end = "" if live and done < p.done.size else "\n"
+        print(("\r" + msg) if live else msg, end=end, file=stream, flush=True)
+    return report
+
+
 def fleet_networks(stages: list[SensorStage], net_cfg, *, level: float, batch_size: int,
                    progress: bool = False) -> tuple[list[SensorStage], float]:
     """Train every sensor's residual network in one batch, predict its test rows, fuse; returns the stages with
@@ -95,11 +125,7 @@ def fleet_networks(stages: list[SensorStage], net_cfg, *, level: float, batch_si
     rs = [s.train_residual for s in stages]
     report = None
     if progress:
-        import sys
-
-        def report(p):
-            print(f"  fleet: network training, {int(p.done.sum())} of {p.done.size} (sensor, axis) networks of this "
-                  f"batch stopped, epoch {int(p.epochs.max())}", file=sys.stderr, flush=True)
+        report = training_reporter()
     t = time.perf_counter()
     nets = fit_residual_networks(xs, rs, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
                                  validation=net_cfg.validation, groups=[s.train.run for s in stages],
