@@ -140,11 +140,13 @@ class FieldModel:
         tc = (t - self.t0)[:, None]
         return u @ S.T + tc * (u @ Ks.T) + O + tc * Ko
 
-    def residual(self, theta, u, t, target):
-        """Residuals in reading units: a magnitude residual is divided by its noise gain :meth:`gain`."""
+    def residual(self, theta, u, t, target, kappa2=0.0):
+        r"""Residuals in reading units: a magnitude residual is divided by :math:`\sqrt{g^2 + \kappa^2}`, g its
+        noise gain (:meth:`gain`) and :math:`\kappa = \sigma_{ref}/\sigma` the reference's own noise in units of
+        the reading noise (0 for an exact reference): the residual's whole sd in reading units."""
         _, _, _, _, extra = self.unpack(theta)
         r = self.measurement.residual(self.calibrate(theta, u, t), target, extra)
-        return r if self.measurement.per_row > 1 else r / self.gain(theta, u, t)
+        return r if self.measurement.per_row > 1 else r / jnp.sqrt(self.gain(theta, u, t) ** 2 + kappa2)
 
     def gain(self, theta, u, t):
         r"""How reading noise reaches the magnitude, :math:`g = \lVert M(T)^T \hat B\rVert` (n,).
@@ -236,16 +238,21 @@ def _static(model: FieldModel) -> FieldModel:
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _solve(model: FieldModel, theta0, u, t, target, mu, w, keep):
+def _solve(model: FieldModel, theta0, u, t, target, mu, w, keep, kappa2):
     def r(th):
-        return jnp.concatenate([model.residual(th, u, t, target) * keep, w * (th - mu)])
+        return jnp.concatenate([model.residual(th, u, t, target, kappa2) * keep, w * (th - mu)])
     return levenberg_marquardt(r, theta0, max_steps=2000)
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _jac_resid(model: FieldModel, theta, u, t, target, keep):
-    f = lambda th: model.residual(th, u, t, target) * keep
+def _jac_resid(model: FieldModel, theta, u, t, target, keep, kappa2):
+    f = lambda th: model.residual(th, u, t, target, kappa2) * keep
     return f(theta), jax.jacfwd(f)(theta)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _hess(model: FieldModel, theta, u, t, target, keep, kappa2):
+    return jax.hessian(lambda th: 0.5 * jnp.sum((model.residual(th, u, t, target, kappa2) * keep) ** 2))(theta)
 
 
 def _init(model: FieldModel, u, t, target) -> np.ndarray:
@@ -290,6 +297,9 @@ _MAX_PASSES, _SIG_RTOL = 8, 1e-3
 #: within 1 % of the start's: the prior weights then differ by < 2 %, which moves the mode by a negligible amount
 #: wherever the data dominate the prior (posterior sd <= 0.05 prior sd on the simulated campaigns)
 _REFIT_SIG_RTOL = 1e-2
+#: the reference-noise refit (``Scalar(ref_sd > 0)``) is kept only if every gain S_ii lies within this many prior sds
+#: of 1 (the prior's 99.9 % range): beyond it the refit has reached the degenerate solution M -> 0
+_GAIN_Z = 3.29
 
 
 @dataclasses.dataclass(frozen=True)
@@ -310,6 +320,8 @@ class FieldFit:
     covariance_method: str
     coverage: dict
     notes: tuple[str, ...]
+    kappa2: float = 0.0       # (reference noise sd / reading noise sd)^2 in the magnitude residual's weight
+    weighting: str = "gain"   # "gain" (1/g) or "total" (1/sqrt(g^2 + kappa^2), the reference-noise refit); see fit_field
 
     @property
     def param_names(self):
@@ -363,7 +375,7 @@ class FieldFit:
         """Predictive distribution of the reference magnitude: mean, epistemic, noise and total sd."""
         mean, epi = (np.asarray(a) for a in self.magnitude(u, t))
         g = np.asarray(self.model.gain(jnp.asarray(self.theta), jnp.asarray(u, jnp.float64), jnp.asarray(t, jnp.float64)))
-        noise = math.sqrt(self.s2) * g
+        noise = math.sqrt(self.s2) * np.sqrt(g**2 + self.kappa2)
         return {"mean": mean, "epistemic": epi, "noise": noise, "total": np.sqrt(epi**2 + noise**2)}
 
     def to_json(self) -> dict:
@@ -376,6 +388,7 @@ class FieldFit:
             "prior_sd": self.prior_sd.tolist(),
             "s2": self.s2, "rho1": self.rho1, "inflation": self.inflation, "n": self.n,
             "converged": self.converged, "n_steps": self.n_steps, "covariance": self.covariance_method,
+            "reference_sd": self.model.measurement.reference_sd, "weighting": self.weighting, "kappa2": self.kappa2,
             "invariants": {n: {"value": float(v), "sd": float(s), "prior_sd": float(p), "identified": bool(i),
                                "why_not": str(w)}
                            for n, v, s, p, i, w in zip(inv["names"], inv["value"], inv["sd"], inv["prior_sd"],
@@ -454,38 +467,71 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     ms, uj, tj, yj = _static(model), jnp.asarray(u), jnp.asarray(t - t0v), jnp.asarray(target)
     kj = jnp.asarray(np.repeat(kp, measurement.per_row).astype(np.float64))
     n_res = int(kp.sum()) * measurement.per_row
-    r0, _ = _jac_resid(ms, jnp.asarray(theta0), uj, tj, yj, kj)
+    r0, _ = _jac_resid(ms, jnp.asarray(theta0), uj, tj, yj, kj, 0.0)
     sig = max(float(np.sqrt(np.sum(np.asarray(r0) ** 2) / n_res)), 1e-6)
+    kappa2, weighting = 0.0, "gain"
     if start is not None:
         sig = math.sqrt(start.s2 * start.inflation)
+        kappa2, weighting = start.kappa2, start.weighting
     infl, rho, steps, ok = 1.0, 0.0, 0, True
     theta = theta0
     # The prior enters the LM cost as w (theta - mu) with w = sig / sd, so the mode is the posterior mode only
     # when sig is the noise level the fit itself implies: iterate to that fixed point. (Two passes were not
     # enough: from a poor algebraic start the second pass ran with sig 25x too large, i.e. a prior 600x too
     # strong, which moved the mode by up to 0.6 posterior sd; NUTS showed it, tests/test_field.py.)
-    for k in range(_MAX_PASSES):
-        sol = _solve(ms, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd), kj)
+
+    def one_pass(theta, sig, kappa2):
+        sol = _solve(ms, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd), kj, kappa2)
         theta = np.asarray(sol.theta)
-        steps += int(sol.n_steps)
-        ok = int(sol.result) == 0
-        r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj))
+        r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2))
         s2 = float(r @ r / max(n_res - model.n_params, 1))
+        rho, infl = 0.0, 1.0
         if covariance == "ar1":
             rr = r.reshape(len(u), -1)[kp]
             rk = None if run is None else np.asarray(run)[kp]
             rho = float(np.mean([lag1_autocorrelation(rr[:, k], rk) for k in range(rr.shape[1])]))
             infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99))
+        return theta, J, s2, rho, infl, int(sol.n_steps), int(sol.result) == 0
+
+    for k in range(_MAX_PASSES):
+        theta, J, s2, rho, infl, n_st, ok = one_pass(theta, sig, kappa2)
+        steps += n_st
         sig_new = math.sqrt(s2 * infl)
         done = ((k > 0 and abs(sig_new / sig - 1.0) < _SIG_RTOL)
                 or (start is not None and abs(sig_new / sig - 1.0) < _REFIT_SIG_RTOL))
         sig = sig_new
         if done:
             break
+    ref2 = measurement.reference_sd ** 2 if measurement.per_row == 1 else 0.0
+    if ref2 > 0 and start is None:
+        # The reference's own noise: divided by g like the reading noise, its cost sum(ref_sd^2 / g^2) falls as M
+        # grows along a direction the motion left weak (level turns: the vertical), a pull of its own. The
+        # residual's whole sd, sqrt(g^2 + kappa^2) in reading units, removes it (expected cost flat along such a
+        # direction), but it is also flat along the degenerate solution M -> 0 (a dead sensor whose offset alone
+        # explains a constant magnitude), where the noise level is not identified. So the 1/g fit above is the
+        # pilot: it fixes the noise level (identified there), the refit starts from it with sig and kappa held,
+        # and the refit is kept only if every gain S_ii stays inside the prior's 99.9 % range (else the pilot,
+        # with a note). docs/field.md (Heading) has the measurements.
+        k2 = ref2 / s2
+        th_c, J_c, s2_c, rho_c, infl_c, n_st, ok_c = one_pass(theta, sig, k2)
+        steps += n_st
+        S_c = np.diag(np.asarray(model.unpack(jnp.asarray(th_c))[0]))
+        if np.all(np.abs(S_c - 1.0) <= _GAIN_Z * prior.s_diag):
+            theta, J, s2, rho, infl, ok, kappa2, weighting = th_c, J_c, s2_c, rho_c, infl_c, ok_c, k2, "total"
+        else:
+            weighting = "gain (the reference-noise refit left the prior's gain range: rejected)"
     P = J.T @ J / (s2 * infl) + np.diag(1.0 / sd**2)
+    if weighting == "total" and start is None:
+        # With the total-sd weight the cost is flat (in expectation) along a direction the motion left weak, but its
+        # Gauss-Newton part J^T J is not: it claims information the data do not have. The full Hessian does not.
+        H = np.asarray(_hess(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2))
+        Ph = H / (s2 * infl) + np.diag(1.0 / sd**2)
+        if np.all(np.isfinite(Ph)) and np.linalg.eigvalsh(0.5 * (Ph + Ph.T))[0] > 0:
+            P = 0.5 * (Ph + Ph.T)
     cov = np.linalg.inv(P)
     cov = 0.5 * (cov + cov.T)
-    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, ())
+    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, (),
+                    kappa2, weighting)
     if not diagnostics:
         return fit0
     cov_diag = direction_coverage(fit0.calibrate(u[kp], t[kp]), t[kp])
