@@ -103,7 +103,7 @@ def run_one(kind, seed, temperature, n_orient, sim=None):
     res = {}
     t1 = time.perf_counter()
     if scalar:
-        f = fit_field(u[train], t[train], c.f_ref[train], Scalar())
+        f = fit_field(u[train], t[train], c.f_ref[train], Scalar(c.settings["ref_sd"]))   # the reference's sd, known
     else:
         f = fit_field(u[train], t[train], field_target(Constant(F), n=int(train.sum())), Constant(F))
     pm = f.predict_magnitude(u[test], t[test])
@@ -122,7 +122,8 @@ def run_one(kind, seed, temperature, n_orient, sim=None):
     if lv.sum() > 10:
         h = heading_with_uncertainty(f, u[lv], t[lv], tr.alignment(t[lv]))
         e = wrap_deg(h["heading"] - tr.heading[lv])
-        r.update(head_rmse=float(np.sqrt(np.mean(e**2))), head_cov=float(np.mean(np.abs(e) <= K95 * h["sd"])))
+        r.update(head_rmse=float(np.sqrt(np.mean(e**2))), head_cov=float(np.mean(np.abs(e) <= K95 * h["sd"])),
+                 head_flagged=float(h["flagged"]), weight_total=float(f.weighting == "total"))
     res["bayesmag"] = r
     d_true = tr.invariants(float(np.mean(t[train])))[12:15]  # peers: no temperature model, mean training T
     for name, fn in [("sphere", sphere_fit), ("ellipsoid", ellipsoid_fit), ("twostep", twostep)]:

@@ -36,7 +36,7 @@ from bayesmag._src.core.measurement import Constant, MeasurementModel, Scalar, V
 
 __all__ = ["FieldModel", "FieldPrior", "FieldFit", "fit_field", "invariants", "INVARIANT_NAMES",
            "IDENTIFIED_RATIO", "wrap_deg", "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty",
-           "gaussian_scores", "field_target"]
+           "gaussian_scores", "field_target", "heading_flagged"]
 
 AXES = ("x", "y", "z")
 #: posterior sd / prior sd above which an invariant counts as not identified by the recording
@@ -595,6 +595,14 @@ def identifiability_notes(fit: FieldFit, cov_diag: dict) -> list[str]:
     if fit.model.temperature and cov_diag["bands_spread"] < 2:
         notes.append("the field directions were spread at fewer than two temperatures (5 C bands): the thermal gain "
                      "Ks is not separated from the thermal offset Ko; repeat the motion at a second temperature")
+    if fit.weighting.startswith("gain ("):
+        notes.append("the reference-noise refit reached the degenerate solution (a gain S_ii left the prior's 99.9 % "
+                     "range: M -> 0, the offset alone explaining a constant magnitude); the 1/g fit is kept, which the "
+                     "reference's noise pulls along weakly visited directions: its intervals there are too narrow")
+    if heading_flagged(fit):
+        notes.append("heading intervals flagged: with a noisy scalar reference and a direction the field did not visit, "
+                     "the scale along it is decided by noise (simulated level turns: intervals cover 0.9, not 0.95); "
+                     "tilt the vehicle, or use kind = \"constant\" with the site's field")
     if fit.model.measurement.scale_gauge:
         notes.append("the field magnitude was fitted (constant, free): the overall scale is a gauge (trace(S) = 3)")
     inv = fit.invariants()
@@ -626,6 +634,12 @@ def gaussian_scores(y, mean, sd, level: float = 0.95) -> dict:
     return {"coverage": float(np.mean(np.abs(z) <= k)), "nll": float(np.mean(nll)), "crps": float(np.mean(crps)),
             "rmse": float(np.sqrt(np.mean((y - mean) ** 2))), "mean_width": float(np.mean(2 * k * sd)),
             "level": level, "n": int(y.size)}
+
+
+def heading_flagged(fit: FieldFit) -> bool:
+    """True when heading intervals are not to be trusted: a noisy scalar reference (``ref_sd > 0``) and a field
+    direction the motion did not visit (the scale along it is then set by the noise, docs/field.md Heading)."""
+    return bool(fit.model.measurement.reference_sd > 0 and fit.coverage and fit.coverage.get("missing_directions"))
 
 
 def heading(B) -> np.ndarray:
@@ -664,7 +678,7 @@ def heading_with_uncertainty(fit: FieldFit, u, t, R=None, *, noise_sd: float | N
     know it (the gauge): it needs a second vector (known attitudes, gravity, or a heading reference),
     so the intervals are conditional on ``R``; ``R=None`` takes the gauge frame as the body frame.
     Returns ``heading``, ``sd_params`` (from the parameter posterior), ``sd_noise`` (the reading's noise,
-    ``noise_sd`` per axis, default the fit's residual sd) and ``sd`` (both).
+    ``noise_sd`` per axis, default the fit's residual sd), ``sd`` (both) and ``flagged`` (:func:`heading_flagged`).
     """
     u = jnp.asarray(u, jnp.float64)
     t = jnp.asarray(t, jnp.float64)
@@ -679,4 +693,4 @@ def heading_with_uncertainty(fit: FieldFit, u, t, R=None, *, noise_sd: float | N
     var_n = ns**2 * np.sum(gu**2, axis=1)
     deg = 180.0 / np.pi
     return {"heading": np.degrees(np.asarray(val)), "sd_params": deg * np.sqrt(var_p), "sd_noise": deg * np.sqrt(var_n),
-            "sd": deg * np.sqrt(var_p + var_n)}
+            "sd": deg * np.sqrt(var_p + var_n), "flagged": heading_flagged(fit)}
