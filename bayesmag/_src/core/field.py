@@ -255,6 +255,26 @@ def _hess(model: FieldModel, theta, u, t, target, keep, kappa2):
     return jax.hessian(lambda th: 0.5 * jnp.sum((model.residual(th, u, t, target, kappa2) * keep) ** 2))(theta)
 
 
+def _sandwich(H, J, r, sig2, infl, sd, fallback):
+    r"""Covariance of the estimate from the total-sd weight: :math:`P^{-1}(B + \Lambda)P^{-1}`, P = H / sig2 + Lambda.
+
+    That cost is an estimating equation, not a likelihood: along a direction the motion left weak its expected
+    curvature is zero (the flat expected cost that removes the pull), but its score still varies from row to row
+    (which noise source dominates a row changes along that direction), so the Laplace P^-1 (curvature only)
+    is far too narrow there. B = infl * sum_i s_i s_i^T, s_i = rho_i grad rho_i / sig2, is the score's variance
+    (infl: AR(1)); Lambda the prior precision. Where curvature and score variance agree (a likelihood,
+    e.g. every direction visited) it equals P^-1. ``fallback`` (the Gauss-Newton Laplace) if P is not positive.
+    """
+    Lam = np.diag(1.0 / np.asarray(sd) ** 2)
+    P = np.asarray(H) / sig2 + Lam
+    P = 0.5 * (P + P.T)
+    if not (np.all(np.isfinite(P)) and np.linalg.eigvalsh(P)[0] > 0):
+        return fallback
+    Pi = np.linalg.inv(P)
+    sc = np.asarray(J) * np.asarray(r)[:, None] / sig2
+    return Pi @ (infl * sc.T @ sc + Lam) @ Pi
+
+
 def _init(model: FieldModel, u, t, target) -> np.ndarray:
     """Algebraic start: |M u + o|^2 = F^2 solved linearly for (Q, M^T o, |o|^2) at constant temperature."""
     meas = model.measurement
@@ -491,10 +511,10 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
             rk = None if run is None else np.asarray(run)[kp]
             rho = float(np.mean([lag1_autocorrelation(rr[:, k], rk) for k in range(rr.shape[1])]))
             infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99))
-        return theta, J, s2, rho, infl, int(sol.n_steps), int(sol.result) == 0
+        return theta, J, s2, rho, infl, int(sol.n_steps), int(sol.result) == 0, r
 
     for k in range(_MAX_PASSES):
-        theta, J, s2, rho, infl, n_st, ok = one_pass(theta, sig, kappa2)
+        theta, J, s2, rho, infl, n_st, ok, r = one_pass(theta, sig, kappa2)
         steps += n_st
         sig_new = math.sqrt(s2 * infl)
         done = ((k > 0 and abs(sig_new / sig - 1.0) < _SIG_RTOL)
@@ -513,22 +533,17 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
         # and the refit is kept only if every gain S_ii stays inside the prior's 99.9 % range (else the pilot,
         # with a note). docs/field.md (Heading) has the measurements.
         k2 = ref2 / s2
-        th_c, J_c, s2_c, rho_c, infl_c, n_st, ok_c = one_pass(theta, sig, k2)
+        th_c, J_c, s2_c, rho_c, infl_c, n_st, ok_c, r_c = one_pass(theta, sig, k2)
         steps += n_st
         S_c = np.diag(np.asarray(model.unpack(jnp.asarray(th_c))[0]))
         if np.all(np.abs(S_c - 1.0) <= _GAIN_Z * prior.s_diag):
-            theta, J, s2, rho, infl, ok, kappa2, weighting = th_c, J_c, s2_c, rho_c, infl_c, ok_c, k2, "total"
+            theta, J, s2, rho, infl, ok, kappa2, weighting, r = th_c, J_c, s2_c, rho_c, infl_c, ok_c, k2, "total", r_c
         else:
             weighting = "gain (the reference-noise refit left the prior's gain range: rejected)"
     P = J.T @ J / (s2 * infl) + np.diag(1.0 / sd**2)
-    if weighting == "total" and start is None:
-        # With the total-sd weight the cost is flat (in expectation) along a direction the motion left weak, but its
-        # Gauss-Newton part J^T J is not: it claims information the data do not have. The full Hessian does not.
-        H = np.asarray(_hess(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2))
-        Ph = H / (s2 * infl) + np.diag(1.0 / sd**2)
-        if np.all(np.isfinite(Ph)) and np.linalg.eigvalsh(0.5 * (Ph + Ph.T))[0] > 0:
-            P = 0.5 * (Ph + Ph.T)
     cov = np.linalg.inv(P)
+    if weighting == "total":
+        cov = _sandwich(_hess(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2), J, r, s2 * infl, infl, sd, cov)
     cov = 0.5 * (cov + cov.T)
     fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, (),
                     kappa2, weighting)
