@@ -85,7 +85,7 @@ def kabsch(Bm, Bt):
     return (U @ np.diag([1, 1, d]) @ Vt).T                   # R with Bt ~ Bm R^T
 
 
-def run_one(kind, seed, temperature, n_orient, sim=None):
+def run_one(kind, seed, temperature, n_orient, sim=None, peers=True):
     sim = dict(sim or {})
     scalar = sim.pop("measurement", "constant") == "scalar"   # the scalar model sees f_ref (reference noise too)
     kw = dict(n=2000, seed=seed, n_orient=n_orient, **sim)
@@ -126,7 +126,7 @@ def run_one(kind, seed, temperature, n_orient, sim=None):
                  head_flagged=float(h["flagged"]), weight_total=float(f.weighting == "total"))
     res["bayesmag"] = r
     d_true = tr.invariants(float(np.mean(t[train])))[12:15]  # peers: no temperature model, mean training T
-    for name, fn in [("sphere", sphere_fit), ("ellipsoid", ellipsoid_fit), ("twostep", twostep)]:
+    for name, fn in [("sphere", sphere_fit), ("ellipsoid", ellipsoid_fit), ("twostep", twostep)] if peers else []:
         try:
             W, cc = fn(u[train])
             Bh = (u - cc) @ W.T
@@ -210,6 +210,7 @@ def main():
     ap.add_argument("--table", nargs="+", default=None, metavar="JSON",
                     help="print the docs/field.md markdown table from result files (--out of earlier runs) and exit")
     ap.add_argument("--speed", action="store_true", help="time a 10,000-row fit with its uncertainty, warm")
+    ap.add_argument("--no-peers", action="store_true", help="bayesmag only (coverage over many seeds, quickly)")
     a = ap.parse_args()
     if a.table:
         print_table(a.table)
@@ -238,8 +239,9 @@ def main():
     for kind, label, temp, no, *sim in [c + (None,) for c in CAMPAIGNS] + UNSEEN:
         if a.only and a.only not in label:
             continue
-        runs = [run_one(kind, s, temp, no, sim[0]) for s in range(a.seed_start, a.seed_start + a.seeds)]
-        per_seed[label] = {m: {"offset_err": [r[m]["offset_err"] for r in runs]} for m in ("bayesmag", "ellipsoid")}
+        runs = [run_one(kind, s, temp, no, sim[0], peers=not a.no_peers) for s in range(a.seed_start, a.seed_start + a.seeds)]
+        per_seed[label] = {m: {"offset_err": [r[m]["offset_err"] for r in runs]} for m in ("bayesmag", "ellipsoid")
+                           if m in runs[0]}
         per_seed[label]["bayesmag"]["inv_hits"] = [r["bayesmag"]["inv_hits"] for r in runs]
         per_seed[label]["bayesmag"]["inv_n"] = [r["bayesmag"]["inv_n"] for r in runs]
         per_seed[label]["bayesmag"]["head_cov"] = [r["bayesmag"].get("head_cov") for r in runs]
