@@ -610,14 +610,12 @@ def identifiability_notes(fit: FieldFit, cov_diag: dict) -> list[str]:
     if fit.model.temperature and cov_diag["bands_spread"] < 2:
         notes.append("the field directions were spread at fewer than two temperatures (5 C bands): the thermal gain "
                      "Ks is not separated from the thermal offset Ko; repeat the motion at a second temperature")
-    if fit.weighting.startswith("gain ("):
+    if heading_flagged(fit):
         notes.append("the reference-noise refit reached the degenerate solution (a gain S_ii left the prior's 99.9 % "
                      "range: M -> 0, the offset alone explaining a constant magnitude); the 1/g fit is kept, which the "
-                     "reference's noise pulls along weakly visited directions: its intervals there are too narrow")
-    if heading_flagged(fit):
-        notes.append("heading intervals flagged: with a noisy scalar reference and a direction the field did not visit, "
-                     "the scale along it is decided by noise (simulated level turns: intervals cover 0.9, not 0.95); "
-                     "tilt the vehicle, or use kind = \"constant\" with the site's field")
+                     "reference's noise pulls along weakly visited directions: its intervals there, heading included, "
+                     "are too narrow (heading flagged); tilt the vehicle so every direction is visited, or use "
+                     "kind = \"constant\" with the site's field")
     if fit.model.measurement.scale_gauge:
         notes.append("the field magnitude was fitted (constant, free): the overall scale is a gauge (trace(S) = 3)")
     inv = fit.invariants()
@@ -652,9 +650,10 @@ def gaussian_scores(y, mean, sd, level: float = 0.95) -> dict:
 
 
 def heading_flagged(fit: FieldFit) -> bool:
-    """True when heading intervals are not to be trusted: a noisy scalar reference (``ref_sd > 0``) and a field
-    direction the motion did not visit (the scale along it is then set by the noise, docs/field.md Heading)."""
-    return bool(fit.model.measurement.reference_sd > 0 and fit.coverage and fit.coverage.get("missing_directions"))
+    """True when heading intervals are not to be trusted: the reference-noise refit was rejected (a gain left the
+    prior's range), so the 1/g fit was kept, which a noisy reference pulls along unvisited directions (docs/field.md,
+    Heading: its intervals cover 0.39-0.90 there)."""
+    return fit.weighting.startswith("gain (")
 
 
 def heading(B) -> np.ndarray:
