@@ -206,7 +206,8 @@ def main():
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--seed-start", type=int, default=0, help="first seed (seeds seed_start .. seed_start + seeds - 1)")
     ap.add_argument("--out", default=None)
-    ap.add_argument("--only", default=None, help="run only the campaigns whose label contains this text")
+    ap.add_argument("--only", default=None, help="run only the campaigns whose label contains this text (with an "
+                    "existing --out file of the same seeds: their rows are replaced there)")
     ap.add_argument("--table", nargs="+", default=None, metavar="JSON",
                     help="print the docs/field.md markdown table from result files (--out of earlier runs) and exit")
     ap.add_argument("--speed", action="store_true", help="time a 10,000-row fit with its uncertainty, warm")
@@ -245,6 +246,7 @@ def main():
         per_seed[label]["bayesmag"]["inv_hits"] = [r["bayesmag"]["inv_hits"] for r in runs]
         per_seed[label]["bayesmag"]["inv_n"] = [r["bayesmag"]["inv_n"] for r in runs]
         per_seed[label]["bayesmag"]["head_cov"] = [r["bayesmag"].get("head_cov") for r in runs]
+        per_seed[label]["bayesmag"]["head_flagged"] = [r["bayesmag"].get("head_flagged") for r in runs]
         row = {}
         for m in runs[0]:
             keys = runs[0][m].keys()
@@ -261,8 +263,18 @@ def main():
             print("  " + m.ljust(10) + "  ".join(f"{k} {x:.4g}" if isinstance(x, float) else f"{k} {x}" for k, x in v.items()),
                   flush=True)
     if a.out:
+        doc = {"seeds": a.seeds, "seed_start": a.seed_start, "table": table, "per_seed": per_seed}
+        import os
+        if a.only and os.path.exists(a.out):              # --only: replace these campaigns' rows in the earlier file
+            with open(a.out) as fh:
+                old = json.load(fh)
+            if (old["seeds"], old.get("seed_start", 0)) != (a.seeds, a.seed_start):
+                raise SystemExit(f"{a.out} holds seeds {old.get('seed_start', 0)}+{old['seeds']}, not {a.seed_start}+{a.seeds}")
+            old["table"].update(table)
+            old["per_seed"].update(per_seed)
+            doc = old
         with open(a.out, "w") as fh:
-            json.dump({"seeds": a.seeds, "seed_start": a.seed_start, "table": table, "per_seed": per_seed}, fh, indent=2)
+            json.dump(doc, fh, indent=2)
 
 
 if __name__ == "__main__":
