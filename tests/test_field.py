@@ -343,3 +343,15 @@ def test_degenerate_reference_noise_refit_is_rejected_and_flagged():
     assert f.weighting.startswith("gain (") and f.kappa2 == 0.0 and h["flagged"]
     assert any("degenerate solution" in n for n in f.notes)
     assert np.all(np.abs(np.diag(f.matrices()[0]) - 1.0) < 0.5)
+
+
+def test_refit_from_a_total_weight_fit_keeps_its_weight():
+    """A cross-validation refit (``start=``) of a reference-noise fit uses the same weight and kappa, and reports
+    the sandwich covariance (symmetric, positive definite)."""
+    c = simulate_field("level_turns", n=1200, seed=1)
+    d = c.data
+    f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar(0.01))
+    keep = np.arange(d.n) % 5 != 0
+    g = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar(0.01), keep=keep, start=f, diagnostics=False)
+    assert f.weighting == g.weighting == "total" and g.kappa2 == f.kappa2 > 0
+    assert np.allclose(g.cov, g.cov.T) and np.linalg.eigvalsh(g.cov)[0] > 0

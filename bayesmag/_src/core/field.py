@@ -12,7 +12,9 @@ field magnitude is itself fitted.
 Estimate: the posterior mode under weak Gaussian priors (:class:`FieldPrior`; they only matter
 where the motion leaves a direction unconstrained) by Levenberg-Marquardt, then the Laplace
 posterior :math:`\Sigma = (J^T J / (s^2 c) + \mathrm{diag}(\tau^{-2}))^{-1}` with :math:`s^2` the
-residual variance and :math:`c = (1+\rho_1)/(1-\rho_1)` for AR(1) residuals (``covariance="ar1"``).
+residual variance and :math:`c = (1+\rho_1)/(1-\rho_1)` for AR(1) residuals (``covariance="ar1"``). A scalar
+reference with its own noise (``Scalar(ref_sd)``) adds a refit weighted by each row's whole sd and the sandwich
+covariance (:func:`fit_field`, :func:`_sandwich`).
 
 Gauge-free quantities compared between any two fits (:func:`invariants`): :math:`Q = S^T S`,
 :math:`dQ/dT = K_s^T S + S^T K_s`, :math:`d = S^{-1} O`, :math:`dd/dT = S^{-1}(K_o - K_s S^{-1} O)`
@@ -462,6 +464,9 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
       start: a fit of the same model to start from (its estimate and noise level), e.g. a refit without a fold;
         such a refit ends after one pass when its noise level moved < 1 % (``_REFIT_SIG_RTOL``).
       diagnostics: False skips the direction coverage and identifiability notes (refits that only predict).
+      With ``Scalar(ref_sd > 0)``: the 1/g fit is a pilot, then one solve weighted by 1/sqrt(g^2 + kappa^2) with the
+      pilot's noise level, the sandwich covariance, kept unless a gain S_ii leaves 1 +- 3.29 prior sd
+      (``FieldFit.weighting`` says which; docs/field.md).
     Returns:
       :class:`FieldFit`.
 
