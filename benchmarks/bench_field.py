@@ -85,7 +85,7 @@ def kabsch(Bm, Bt):
     return (U @ np.diag([1, 1, d]) @ Vt).T                   # R with Bt ~ Bm R^T
 
 
-def run_one(kind, seed, temperature, n_orient, sim=None):
+def run_one(kind, seed, temperature, n_orient, sim=None, peers=True):
     sim = dict(sim or {})
     scalar = sim.pop("measurement", "constant") == "scalar"   # the scalar model sees f_ref (reference noise too)
     kw = dict(n=2000, seed=seed, n_orient=n_orient, **sim)
@@ -103,7 +103,7 @@ def run_one(kind, seed, temperature, n_orient, sim=None):
     res = {}
     t1 = time.perf_counter()
     if scalar:
-        f = fit_field(u[train], t[train], c.f_ref[train], Scalar())
+        f = fit_field(u[train], t[train], c.f_ref[train], Scalar(c.settings["ref_sd"]))   # the reference's sd, known
     else:
         f = fit_field(u[train], t[train], field_target(Constant(F), n=int(train.sum())), Constant(F))
     pm = f.predict_magnitude(u[test], t[test])
@@ -122,10 +122,11 @@ def run_one(kind, seed, temperature, n_orient, sim=None):
     if lv.sum() > 10:
         h = heading_with_uncertainty(f, u[lv], t[lv], tr.alignment(t[lv]))
         e = wrap_deg(h["heading"] - tr.heading[lv])
-        r.update(head_rmse=float(np.sqrt(np.mean(e**2))), head_cov=float(np.mean(np.abs(e) <= K95 * h["sd"])))
+        r.update(head_rmse=float(np.sqrt(np.mean(e**2))), head_cov=float(np.mean(np.abs(e) <= K95 * h["sd"])),
+                 head_flagged=float(h["flagged"]), weight_total=float(f.weighting == "total"))
     res["bayesmag"] = r
     d_true = tr.invariants(float(np.mean(t[train])))[12:15]  # peers: no temperature model, mean training T
-    for name, fn in [("sphere", sphere_fit), ("ellipsoid", ellipsoid_fit), ("twostep", twostep)]:
+    for name, fn in [("sphere", sphere_fit), ("ellipsoid", ellipsoid_fit), ("twostep", twostep)] if peers else []:
         try:
             W, cc = fn(u[train])
             Bh = (u - cc) @ W.T
@@ -205,10 +206,13 @@ def main():
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--seed-start", type=int, default=0, help="first seed (seeds seed_start .. seed_start + seeds - 1)")
     ap.add_argument("--out", default=None)
-    ap.add_argument("--only", default=None, help="run only the campaigns whose label contains this text")
+    ap.add_argument("--only", default=None, help="run only the campaigns whose label contains this text (with an "
+                    "existing --out file of the same seeds: their rows are replaced there)")
     ap.add_argument("--table", nargs="+", default=None, metavar="JSON",
                     help="print the docs/field.md markdown table from result files (--out of earlier runs) and exit")
     ap.add_argument("--speed", action="store_true", help="time a 10,000-row fit with its uncertainty, warm")
+    ap.add_argument("--ref-sd", type=float, default=0.0, help="--speed: the scalar reference's noise sd given to the fit")
+    ap.add_argument("--no-peers", action="store_true", help="bayesmag only (coverage over many seeds, quickly)")
     a = ap.parse_args()
     if a.table:
         print_table(a.table)
@@ -222,13 +226,13 @@ def main():
         core, conf = [], []
         for _ in range(4):                                   # the first call compiles (cold), then 3 warm
             t1 = time.perf_counter()
-            f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar())
+            f = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar(a.ref_sd))
             f.invariants(); f.predict_magnitude(d.b_meas, d.temperature)
             core.append(time.perf_counter() - t1)
             t1 = time.perf_counter()
-            magnitude_interval_scale(d, Scalar(), c.f_ref, fraction=0.0625, folds=5, start=f)
+            magnitude_interval_scale(d, Scalar(a.ref_sd), c.f_ref, fraction=0.0625, folds=5, start=f)
             conf.append(core[-1] + time.perf_counter() - t1)
-        print(f"10,000 rows, scalar model, 18 parameters + Laplace posterior + invariants + magnitude intervals: "
+        print(f"10,000 rows, scalar model (ref_sd {a.ref_sd}), 18 parameters + Laplace posterior + invariants + magnitude intervals: "
               f"cold {core[0]:.2f} s, warm median {np.median(core[1:]):.2f} s (runs {', '.join(f'{x:.2f}' for x in core[1:])}); "
               f"with the 5-fold conformal interval scale (the job's default): cold {conf[0]:.2f} s, warm median "
               f"{np.median(conf[1:]):.2f} s; load average before/after {os.getloadavg()[0]:.1f}", flush=True)
@@ -237,11 +241,13 @@ def main():
     for kind, label, temp, no, *sim in [c + (None,) for c in CAMPAIGNS] + UNSEEN:
         if a.only and a.only not in label:
             continue
-        runs = [run_one(kind, s, temp, no, sim[0]) for s in range(a.seed_start, a.seed_start + a.seeds)]
-        per_seed[label] = {m: {"offset_err": [r[m]["offset_err"] for r in runs]} for m in ("bayesmag", "ellipsoid")}
+        runs = [run_one(kind, s, temp, no, sim[0], peers=not a.no_peers) for s in range(a.seed_start, a.seed_start + a.seeds)]
+        per_seed[label] = {m: {"offset_err": [r[m]["offset_err"] for r in runs]} for m in ("bayesmag", "ellipsoid")
+                           if m in runs[0]}
         per_seed[label]["bayesmag"]["inv_hits"] = [r["bayesmag"]["inv_hits"] for r in runs]
         per_seed[label]["bayesmag"]["inv_n"] = [r["bayesmag"]["inv_n"] for r in runs]
         per_seed[label]["bayesmag"]["head_cov"] = [r["bayesmag"].get("head_cov") for r in runs]
+        per_seed[label]["bayesmag"]["head_flagged"] = [r["bayesmag"].get("head_flagged") for r in runs]
         row = {}
         for m in runs[0]:
             keys = runs[0][m].keys()
@@ -258,8 +264,18 @@ def main():
             print("  " + m.ljust(10) + "  ".join(f"{k} {x:.4g}" if isinstance(x, float) else f"{k} {x}" for k, x in v.items()),
                   flush=True)
     if a.out:
+        doc = {"seeds": a.seeds, "seed_start": a.seed_start, "table": table, "per_seed": per_seed}
+        import os
+        if a.only and os.path.exists(a.out):              # --only: replace these campaigns' rows in the earlier file
+            with open(a.out) as fh:
+                old = json.load(fh)
+            if (old["seeds"], old.get("seed_start", 0)) != (a.seeds, a.seed_start):
+                raise SystemExit(f"{a.out} holds seeds {old.get('seed_start', 0)}+{old['seeds']}, not {a.seed_start}+{a.seeds}")
+            old["table"].update(table)
+            old["per_seed"].update(per_seed)
+            doc = old
         with open(a.out, "w") as fh:
-            json.dump({"seeds": a.seeds, "seed_start": a.seed_start, "table": table, "per_seed": per_seed}, fh, indent=2)
+            json.dump(doc, fh, indent=2)
 
 
 if __name__ == "__main__":

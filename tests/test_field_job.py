@@ -160,6 +160,10 @@ def test_bad_scalar_column_is_a_one_line_error(tmp_path, capsys, column, bad, ma
      r"'measurement.scalar_column' = 'F' names a CSV column, but \[data\] names no 'path'"),
     ({"data": {"path": "x.csv"}, "measurement": {"kind": "constant", "field": 50.0, "scalar_column": "F"}},
      r"'measurement.scalar_column' = 'F' is only read by kind = \"scalar\""),
+    ({"measurement": {"kind": "scalar", "reference_sd": -0.01}},
+     r"'measurement.reference_sd' = -0.01 must be a noise sd >= 0 uT"),
+    ({"measurement": {"kind": "constant", "field": 50.0, "reference_sd": 0.01}},
+     r"'measurement.reference_sd' = 0.01 is only read by kind = \"scalar\""),
 ])
 def test_scalar_column_config_errors(raw, match):
     from bayesmag._src.app.config import config_from_dict

@@ -154,6 +154,7 @@ class MeasurementConfig:
     kind: str = "vector"                # vector | scalar | constant
     field: Union[float, str] = "free"   # constant: the site's field magnitude in uT (e.g. IGRF/WMM), or "free"
     scalar_column: str = ""             # scalar with data.path: the CSV column of the reference magnitude per row, uT
+    reference_sd: float = 0.0           # scalar: the reference magnitude's own noise sd, uT (0: negligible)
     temperature_terms: Union[bool, str] = "auto"   # "auto": on when the training temperature spans >= 1 C
     covariance: str = "white"           # white | ar1 (residual autocorrelation)
     min_magnitude: float = 0.0          # drop rows whose reference magnitude is below this (a scalar sensor's range), uT
@@ -366,6 +367,11 @@ def _check_measurement(m: MeasurementConfig) -> None:
         raise ConfigError(f"Config key 'measurement.min_magnitude' = {m.min_magnitude} must be >= 0 uT.")
     if m.conformal_folds < 2:
         raise ConfigError(f"Config key 'measurement.conformal_folds' = {m.conformal_folds} must be at least 2.")
+    if not 0 <= m.reference_sd < 1e3:
+        raise ConfigError(f"Config key 'measurement.reference_sd' = {m.reference_sd} must be a noise sd >= 0 uT.")
+    if m.reference_sd and m.kind != "scalar":
+        raise ConfigError(f"Config key 'measurement.reference_sd' = {m.reference_sd} is only read by kind = \"scalar\" "
+                          f"(kind is {m.kind!r}); remove it or set measurement.kind = \"scalar\".")
     if m.scalar_column and m.kind != "scalar":
         raise ConfigError(f"Config key 'measurement.scalar_column' = {m.scalar_column!r} is only read by "
                           f"kind = \"scalar\" (kind is {m.kind!r}); remove it or set measurement.kind = \"scalar\".")

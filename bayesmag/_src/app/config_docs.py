@@ -94,6 +94,7 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "measurement.field": ("uT", 'constant: the site field magnitude (e.g. from IGRF/WMM), or "free"'),
     "measurement.scalar_column": ("", 'scalar with data.path: the CSV column holding the reference magnitude per row '
                                   '(uT); "" = the magnitude of bx_ref, by_ref, bz_ref'),
+    "measurement.reference_sd": ("uT", "scalar: the reference magnitude's own noise sd (0: negligible); docs/field.md"),
     "measurement.temperature_terms": ("", 'thermal terms in the field fit: true | false | "auto" (on when the '
                                       'training temperature spans >= 1 C)'),
     "measurement.covariance": ("", 'field fit parameter covariance: "white" | "ar1" (autocorrelated residuals)'),

@@ -217,7 +217,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     timings: dict[str, float] = {}
     t_all = t = time.perf_counter()
     try:
-        meas = measurement_from_spec(mc.kind, mc.field)
+        meas = measurement_from_spec(mc.kind, mc.field, mc.reference_sd)
     except ValueError as e:
         raise ConfigError(f"[measurement]: {e}") from None
     check_field_nuts_config(cfg)

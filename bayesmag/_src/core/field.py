@@ -12,7 +12,9 @@ field magnitude is itself fitted.
 Estimate: the posterior mode under weak Gaussian priors (:class:`FieldPrior`; they only matter
 where the motion leaves a direction unconstrained) by Levenberg-Marquardt, then the Laplace
 posterior :math:`\Sigma = (J^T J / (s^2 c) + \mathrm{diag}(\tau^{-2}))^{-1}` with :math:`s^2` the
-residual variance and :math:`c = (1+\rho_1)/(1-\rho_1)` for AR(1) residuals (``covariance="ar1"``).
+residual variance and :math:`c = (1+\rho_1)/(1-\rho_1)` for AR(1) residuals (``covariance="ar1"``). A scalar
+reference with its own noise (``Scalar(ref_sd)``) adds a refit weighted by each row's whole sd and the sandwich
+covariance (:func:`fit_field`, :func:`_sandwich`).
 
 Gauge-free quantities compared between any two fits (:func:`invariants`): :math:`Q = S^T S`,
 :math:`dQ/dT = K_s^T S + S^T K_s`, :math:`d = S^{-1} O`, :math:`dd/dT = S^{-1}(K_o - K_s S^{-1} O)`
@@ -36,7 +38,7 @@ from bayesmag._src.core.measurement import Constant, MeasurementModel, Scalar, V
 
 __all__ = ["FieldModel", "FieldPrior", "FieldFit", "fit_field", "invariants", "INVARIANT_NAMES",
            "IDENTIFIED_RATIO", "wrap_deg", "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty",
-           "gaussian_scores", "field_target"]
+           "gaussian_scores", "field_target", "heading_flagged"]
 
 AXES = ("x", "y", "z")
 #: posterior sd / prior sd above which an invariant counts as not identified by the recording
@@ -140,11 +142,13 @@ class FieldModel:
         tc = (t - self.t0)[:, None]
         return u @ S.T + tc * (u @ Ks.T) + O + tc * Ko
 
-    def residual(self, theta, u, t, target):
-        """Residuals in reading units: a magnitude residual is divided by its noise gain :meth:`gain`."""
+    def residual(self, theta, u, t, target, kappa2=0.0):
+        r"""Residuals in reading units: a magnitude residual is divided by :math:`\sqrt{g^2 + \kappa^2}`, g its
+        noise gain (:meth:`gain`) and :math:`\kappa = \sigma_{ref}/\sigma` the reference's own noise in units of
+        the reading noise (0 for an exact reference): the residual's whole sd in reading units."""
         _, _, _, _, extra = self.unpack(theta)
         r = self.measurement.residual(self.calibrate(theta, u, t), target, extra)
-        return r if self.measurement.per_row > 1 else r / self.gain(theta, u, t)
+        return r if self.measurement.per_row > 1 else r / jnp.sqrt(self.gain(theta, u, t) ** 2 + kappa2)
 
     def gain(self, theta, u, t):
         r"""How reading noise reaches the magnitude, :math:`g = \lVert M(T)^T \hat B\rVert` (n,).
@@ -236,16 +240,41 @@ def _static(model: FieldModel) -> FieldModel:
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _solve(model: FieldModel, theta0, u, t, target, mu, w, keep):
+def _solve(model: FieldModel, theta0, u, t, target, mu, w, keep, kappa2):
     def r(th):
-        return jnp.concatenate([model.residual(th, u, t, target) * keep, w * (th - mu)])
+        return jnp.concatenate([model.residual(th, u, t, target, kappa2) * keep, w * (th - mu)])
     return levenberg_marquardt(r, theta0, max_steps=2000)
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _jac_resid(model: FieldModel, theta, u, t, target, keep):
-    f = lambda th: model.residual(th, u, t, target) * keep
+def _jac_resid(model: FieldModel, theta, u, t, target, keep, kappa2):
+    f = lambda th: model.residual(th, u, t, target, kappa2) * keep
     return f(theta), jax.jacfwd(f)(theta)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _hess(model: FieldModel, theta, u, t, target, keep, kappa2):
+    return jax.hessian(lambda th: 0.5 * jnp.sum((model.residual(th, u, t, target, kappa2) * keep) ** 2))(theta)
+
+
+def _sandwich(H, J, r, sig2, infl, sd, fallback):
+    r"""Covariance of the estimate from the total-sd weight: :math:`P^{-1}(B + \Lambda)P^{-1}`, P = H / sig2 + Lambda.
+
+    That cost is an estimating equation, not a likelihood: along a direction the motion left weak its expected
+    curvature is zero (the flat expected cost that removes the pull), but its score still varies from row to row
+    (which noise source dominates a row changes along that direction), so the Laplace P^-1 (curvature only)
+    is far too narrow there. B = infl * sum_i s_i s_i^T, s_i = rho_i grad rho_i / sig2, is the score's variance
+    (infl: AR(1)); Lambda the prior precision. Where curvature and score variance agree (a likelihood,
+    e.g. every direction visited) it equals P^-1. ``fallback`` (the Gauss-Newton Laplace) if P is not positive.
+    """
+    Lam = np.diag(1.0 / np.asarray(sd) ** 2)
+    P = np.asarray(H) / sig2 + Lam
+    P = 0.5 * (P + P.T)
+    if not (np.all(np.isfinite(P)) and np.linalg.eigvalsh(P)[0] > 0):
+        return fallback
+    Pi = np.linalg.inv(P)
+    sc = np.asarray(J) * np.asarray(r)[:, None] / sig2
+    return Pi @ (infl * sc.T @ sc + Lam) @ Pi
 
 
 def _init(model: FieldModel, u, t, target) -> np.ndarray:
@@ -290,6 +319,9 @@ _MAX_PASSES, _SIG_RTOL = 8, 1e-3
 #: within 1 % of the start's: the prior weights then differ by < 2 %, which moves the mode by a negligible amount
 #: wherever the data dominate the prior (posterior sd <= 0.05 prior sd on the simulated campaigns)
 _REFIT_SIG_RTOL = 1e-2
+#: the reference-noise refit (``Scalar(ref_sd > 0)``) is kept only if every gain S_ii lies within this many prior sds
+#: of 1 (the prior's 99.9 % range): beyond it the refit has reached the degenerate solution M -> 0
+_GAIN_Z = 3.29
 
 
 @dataclasses.dataclass(frozen=True)
@@ -310,6 +342,8 @@ class FieldFit:
     covariance_method: str
     coverage: dict
     notes: tuple[str, ...]
+    kappa2: float = 0.0       # (reference noise sd / reading noise sd)^2 in the magnitude residual's weight
+    weighting: str = "gain"   # "gain" (1/g) or "total" (1/sqrt(g^2 + kappa^2), the reference-noise refit); see fit_field
 
     @property
     def param_names(self):
@@ -363,7 +397,7 @@ class FieldFit:
         """Predictive distribution of the reference magnitude: mean, epistemic, noise and total sd."""
         mean, epi = (np.asarray(a) for a in self.magnitude(u, t))
         g = np.asarray(self.model.gain(jnp.asarray(self.theta), jnp.asarray(u, jnp.float64), jnp.asarray(t, jnp.float64)))
-        noise = math.sqrt(self.s2) * g
+        noise = math.sqrt(self.s2) * np.sqrt(g**2 + self.kappa2)
         return {"mean": mean, "epistemic": epi, "noise": noise, "total": np.sqrt(epi**2 + noise**2)}
 
     def to_json(self) -> dict:
@@ -376,6 +410,7 @@ class FieldFit:
             "prior_sd": self.prior_sd.tolist(),
             "s2": self.s2, "rho1": self.rho1, "inflation": self.inflation, "n": self.n,
             "converged": self.converged, "n_steps": self.n_steps, "covariance": self.covariance_method,
+            "reference_sd": self.model.measurement.reference_sd, "weighting": self.weighting, "kappa2": self.kappa2,
             "invariants": {n: {"value": float(v), "sd": float(s), "prior_sd": float(p), "identified": bool(i),
                                "why_not": str(w)}
                            for n, v, s, p, i, w in zip(inv["names"], inv["value"], inv["sd"], inv["prior_sd"],
@@ -429,6 +464,9 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
       start: a fit of the same model to start from (its estimate and noise level), e.g. a refit without a fold;
         such a refit ends after one pass when its noise level moved < 1 % (``_REFIT_SIG_RTOL``).
       diagnostics: False skips the direction coverage and identifiability notes (refits that only predict).
+      With ``Scalar(ref_sd > 0)``: the 1/g fit is a pilot, then one solve weighted by 1/sqrt(g^2 + kappa^2) with the
+      pilot's noise level, the sandwich covariance, kept unless a gain S_ii leaves 1 +- 3.29 prior sd
+      (``FieldFit.weighting`` says which; docs/field.md).
     Returns:
       :class:`FieldFit`.
 
@@ -454,38 +492,66 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     ms, uj, tj, yj = _static(model), jnp.asarray(u), jnp.asarray(t - t0v), jnp.asarray(target)
     kj = jnp.asarray(np.repeat(kp, measurement.per_row).astype(np.float64))
     n_res = int(kp.sum()) * measurement.per_row
-    r0, _ = _jac_resid(ms, jnp.asarray(theta0), uj, tj, yj, kj)
+    r0, _ = _jac_resid(ms, jnp.asarray(theta0), uj, tj, yj, kj, 0.0)
     sig = max(float(np.sqrt(np.sum(np.asarray(r0) ** 2) / n_res)), 1e-6)
+    kappa2, weighting = 0.0, "gain"
     if start is not None:
         sig = math.sqrt(start.s2 * start.inflation)
+        kappa2, weighting = start.kappa2, start.weighting
     infl, rho, steps, ok = 1.0, 0.0, 0, True
     theta = theta0
     # The prior enters the LM cost as w (theta - mu) with w = sig / sd, so the mode is the posterior mode only
     # when sig is the noise level the fit itself implies: iterate to that fixed point. (Two passes were not
     # enough: from a poor algebraic start the second pass ran with sig 25x too large, i.e. a prior 600x too
     # strong, which moved the mode by up to 0.6 posterior sd; NUTS showed it, tests/test_field.py.)
-    for k in range(_MAX_PASSES):
-        sol = _solve(ms, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd), kj)
+
+    def one_pass(theta, sig, kappa2):
+        sol = _solve(ms, jnp.asarray(theta), uj, tj, yj, jnp.asarray(mu), jnp.asarray(sig / sd), kj, kappa2)
         theta = np.asarray(sol.theta)
-        steps += int(sol.n_steps)
-        ok = int(sol.result) == 0
-        r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj))
+        r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2))
         s2 = float(r @ r / max(n_res - model.n_params, 1))
+        rho, infl = 0.0, 1.0
         if covariance == "ar1":
             rr = r.reshape(len(u), -1)[kp]
             rk = None if run is None else np.asarray(run)[kp]
             rho = float(np.mean([lag1_autocorrelation(rr[:, k], rk) for k in range(rr.shape[1])]))
             infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99))
+        return theta, J, s2, rho, infl, int(sol.n_steps), int(sol.result) == 0, r
+
+    for k in range(_MAX_PASSES):
+        theta, J, s2, rho, infl, n_st, ok, r = one_pass(theta, sig, kappa2)
+        steps += n_st
         sig_new = math.sqrt(s2 * infl)
         done = ((k > 0 and abs(sig_new / sig - 1.0) < _SIG_RTOL)
                 or (start is not None and abs(sig_new / sig - 1.0) < _REFIT_SIG_RTOL))
         sig = sig_new
         if done:
             break
+    ref2 = measurement.reference_sd ** 2 if measurement.per_row == 1 else 0.0
+    if ref2 > 0 and start is None:
+        # The reference's own noise: divided by g like the reading noise, its cost sum(ref_sd^2 / g^2) falls as M
+        # grows along a direction the motion left weak (level turns: the vertical), a pull of its own. The
+        # residual's whole sd, sqrt(g^2 + kappa^2) in reading units, removes it (expected cost flat along such a
+        # direction), but it is also flat along the degenerate solution M -> 0 (a dead sensor whose offset alone
+        # explains a constant magnitude), where the noise level is not identified. So the 1/g fit above is the
+        # pilot: it fixes the noise level (identified there), the refit starts from it with sig and kappa held,
+        # and the refit is kept only if every gain S_ii stays inside the prior's 99.9 % range (else the pilot,
+        # with a note). docs/field.md (Heading) has the measurements.
+        k2 = ref2 / s2
+        th_c, J_c, s2_c, rho_c, infl_c, n_st, ok_c, r_c = one_pass(theta, sig, k2)
+        steps += n_st
+        S_c = np.diag(np.asarray(model.unpack(jnp.asarray(th_c))[0]))
+        if np.all(np.abs(S_c - 1.0) <= _GAIN_Z * prior.s_diag):
+            theta, J, s2, rho, infl, ok, kappa2, weighting, r = th_c, J_c, s2_c, rho_c, infl_c, ok_c, k2, "total", r_c
+        else:
+            weighting = "gain (the reference-noise refit left the prior's gain range: rejected)"
     P = J.T @ J / (s2 * infl) + np.diag(1.0 / sd**2)
     cov = np.linalg.inv(P)
+    if weighting == "total":
+        cov = _sandwich(_hess(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2), J, r, s2 * infl, infl, sd, cov)
     cov = 0.5 * (cov + cov.T)
-    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, ())
+    fit0 = FieldFit(model, theta, cov, mu, sd, s2, rho, infl, int(kp.sum()), ok, steps, covariance, {}, (),
+                    kappa2, weighting)
     if not diagnostics:
         return fit0
     cov_diag = direction_coverage(fit0.calibrate(u[kp], t[kp]), t[kp])
@@ -549,6 +615,12 @@ def identifiability_notes(fit: FieldFit, cov_diag: dict) -> list[str]:
     if fit.model.temperature and cov_diag["bands_spread"] < 2:
         notes.append("the field directions were spread at fewer than two temperatures (5 C bands): the thermal gain "
                      "Ks is not separated from the thermal offset Ko; repeat the motion at a second temperature")
+    if heading_flagged(fit):
+        notes.append("the reference-noise refit reached the degenerate solution (a gain S_ii left the prior's 99.9 % "
+                     "range: M -> 0, the offset alone explaining a constant magnitude); the 1/g fit is kept, which the "
+                     "reference's noise pulls along weakly visited directions: its intervals there, heading included, "
+                     "are too narrow (heading flagged); tilt the vehicle so every direction is visited, or use "
+                     "kind = \"constant\" with the site's field")
     if fit.model.measurement.scale_gauge:
         notes.append("the field magnitude was fitted (constant, free): the overall scale is a gauge (trace(S) = 3)")
     inv = fit.invariants()
@@ -580,6 +652,13 @@ def gaussian_scores(y, mean, sd, level: float = 0.95) -> dict:
     return {"coverage": float(np.mean(np.abs(z) <= k)), "nll": float(np.mean(nll)), "crps": float(np.mean(crps)),
             "rmse": float(np.sqrt(np.mean((y - mean) ** 2))), "mean_width": float(np.mean(2 * k * sd)),
             "level": level, "n": int(y.size)}
+
+
+def heading_flagged(fit: FieldFit) -> bool:
+    """True when heading intervals are not to be trusted: the reference-noise refit was rejected (a gain left the
+    prior's range), so the 1/g fit was kept, which a noisy reference pulls along unvisited directions (docs/field.md,
+    Heading: its intervals cover 0.39-0.90 there)."""
+    return fit.weighting.startswith("gain (")
 
 
 def heading(B) -> np.ndarray:
@@ -618,7 +697,7 @@ def heading_with_uncertainty(fit: FieldFit, u, t, R=None, *, noise_sd: float | N
     know it (the gauge): it needs a second vector (known attitudes, gravity, or a heading reference),
     so the intervals are conditional on ``R``; ``R=None`` takes the gauge frame as the body frame.
     Returns ``heading``, ``sd_params`` (from the parameter posterior), ``sd_noise`` (the reading's noise,
-    ``noise_sd`` per axis, default the fit's residual sd) and ``sd`` (both).
+    ``noise_sd`` per axis, default the fit's residual sd), ``sd`` (both) and ``flagged`` (:func:`heading_flagged`).
     """
     u = jnp.asarray(u, jnp.float64)
     t = jnp.asarray(t, jnp.float64)
@@ -633,4 +712,4 @@ def heading_with_uncertainty(fit: FieldFit, u, t, R=None, *, noise_sd: float | N
     var_n = ns**2 * np.sum(gu**2, axis=1)
     deg = 180.0 / np.pi
     return {"heading": np.degrees(np.asarray(val)), "sd_params": deg * np.sqrt(var_p), "sd_noise": deg * np.sqrt(var_n),
-            "sd": deg * np.sqrt(var_p + var_n)}
+            "sd": deg * np.sqrt(var_p + var_n), "flagged": heading_flagged(fit)}

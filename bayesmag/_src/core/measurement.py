@@ -61,6 +61,11 @@ class MeasurementModel(abc.ABC):
     def scale_gauge(self) -> bool:
         return False
 
+    @property
+    def reference_sd(self) -> float:
+        """Noise sd of the reference magnitude, uT (0: exact or negligible, e.g. one known field)."""
+        return 0.0
+
     def extra_names(self) -> tuple[str, ...]:
         return ()
 
@@ -96,9 +101,18 @@ class Vector(MeasurementModel):
 
 @dataclasses.dataclass(frozen=True)
 class Scalar(MeasurementModel):
-    """A scalar magnetometer's magnitude per row (proton/Overhauser, optically pumped, a coil's magnitude)."""
+    """A scalar magnetometer's magnitude per row (proton/Overhauser, optically pumped, a coil's magnitude).
 
+    ``ref_sd``: the reference's own noise sd, uT (default 0: negligible beside the readings' noise). When > 0 the
+    fit removes the pull it would otherwise exert on directions the motion left weak (``fit_field``).
+    """
+
+    ref_sd: float = 0.0
     name: ClassVar[str] = "scalar"
+
+    @property
+    def reference_sd(self) -> float:
+        return float(self.ref_sd)
 
     def residual(self, B, target, extra):
         return jnp.linalg.norm(B, axis=-1) - target
@@ -141,8 +155,9 @@ class Constant(MeasurementModel):
 MEASUREMENTS = {"vector": Vector, "scalar": Scalar, "constant": Constant}
 
 
-def measurement_from_spec(kind: str, field: float | str | None = None) -> MeasurementModel:
-    """Build a measurement model from config values: ``kind`` in :data:`MEASUREMENTS`, ``field`` for constant.
+def measurement_from_spec(kind: str, field: float | str | None = None, reference_sd: float = 0.0) -> MeasurementModel:
+    """Build a measurement model from config values: ``kind`` in :data:`MEASUREMENTS`, ``field`` for constant,
+    ``reference_sd`` (uT) for scalar.
 
     Example:
       >>> measurement_from_spec("constant", 50.0)
@@ -157,4 +172,8 @@ def measurement_from_spec(kind: str, field: float | str | None = None) -> Measur
         if not (f > 0 and f < 1e6):
             raise ValueError(f"constant field {field!r} must be a positive magnitude in uT, or \"free\".")
         return Constant(f)
+    if kind == "scalar":
+        if not 0 <= float(reference_sd) < 1e3:
+            raise ValueError(f"scalar reference_sd {reference_sd!r} must be a noise sd >= 0 uT.")
+        return Scalar(float(reference_sd))
     return MEASUREMENTS[kind]()

@@ -69,7 +69,7 @@ def field_nuts(fit: FieldFit, u, t, target, *, chains: int = 2, warmup: int = 30
 
     def potential(z):                       # z: standardised around the Laplace mode
         th = centre + scale * z
-        r = model.residual(th, u, t, y)
+        r = model.residual(th, u, t, y, fit.kappa2)      # the fit's own weight (kappa: reference noise)
         return 0.5 * jnp.sum(r * r) / sig2 + 0.5 * jnp.sum(((th - mu) / sd) ** 2)
 
     kernel = NUTS(potential_fn=potential, dense_mass=True, target_accept_prob=target_accept)

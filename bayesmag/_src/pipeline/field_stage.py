@@ -54,7 +54,7 @@ def heading_check(fit: FieldFit, data: CalibrationData, rows: np.ndarray, true_h
             "coverage": float(np.mean(np.abs(err) <= k * h["sd"])),
             "coverage_params_only": float(np.mean(np.abs(err) <= k * np.sqrt(h["sd_params"]**2 + 1e-30))),
             "level": level, "conditional_on": "the gauge-to-body rotation (from the known attitudes)",
-            "error": err, "sd": h["sd"]}
+            "flagged": h["flagged"], "error": err, "sd": h["sd"]}
 
 
 def field_domain_check(train: CalibrationData, y_train_mag, test: CalibrationData, predicted_mag, *,
