@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -73,45 +74,76 @@ def _scores(pr, news):
 
 
 def generators(args):
+    """Per training draw one ``DRAW {json}`` line (covered or flagged, widths, width ratio, importance ESS, fit
+    time), then the table; ``summarise`` rebuilds the table from such lines (draws split over processes)."""
     f = lambda v: " / ".join(f"{100 * x:.1f}" for x in v)   # noqa: E731
-    rows = {}
+    recs = []
     for name in args.generator:
         gen = GENERATORS[name]
-        ok = {"loro": [], "hier": []}
-        wid = {"loro": [], "hier": []}
-        ratio, secs = [], []
-        for draw in range(args.draws):
+        for draw in range(args.first_draw, args.first_draw + args.draws):
             train = _session(draw, args.runs, rows=100, session_params=gen)
             pr = _calibrate(train)
             t = time.perf_counter()
             post = H.fit_sessions(train, pr.fit, seed=draw, likelihood=args.likelihood, df=args.df,
                                   importance=args.laplace_draws == "importance")
-            secs.append(time.perf_counter() - t)
+            secs = time.perf_counter() - t
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
+            rec = {"generator": name, "draw": draw, "fit_s": round(secs, 2), "ess": [round(e, 1) for e in post.ess]}
             for key, p in (("loro", pr), ("hier", ph)):
                 c, d, w = _scores(p, news)
-                ok[key].append((c | ~d[:, None]).mean(0))
-                wid[key].append(w[d].mean(0))
+                rec[f"ok_{key}"] = (c | ~d[:, None]).mean(0).tolist()
+                rec[f"width_{key}"] = w[d].mean(0).tolist()
                 if key == "loro":
                     c_loro, w_loro = c, w
                 else:
-                    ratio.append(np.array([np.mean(w[c_loro[:, a], a]) / np.mean(w_loro[c_loro[:, a], a])
-                                           for a in range(3)]))
-            print(f"{name} draw {draw}: covered or flagged loro {f(ok['loro'][-1])}, hierarchical {f(ok['hier'][-1])}; "
-                  f"width ratio {' / '.join(f'{v:.2f}' for v in ratio[-1])}; fit {secs[-1]:.2f} s", flush=True)
-        for key in ok:
-            o, w = np.array(ok[key]), np.array(wid[key])
-            rows[(name, key)] = (f(o.mean(0)), f(o.std(0, ddof=1)), f(np.percentile(o, 10, axis=0)),
-                                 " / ".join(map(str, (o < 0.95).sum(0))),
-                                 " / ".join(f"{v:.3f}" for v in w.mean(0)),
-                                 " / ".join(f"{v:.2f}" for v in np.mean(ratio, 0)) if key == "hier" else "1")
-    print(f"\n### {args.draws} training draws x {args.sessions} new sessions (x / y / z)\n")
-    print("| generator | transfer | covered or flagged, mean (%) | sd over draws (%) | 10th percentile over draws (%) "
-          "| draws under 95 % | mean in-domain width (uT) | width / loro's where loro covers |")
-    print("|---|---|---|---|---|---|---|---|")
-    for (name, key), r in rows.items():
-        print(f"| {name} | {key} | " + " | ".join(r) + " |")
+                    # mean width on the rows loro's intervals cover (in domain or not), hierarchical / loro
+                    rec["ratio"] = [float(np.mean(w[c_loro[:, a], a]) / np.mean(w_loro[c_loro[:, a], a]))
+                                    for a in range(3)]
+            print("DRAW " + json.dumps(rec), flush=True)
+            print(f"{name} draw {draw}: covered or flagged loro {f(rec['ok_loro'])}, hierarchical {f(rec['ok_hier'])}; "
+                  f"width ratio {' / '.join(f'{v:.2f}' for v in rec['ratio'])}; fit {secs:.2f} s", flush=True)
+            recs.append(rec)
+    _table(recs, f"{args.draws} training draws x {args.sessions} new sessions")
+
+
+def _table(recs, title):
+    """The generator table of ``DRAW`` records: per generator and transfer, per axis x / y / z."""
+    f = lambda v: " / ".join(f"{100 * x:.1f}" for x in v)   # noqa: E731
+    print(f"\n### {title} (x / y / z)\n")
+    print("| generator | draws | transfer | covered or flagged, mean (%) | sd over draws (%) | 10th percentile over "
+          "draws (%) | draws under 95 % | mean in-domain width (uT) | width / loro's where loro covers: rows "
+          "| same, draws where loro >= 95 % | importance ESS, min over draws |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in dict.fromkeys(r["generator"] for r in recs):
+        rs = sorted({r["draw"]: r for r in recs if r["generator"] == name}.values(), key=lambda r: r["draw"])
+        ratio = np.array([r["ratio"] for r in rs])
+        ok_l = np.array([r["ok_loro"] for r in rs])
+        wl, wh = np.array([r["width_loro"] for r in rs]), np.array([r["width_hier"] for r in rs])
+        good = ok_l >= 0.95
+        by_draw = " / ".join(f"{np.mean(wh[good[:, a], a]) / np.mean(wl[good[:, a], a]):.2f}" if good[:, a].any()
+                             else "-" for a in range(3))
+        ess = np.array([r["ess"] for r in rs if r["ess"]])
+        for key in ("loro", "hier"):
+            o, w = np.array([r[f"ok_{key}"] for r in rs]), np.array([r[f"width_{key}"] for r in rs])
+            hier = key == "hier"
+            print(f"| {name} | {len(rs)} | {key} | {f(o.mean(0))} | {f(o.std(0, ddof=1)) if len(rs) > 1 else '-'} | "
+                  f"{f(np.percentile(o, 10, axis=0))} | {' / '.join(map(str, (o < 0.95).sum(0)))} | "
+                  f"{' / '.join(f'{v:.3f}' for v in w.mean(0))} | "
+                  f"{' / '.join(f'{v:.2f}' for v in ratio.mean(0)) if hier else '1'} | {by_draw if hier else '1'} | "
+                  f"{' / '.join(f'{v:.0f}' for v in ess.min(0)) if hier and ess.size else '-'} |")
+
+
+def summarise(args):
+    """The generator table rebuilt from the ``DRAW`` lines of benchmark logs (``--logs``)."""
+    recs = []
+    for path in args.logs:
+        recs += [json.loads(line[5:]) for line in Path(path).read_text().splitlines() if line.startswith("DRAW ")]
+    if args.generator != list(GENERATORS):
+        recs = [r for r in recs if r["generator"] in args.generator]
+    order = {g: i for i, g in enumerate(GENERATORS)}
+    recs.sort(key=lambda r: (order[r["generator"]], r["draw"]))
+    _table(recs, f"from {len(args.logs)} logs, {len(recs)} generator-draws x {args.sessions} new sessions")
 
 
 def belsten(args):
@@ -192,8 +224,10 @@ def pooling(args):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("what", choices=["generators", "belsten", "pooling"])
+    ap.add_argument("what", choices=["generators", "belsten", "pooling", "summarise"])
     ap.add_argument("--draws", type=int, default=30)
+    ap.add_argument("--first-draw", type=int, default=0, help="generators: training draws first..first+draws-1")
+    ap.add_argument("--logs", nargs="*", default=[], help="summarise: logs holding DRAW lines")
     ap.add_argument("--sessions", type=int, default=40)
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--generator", nargs="+", default=list(GENERATORS), choices=sorted(GENERATORS))
@@ -203,7 +237,7 @@ def main():
                     help="Laplace path: draws corrected to the exact posterior (default) or the Gaussian's own")
     args = ap.parse_args()
     print(f"## `python benchmarks/bench_hierarchical.py {' '.join(sys.argv[1:])}`\n")
-    {"generators": generators, "belsten": belsten, "pooling": pooling}[args.what](args)
+    {"generators": generators, "belsten": belsten, "pooling": pooling, "summarise": summarise}[args.what](args)
 
 
 if __name__ == "__main__":
