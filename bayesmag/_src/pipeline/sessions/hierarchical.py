@@ -592,19 +592,25 @@ def _init_h(stats: RunStats, a: int, tau_scale: float) -> np.ndarray:
 
 #: Tolerance (max abs difference in ``h``) below which two BFGS results are the same mode.
 SAME_MODE = 1e-2
+#: Default of ``fit_laplace(mode_search=...)``: False, the posterior around the mode found from the moment start
+#: only. With True the second start finds, on some simulated campaigns of 30 sessions, a mode 50 nats higher at
+#: between-session sds ten times the true ones (docs/sessions.md, "Several modes"): the collapsed posterior of
+#: the diagonal model is then multimodal and its global mode wrong, so the global search is an option, not the default.
+MODE_SEARCH = False
 
 
-def _modes(fg, h_init, q, tau_scale):
+def _modes(fg, h_init, q, tau_scale, search: bool = True):
     """Modes of the collapsed posterior and their (floored) Laplace covariances: ``[(h, cov), ...]``.
 
     BFGS from ``h_init`` (between-session sds at a fifth of the prior scale) and again with every ``log tau``
     at the prior scale: with few runs the posterior of a between-session sd can be bimodal (a mode near 0
     and one where a large sd lets the runs' levels decouple; Belsten with run 3 left out, y: the larger
     mode holds 96 % of the mass by grid integration, and BFGS from the first start found only the small one).
-    The second is kept only if it is a different point; the highest mode comes first.
+    The second is kept only if it is a different point; the highest mode comes first. ``search`` False: the
+    first start only (the default of :func:`fit_laplace`, see :data:`MODE_SEARCH`).
     """
     out = []
-    for h in (h_init, np.r_[np.full(q, np.log(tau_scale)), h_init[q:]])[:1 if q == 0 else 2]:
+    for h in (h_init, np.r_[np.full(q, np.log(tau_scale)), h_init[q:]])[:1 if q == 0 or not search else 2]:
         res = scipy.optimize.minimize(fg, h, jac=True, method="BFGS", options={"gtol": 1e-6, "maxiter": 500})
         if out and np.max(np.abs(res.x - out[0][0])) < SAME_MODE:
             continue
@@ -616,7 +622,7 @@ def _modes(fg, h_init, q, tau_scale):
 def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
                 sigma_scale: float = SIGMA_PRIOR_SCALE, draws: int = N_DRAWS, seed: int = 0,
                 return_modes: bool = False, likelihood: str = "gaussian", df: float = 4.0,
-                reml: float = REML, importance: bool = True) -> SessionPosterior:
+                reml: float = REML, importance: bool = True, mode_search: bool = MODE_SEARCH) -> SessionPosterior:
     """Laplace approximation of the collapsed hyperparameter posterior (module docstring), per axis.
 
     The mode by BFGS (JAX gradients), the covariance the inverse Hessian there; ``draws`` draws of
@@ -624,7 +630,8 @@ def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float
     ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`); ``reml``: 1 integrates
     the flat ``mu`` out (restricted likelihood), 0 profiles it (maximum); ``importance``: the draws are
     corrected to the exact collapsed posterior by importance resampling (:func:`_importance_draws`; False:
-    the Gaussian approximation's own draws).
+    the Gaussian approximation's own draws); ``mode_search``: BFGS from a second start too and the importance
+    proposal a mixture over the modes found (:func:`_modes`).
     """
     dfs = _check_likelihood(likelihood, df)
     rng = np.random.default_rng(seed)
@@ -640,7 +647,7 @@ def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float
             v, g = float(v), np.asarray(g, np.float64)
             return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
 
-        found = _modes(fg, _init_h(stats, a, tau_scale), q, tau_scale)
+        found = _modes(fg, _init_h(stats, a, tau_scale), q, tau_scale, mode_search)
         h0, cov_h = found[0]
         all_fn = lambda x: _lp_mu_cov(jnp.asarray(x), *args, df=dfs)     # noqa: E731
         if importance:
