@@ -171,7 +171,7 @@ def belsten(args):
         sin = sigma_in if sigma_in is not None else np.diag([0.02**2] * 3 + [1e-4])
         base = Predictor(fit=fit, sigma_in=sin, residual_sd=np.sqrt(_residual_variance(_Cfg, fit, train, sin)),
                          domain=Domain.from_data(train), uq=UQOptions(method="analytic"))
-        post = H.fit_sessions(train, fit)
+        post = H.fit_sessions(train, fit, mode_search=args.mode_search)
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
             p = pr.predict(test)
@@ -252,7 +252,8 @@ def belsten_tau(args):
     for k, (h, _) in enumerate(found):
         val, mu, _ = lp(jnp.asarray(h))
         prof = float(lp_of(st, 0.0)(jnp.asarray(h))[0])
-        print(f"| {k} | {np.exp(h[0]):.3f} | {float(val):.2f} | {prof:.2f} | {cross(np.asarray(mu) / st.scale[a]):+.4f} |")
+        c = cross(np.asarray(mu) / st.scale[a])
+        print(f"| {k} | {np.exp(h[0]):.3f} | {float(val):.2f} | {prof:.2f} | {c:+.4f} |")
     full = bayesmag.fit_physics(d, model)
     e = test.b_ref[:, a] - np.asarray(fit.predict(inputs_from_data(test)))[:, a]
     slope = np.linalg.lstsq(np.c_[np.ones(test.n), test.b_meas[:, 0]], e, rcond=None)[0][1]
@@ -270,8 +271,8 @@ def belsten_tau(args):
           f"{2 * (1 - __import__('scipy').stats.norm.cdf(0.3 / H.TAU_PRIOR_SCALE)):.3f}")
     for seed in range(3):
         post = H.fit_laplace(st, names, seed=seed, mode_search=True)
-        print(f"fit_laplace(mode_search=True) seed {seed}: E tau^2 = {post.w_mean[a, 0]:.3f}, importance ESS {post.ess[a]:.0f} of "
-              f"{H.N_PROPOSALS}")
+        print(f"fit_laplace(mode_search=True) seed {seed}: E tau^2 = {post.w_mean[a, 0]:.3f}, importance ESS "
+              f"{post.ess[a]:.0f} of {H.N_PROPOSALS}")
     if len(found) > 1:
         print("\nlog posterior maximised over (log sigma, atanh rho) at the large-tau mode's tau minus the same at the "
               "small-tau mode's, with one training run dropped:")
@@ -333,7 +334,7 @@ def main():
     ap.add_argument("what", choices=["generators", "belsten", "belsten_tau", "pooling", "summarise"])
     ap.add_argument("--draws", type=int, default=30)
     ap.add_argument("--first-draw", type=int, default=0, help="generators: training draws first..first+draws-1")
-    ap.add_argument("--mode-search", action="store_true", help="generators: fit_laplace(mode_search=True)")
+    ap.add_argument("--mode-search", action="store_true", help="generators, belsten: fit_laplace(mode_search=True)")
     ap.add_argument("--run", type=int, default=3, help="belsten_tau: the left-out run")
     ap.add_argument("--axis", default="y", choices=list("xyz"), help="belsten_tau: the axis")
     ap.add_argument("--logs", nargs="*", default=[], help="summarise: logs holding DRAW lines")

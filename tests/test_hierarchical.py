@@ -475,8 +475,9 @@ def test_bimodal_between_session_sd_matches_grid_integration():
     between-session sd is bimodal (a mode near 0.05 uT and one near 1.5 uT, which holds most of the mass), and
     BFGS from the small start found only the small mode; the importance draws then rested on an effective
     sample of 28-61 and E tau^2 moved 0.8-2.5 with the seed. ``fit_laplace(mode_search=True)`` (modes from two
-    starts, mixture proposal) against numerical integration of the same posterior: a grid in log tau (step 0.15), and at each
-    tau a 15 x 15 grid over +-6 conditional sds of (log sigma, atanh rho) around their conditional mode.
+    starts, mixture proposal) against numerical integration of the same posterior: a grid in log tau (step
+    0.15), and at each tau a 15 x 15 grid over +-6 conditional sds of (log sigma, atanh rho) around their
+    conditional mode.
     Declared: E tau^2 within 10 % and P(tau > 0.3 uT) within 0.03 of the grid's (measured: grid 2.34 and
     0.97, seeds 0 / 1 / 2 2.44 / 2.32 / 2.31), and an effective sample of at least 300 of 1200."""
     from bayesmag._src.core.datasets import load_dataset
