@@ -4,6 +4,8 @@ Run:
   python benchmarks/bench_hierarchical.py generators [--draws 30] [--sessions 40] [--generator gauss ...]
   python benchmarks/bench_hierarchical.py belsten        # leave one Belsten run out, physics stage
   python benchmarks/bench_hierarchical.py pooling [--draws 3]   # complete / no / partial pooling, LORO elpd
+  python benchmarks/bench_hierarchical.py belsten_tau [--run 3 --axis y]   # the offset sd's posterior, by grid
+  python benchmarks/bench_hierarchical.py summarise --logs LOG ...        # generator table from DRAW lines
 
 ``generators``: bench_transfer.py's five session generators plus three written for issue 24
 (``heavy``: offsets Student-t with 2.5 dof scaled to sd 0.3 uT; ``temp_drift``: every session its own
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -73,45 +76,76 @@ def _scores(pr, news):
 
 
 def generators(args):
+    """Per training draw one ``DRAW {json}`` line (covered or flagged, widths, width ratio, importance ESS, fit
+    time), then the table; ``summarise`` rebuilds the table from such lines (draws split over processes)."""
     f = lambda v: " / ".join(f"{100 * x:.1f}" for x in v)   # noqa: E731
-    rows = {}
+    recs = []
     for name in args.generator:
         gen = GENERATORS[name]
-        ok = {"loro": [], "hier": []}
-        wid = {"loro": [], "hier": []}
-        ratio, secs = [], []
-        for draw in range(args.draws):
+        for draw in range(args.first_draw, args.first_draw + args.draws):
             train = _session(draw, args.runs, rows=100, session_params=gen)
             pr = _calibrate(train)
             t = time.perf_counter()
             post = H.fit_sessions(train, pr.fit, seed=draw, likelihood=args.likelihood, df=args.df,
-                                  importance=args.laplace_draws == "importance")
-            secs.append(time.perf_counter() - t)
+                                  importance=args.laplace_draws == "importance", mode_search=args.mode_search)
+            secs = time.perf_counter() - t
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
+            rec = {"generator": name, "draw": draw, "fit_s": round(secs, 2), "ess": [round(e, 1) for e in post.ess]}
             for key, p in (("loro", pr), ("hier", ph)):
                 c, d, w = _scores(p, news)
-                ok[key].append((c | ~d[:, None]).mean(0))
-                wid[key].append(w[d].mean(0))
+                rec[f"ok_{key}"] = (c | ~d[:, None]).mean(0).tolist()
+                rec[f"width_{key}"] = w[d].mean(0).tolist()
                 if key == "loro":
                     c_loro, w_loro = c, w
                 else:
-                    ratio.append(np.array([np.mean(w[c_loro[:, a], a]) / np.mean(w_loro[c_loro[:, a], a])
-                                           for a in range(3)]))
-            print(f"{name} draw {draw}: covered or flagged loro {f(ok['loro'][-1])}, hierarchical {f(ok['hier'][-1])}; "
-                  f"width ratio {' / '.join(f'{v:.2f}' for v in ratio[-1])}; fit {secs[-1]:.2f} s", flush=True)
-        for key in ok:
-            o, w = np.array(ok[key]), np.array(wid[key])
-            rows[(name, key)] = (f(o.mean(0)), f(o.std(0, ddof=1)), f(np.percentile(o, 10, axis=0)),
-                                 " / ".join(map(str, (o < 0.95).sum(0))),
-                                 " / ".join(f"{v:.3f}" for v in w.mean(0)),
-                                 " / ".join(f"{v:.2f}" for v in np.mean(ratio, 0)) if key == "hier" else "1")
-    print(f"\n### {args.draws} training draws x {args.sessions} new sessions (x / y / z)\n")
-    print("| generator | transfer | covered or flagged, mean (%) | sd over draws (%) | 10th percentile over draws (%) "
-          "| draws under 95 % | mean in-domain width (uT) | width / loro's where loro covers |")
-    print("|---|---|---|---|---|---|---|---|")
-    for (name, key), r in rows.items():
-        print(f"| {name} | {key} | " + " | ".join(r) + " |")
+                    # mean width on the rows loro's intervals cover (in domain or not), hierarchical / loro
+                    rec["ratio"] = [float(np.mean(w[c_loro[:, a], a]) / np.mean(w_loro[c_loro[:, a], a]))
+                                    for a in range(3)]
+            print("DRAW " + json.dumps(rec), flush=True)
+            print(f"{name} draw {draw}: covered or flagged loro {f(rec['ok_loro'])}, hierarchical {f(rec['ok_hier'])}; "
+                  f"width ratio {' / '.join(f'{v:.2f}' for v in rec['ratio'])}; fit {secs:.2f} s", flush=True)
+            recs.append(rec)
+    _table(recs, f"{args.draws} training draws x {args.sessions} new sessions")
+
+
+def _table(recs, title):
+    """The generator table of ``DRAW`` records: per generator and transfer, per axis x / y / z."""
+    f = lambda v: " / ".join(f"{100 * x:.1f}" for x in v)   # noqa: E731
+    print(f"\n### {title} (x / y / z)\n")
+    print("| generator | draws | transfer | covered or flagged, mean (%) | sd over draws (%) | 10th percentile over "
+          "draws (%) | draws under 95 % | mean in-domain width (uT) | width / loro's where loro covers: rows "
+          "| same, draws where loro >= 95 % | importance ESS, min over draws |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in dict.fromkeys(r["generator"] for r in recs):
+        rs = sorted({r["draw"]: r for r in recs if r["generator"] == name}.values(), key=lambda r: r["draw"])
+        ratio = np.array([r["ratio"] for r in rs])
+        ok_l = np.array([r["ok_loro"] for r in rs])
+        wl, wh = np.array([r["width_loro"] for r in rs]), np.array([r["width_hier"] for r in rs])
+        good = ok_l >= 0.95
+        by_draw = " / ".join(f"{np.mean(wh[good[:, a], a]) / np.mean(wl[good[:, a], a]):.2f}" if good[:, a].any()
+                             else "-" for a in range(3))
+        ess = np.array([r["ess"] for r in rs if r["ess"]])
+        for key in ("loro", "hier"):
+            o, w = np.array([r[f"ok_{key}"] for r in rs]), np.array([r[f"width_{key}"] for r in rs])
+            hier = key == "hier"
+            print(f"| {name} | {len(rs)} | {key} | {f(o.mean(0))} | {f(o.std(0, ddof=1)) if len(rs) > 1 else '-'} | "
+                  f"{f(np.percentile(o, 10, axis=0))} | {' / '.join(map(str, (o < 0.95).sum(0)))} | "
+                  f"{' / '.join(f'{v:.3f}' for v in w.mean(0))} | "
+                  f"{' / '.join(f'{v:.2f}' for v in ratio.mean(0)) if hier else '1'} | {by_draw if hier else '1'} | "
+                  f"{' / '.join(f'{v:.0f}' for v in ess.min(0)) if hier and ess.size else '-'} |")
+
+
+def summarise(args):
+    """The generator table rebuilt from the ``DRAW`` lines of benchmark logs (``--logs``)."""
+    recs = []
+    for path in args.logs:
+        recs += [json.loads(line[5:]) for line in Path(path).read_text().splitlines() if line.startswith("DRAW ")]
+    if args.generator != list(GENERATORS):
+        recs = [r for r in recs if r["generator"] in args.generator]
+    order = {g: i for i, g in enumerate(GENERATORS)}
+    recs.sort(key=lambda r: (order[r["generator"]], r["draw"]))
+    _table(recs, f"from {len(args.logs)} logs, {len(recs)} generator-draws x {args.sessions} new sessions")
 
 
 def belsten(args):
@@ -137,7 +171,7 @@ def belsten(args):
         sin = sigma_in if sigma_in is not None else np.diag([0.02**2] * 3 + [1e-4])
         base = Predictor(fit=fit, sigma_in=sin, residual_sd=np.sqrt(_residual_variance(_Cfg, fit, train, sin)),
                          domain=Domain.from_data(train), uq=UQOptions(method="analytic"))
-        post = H.fit_sessions(train, fit)
+        post = H.fit_sessions(train, fit, mode_search=args.mode_search)
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
             p = pr.predict(test)
@@ -148,6 +182,111 @@ def belsten(args):
             print(f"| {r} | {int(dom.sum())} of {test.n} | {key} | {f(c.mean(0))} | {f((c | ~dom[:, None]).mean(0))} | "
                   f"{' / '.join(f'{v:.3f}' for v in w)} | {', '.join(post.effects) if key != 'loro' else '-'} |",
                   flush=True)
+
+
+def _grid_marginal(lp, lt, start):
+    """log marginal posterior of log tau on the grid ``lt`` (q = 1): at each tau, Newton to the conditional mode
+    of (log sigma, atanh rho) from ``start``, then a 15 x 15 grid over +-6 conditional sds around it."""
+    import jax
+    import jax.numpy as jnp
+    u = np.linspace(-6.0, 6.0, 15)
+    U = jnp.asarray(np.stack(np.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2))
+
+    @jax.jit
+    def one(t):
+        f = lambda sr: lp(jnp.r_[t, sr])  # noqa: E731
+        x = jax.lax.fori_loop(0, 12, lambda _, x: x - jnp.linalg.solve(jax.hessian(f)(x), jax.grad(f)(x)),
+                              jnp.asarray(start))
+        L = jnp.linalg.cholesky(jnp.linalg.inv(-jax.hessian(f)(x)))
+        vals = jax.vmap(f)(x + U @ L.T)
+        return jax.scipy.special.logsumexp(jnp.where(jnp.isfinite(vals), vals, -jnp.inf)) + jnp.log(jnp.linalg.det(L))
+
+    return np.asarray(jax.lax.map(one, jnp.asarray(lt)))
+
+
+def belsten_tau(args):
+    """Belsten, run ``--run`` left out, axis ``--axis``: the posterior of the offset's between-session sd.
+
+    Prints the modes BFGS finds from the two starts (log posterior, tau, the model's effective y-from-x
+    cross-axis term at 24 C), the grid-integrated E tau^2 and P(tau > 0.3 uT) against ``fit_laplace`` (three
+    seeds, importance ESS), the restricted against the profiled likelihood at the modes, the log posterior
+    difference of the modes with each training run dropped, and what the left-out run says: the slope of its
+    error on B_x with the five-run fit, and the all-run fit's cross-axis term.
+    """
+    import jax
+    import jax.numpy as jnp
+    import scipy.optimize
+    from bayesmag._src.core.datasets import load_dataset
+    from bayesmag._src.core.physics import inputs_from_data
+    jax.config.update("jax_enable_x64", True)
+
+    d = load_dataset("belsten2023")
+    r, a = args.run, "xyz".index(args.axis)
+    train, test = d.subset(np.flatnonzero(d.run != r)), d.subset(np.flatnonzero(d.run == r))
+    model = bayesmag.PhysicsModel.paper(t0=0.0)
+    fit = bayesmag.fit_physics(train, model)
+    eff, dropped = H.select_effects(train, fit)
+    st = H.run_stats(train, fit, eff)
+    names = list(model.param_names)
+    print(f"run {r} left out, axis {args.axis}: learned effects {list(eff)}, uninformed {dropped}\n")
+    if eff != ("O",):
+        print("(the grid integration below is written for one learned effect)")
+        return
+
+    def lp_of(stats, reml):
+        args_ = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n,
+                                                stats.effects))
+        return lambda h: H._collapsed(h, *args_, H.TAU_PRIOR_SCALE, H.SIGMA_PRIOR_SCALE, reml)
+
+    lp = lp_of(st, H.REML)
+
+    def fg(h):
+        v, g = jax.value_and_grad(lambda x: -lp(x)[0])(jnp.asarray(h))
+        return float(v), np.asarray(g, np.float64)
+
+    found = H._modes(fg, H._init_h(st, a, H.TAU_PRIOR_SCALE), 1, H.TAU_PRIOR_SCALE, search=True)
+    ix, iks = names.index("S_x"), names.index("Ks_x")
+    cross = lambda th: th[ix] + 24.0 * th[iks]    # noqa: E731  (y-from-x term at 24 C, the paper model: S + Ks T)
+    print("| mode | tau (uT) | log posterior (REML) | log posterior (profiled mu) | B_x cross-axis term at 24 C |")
+    print("|---|---|---|---|---|")
+    for k, (h, _) in enumerate(found):
+        val, mu, _ = lp(jnp.asarray(h))
+        prof = float(lp_of(st, 0.0)(jnp.asarray(h))[0])
+        c = cross(np.asarray(mu) / st.scale[a])
+        print(f"| {k} | {np.exp(h[0]):.3f} | {float(val):.2f} | {prof:.2f} | {c:+.4f} |")
+    full = bayesmag.fit_physics(d, model)
+    e = test.b_ref[:, a] - np.asarray(fit.predict(inputs_from_data(test)))[:, a]
+    slope = np.linalg.lstsq(np.c_[np.ones(test.n), test.b_meas[:, 0]], e, rcond=None)[0][1]
+    print(f"\nfive-run LM fit: cross-axis term at 24 C {cross(np.asarray(fit.theta[a])):+.4f}; all six runs: "
+          f"{cross(np.asarray(full.theta[a])):+.4f}; run {r}'s error against B_x with the five-run fit: slope "
+          f"{slope:+.4f}, mean {e.mean():+.3f} uT, sd {e.std():.3f} uT")
+    lt = np.arange(-6.0, 2.5, 0.15)
+    logm = _grid_marginal(lambda h: lp(h)[0], lt, found[0][0][1:])
+    w = np.exp(logm - logm.max())
+    w /= w.sum()
+    tau = np.exp(lt)
+    print(f"\ngrid integration: E tau^2 = {w @ tau**2:.3f} uT^2 (rms {np.sqrt(w @ tau**2):.3f} uT), "
+          f"P(tau > 0.3 uT) = {w[tau > 0.3].sum():.3f}, median tau {tau[np.searchsorted(np.cumsum(w), 0.5)]:.3f} uT")
+    print("prior HalfNormal(0.5): E tau^2 = 0.25, P(tau > 0.3) = "
+          f"{2 * (1 - __import__('scipy').stats.norm.cdf(0.3 / H.TAU_PRIOR_SCALE)):.3f}")
+    for seed in range(3):
+        post = H.fit_laplace(st, names, seed=seed, mode_search=True)
+        print(f"fit_laplace(mode_search=True) seed {seed}: E tau^2 = {post.w_mean[a, 0]:.3f}, importance ESS "
+              f"{post.ess[a]:.0f} of {H.N_PROPOSALS}")
+    if len(found) > 1:
+        print("\nlog posterior maximised over (log sigma, atanh rho) at the large-tau mode's tau minus the same at the "
+              "small-tau mode's, with one training run dropped:")
+        big, small = sorted((h for h, _ in found), key=lambda h: h[0])[::-1]
+
+        def cond_max(f, t, start):
+            vg = jax.jit(jax.value_and_grad(lambda sr: -f(jnp.r_[t, sr])))
+            fn = lambda x: tuple(np.asarray(v, np.float64) for v in vg(jnp.asarray(x)))  # noqa: E731
+            return -float(scipy.optimize.minimize(fn, np.asarray(start), jac=True, method="BFGS").fun)
+
+        for k, run in enumerate(st.runs):
+            sub = lp_of(st.select(np.arange(st.runs.size) != k), H.REML)
+            f = jax.jit(lambda h, sub=sub: sub(h)[0])
+            print(f"- without run {run}: {cond_max(f, big[0], big[1:]) - cond_max(f, small[0], small[1:]):+.2f}")
 
 
 def pooling(args):
@@ -192,8 +331,13 @@ def pooling(args):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("what", choices=["generators", "belsten", "pooling"])
+    ap.add_argument("what", choices=["generators", "belsten", "belsten_tau", "pooling", "summarise"])
     ap.add_argument("--draws", type=int, default=30)
+    ap.add_argument("--first-draw", type=int, default=0, help="generators: training draws first..first+draws-1")
+    ap.add_argument("--mode-search", action="store_true", help="generators, belsten: fit_laplace(mode_search=True)")
+    ap.add_argument("--run", type=int, default=3, help="belsten_tau: the left-out run")
+    ap.add_argument("--axis", default="y", choices=list("xyz"), help="belsten_tau: the axis")
+    ap.add_argument("--logs", nargs="*", default=[], help="summarise: logs holding DRAW lines")
     ap.add_argument("--sessions", type=int, default=40)
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--generator", nargs="+", default=list(GENERATORS), choices=sorted(GENERATORS))
@@ -203,7 +347,7 @@ def main():
                     help="Laplace path: draws corrected to the exact posterior (default) or the Gaussian's own")
     args = ap.parse_args()
     print(f"## `python benchmarks/bench_hierarchical.py {' '.join(sys.argv[1:])}`\n")
-    {"generators": generators, "belsten": belsten, "pooling": pooling}[args.what](args)
+    {"generators": generators, "belsten": belsten, "belsten_tau": belsten_tau, "pooling": pooling, "summarise": summarise}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -336,15 +336,27 @@ PROPOSAL_DF = 4.0
 MIN_ESS_FRACTION = 0.25
 
 
-def _importance_round(rng, centre, cov, lp_fn, proposals):
-    """One importance sample: t proposals around ``centre`` with scale ``cov``; ``(hs, extra, w, ess)``."""
+def _t_logq(hs, centre, cov):
+    """Log density (up to the constant shared by all components) of the multivariate t proposal, per row of ``hs``."""
     d = centre.size
-    z = rng.multivariate_normal(np.zeros(d), cov, size=proposals, method="eigh")
-    g = rng.chisquare(PROPOSAL_DF, size=proposals) / PROPOSAL_DF
-    hs = centre + z / np.sqrt(g)[:, None]
     w_, V = np.linalg.eigh(cov)
     maha = np.sum(((hs - centre) @ V) ** 2 / np.maximum(w_, 1e-300), axis=1)
-    logq = -0.5 * (PROPOSAL_DF + d) * np.log1p(maha / PROPOSAL_DF) - 0.5 * np.sum(np.log(np.maximum(w_, 1e-300)))
+    return -0.5 * (PROPOSAL_DF + d) * np.log1p(maha / PROPOSAL_DF) - 0.5 * np.sum(np.log(np.maximum(w_, 1e-300)))
+
+
+def _importance_round(rng, centre, cov, lp_fn, proposals, more=()):
+    """One importance sample: t proposals around ``centre`` with scale ``cov`` (with ``more`` = ``((centre, cov),
+    ...)``: an equal-weight mixture of such t's, one per posterior mode); ``(hs, extra, w, ess)``."""
+    d = centre.size
+    comps = [(centre, cov), *more]
+    sizes = [proposals] if not more else rng.multinomial(proposals, np.full(len(comps), 1.0 / len(comps)))
+    hs = []
+    for (c, v), k in zip(comps, sizes):
+        z = rng.multivariate_normal(np.zeros(d), v, size=k, method="eigh")
+        g = rng.chisquare(PROPOSAL_DF, size=k) / PROPOSAL_DF
+        hs.append(c + z / np.sqrt(g)[:, None])
+    hs = np.concatenate(hs)
+    logq = np.logaddexp.reduce([_t_logq(hs, c, v) for c, v in comps], axis=0) - np.log(len(comps))
     lp, *extra = (np.asarray(v, np.float64) for v in lp_fn(hs))
     ok = np.isfinite(lp) & np.all([np.isfinite(e).reshape(proposals, -1).all(1) for e in extra], axis=0)
     logw = np.where(ok, lp - logq, -np.inf)
@@ -355,7 +367,7 @@ def _importance_round(rng, centre, cov, lp_fn, proposals):
     return hs, extra, w, float(1.0 / np.sum(w**2))
 
 
-def _importance_draws(rng, h0, cov_h, lp_fn, draws: int, proposals: int = N_PROPOSALS):
+def _importance_draws(rng, h0, cov_h, lp_fn, draws: int, proposals: int = N_PROPOSALS, more=()):
     r"""``draws`` draws of ``h`` from the exact collapsed posterior by importance resampling.
 
     Proposal: a multivariate t with :data:`PROPOSAL_DF` dof around the mode with the (floored) Laplace
@@ -370,9 +382,10 @@ def _importance_draws(rng, h0, cov_h, lp_fn, draws: int, proposals: int = N_PROP
     Laplace draws alone gave a new session's predictive 8-16 dof on x and z, with the correction 7-12
     (``bench_hybrid_shift``). ``lp_fn(hs) -> (lp, *extra)`` is evaluated on all proposals. Returns
     ``(hs, extra, ess)``: the resampled ``h`` (draws, d), the matching rows of every ``extra`` array, and
-    the effective sample size (of the pooled rounds).
+    the effective sample size (of the pooled rounds). ``more``: ``((mode, cov), ...)`` of further posterior
+    modes; the first round's proposal is then the equal-weight mixture of the t's around every mode.
     """
-    hs, extra, w, ess = _importance_round(rng, h0, cov_h, lp_fn, proposals)
+    hs, extra, w, ess = _importance_round(rng, h0, cov_h, lp_fn, proposals, more)
     if ess < MIN_ESS_FRACTION * proposals:
         m = w @ hs
         c = (hs - m).T @ ((hs - m) * w[:, None])
@@ -577,10 +590,39 @@ def _init_h(stats: RunStats, a: int, tau_scale: float) -> np.ndarray:
     return np.r_[np.full(q, np.log(0.2 * tau_scale)), 0.5 * np.log(s2 * 0.3), np.arctanh(0.8)]
 
 
+#: Tolerance (max abs difference in ``h``) below which two BFGS results are the same mode.
+SAME_MODE = 1e-2
+#: Default of ``fit_laplace(mode_search=...)``: False, the posterior around the mode found from the moment start
+#: only. With True the second start finds, on some simulated campaigns of 30 sessions, a mode 50 nats higher at
+#: between-session sds ten times the true ones (docs/sessions.md, "Several modes"): the collapsed posterior of
+#: the diagonal model is then multimodal and its global mode wrong, so the global search is an option, not the default.
+MODE_SEARCH = False
+
+
+def _modes(fg, h_init, q, tau_scale, search: bool = True):
+    """Modes of the collapsed posterior and their (floored) Laplace covariances: ``[(h, cov), ...]``.
+
+    BFGS from ``h_init`` (between-session sds at a fifth of the prior scale) and again with every ``log tau``
+    at the prior scale: with few runs the posterior of a between-session sd can be bimodal (a mode near 0
+    and one where a large sd lets the runs' levels decouple; Belsten with run 3 left out, y: the larger
+    mode holds 96 % of the mass by grid integration, and BFGS from the first start found only the small one).
+    The second is kept only if it is a different point; the highest mode comes first. ``search`` False: the
+    first start only (the default of :func:`fit_laplace`, see :data:`MODE_SEARCH`).
+    """
+    out = []
+    for h in (h_init, np.r_[np.full(q, np.log(tau_scale)), h_init[q:]])[:1 if q == 0 or not search else 2]:
+        res = scipy.optimize.minimize(fg, h, jac=True, method="BFGS", options={"gtol": 1e-6, "maxiter": 500})
+        if out and np.max(np.abs(res.x - out[0][0])) < SAME_MODE:
+            continue
+        w, V = np.linalg.eigh(_fd_hessian(fg, res.x))
+        out.append((res.x, (V / np.maximum(w, MIN_CURVATURE)) @ V.T, res.fun))
+    return [(h, c) for h, c, _ in sorted(out, key=lambda o: o[2])]
+
+
 def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
                 sigma_scale: float = SIGMA_PRIOR_SCALE, draws: int = N_DRAWS, seed: int = 0,
                 return_modes: bool = False, likelihood: str = "gaussian", df: float = 4.0,
-                reml: float = REML, importance: bool = True) -> SessionPosterior:
+                reml: float = REML, importance: bool = True, mode_search: bool = MODE_SEARCH) -> SessionPosterior:
     """Laplace approximation of the collapsed hyperparameter posterior (module docstring), per axis.
 
     The mode by BFGS (JAX gradients), the covariance the inverse Hessian there; ``draws`` draws of
@@ -588,7 +630,8 @@ def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float
     ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`); ``reml``: 1 integrates
     the flat ``mu`` out (restricted likelihood), 0 profiles it (maximum); ``importance``: the draws are
     corrected to the exact collapsed posterior by importance resampling (:func:`_importance_draws`; False:
-    the Gaussian approximation's own draws).
+    the Gaussian approximation's own draws); ``mode_search``: BFGS from a second start too and the importance
+    proposal a mixture over the modes found (:func:`_modes`).
     """
     dfs = _check_likelihood(likelihood, df)
     rng = np.random.default_rng(seed)
@@ -604,15 +647,11 @@ def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float
             v, g = float(v), np.asarray(g, np.float64)
             return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
 
-        res = scipy.optimize.minimize(fg, _init_h(stats, a, tau_scale), jac=True, method="BFGS",
-                                      options={"gtol": 1e-6, "maxiter": 500})
-        h0 = res.x
-        Hh = _fd_hessian(fg, h0)
-        w, V = np.linalg.eigh(Hh)
-        cov_h = (V / np.maximum(w, MIN_CURVATURE)) @ V.T
+        found = _modes(fg, _init_h(stats, a, tau_scale), q, tau_scale, mode_search)
+        h0, cov_h = found[0]
         all_fn = lambda x: _lp_mu_cov(jnp.asarray(x), *args, df=dfs)     # noqa: E731
         if importance:
-            hs, (mu_k, cov_k), ess = _importance_draws(rng, h0, cov_h, all_fn, draws)
+            hs, (mu_k, cov_k), ess = _importance_draws(rng, h0, cov_h, all_fn, draws, more=found[1:])
             esss.append(ess)
         else:
             hs = rng.multivariate_normal(h0, cov_h, size=draws, method="eigh")
