@@ -1,6 +1,7 @@
 """Benchmark: hybrid + transfer intervals on simulated sessions, leaving each session out.
 
 Run:  python benchmarks/bench_hybrid_shift.py [--sessions 8] [--rows 600] [--seeds 0 1 2] [--transfer hierarchical]
+      python benchmarks/bench_hybrid_shift.py --both [--transfer-networks by_run_folds] [--save DIR]
 
 An independent check of the whole default pipeline (physics + residual network + conformal scale +
 transfer) on data it was not designed on: ``--sessions`` simulated campaigns, each a session with
@@ -62,47 +63,70 @@ def leave_one_out(path: Path, run: int, out: Path, transfer: str = "loro") -> di
             "tau": np.array([tau[a] for a in AXES])}
 
 
-def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("loro", "hierarchical")) -> dict:
+def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("loro", "hierarchical"),
+                       transfer_networks: str = "none", save: Path | None = None) -> dict:
     """Both transfers from one calibration: the job's settings, ``calibrate`` in this process (compiled
     programs reused across sessions), the hybrid predictor with each transfer part.
 
     The network and its conformal scale do not depend on ``uq.transfer`` (the scale is computed on rows of
     the training sessions, without the transfer part), so swapping the transfer part of the predictor
-    gives what a job with that transfer would predict (``--separate-jobs`` runs the jobs).
+    gives what a job with that transfer would predict (``--separate-jobs`` runs the jobs). With
+    ``transfer_networks = "by_run_folds"`` every transfer is scored twice, without and with the network part
+    (``<transfer>+net``): the hierarchical one is the calibration's own, the loro one is
+    :func:`~bayesmag._src.pipeline.network_transfer.network_transfer_sd` of the same out-of-session rows against
+    the loro sd. ``save``: an ``.npz`` of the per-row pieces (test and training rows) for offline checks.
     """
     import dataclasses
 
     from bayesmag._src.core.predictor import estimate_transfer
     from bayesmag._src.pipeline.calibrate import calibrate
+    from bayesmag._src.pipeline.network_transfer import network_transfer_sd
 
     raw = {"name": "hybrid_shift", "data": {"path": "unused.csv"}, "split": {"kind": "by_run", "test_runs": [run]},
            "physics": {"t0": "mean"}, "uq": {"method": "psqmc", "n_params": 100, "n_qmc": 128, "seed": 0,
-                                             "transfer": "hierarchical"},
+                                             "transfer": "hierarchical", "transfer_networks": transfer_networks},
            "network": {"enabled": True, "learning_rate": 1e-3, "batch_size": 64, "max_epochs": 200, "patience": 20,
                        "mc_passes": 50, "seed": 0},
            "output": {"figures": False, "progress": False}}
     train, test = data.subset(np.flatnonzero(data.run != run)), data.subset(np.flatnonzero(data.run == run))
     cr = calibrate(train, config_from_dict(raw).settings(), test=test)
     hyb, phys = cr.predictor, cr.physics.predictor
+    nt = cr.hybrid.network_transfer.get(cr.hybrid.primary)
     loro = estimate_transfer(train, cr.fit).sd
-    out = {}
-    for t in transfers:
+    variants = [(t, False) for t in transfers] + ([(t, True) for t in transfers] if nt is not None else [])
+    hyb0 = dataclasses.replace(hyb, network_transfer_sd=None)
+    out, dump = {}, {"test_b_ref": test.b_ref}
+    for t, net in variants:
         if t == "loro":
-            hp, pp = (dataclasses.replace(p, sessions=None, transfer_sd=loro) for p in (hyb, phys))
+            hp, pp = (dataclasses.replace(p, sessions=None, transfer_sd=loro) for p in (hyb0, phys))
             tau = loro
+            if net:
+                hp = dataclasses.replace(hp, network_transfer_sd=network_transfer_sd(
+                    nt.rows["err"], nt.rows["var"], loro, nt.rows["run"]))
         else:
-            hp, pp = hyb, phys
+            hp, pp = (hyb if net else hyb0), phys
             tau = np.sqrt(np.mean(hyb.transfer_part(train) ** 2, axis=0))
-        res = {}
+        name = t + ("+net" if net else "")
+        res, width = {}, None
         for key, pr in (("hybrid", hp), ("physics", pp)):
             p = pr.predict(test)
             lo, hi = p.interval(0.95)
             res[key] = (test.b_ref >= lo) & (test.b_ref <= hi)
+            if key == "hybrid":
+                width = hi - lo
+                dump[f"{name}_mean"], dump[f"{name}_total"] = p.mean, p.total
         ind = np.asarray(p.in_domain, bool)
         nan = np.full(3, np.nan)
-        out[t] = {"in_domain": ind.mean(), "hybrid": res["hybrid"][ind].mean(0) if ind.any() else nan,
-                  "flagged_or_covered": (res["hybrid"] | ~ind[:, None]).mean(0),
-                  "physics": res["physics"][ind].mean(0) if ind.any() else nan, "tau": tau}
+        dump["in_domain"] = ind
+        out[name] = {"in_domain": ind.mean(), "hybrid": res["hybrid"][ind].mean(0) if ind.any() else nan,
+                     "flagged_or_covered": (res["hybrid"] | ~ind[:, None]).mean(0),
+                     "physics": res["physics"][ind].mean(0) if ind.any() else nan, "tau": tau,
+                     "width": width[ind].mean(0) if ind.any() else nan,
+                     "tau_net": hp.network_transfer_sd if net else np.zeros(3)}
+    if save is not None:
+        dump.update({f"train_{k}": v for k, v in (nt.rows.items() if nt is not None else ())})
+        dump["train_b_ref"], dump["loro"] = train.b_ref, loro
+        np.savez(save, **dump)
     return out
 
 
@@ -114,6 +138,10 @@ def main(argv=None) -> int:
     ap.add_argument("--transfer", default="loro", help="[uq] transfer of every job (loro, hierarchical, ...)")
     ap.add_argument("--both", action="store_true",
                     help="loro and hierarchical from one calibration per left-out session, in this process")
+    ap.add_argument("--transfer-networks", default="none", choices=("none", "by_run_folds"),
+                    help="with --both: [uq] transfer_networks; by_run_folds scores every transfer without and with "
+                         "the network part")
+    ap.add_argument("--save", default=None, help="with --both: a folder for one .npz of per-row pieces per session")
     a = ap.parse_args(argv)
     if a.both:
         return main_both(a)
@@ -143,28 +171,41 @@ def main(argv=None) -> int:
 
 def main_both(a) -> int:
     f = lambda v: " / ".join("-" if np.isnan(x) else f"{100 * x:.1f}" for x in v)   # noqa: E731
+    tn = a.transfer_networks
     print(f"## `python benchmarks/bench_hybrid_shift.py --both --sessions {a.sessions} --rows {a.rows} --seeds "
-          f"{' '.join(map(str, a.seeds))}`\n")
+          f"{' '.join(map(str, a.seeds))}{'' if tn == 'none' else ' --transfer-networks ' + tn}`\n")
     print("| seed | left-out session | transfer | rows in domain (%) | hybrid in-domain coverage x / y / z (%) | rows "
-          "covered or flagged x / y / z (%) | physics in-domain coverage (%) | transfer sd x / y / z (uT) |")
-    print("|---|---|---|---|---|---|---|---|")
-    allr = {"loro": [], "hierarchical": []}
+          "covered or flagged x / y / z (%) | physics in-domain coverage (%) | transfer sd x / y / z (uT) | network "
+          "transfer sd (uT) | hybrid in-domain width (uT) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    allr: dict = {}
     for seed in a.seeds:
         d = sessions(a.sessions, a.rows, seed)
         for run in range(1, a.sessions + 1):
-            for t, r in leave_one_out_both(d, run).items():
-                allr[t].append((seed, run, r))
+            save = None if a.save is None else Path(a.save) / f"s{seed}_r{run}.npz"
+            for t, r in leave_one_out_both(d, run, transfer_networks=tn, save=save).items():
+                allr.setdefault(t, []).append((seed, run, r))
                 print(f"| {seed} | {run} | {t} | {100 * r['in_domain']:.1f} | {f(r['hybrid'])} | "
-                      f"{f(r['flagged_or_covered'])} | {f(r['physics'])} | {' / '.join(f'{x:.3g}' for x in r['tau'])} |",
+                      f"{f(r['flagged_or_covered'])} | {f(r['physics'])} | {' / '.join(f'{x:.3g}' for x in r['tau'])} | "
+                      f"{' / '.join(f'{x:.3g}' for x in r['tau_net'])} | {' / '.join(f'{x:.3g}' for x in r['width'])} |",
                       flush=True)
+    base = np.array([r["flagged_or_covered"] for _, _, r in allr["loro"]]) >= 0.95      # (sessions, 3)
+    w_loro = np.array([r["width"] for _, _, r in allr["loro"]])
     for t, rows in allr.items():
         fc = np.array([r["flagged_or_covered"] for _, _, r in rows])
         miss = ", ".join(f"{s}-{u} {AXES[k]} {100 * r['flagged_or_covered'][k]:.1f}" for s, u, r in rows for k in range(3)
                          if r["flagged_or_covered"][k] < 0.95)
+        ratio = np.array([r["width"] for _, _, r in rows]) / w_loro
+        rq = [np.nanmedian(ratio[base[:, k], k]) for k in range(3)]
+        rx = [np.nanmax(ratio[base[:, k], k]) for k in range(3)]
+        over = [int(np.sum(ratio[base[:, k], k] > 1.5)) for k in range(3)]
         print(f"\n{t}: mean over {len(rows)} left-out sessions: hybrid in-domain coverage "
               f"{f(np.nanmean([r['hybrid'] for _, _, r in rows], 0))}, rows covered or flagged {f(fc.mean(0))}, "
               f"physics in-domain {f(np.nanmean([r['physics'] for _, _, r in rows], 0))}; sessions under 95 % "
-              f"covered or flagged: {' / '.join(str(int(v)) for v in (fc < 0.95).sum(0))} of {len(rows)} ({miss}).")
+              f"covered or flagged: {' / '.join(str(int(v)) for v in (fc < 0.95).sum(0))} of {len(rows)} ({miss}). "
+              f"Width / loro width where loro covers ({' / '.join(str(int(v)) for v in base.sum(0))} session-axes): "
+              f"median {' / '.join(f'{v:.2f}' for v in rq)}, largest {' / '.join(f'{v:.2f}' for v in rx)}, "
+              f"over 1.5x {' / '.join(map(str, over))}.")
     return 0
 
 
