@@ -1,0 +1,138 @@
+"""[uq] transfer_networks = "by_run_folds": the network's own new-session error in the hybrid transfer part."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from bayesmag import ConfigError
+from bayesmag._src.app.config import config_from_dict
+from bayesmag._src.core.data import CalibrationData
+from bayesmag._src.pipeline.calibrate import calibrate
+from bayesmag._src.pipeline.network_transfer import network_transfer_sd, run_folds
+
+OFFSET_RUN, OFFSET = 3, 2.0           # uT added to run 3's x reference: a session only its own rows show
+
+
+def _runs(seed: int = 0, n_runs: int = 4, rows: int = 120) -> CalibrationData:
+    """``n_runs`` sessions in separate temperature bands (10, 20, ... C), an exact affine truth, noise 0.02 uT,
+    and run 3's x reference shifted by ``OFFSET``: a network that saw run 3 can learn the shift from its
+    temperature band, one that did not cannot."""
+    rng = np.random.default_rng(seed)
+    b, t, ref, time, run = [], [], [], [], []
+    for k in range(1, n_runs + 1):
+        bm = rng.uniform(-40, 40, (rows, 3))
+        tk = 10.0 * k + rng.uniform(-1, 1, rows)
+        r = 1.01 * bm + 0.3 + rng.normal(0, 0.02, (rows, 3))
+        if k == OFFSET_RUN:
+            r[:, 0] += OFFSET
+        b.append(bm), t.append(tk), ref.append(r), time.append(np.arange(rows) + 1000.0 * k), run.append(np.full(rows, k))
+    return CalibrationData(*(np.concatenate(v) for v in (b, t, ref, time, run)))
+
+
+def _settings(transfer_networks: str, transfer: str = "loro"):
+    raw = {"name": "nt", "data": {"path": "unused.csv"}, "split": {"kind": "none"}, "physics": {"t0": "mean"},
+           "uq": {"method": "analytic", "transfer": transfer, "transfer_networks": transfer_networks},
+           "network": {"enabled": True, "hidden_layers": 2, "width": 32, "learning_rate": 3e-3, "batch_size": 64,
+                       "max_epochs": 100, "patience": 20, "mc_passes": 10, "interval_calibration": "none",
+                       "conformal_folds": 5, "seed": 0},
+           "output": {"figures": False, "progress": False}}
+    return config_from_dict(raw).settings()
+
+
+@pytest.fixture(scope="module")
+def runs():
+    data = _runs()
+    test = _runs(seed=1, n_runs=2)
+    on = calibrate(data, _settings("by_run_folds"), test=test)
+    off = calibrate(data, _settings("none"), test=test)
+    return data, test, on, off
+
+
+def test_out_of_fold_residuals_come_from_networks_that_did_not_see_the_run(runs):
+    data, _, on, _ = runs
+    nt = on.hybrid.network_transfer["gaussian"]
+    rows = nt.rows
+    assert nt.folds == 4 and sorted(r for f in nt.fold_runs for r in f) == [1, 2, 3, 4]   # leave one session out
+    held = data.run == OFFSET_RUN
+    resid = data.b_ref - rows["phys_pooled"]                 # the target the networks were trained on
+    oof = np.abs(resid - rows["nn_oof"])[held, 0].mean()
+    ins = np.abs(resid - rows["nn_full"])[held, 0].mean()
+    # the pooled physics fit takes part of the 2 uT shift; what is left on run 3 (about 1.6 uT, the rest spread
+    # over the others) the full network learned from run 3's temperature band, the fold network never saw it
+    assert resid[held, 0].mean() > 1.0
+    assert oof > 0.8 * resid[held, 0].mean() and ins < 0.25 * oof, (oof, ins)
+    # the other axes carry no shift: small both ways
+    assert np.abs(resid - rows["nn_oof"])[held, 1:].mean() < 0.3
+    # the out-of-session hybrid error (leave-one-run-out physics + fold network) holds the whole shift
+    assert np.abs(rows["err"][held, 0]).mean() > 0.8 * OFFSET
+    # the network part of the transfer sd is the function's value on those rows; here the loro physics transfer
+    # (fitted on the same runs) already covers the shift, so nothing is added
+    np.testing.assert_allclose(nt.sd, network_transfer_sd(rows["err"], rows["var"], rows["tau_p"], rows["run"]))
+    assert on.predictor.network_transfer_sd is nt.sd
+
+
+def test_option_off_is_today_and_on_only_adds_the_network_part(runs):
+    _, test, on, off = runs
+    assert off.predictor.network_transfer_sd is None and not off.hybrid.network_transfer
+    assert "transfer_network" not in off.hybrid.training["gaussian"]
+    # the same main network either way (each network is the one it would be alone): the option changes nothing
+    # else, and setting its part to None gives today's prediction exactly
+    p_off = off.predictor.predict(test)
+    p_on = on.predictor.predict(test)
+    p_on0 = dataclasses.replace(on.predictor, network_transfer_sd=None).predict(test)
+    np.testing.assert_array_equal(p_on0.mean, p_off.mean)
+    np.testing.assert_array_equal(p_on0.total, p_off.total)
+    np.testing.assert_array_equal(p_on.mean, p_off.mean)
+    # a network part adds in quadrature to the transfer part of new-session rows only
+    tau_p, tau_n = on.predictor.transfer_sd, np.array([0.3, 0.1, 0.2])
+    pr = dataclasses.replace(on.predictor, network_transfer_sd=tau_n)
+    p_n = pr.predict(test)
+    np.testing.assert_allclose(p_n.transfer, np.broadcast_to(np.sqrt(tau_p**2 + tau_n**2), p_n.mean.shape))
+    np.testing.assert_allclose(p_n.total**2 - p_off.total**2, np.broadcast_to(tau_n**2, p_n.mean.shape), rtol=1e-9)
+    c = pr.components(test)
+    np.testing.assert_array_equal(pr.compose(c, new_session=False).total,
+                                  off.predictor.compose(c, new_session=False).total)
+    # saved in the calibration: apply predicts the same
+    import tempfile
+    from pathlib import Path
+
+    from bayesmag._src.app.artifact import load, save_calibration
+    with tempfile.TemporaryDirectory() as tmp:
+        save_calibration(Path(tmp), pr, config={})
+        cal = load(tmp)
+    np.testing.assert_array_equal(cal.network_transfer_sd, tau_n)
+    np.testing.assert_allclose(cal.predictor(method="analytic").predict(test).total, p_n.total, rtol=1e-6)
+
+
+def test_network_transfer_sd_is_the_grouped_conformal_quantile():
+    # runs 1-4 predicted exactly, run 5 off by 2 uT; unit variance, no physics transfer: the 95 % grouped quantile
+    # falls in run 5 (weight 1/5 > 5 %), so tau^2 = (2/z)^2 - 1
+    run = np.repeat(np.arange(1, 6), [10, 20, 30, 40, 50])
+    err = np.where(run[:, None] == 5, 2.0, 0.0) * np.ones((run.size, 3))
+    z = scipy.stats.norm.ppf(0.975)
+    sd = network_transfer_sd(err, np.ones_like(err), np.zeros(3), run)
+    np.testing.assert_allclose(sd, np.sqrt((2 / z) ** 2 - 1), rtol=1e-12)
+    # a physics transfer sd that covers it already leaves nothing to add
+    np.testing.assert_array_equal(network_transfer_sd(err, np.ones_like(err), np.full(3, 1.0), run), np.zeros(3))
+
+
+@pytest.mark.parametrize("n_runs,k", [(3, 3), (7, 5), (2, 2)])
+def test_run_folds_put_every_run_in_one_fold(n_runs, k):
+    run = np.repeat(np.arange(10, 10 + n_runs), 4)
+    folds, got = run_folds(run, 5, seed=0)
+    assert got == k and set(folds) == set(range(k))
+    for r in np.unique(run):
+        assert np.unique(folds[run == r]).size == 1
+    np.testing.assert_array_equal(folds, run_folds(run, 5, seed=0)[0])
+
+
+@pytest.mark.parametrize("uq,network,key", [({"transfer": "off"}, {"enabled": True}, "uq.transfer_networks"),
+                                            ({}, {"enabled": False}, "uq.transfer_networks"),
+                                            ({"transfer_networks": "yes"}, {"enabled": True}, "uq.transfer_networks")])
+def test_config_checks_the_option(uq, network, key):
+    raw = {"name": "x", "data": {"path": "unused.csv"},
+           "uq": {"transfer_networks": "by_run_folds", **uq}, "network": network}
+    with pytest.raises(ConfigError, match=key):
+        config_from_dict(raw)
