@@ -71,16 +71,15 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
     The network and its conformal scale do not depend on ``uq.transfer`` (the scale is computed on rows of
     the training sessions, without the transfer part), so swapping the transfer part of the predictor
     gives what a job with that transfer would predict (``--separate-jobs`` runs the jobs). With
-    ``transfer_networks = "by_run_folds"`` every transfer is scored twice, without and with the network part
-    (``<transfer>+net``): the hierarchical one is the calibration's own, the loro one is
-    :func:`~bayesmag._src.pipeline.network_transfer.network_transfer_sd` of the same out-of-session rows against
-    the loro sd. ``save``: an ``.npz`` of the per-row pieces (test and training rows) for offline checks.
+    ``transfer_networks = "by_run_folds"`` every transfer is scored twice, without and with the calibration's
+    network part (``<transfer>+net``; it does not depend on the transfer). ``save``: an ``.npz`` of the per-row
+    pieces (test and training rows) for :func:`analyse`.
     """
     import dataclasses
 
     from bayesmag._src.core.predictor import estimate_transfer
     from bayesmag._src.pipeline.calibrate import calibrate
-    from bayesmag._src.pipeline.network_transfer import network_transfer_sd
+    from bayesmag._src.pipeline.network_transfer import physics_loro_predictions
 
     raw = {"name": "hybrid_shift", "data": {"path": "unused.csv"}, "split": {"kind": "by_run", "test_runs": [run]},
            "physics": {"t0": "mean"}, "uq": {"method": "psqmc", "n_params": 100, "n_qmc": 128, "seed": 0,
@@ -101,8 +100,7 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
             hp, pp = (dataclasses.replace(p, sessions=None, transfer_sd=loro) for p in (hyb0, phys))
             tau = loro
             if net:
-                hp = dataclasses.replace(hp, network_transfer_sd=network_transfer_sd(
-                    nt.rows["err"], nt.rows["var"], loro, nt.rows["run"]))
+                hp = dataclasses.replace(hp, network_transfer_sd=hyb.network_transfer_sd)
         else:
             hp, pp = (hyb if net else hyb0), phys
             tau = np.sqrt(np.mean(hyb.transfer_part(train) ** 2, axis=0))
@@ -123,8 +121,16 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
                      "physics": res["physics"][ind].mean(0) if ind.any() else nan, "tau": tau,
                      "width": width[ind].mean(0) if ind.any() else nan,
                      "tau_net": hp.network_transfer_sd if net else np.zeros(3)}
-    if save is not None:
-        dump.update({f"train_{k}": v for k, v in (nt.rows.items() if nt is not None else ())})
+    if save is not None and nt is not None:
+        # the pieces of the other estimates analyse() scores: out-of-session hybrid error (loro physics + fold
+        # network), the predictor's variance at the training rows (no transfer), the hierarchical transfer sd there
+        cheap = dataclasses.replace(hyb0, uq=dataclasses.replace(hyb0.uq, method="auto", n_params=50, n_qmc=32))
+        comp = cheap.components(train)
+        phys_loro = physics_loro_predictions(train, cr.fit)
+        dump.update({"train_nn_oof": nt.rows["nn_oof"], "train_nn_full": nt.rows["nn_full"], "train_run": train.run,
+                     "train_phys_pooled": train.b_ref - nt.rows["resid"], "train_phys_loro": phys_loro,
+                     "train_err": train.b_ref - phys_loro - nt.rows["nn_oof"],
+                     "train_var": cheap.compose(comp, new_session=False).total ** 2, "train_tau_p": comp.transfer})
         dump["train_b_ref"], dump["loro"] = train.b_ref, loro
         np.savez(save, **dump)
     return out
@@ -142,7 +148,11 @@ def main(argv=None) -> int:
                     help="with --both: [uq] transfer_networks; by_run_folds scores every transfer without and with "
                          "the network part")
     ap.add_argument("--save", default=None, help="with --both: a folder for one .npz of per-row pieces per session")
+    ap.add_argument("--analyse", default=None, help="a --save folder: score other estimates of the network part "
+                                                    "offline (diagnostic; nothing is trained)")
     a = ap.parse_args(argv)
+    if a.analyse:
+        return analyse(Path(a.analyse))
     if a.both:
         return main_both(a)
     f = lambda v: " / ".join("-" if np.isnan(x) else f"{100 * x:.1f}" for x in v)   # noqa: E731
@@ -206,6 +216,58 @@ def main_both(a) -> int:
               f"Width / loro width where loro covers ({' / '.join(str(int(v)) for v in base.sum(0))} session-axes): "
               f"median {' / '.join(f'{v:.2f}' for v in rq)}, largest {' / '.join(f'{v:.2f}' for v in rx)}, "
               f"over 1.5x {' / '.join(map(str, over))}.")
+    return 0
+
+
+def analyse(folder: Path) -> int:
+    """Sessions under 95 % and width / loro width for three estimates of the network part, from ``--save`` files.
+
+    ``shift`` (the library's, :func:`~bayesmag._src.pipeline.network_transfer.network_transfer_sd`): the grouped
+    95 % quantile of ``(d/z)^2``, ``d`` the fold network's correction less the full network's; ``joint``: the
+    grouped 95 % quantile of ``(e/z)^2 - sigma^2 - tau_p^2``, ``e`` the out-of-session hybrid error
+    (leave-one-run-out physics + fold network), i.e. only what the physics transfer part does not already cover;
+    ``net_only``: ``(e/z)^2 - sigma^2`` with the pooled physics fit (the network's out-of-session error against its
+    target, added to the physics transfer). Gaussian family only (the interval is ``mean +- z total``).
+    """
+    import scipy.stats
+
+    from bayesmag._src.pipeline.network_transfer import grouped_excess_quantile, network_transfer_sd
+
+    z = scipy.stats.norm.ppf(0.975)
+    files = sorted(folder.glob("s*_r*.npz"), key=lambda q: tuple(int(v) for v in q.stem[1:].split("_r")))
+    estimates = ("none", "shift", "joint", "net_only")
+    res = {(t, e): [] for t in ("loro", "hierarchical") for e in estimates}
+    for q in files:
+        d = np.load(q)
+        y, ind = d["test_b_ref"], d["in_domain"].astype(bool)
+        run, var = d["train_run"], d["train_var"]
+        e_pool = d["train_b_ref"] - d["train_phys_pooled"] - d["train_nn_oof"]
+        for t in ("loro", "hierarchical"):
+            tau_p = np.broadcast_to(d["loro"], var.shape) if t == "loro" else d["train_tau_p"]
+            tn = {"none": np.zeros(3), "shift": network_transfer_sd(d["train_nn_oof"], d["train_nn_full"], run),
+                  "joint": grouped_excess_quantile(d["train_err"], var + tau_p**2, run),
+                  "net_only": grouped_excess_quantile(e_pool, var, run)}
+            for e in estimates:
+                half = z * np.sqrt(d[f"{t}_total"] ** 2 + tn[e] ** 2)
+                cov = np.abs(y - d[f"{t}_mean"]) <= half
+                res[(t, e)].append(((cov | ~ind[:, None]).mean(0), (2 * half)[ind].mean(0), tn[e], q.stem))
+    wl = np.array([w for _, w, _, _ in res[("loro", "none")]])
+    base = np.array([c for c, _, _, _ in res[("loro", "none")]]) >= 0.95
+    print(f"## `python benchmarks/bench_hybrid_shift.py --analyse {folder}` ({len(files)} sessions)\n")
+    print("| transfer | network part | under 95 % x / y / z | median network sd x / y / z (uT) | width / loro width "
+          "where loro covers: median x / y / z | largest | over 1.5x | the sessions under 95 % |")
+    print("|---|---|---|---|---|---|---|---|")
+    for (t, e), rows in res.items():
+        fc = np.array([c for c, _, _, _ in rows])
+        ratio = np.array([w for _, w, _, _ in rows]) / wl
+        tn = np.array([v for _, _, v, _ in rows])
+        miss = ", ".join(f"{n[1:].replace('_r', '-')} {AXES[k]} {100 * c[k]:.1f}" for c, _, _, n in rows for k in range(3)
+                         if c[k] < 0.95)
+        f2 = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
+        print(f"| {t} | {e} | {' / '.join(str(int(v)) for v in (fc < 0.95).sum(0))} | {f2(np.median(tn, 0))} | "
+              f"{f2([np.median(ratio[base[:, k], k]) for k in range(3)])} | "
+              f"{f2([np.max(ratio[base[:, k], k]) for k in range(3)])} | "
+              f"{' / '.join(str(int(np.sum(ratio[base[:, k], k] > 1.5))) for k in range(3))} | {miss} |")
     return 0
 
 

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import scipy.stats
 
+import bayesmag
 from bayesmag import ConfigError
 from bayesmag._src.app.config import config_from_dict
 from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.pipeline.calibrate import calibrate
-from bayesmag._src.pipeline.network_transfer import network_transfer_sd, run_folds
+from bayesmag._src.pipeline.network_transfer import grouped_excess_quantile, network_transfer_sd, run_folds
 
 OFFSET_RUN, OFFSET = 3, 2.0           # uT added to run 3's x reference: a session only its own rows show
 
@@ -56,7 +57,7 @@ def test_out_of_fold_residuals_come_from_networks_that_did_not_see_the_run(runs)
     rows = nt.rows
     assert nt.folds == 4 and sorted(r for f in nt.fold_runs for r in f) == [1, 2, 3, 4]   # leave one session out
     held = data.run == OFFSET_RUN
-    resid = data.b_ref - rows["phys_pooled"]                 # the target the networks were trained on
+    resid = rows["resid"]                                    # the target the networks were trained on
     oof = np.abs(resid - rows["nn_oof"])[held, 0].mean()
     ins = np.abs(resid - rows["nn_full"])[held, 0].mean()
     # the pooled physics fit takes part of the 2 uT shift; what is left on run 3 (about 1.6 uT, the rest spread
@@ -65,11 +66,13 @@ def test_out_of_fold_residuals_come_from_networks_that_did_not_see_the_run(runs)
     assert oof > 0.8 * resid[held, 0].mean() and ins < 0.25 * oof, (oof, ins)
     # the other axes carry no shift: small both ways
     assert np.abs(resid - rows["nn_oof"])[held, 1:].mean() < 0.3
-    # the out-of-session hybrid error (leave-one-run-out physics + fold network) holds the whole shift
-    assert np.abs(rows["err"][held, 0]).mean() > 0.8 * OFFSET
-    # the network part of the transfer sd is the function's value on those rows; here the loro physics transfer
-    # (fitted on the same runs) already covers the shift, so nothing is added
-    np.testing.assert_allclose(nt.sd, network_transfer_sd(rows["err"], rows["var"], rows["tau_p"], rows["run"]))
+    np.testing.assert_allclose(resid, data.b_ref - on.fit.predict(bayesmag.inputs_from_data(data)))
+    # the network part covers the fold networks' change on run 3 (a quarter of the weight, so the 95 % quantile
+    # lies in it): about its mean |d| / 1.96 on x, small on y and z
+    d = rows["nn_oof"] - rows["nn_full"]
+    np.testing.assert_allclose(nt.sd, network_transfer_sd(rows["nn_oof"], rows["nn_full"], rows["run"]))
+    assert 0.5 * np.abs(d[held, 0]).mean() / 1.96 < nt.sd[0] < 2 * np.abs(d[held, 0]).max() / 1.96
+    assert nt.sd[0] > 3 * max(nt.sd[1:]), nt.sd
     assert on.predictor.network_transfer_sd is nt.sd
 
 
@@ -107,15 +110,20 @@ def test_option_off_is_today_and_on_only_adds_the_network_part(runs):
 
 
 def test_network_transfer_sd_is_the_grouped_conformal_quantile():
-    # runs 1-4 predicted exactly, run 5 off by 2 uT; unit variance, no physics transfer: the 95 % grouped quantile
-    # falls in run 5 (weight 1/5 > 5 %), so tau^2 = (2/z)^2 - 1
-    run = np.repeat(np.arange(1, 6), [10, 20, 30, 40, 50])
+    # runs 1-4 predicted exactly, run 5 off by 2 uT; unit variance: the 95 % grouped quantile falls in run 5
+    # (weight 1/5 > 5 %, whatever its row count), so tau^2 = (2/z)^2 - 1
+    run = np.repeat(np.arange(1, 6), [10, 20, 30, 40, 5])
     err = np.where(run[:, None] == 5, 2.0, 0.0) * np.ones((run.size, 3))
     z = scipy.stats.norm.ppf(0.975)
-    sd = network_transfer_sd(err, np.ones_like(err), np.zeros(3), run)
-    np.testing.assert_allclose(sd, np.sqrt((2 / z) ** 2 - 1), rtol=1e-12)
-    # a physics transfer sd that covers it already leaves nothing to add
-    np.testing.assert_array_equal(network_transfer_sd(err, np.ones_like(err), np.full(3, 1.0), run), np.zeros(3))
+    np.testing.assert_allclose(grouped_excess_quantile(err, np.ones_like(err), run), np.sqrt((2 / z) ** 2 - 1),
+                               rtol=1e-12)
+    np.testing.assert_array_equal(grouped_excess_quantile(err, np.full_like(err, 2.0), run), np.zeros(3))   # covered
+    np.testing.assert_allclose(network_transfer_sd(err, np.zeros_like(err), run), 2 / z, rtol=1e-12)
+    # with ten runs one off run weighs 10 %: still above the 5 % tail; with 25 runs (4 %) it drops out
+    for n_runs, want in ((10, 2 / z), (25, 0.0)):
+        r = np.repeat(np.arange(n_runs), 3)
+        e = np.where(r[:, None] == 0, 2.0, 0.0) * np.ones((r.size, 3))
+        np.testing.assert_allclose(network_transfer_sd(e, np.zeros_like(e), r), want, rtol=1e-12)
 
 
 @pytest.mark.parametrize("n_runs,k", [(3, 3), (7, 5), (2, 2)])

@@ -63,8 +63,7 @@ from bayesmag._src.core.network import (MCPrediction, NetworkEnsemble, NetworkSp
 from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.physics_uq import PhysicsUQ
 from bayesmag._src.core.predictor import FUSIONS, Components, Prediction, Predictor, compose, network_inputs
-from bayesmag._src.pipeline.network_transfer import (NetworkTransfer, network_transfer_sd, physics_loro_predictions,
-                                                    run_folds)
+from bayesmag._src.pipeline.network_transfer import NetworkTransfer, network_transfer_sd, run_folds
 from bayesmag._src.pipeline.conformal import conformal_folds, conformal_plan, conformal_quantile, conformal_ratios
 from bayesmag._src.pipeline.settings import ConformalPlan, NetworkSettings
 
@@ -385,21 +384,13 @@ def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarra
     for k, nk in enumerate(run_nets):          # K <= network.conformal_folds MC predictions
         rows = np.flatnonzero(run_fold == k)
         nn_oof[rows] = dataclasses.replace(pr, network=nk).network_part(train.subset(rows)).mean
-    phys_loro = physics_loro_predictions(train, pr.fit)
-    err = train.b_ref - phys_loro - nn_oof
-    # the predictor's own variance at the training rows (no transfer); its physics part with the job's cheaper
-    # PS-QMC sizes (as residual_variance): the physics epistemic sd is a small share of it
-    cheap = dataclasses.replace(pr, uq=dataclasses.replace(pr.uq, method="auto", n_params=min(pr.uq.n_params, 50),
-                                                           n_qmc=min(pr.uq.n_qmc, 32)))
-    comp = cheap.components(train)
-    ins = cheap.compose(comp, new_session=False)
-    tau_p = comp.transfer if pr.sessions is not None else np.broadcast_to(pr.transfer_sd, err.shape)
-    sd = network_transfer_sd(err, ins.total**2, tau_p, train.run, level)
+    nn_full = pr.network_part(train).mean
+    sd = network_transfer_sd(nn_oof, nn_full, train.run, level)
+    resid = train.b_ref - np.asarray(pr.fit.predict(inputs_from_data(train)))
     rmse = lambda e: np.sqrt(np.mean(e**2, axis=0))  # noqa: E731
     fold_runs = tuple(tuple(np.unique(train.run[run_fold == k]).tolist()) for k in range(len(run_nets)))
-    rows = {"err": err, "var": ins.total**2, "tau_p": np.asarray(tau_p), "nn_oof": nn_oof, "nn_full": comp.nn.mean,
-            "phys_loro": phys_loro, "phys_pooled": np.asarray(pr.fit.predict(inputs_from_data(train))), "run": train.run}
-    return NetworkTransfer(sd, len(run_nets), fold_runs, rmse(err), rmse(train.b_ref - ins.mean), rows)
+    return NetworkTransfer(sd, len(run_nets), fold_runs, rmse(resid - nn_oof), rmse(resid - nn_full),
+                           {"nn_oof": nn_oof, "nn_full": nn_full, "resid": resid, "run": train.run})
 
 
 def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int, *,

@@ -1,21 +1,23 @@
-r"""The residual network's own new-session error in the hybrid transfer term (``[uq] transfer_networks``).
+r"""The residual network's own new-session error in the hybrid transfer part (``[uq] transfer_networks``).
 
-The transfer term of :mod:`~bayesmag._src.core.predictor` (``"loro"``) and of the hierarchical session
+The transfer part of :mod:`~bayesmag._src.core.predictor` (``"loro"``) and of the hierarchical session
 model (``"hierarchical"``) is estimated from the *physics* model's between-run scatter. The hybrid
-prediction adds a residual network trained on every training run, so its error on a session it never
-saw is not in that spread. With ``transfer_networks = "by_run_folds"`` the training runs are split
-into :math:`K` = min(``network.conformal_folds``, runs) groups (:func:`run_folds`); fold network
-:math:`k` is trained without the runs of group :math:`k`, and every training row :math:`i` gets an
-out-of-session hybrid prediction: the leave-one-run-out physics prediction
-(:func:`physics_loro_predictions`) plus the correction of the fold network that did not see its run.
-Its error :math:`e_i` is covered by the new-session interval of variance
-:math:`\sigma_i^2 + \tau_{p,i}^2 + \tau_n^2` (:math:`\sigma_i^2`: the calibrated hybrid predictor's
-variance at the row without transfer; :math:`\tau_{p,i}`: the physics transfer sd there) iff
-:math:`\tau_n^2 \ge (e_i/z)^2 - \sigma_i^2 - \tau_{p,i}^2`; :math:`\tau_n^2` is the ``level``
-quantile of that bound over the training rows, every run weighted equally (the grouped conformal
-quantile of :func:`~bayesmag._src.core.predictor.estimate_transfer`), floored at 0
-(:func:`network_transfer_sd`). The hybrid predictor adds :math:`\tau_n` in quadrature to its transfer
-part (``Predictor.network_transfer_sd``); rows of the training sessions never get it.
+prediction adds a residual network trained on every training run; on a session it never saw, its
+correction differs from the one it would have made had it seen the session (it absorbs part of every
+training session's shift, wrong for a new one), and that difference is in neither transfer term.
+
+With ``transfer_networks = "by_run_folds"`` the training runs are split into :math:`K` =
+min(``network.conformal_folds``, runs) groups (:func:`run_folds`); fold network :math:`k` is trained
+without the runs of group :math:`k`. On every training row :math:`i` the network's new-session error is
+:math:`d_i = \mu_{\text{fold}}(x_i) - \mu_{\text{full}}(x_i)`, the fold network's correction (it never
+saw the row's run) less the calibrated predictor's (it did). A new session's hybrid error is then
+(the error a network that had seen the session would make: the within-session variance and the physics
+transfer part cover it) + :math:`d`, taken as independent; :math:`\tau_n` is the sd whose central
+``level`` interval covers :math:`d`: :math:`\tau_n^2` = the ``level`` quantile of :math:`(d_i/z)^2` over
+the training rows, every run weighted equally (the grouped conformal quantile of
+:func:`~bayesmag._src.core.predictor.estimate_transfer`), :func:`network_transfer_sd`. The hybrid predictor
+adds :math:`\tau_n` in quadrature to its transfer part (``Predictor.network_transfer_sd``); rows of the
+training sessions never get it. No chi-square bound is applied (the physics transfer part carries one).
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ import scipy.stats
 from bayesmag._src.core.data import AXES
 from bayesmag._src.core.predictor import _weighted_quantile
 
-__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "physics_loro_predictions", "network_transfer_sd"]
+__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "physics_loro_predictions", "grouped_excess_quantile",
+           "network_transfer_sd"]
 
 #: Values of ``[uq] transfer_networks``.
 TRANSFER_NETWORKS = ("none", "by_run_folds")
@@ -39,9 +42,9 @@ class NetworkTransfer:
     """The network part of the transfer sd ``sd`` (3,), uT, and how it was obtained.
 
     ``folds``: run groups; ``fold_runs``: the runs of every group; ``rmse_out_of_fold`` /
-    ``rmse_in_sample``: per axis, the RMSE of the out-of-session hybrid prediction (fold network +
-    leave-one-run-out physics) and of the calibrated predictor on the same training rows; ``rows``: the
-    per-row pieces (``err``, ``var``, ``tau_p``, ``nn_oof``, ``nn_full``, ``phys_loro``, ``phys_pooled``, ``run``).
+    ``rmse_in_sample``: per axis, the RMSE of the network's correction against its target (the pooled
+    physics fit's residual) from the fold networks and from the calibrated predictor's network; ``rows``:
+    the per-row pieces (``nn_oof``, ``nn_full``, ``resid``, ``run``).
     """
 
     sd: np.ndarray
@@ -89,18 +92,25 @@ def physics_loro_predictions(train, fit) -> np.ndarray:
     return out
 
 
-def network_transfer_sd(err: np.ndarray, var: np.ndarray, tau_p: np.ndarray, run: np.ndarray,
-                        level: float = 0.95) -> np.ndarray:
-    r"""(3,) network transfer sd: the grouped ``level`` quantile of :math:`(e/z)^2 - \sigma^2 - \tau_p^2`, floored at 0.
+def grouped_excess_quantile(err: np.ndarray, var: np.ndarray, run: np.ndarray, level: float = 0.95) -> np.ndarray:
+    r"""(3,) :math:`\sqrt{\max(q, 0)}`, :math:`q` the ``level`` quantile of :math:`(e/z)^2 - v` over the rows, every run
+    weighted equally: the sd that, added to variance ``var``, makes central ``level`` intervals cover ``err``.
 
-    ``err``: (n, 3) out-of-session errors; ``var``: (n, 3) predictive variance without transfer; ``tau_p``:
-    (3,) or (n, 3) physics transfer sd; ``run``: (n,) run of every row (every run weighs the same).
-
-    Example: one run with errors 2 uT, the others 0, unit variance, no physics transfer: ``tau_n^2 = (2/1.96)^2 - 1``.
+    ``err``, ``var``: (n, 3); ``run``: (n,). Example: one of five runs off by 2 uT, unit variance: ``(2/1.96)^2 - 1``.
     """
     z = scipy.stats.norm.ppf(0.5 + level / 2)
-    need = (np.asarray(err) / z) ** 2 - np.asarray(var) - np.broadcast_to(np.asarray(tau_p, np.float64) ** 2, err.shape)
+    need = (np.asarray(err, np.float64) / z) ** 2 - np.broadcast_to(np.asarray(var, np.float64), np.shape(err))
     _, inv, counts = np.unique(run, return_inverse=True, return_counts=True)
     w = 1.0 / counts[inv]
-    q = np.array([_weighted_quantile(need[:, a], w, level) for a in range(err.shape[1])])
+    q = np.array([_weighted_quantile(need[:, a], w, level) for a in range(need.shape[1])])
     return np.sqrt(np.maximum(q, 0.0))
+
+
+def network_transfer_sd(nn_oof: np.ndarray, nn_full: np.ndarray, run: np.ndarray, level: float = 0.95) -> np.ndarray:
+    """(3,) network part of the transfer sd: covers ``nn_oof - nn_full`` (fold network less full network, per
+    training row) at ``level``, every run weighted equally (:func:`grouped_excess_quantile` with no variance).
+
+    Example: ``network_transfer_sd(np.ones((4, 3)), np.zeros((4, 3)), np.arange(4))`` is ``1/1.96`` per axis.
+    """
+    d = np.asarray(nn_oof, np.float64) - np.asarray(nn_full, np.float64)
+    return grouped_excess_quantile(d, 0.0, run, level)
