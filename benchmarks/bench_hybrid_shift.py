@@ -223,7 +223,8 @@ def analyse(folder: Path) -> int:
     """Sessions under 95 % and width / loro width for three estimates of the network part, from ``--save`` files.
 
     ``shift`` (the library's, :func:`~bayesmag._src.pipeline.network_transfer.network_transfer_sd`): the grouped
-    95 % quantile of ``(d/z)^2``, ``d`` the fold network's correction less the full network's; ``joint``: the
+    95 % quantile of ``(d/z)^2``, ``d`` the fold network's correction less the full network's, on the rows inside the
+    other folds' domain (``shift_all_rows``: on all rows); ``joint``: the
     grouped 95 % quantile of ``(e/z)^2 - sigma^2 - tau_p^2``, ``e`` the out-of-session hybrid error
     (leave-one-run-out physics + fold network), i.e. only what the physics transfer part does not already cover;
     ``net_only``: ``(e/z)^2 - sigma^2`` with the pooled physics fit (the network's out-of-session error against its
@@ -231,20 +232,29 @@ def analyse(folder: Path) -> int:
     """
     import scipy.stats
 
-    from bayesmag._src.pipeline.network_transfer import grouped_excess_quantile, network_transfer_sd
+    from bayesmag._src.pipeline.network_transfer import (fold_domain_mask, grouped_excess_quantile, network_transfer_sd,
+                                                        run_folds)
 
     z = scipy.stats.norm.ppf(0.975)
     files = sorted(folder.glob("s*_r*.npz"), key=lambda q: tuple(int(v) for v in q.stem[1:].split("_r")))
-    estimates = ("none", "shift", "joint", "net_only")
+    estimates = ("none", "shift", "shift_all_rows", "joint", "net_only")
     res = {(t, e): [] for t in ("loro", "hierarchical") for e in estimates}
+    data = {}
     for q in files:
         d = np.load(q)
         y, ind = d["test_b_ref"], d["in_domain"].astype(bool)
         run, var = d["train_run"], d["train_var"]
+        seed, left = (int(v) for v in q.stem[1:].split("_r"))
+        if seed not in data:
+            data[seed] = sessions(8, d["test_b_ref"].shape[0], seed)      # the bench's defaults (--sessions 8)
+        train = data[seed].subset(np.flatnonzero(data[seed].run != left))
+        inside = fold_domain_mask(train, run_folds(train.run, 5, 2)[0])  # the job's folds (conformal_folds 5, seed 0)
         e_pool = d["train_b_ref"] - d["train_phys_pooled"] - d["train_nn_oof"]
         for t in ("loro", "hierarchical"):
             tau_p = np.broadcast_to(d["loro"], var.shape) if t == "loro" else d["train_tau_p"]
-            tn = {"none": np.zeros(3), "shift": network_transfer_sd(d["train_nn_oof"], d["train_nn_full"], run),
+            tn = {"none": np.zeros(3),
+                  "shift": network_transfer_sd(d["train_nn_oof"][inside], d["train_nn_full"][inside], run[inside]),
+                  "shift_all_rows": network_transfer_sd(d["train_nn_oof"], d["train_nn_full"], run),
                   "joint": grouped_excess_quantile(d["train_err"], var + tau_p**2, run),
                   "net_only": grouped_excess_quantile(e_pool, var, run)}
             for e in estimates:

@@ -17,14 +17,14 @@ OFFSET_RUN, OFFSET = 3, 2.0           # uT added to run 3's x reference: a sessi
 
 
 def _runs(seed: int = 0, n_runs: int = 4, rows: int = 120) -> CalibrationData:
-    """``n_runs`` sessions in separate temperature bands (10, 20, ... C), an exact affine truth, noise 0.02 uT,
-    and run 3's x reference shifted by ``OFFSET``: a network that saw run 3 can learn the shift from its
-    temperature band, one that did not cannot."""
+    """``n_runs`` sessions over 10-50 C, except run 3 at 29-31 C (inside the others' domain), an exact affine
+    truth, noise 0.02 uT, and run 3's x reference shifted by ``OFFSET``: a network that saw run 3 can learn
+    most of the shift from its narrow temperature band, one that did not cannot."""
     rng = np.random.default_rng(seed)
     b, t, ref, time, run = [], [], [], [], []
     for k in range(1, n_runs + 1):
         bm = rng.uniform(-40, 40, (rows, 3))
-        tk = 10.0 * k + rng.uniform(-1, 1, rows)
+        tk = 30.0 + rng.uniform(-1, 1, rows) if k == OFFSET_RUN else rng.uniform(10, 50, rows)
         r = 1.01 * bm + 0.3 + rng.normal(0, 0.02, (rows, 3))
         if k == OFFSET_RUN:
             r[:, 0] += OFFSET
@@ -60,10 +60,11 @@ def test_out_of_fold_residuals_come_from_networks_that_did_not_see_the_run(runs)
     resid = rows["resid"]                                    # the target the networks were trained on
     oof = np.abs(resid - rows["nn_oof"])[held, 0].mean()
     ins = np.abs(resid - rows["nn_full"])[held, 0].mean()
-    # the pooled physics fit takes part of the 2 uT shift; what is left on run 3 (about 1.6 uT, the rest spread
-    # over the others) the full network learned from run 3's temperature band, the fold network never saw it
+    # the pooled physics fit takes part of the 2 uT shift; most of what is left on run 3 the full network learned
+    # from run 3's temperature band (other runs' rows there dilute it), the fold network never saw it
     assert resid[held, 0].mean() > 1.0
-    assert oof > 0.8 * resid[held, 0].mean() and ins < 0.25 * oof, (oof, ins)
+    assert oof > 0.8 * resid[held, 0].mean() and ins < 0.5 * oof, (oof, ins)
+    assert rows["inside"][held].mean() > 0.9 and nt.rows_in_domain > 0.9 * data.n     # run 3 interpolates
     # the other axes carry no shift: small both ways
     assert np.abs(resid - rows["nn_oof"])[held, 1:].mean() < 0.3
     np.testing.assert_allclose(resid, data.b_ref - on.fit.predict(bayesmag.inputs_from_data(data)))

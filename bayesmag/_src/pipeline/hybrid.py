@@ -63,7 +63,7 @@ from bayesmag._src.core.network import (MCPrediction, NetworkEnsemble, NetworkSp
 from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.physics_uq import PhysicsUQ
 from bayesmag._src.core.predictor import FUSIONS, Components, Prediction, Predictor, compose, network_inputs
-from bayesmag._src.pipeline.network_transfer import NetworkTransfer, network_transfer_sd, run_folds
+from bayesmag._src.pipeline.network_transfer import NetworkTransfer, fold_domain_mask, network_transfer_sd, run_folds
 from bayesmag._src.pipeline.conformal import conformal_folds, conformal_plan, conformal_quantile, conformal_ratios
 from bayesmag._src.pipeline.settings import ConformalPlan, NetworkSettings
 
@@ -385,12 +385,13 @@ def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarra
         rows = np.flatnonzero(run_fold == k)
         nn_oof[rows] = dataclasses.replace(pr, network=nk).network_part(train.subset(rows)).mean
     nn_full = pr.network_part(train).mean
-    sd = network_transfer_sd(nn_oof, nn_full, train.run, level)
+    inside = fold_domain_mask(train, run_fold)          # extrapolation is the domain check's, not transfer
+    sd = network_transfer_sd(nn_oof[inside], nn_full[inside], train.run[inside], level) if inside.any() else np.zeros(3)
     resid = train.b_ref - np.asarray(pr.fit.predict(inputs_from_data(train)))
-    rmse = lambda e: np.sqrt(np.mean(e**2, axis=0))  # noqa: E731
+    rmse = lambda e: np.sqrt(np.mean(e[inside] ** 2, axis=0)) if inside.any() else np.full(3, np.nan)  # noqa: E731
     fold_runs = tuple(tuple(np.unique(train.run[run_fold == k]).tolist()) for k in range(len(run_nets)))
-    return NetworkTransfer(sd, len(run_nets), fold_runs, rmse(resid - nn_oof), rmse(resid - nn_full),
-                           {"nn_oof": nn_oof, "nn_full": nn_full, "resid": resid, "run": train.run})
+    return NetworkTransfer(sd, len(run_nets), fold_runs, rmse(resid - nn_oof), rmse(resid - nn_full), int(inside.sum()),
+                           {"nn_oof": nn_oof, "nn_full": nn_full, "resid": resid, "run": train.run, "inside": inside})
 
 
 def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int, *,

@@ -10,7 +10,9 @@ With ``transfer_networks = "by_run_folds"`` the training runs are split into :ma
 min(``network.conformal_folds``, runs) groups (:func:`run_folds`); fold network :math:`k` is trained
 without the runs of group :math:`k`. On every training row :math:`i` the network's new-session error is
 :math:`d_i = \mu_{\text{fold}}(x_i) - \mu_{\text{full}}(x_i)`, the fold network's correction (it never
-saw the row's run) less the calibrated predictor's (it did). A new session's hybrid error is then
+saw the row's run) less the calibrated predictor's (it did), on the rows inside the value domain of the
+other folds' runs (:func:`fold_domain_mask`; rows outside it are extrapolation, flagged by the domain check,
+not transfer -- as in :func:`~bayesmag._src.core.predictor.estimate_transfer`). A new session's hybrid error is then
 (the error a network that had seen the session would make: the within-session variance and the physics
 transfer part cover it) + :math:`d`, taken as independent; :math:`\tau_n` is the sd whose central
 ``level`` interval covers :math:`d`: :math:`\tau_n^2` = the ``level`` quantile of :math:`(d_i/z)^2` over
@@ -30,7 +32,7 @@ import scipy.stats
 from bayesmag._src.core.data import AXES
 from bayesmag._src.core.predictor import _weighted_quantile
 
-__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "physics_loro_predictions", "grouped_excess_quantile",
+__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "fold_domain_mask", "physics_loro_predictions", "grouped_excess_quantile",
            "network_transfer_sd"]
 
 #: Values of ``[uq] transfer_networks``.
@@ -43,8 +45,9 @@ class NetworkTransfer:
 
     ``folds``: run groups; ``fold_runs``: the runs of every group; ``rmse_out_of_fold`` /
     ``rmse_in_sample``: per axis, the RMSE of the network's correction against its target (the pooled
-    physics fit's residual) from the fold networks and from the calibrated predictor's network; ``rows``:
-    the per-row pieces (``nn_oof``, ``nn_full``, ``resid``, ``run``).
+    physics fit's residual) from the fold networks and from the calibrated predictor's network, on the rows in
+    the other folds' domain (``rows_in_domain`` of them: 0 gives ``sd`` 0, nothing measured); ``rows``:
+    the per-row pieces (``nn_oof``, ``nn_full``, ``resid``, ``run``, ``inside``).
     """
 
     sd: np.ndarray
@@ -52,12 +55,13 @@ class NetworkTransfer:
     fold_runs: tuple
     rmse_out_of_fold: np.ndarray
     rmse_in_sample: np.ndarray
+    rows_in_domain: int = 0
     rows: dict | None = dataclasses.field(default=None, repr=False, compare=False)   # per training row, for benchmarks
 
     def as_dict(self) -> dict:
         ax = lambda v: {a: float(x) for a, x in zip(AXES, v)}  # noqa: E731
         return {"method": "by_run_folds", "sd": ax(self.sd), "folds": self.folds,
-                "fold_runs": [list(map(int, r)) for r in self.fold_runs],
+                "fold_runs": [list(map(int, r)) for r in self.fold_runs], "rows_in_domain": int(self.rows_in_domain),
                 "rmse_out_of_fold": ax(self.rmse_out_of_fold), "rmse_in_sample": ax(self.rmse_in_sample)}
 
 
@@ -72,6 +76,19 @@ def run_folds(run: np.ndarray, n_folds: int, seed: int) -> tuple[np.ndarray, int
     fold_of_run = np.empty(runs.size, int)
     fold_of_run[np.random.default_rng(seed).permutation(runs.size)] = np.arange(runs.size) % k
     return fold_of_run[np.searchsorted(runs, run)], k
+
+
+def fold_domain_mask(train, run_fold: np.ndarray) -> np.ndarray:
+    """(n,) bool: the row lies inside the value domain of the rows of the other folds (field and temperature,
+    :class:`~bayesmag._src.core.domain.Domain` without rates), i.e. its fold network interpolates there."""
+    from bayesmag._src.core.domain import Domain
+
+    inside = np.zeros(train.n, bool)
+    for k in np.unique(run_fold):
+        rows = np.flatnonzero(run_fold == k)
+        other = train.subset(np.flatnonzero(run_fold != k))
+        inside[rows] = ~Domain.from_data(other, rates=False).outside(train.subset(rows)).any(axis=1)
+    return inside
 
 
 def physics_loro_predictions(train, fit) -> np.ndarray:
