@@ -126,6 +126,7 @@ class Calibration:
     transfer_sd: np.ndarray | None = None    # (3,) between-session sd added for new recordings
     interval_scale: np.ndarray | None = None  # (3,) conformal interval factor of the hybrid prediction
     sessions: Any = None                      # hierarchical session posterior (row-dependent transfer sd) or None
+    network_transfer_sd: np.ndarray | None = None  # (3,) the network's own new-session sd ([uq] transfer_networks)
 
     @property
     def param_names(self):
@@ -165,7 +166,8 @@ class Calibration:
         return Predictor(fit=self.physics_fit(), sigma_in=self.sigma_in, residual_sd=self.residual_sd, network=net,
                          passes=passes, network_seed=nseed, fusion=fusion, transfer_sd=self.transfer_sd,
                          scale=self.interval_scale, domain=self.domain,
-                         uq=UQOptions(method, n_params, n_qmc, seed, chunk_size), sessions=self.sessions)
+                         uq=UQOptions(method, n_params, n_qmc, seed, chunk_size), sessions=self.sessions,
+                         network_transfer_sd=self.network_transfer_sd)
 
     def predict(self, data, *, level: float | None = None, method: str = "auto",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
@@ -261,6 +263,8 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
               "residual_sd": np.asarray(predictor.residual_sd, dtype=np.float64), "s2": np.asarray(fit.s2)}
     if predictor.transfer_sd is not None:
         arrays["transfer_sd"] = np.asarray(predictor.transfer_sd, np.float64)
+    if getattr(predictor, "network_transfer_sd", None) is not None:
+        arrays["network_transfer_sd"] = np.asarray(predictor.network_transfer_sd, np.float64)
     if predictor.scale is not None:
         arrays["interval_scale"] = np.asarray(predictor.scale, np.float64)
     sessions_meta = None
@@ -440,9 +444,11 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
     out_hi = None if dom.get("out_high") is None else _field("domain.out_high", dom["out_high"], where, shape=(3,))
     margin = float(_field("domain.margin", dom.get("margin", 0.05), where, shape=()))
     rate_hi = None if dom.get("rate_high") is None else _field("domain.rate_high", dom["rate_high"], where, shape=(4,), kind="domain")
-    extra = {k: _field(k, arrays[k], where, shape=(3,)) for k in ("transfer_sd", "interval_scale") if k in arrays}
+    extra = {k: _field(k, arrays[k], where, shape=(3,)) for k in ("transfer_sd", "interval_scale", "network_transfer_sd")
+             if k in arrays}
     if any((v < 0).any() for v in extra.values()):
-        raise ArtifactError(f"{where}: field 'transfer_sd' or 'interval_scale' is negative; the calibration is damaged.")
+        raise ArtifactError(f"{where}: field 'transfer_sd', 'interval_scale' or 'network_transfer_sd' is negative; the "
+                            f"calibration is damaged.")
     if (low > high).any():
         raise ArtifactError(f"{where}: field 'domain' has low > high; the calibration is damaged.")
     net_arrays = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("network/")}

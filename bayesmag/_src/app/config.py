@@ -79,6 +79,7 @@ class UQConfig:
     transfer_likelihood: str = "gaussian"    # hierarchical transfer: "gaussian" | "student_t" | "laplace" (per run, docs/sessions.md)
     transfer_df: float = 4.0                 # its Student-t degrees of freedom (> 2)
     transfer_uninformed: str = "pooled"      # hierarchical: effects < 3 runs inform: "pooled" (as the learned ones) | "prior" | "fixed" (no change)
+    transfer_networks: str = "none"          # "by_run_folds": the hybrid transfer part includes the network's own new-session error (docs/sessions.md)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,7 +196,8 @@ class Config:
         uq = S.UQSettings(method=u.method, n_params=u.n_params, n_qmc=u.n_qmc, sigma_in=u.sigma_in, level=u.level,
                           seed=u.seed, chunk_size=u.chunk_size, residual_term=u.residual_term, transfer=u.transfer,
                           reference_sd=u.reference_sd, transfer_likelihood=u.transfer_likelihood,
-                          transfer_df=u.transfer_df, transfer_uninformed=u.transfer_uninformed)
+                          transfer_df=u.transfer_df, transfer_uninformed=u.transfer_uninformed,
+                          transfer_networks=u.transfer_networks)
         network = conformal = nuts = None
         if self.network.enabled:
             network = self.network.settings()
@@ -225,6 +227,7 @@ _CHOICES = {
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
     "uq.transfer_likelihood": ("gaussian", "student_t", "laplace"),
     "uq.transfer_uninformed": ("pooled", "prior", "fixed"),
+    "uq.transfer_networks": ("none", "by_run_folds"),
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),
     "measurement.interval_calibration": ("conformal", "none"),
@@ -425,6 +428,10 @@ def _check_semantics(cfg: Config) -> None:
     if isinstance(tdf, bool) or not isinstance(tdf, (int, float)) or not 2 < tdf < 1e6:
         raise ConfigError(f"Config key 'uq.transfer_df' = {tdf!r} must be a number > 2 (Student-t degrees of freedom "
                           "with a finite variance; e.g. 4).")
+    if cfg.uq.transfer_networks == "by_run_folds" and (cfg.uq.transfer == "off" or not cfg.network.enabled):
+        raise ConfigError("Config key 'uq.transfer_networks' = \"by_run_folds\" adds the network's new-session error to "
+                          "the hybrid transfer part: it needs network.enabled = true and uq.transfer other than \"off\" "
+                          f"(got {cfg.network.enabled} and {cfg.uq.transfer!r}); set it to \"none\" or change those.")
     r = cfg.uq.reference_sd
     if not (isinstance(r, (int, float)) and r >= 0 or isinstance(r, list) and len(r) == 3
             and all(isinstance(v, (int, float)) and v >= 0 for v in r)):

@@ -176,7 +176,8 @@ class Predictor:
     training :class:`~bayesmag._src.core.domain.Domain` or None; ``uq``: physics UQ settings;
     ``sessions``: a hierarchical session posterior (``transfer_sd(fit, data) -> (n, 3)``, e.g.
     :class:`~bayesmag._src.pipeline.sessions.SessionPosterior`) whose row-dependent transfer sd
-    replaces ``transfer_sd``, or None.
+    replaces ``transfer_sd``, or None; ``network_transfer_sd``: (3,) sd of the network's own error on a new
+    session (:mod:`~bayesmag._src.pipeline.network_transfer`), added in quadrature to the transfer part, or None.
     """
 
     fit: Any
@@ -191,6 +192,7 @@ class Predictor:
     domain: Any = None
     uq: UQOptions = UQOptions()
     sessions: Any = None
+    network_transfer_sd: np.ndarray | None = None    # (3,) the network's own new-session sd ([uq] transfer_networks)
 
     def __post_init__(self):
         if self.fusion not in FUSIONS:
@@ -255,6 +257,9 @@ class Predictor:
                                  "build the components with Predictor.components(data) or Components(..., "
                                  "transfer=Predictor.transfer_part(data)).")
             transfer = c.transfer
+        if self.network_transfer_sd is not None and self.network is not None:
+            nts = np.asarray(self.network_transfer_sd, np.float64)
+            transfer = nts if transfer is None else np.sqrt(np.asarray(transfer, np.float64) ** 2 + nts**2)
         return compose(c.physics, c.nn, residual_sd=self.residual_sd, fusion=fusion or self.fusion,
                        family=self.family, fixed_shape=None if spec is None else spec.fixed_shape, transfer_sd=transfer,
                        scale=self.scale, new_session=new_session)

@@ -63,6 +63,7 @@ from bayesmag._src.core.network import (MCPrediction, NetworkEnsemble, NetworkSp
 from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.physics_uq import PhysicsUQ
 from bayesmag._src.core.predictor import FUSIONS, Components, Prediction, Predictor, compose, network_inputs
+from bayesmag._src.pipeline.network_transfer import NetworkTransfer, fold_domain_mask, network_transfer_sd, run_folds
 from bayesmag._src.pipeline.conformal import conformal_folds, conformal_plan, conformal_quantile, conformal_ratios
 from bayesmag._src.pipeline.settings import ConformalPlan, NetworkSettings
 
@@ -105,6 +106,7 @@ class HybridStage:
     nan_messages: list
     fusion: str
     other_fusion: str
+    network_transfer: dict = dataclasses.field(default_factory=dict)   # per likelihood: NetworkTransfer (by-run folds)
 
     @property
     def primary(self) -> str:
@@ -141,7 +143,16 @@ def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg
     paper's machine often waited on one fold's last axis). Each network is the one
     :func:`train_network` gives alone (the axes do not depend on the threads).
     """
-    n_axes = r.shape[1]
+    return train_networks_excluding(x, r, spec, net_cfg, groups, [folds == k for k in range(n_folds)],
+                                    progress=progress)
+
+
+def train_networks_excluding(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: NetworkSettings,
+                             groups: np.ndarray, excluded: list, progress: bool = False) -> list[ResidualNetwork]:
+    """One network per (n,) bool mask in ``excluded``, network ``k`` trained without the rows of ``excluded[k]``,
+    all at once on one pool of threads (:func:`train_fold_networks`; the cross-conformal folds and the
+    by-run folds of ``[uq] transfer_networks`` train together)."""
+    n_folds, n_axes = len(excluded), r.shape[1]
     report, bar = None, None
     if progress:                                        # folds still waiting for a thread count as epoch 0
         update, bar = progress_bar(spec.max_epochs, n_folds * n_axes, desc=f"network training ({spec.likelihood}, "
@@ -149,7 +160,7 @@ def train_fold_networks(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg
         report = merged_reporter(n_folds, n_axes, update)
 
     def one(k: int, pool) -> ResidualNetwork:
-        rows = np.flatnonzero(folds != k)
+        rows = np.flatnonzero(~np.asarray(excluded[k], bool))
         return train_network(x[rows], r[rows], spec, net_cfg, groups=groups[rows], pool=pool,
                              progress=(lambda p: report(k, p)) if report is not None else False)
 
@@ -223,7 +234,7 @@ def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
 def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsUQ | None, train: CalibrationData,
                      test: CalibrationData | None, timings: dict[str, float], *, level: float = 0.95,
                      conformal: ConformalPlan | None = None, new_session=False,
-                     progress: bool = False) -> HybridStage:
+                     progress: bool = False, transfer_networks: str = "none") -> HybridStage:
     """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them
     (``test`` and ``uq`` None: train only, ``predictions`` and ``alternates`` empty).
 
@@ -243,8 +254,11 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
     :func:`~bayesmag._src.core.network.mc_predict`) with that scale; ``networks[name]`` (training
     diagnostics, metrics) stays fold 0's network. The K fold networks train at once
     (:func:`train_fold_networks`). Without conformal folds the predictor keeps the one network, as
-    before. ``new_session``: test rows that get the transfer part. Adds ``timings["network_train"]``
-    (all networks) and ``["hybrid_inference"]`` (s).
+    before. ``new_session``: test rows that get the transfer part. ``transfer_networks = "by_run_folds"``
+    (``[uq] transfer_networks``): the network's own new-session error enters the transfer part
+    (:mod:`~bayesmag._src.pipeline.network_transfer`; its fold networks train with the others, and
+    ``training[name]["transfer_network"]`` reports it); it needs a physics transfer part and 2 runs, else it is
+    skipped. Adds ``timings["network_train"]`` (all networks) and ``["hybrid_inference"]`` (s).
     """
     if hasattr(settings, "network") and hasattr(settings, "split"):    # the job's Config (the old signature)
         full = settings.settings()
@@ -260,9 +274,14 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
         fold_fraction, n_folds = plan.fraction, plan.folds
         folds = conformal_folds(train.run, fraction=fold_fraction, folds=n_folds, seed=net_cfg.seed + 1)
     fit_idx = np.flatnonzero(folds != 0)
+    run_fold, n_run_folds = None, 0
+    if (transfer_networks == "by_run_folds" and np.unique(train.run).size >= 2
+            and (physics.transfer_sd is not None or physics.sessions is not None)):
+        run_fold, n_run_folds = run_folds(train.run, net_cfg.conformal_folds, net_cfg.seed + 2)
     # Size checks for every likelihood before any training.
     try:
-        fit_rows, _ = validation_rows(fit_idx.size, net_cfg.validation_fraction, seed=net_cfg.seed)
+        smallest = min([fit_idx.size] + [int(np.sum(run_fold != k)) for k in range(n_run_folds)])
+        fit_rows, _ = validation_rows(smallest, net_cfg.validation_fraction, seed=net_cfg.seed)
         for spec in specs:
             check_network_size(spec, fit_rows.size)
     except ValueError as e:
@@ -272,7 +291,7 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
     x_train = network_inputs(train)
     r_train = train.b_ref - fit.predict(inputs_from_data(train))
     other = "paper" if net_cfg.fusion == "moment_match" else "moment_match"
-    networks, predictors, preds, alts, training = {}, {}, {}, {}, {}
+    networks, predictors, preds, alts, training, network_transfer = {}, {}, {}, {}, {}, {}
     nan_messages: list[str] = []
     timings.setdefault("network_train", 0.0)
     timings.setdefault("hybrid_inference", 0.0)
@@ -287,7 +306,13 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             if bar is not None:
                 bar.set_postfix_str(f"training {name}")
             t = time.perf_counter()
-            if n_folds:
+            run_nets = []
+            if n_run_folds:                  # every network of this likelihood on one pool of threads
+                main = [folds == k for k in range(max(n_folds, 1))]
+                nets = train_networks_excluding(x_train, r_train, spec, net_cfg, train.run,
+                                                main + [run_fold == k for k in range(n_run_folds)], progress=progress)
+                nets, run_nets = nets[:len(main)], nets[len(main):]
+            elif n_folds:
                 nets = train_fold_networks(x_train, r_train, spec, net_cfg, train.run, folds, n_folds,
                                            progress=progress)
             else:
@@ -298,6 +323,8 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             timings["network_train"] += train_s
             for k, nk in enumerate(nets):
                 nan_messages += _warn_nan(name if k == 0 else f"{name}, conformal fold {k}", nk)
+            for k, nk in enumerate(run_nets):
+                nan_messages += _warn_nan(f"{name}, transfer run fold {k}", nk)
 
             pr = dataclasses.replace(physics, network=net, passes=net_cfg.mc_passes, network_seed=net_cfg.seed,
                                      fusion=net_cfg.fusion)
@@ -314,6 +341,12 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                 # the K fold networks predict together (deep ensemble), with the scale their held-out folds gave
                 pr = dataclasses.replace(pr, network=NetworkEnsemble(tuple(nets)),
                                          scale=np.maximum(conformal_quantile(np.concatenate(ratios), level), 1.0))
+            nt = None
+            if run_nets:
+                t = time.perf_counter()
+                nt = _network_transfer(pr, train, run_fold, run_nets, level)
+                pr = dataclasses.replace(pr, network_transfer_sd=nt.sd)
+                timings["hybrid_inference"] += time.perf_counter() - t
             networks[name], predictors[name] = net, pr
             if test is not None:
                 t = time.perf_counter()
@@ -328,6 +361,9 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                                                "ensemble_passes": list(ensemble_passes(net_cfg.mc_passes, n_folds))}
                 for a, ax in enumerate(AXES):
                     training[name][ax]["interval_scale"] = float(pr.scale[a])
+            if nt is not None:
+                training[name]["transfer_network"] = nt.as_dict()
+                network_transfer[name] = nt
             if net.variance_scale is not None:
                 for a, ax in enumerate(AXES):
                     training[name][ax]["variance_scale"] = float(net.variance_scale[a])
@@ -337,7 +373,25 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
         if bar is not None:
             bar.close()
     return HybridStage(tuple(specs), networks, predictors, preds, alts, training, nan_messages, net_cfg.fusion,
-                       other)
+                       other, network_transfer)
+
+
+def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarray, run_nets: list,
+                      level: float) -> NetworkTransfer:
+    """The network part of the transfer sd (:mod:`~bayesmag._src.pipeline.network_transfer`) of the calibrated
+    hybrid predictor ``pr``, from its by-run fold networks ``run_nets`` (network ``k`` never saw ``run_fold == k``)."""
+    nn_oof = np.zeros(train.b_ref.shape)
+    for k, nk in enumerate(run_nets):          # K <= network.conformal_folds MC predictions
+        rows = np.flatnonzero(run_fold == k)
+        nn_oof[rows] = dataclasses.replace(pr, network=nk).network_part(train.subset(rows)).mean
+    nn_full = pr.network_part(train).mean
+    inside = fold_domain_mask(train, run_fold)          # extrapolation is the domain check's, not transfer
+    sd = network_transfer_sd(nn_oof[inside], nn_full[inside], train.run[inside], level) if inside.any() else np.zeros(3)
+    resid = train.b_ref - np.asarray(pr.fit.predict(inputs_from_data(train)))
+    rmse = lambda e: np.sqrt(np.mean(e[inside] ** 2, axis=0)) if inside.any() else np.full(3, np.nan)  # noqa: E731
+    fold_runs = tuple(tuple(np.unique(train.run[run_fold == k]).tolist()) for k in range(len(run_nets)))
+    return NetworkTransfer(sd, len(run_nets), fold_runs, rmse(resid - nn_oof), rmse(resid - nn_full), int(inside.sum()),
+                           {"nn_oof": nn_oof, "nn_full": nn_full, "resid": resid, "run": train.run, "inside": inside})
 
 
 def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int, *,

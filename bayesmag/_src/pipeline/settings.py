@@ -73,7 +73,9 @@ class UQSettings:
     ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them);
     ``transfer_likelihood`` / ``transfer_df``: the hierarchical model's likelihood, ``"gaussian"``,
     ``"student_t"`` with ``transfer_df`` dof or ``"laplace"``; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
-    (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`).
+    (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`); ``transfer_networks``:
+    ``"none"`` or ``"by_run_folds"`` (the hybrid transfer part includes the network's own new-session error,
+    :mod:`~bayesmag._src.pipeline.network_transfer`).
     """
 
     method: str = UQOptions.method
@@ -89,6 +91,7 @@ class UQSettings:
     transfer_likelihood: str = "gaussian"
     transfer_df: float = 4.0
     transfer_uninformed: str = "pooled"
+    transfer_networks: str = "none"
 
     def options(self) -> UQOptions:
         """The :class:`~bayesmag._src.core.predictor.UQOptions` a :class:`Predictor` keeps."""

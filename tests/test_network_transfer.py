@@ -1,0 +1,147 @@
+"""[uq] transfer_networks = "by_run_folds": the network's own new-session error in the hybrid transfer part."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.stats
+
+import bayesmag
+from bayesmag import ConfigError
+from bayesmag._src.app.config import config_from_dict
+from bayesmag._src.core.data import CalibrationData
+from bayesmag._src.pipeline.calibrate import calibrate
+from bayesmag._src.pipeline.network_transfer import grouped_excess_quantile, network_transfer_sd, run_folds
+
+OFFSET_RUN, OFFSET = 3, 2.0           # uT added to run 3's x reference: a session only its own rows show
+
+
+def _runs(seed: int = 0, n_runs: int = 4, rows: int = 120) -> CalibrationData:
+    """``n_runs`` sessions over 10-50 C, except run 3 at 29-31 C (inside the others' domain), an exact affine
+    truth, noise 0.02 uT, and run 3's x reference shifted by ``OFFSET``: a network that saw run 3 can learn
+    most of the shift from its narrow temperature band, one that did not cannot."""
+    rng = np.random.default_rng(seed)
+    b, t, ref, time, run = [], [], [], [], []
+    for k in range(1, n_runs + 1):
+        bm = rng.uniform(-40, 40, (rows, 3))
+        tk = 30.0 + rng.uniform(-1, 1, rows) if k == OFFSET_RUN else rng.uniform(10, 50, rows)
+        r = 1.01 * bm + 0.3 + rng.normal(0, 0.02, (rows, 3))
+        if k == OFFSET_RUN:
+            r[:, 0] += OFFSET
+        b.append(bm), t.append(tk), ref.append(r), time.append(np.arange(rows) + 1000.0 * k), run.append(np.full(rows, k))
+    return CalibrationData(*(np.concatenate(v) for v in (b, t, ref, time, run)))
+
+
+def _settings(transfer_networks: str, transfer: str = "loro"):
+    raw = {"name": "nt", "data": {"path": "unused.csv"}, "split": {"kind": "none"}, "physics": {"t0": "mean"},
+           "uq": {"method": "analytic", "transfer": transfer, "transfer_networks": transfer_networks},
+           "network": {"enabled": True, "hidden_layers": 2, "width": 32, "learning_rate": 3e-3, "batch_size": 64,
+                       "max_epochs": 100, "patience": 20, "mc_passes": 10, "interval_calibration": "none",
+                       "conformal_folds": 5, "seed": 0},
+           "output": {"figures": False, "progress": False}}
+    return config_from_dict(raw).settings()
+
+
+@pytest.fixture(scope="module")
+def runs():
+    data = _runs()
+    test = _runs(seed=1, n_runs=2)
+    on = calibrate(data, _settings("by_run_folds"), test=test)
+    off = calibrate(data, _settings("none"), test=test)
+    return data, test, on, off
+
+
+def test_out_of_fold_residuals_come_from_networks_that_did_not_see_the_run(runs):
+    data, _, on, _ = runs
+    nt = on.hybrid.network_transfer["gaussian"]
+    rows = nt.rows
+    assert nt.folds == 4 and sorted(r for f in nt.fold_runs for r in f) == [1, 2, 3, 4]   # leave one session out
+    held = data.run == OFFSET_RUN
+    resid = rows["resid"]                                    # the target the networks were trained on
+    oof = np.abs(resid - rows["nn_oof"])[held, 0].mean()
+    ins = np.abs(resid - rows["nn_full"])[held, 0].mean()
+    # the pooled physics fit takes part of the 2 uT shift; most of what is left on run 3 the full network learned
+    # from run 3's temperature band (other runs' rows there dilute it), the fold network never saw it
+    assert resid[held, 0].mean() > 1.0
+    assert oof > 0.8 * resid[held, 0].mean() and ins < 0.5 * oof, (oof, ins)
+    assert rows["inside"][held].mean() > 0.9 and nt.rows_in_domain > 0.9 * data.n     # run 3 interpolates
+    # the other axes carry no shift: small both ways
+    assert np.abs(resid - rows["nn_oof"])[held, 1:].mean() < 0.3
+    np.testing.assert_allclose(resid, data.b_ref - on.fit.predict(bayesmag.inputs_from_data(data)))
+    # the network part covers the fold networks' change on run 3 (a quarter of the weight, so the 95 % quantile
+    # lies in it): about its mean |d| / 1.96 on x, small on y and z
+    d = rows["nn_oof"] - rows["nn_full"]
+    np.testing.assert_allclose(nt.sd, network_transfer_sd(rows["nn_oof"], rows["nn_full"], rows["run"]))
+    assert 0.5 * np.abs(d[held, 0]).mean() / 1.96 < nt.sd[0] < 2 * np.abs(d[held, 0]).max() / 1.96
+    assert nt.sd[0] > 3 * max(nt.sd[1:]), nt.sd
+    assert on.predictor.network_transfer_sd is nt.sd
+
+
+def test_option_off_is_today_and_on_only_adds_the_network_part(runs):
+    _, test, on, off = runs
+    assert off.predictor.network_transfer_sd is None and not off.hybrid.network_transfer
+    assert "transfer_network" not in off.hybrid.training["gaussian"]
+    # the same main network either way (each network is the one it would be alone): the option changes nothing
+    # else, and setting its part to None gives today's prediction exactly
+    p_off = off.predictor.predict(test)
+    p_on = on.predictor.predict(test)
+    p_on0 = dataclasses.replace(on.predictor, network_transfer_sd=None).predict(test)
+    np.testing.assert_array_equal(p_on0.mean, p_off.mean)
+    np.testing.assert_array_equal(p_on0.total, p_off.total)
+    np.testing.assert_array_equal(p_on.mean, p_off.mean)
+    # a network part adds in quadrature to the transfer part of new-session rows only
+    tau_p, tau_n = on.predictor.transfer_sd, np.array([0.3, 0.1, 0.2])
+    pr = dataclasses.replace(on.predictor, network_transfer_sd=tau_n)
+    p_n = pr.predict(test)
+    np.testing.assert_allclose(p_n.transfer, np.broadcast_to(np.sqrt(tau_p**2 + tau_n**2), p_n.mean.shape))
+    np.testing.assert_allclose(p_n.total**2 - p_off.total**2, np.broadcast_to(tau_n**2, p_n.mean.shape), rtol=1e-9)
+    c = pr.components(test)
+    np.testing.assert_array_equal(pr.compose(c, new_session=False).total,
+                                  off.predictor.compose(c, new_session=False).total)
+    # saved in the calibration: apply predicts the same
+    import tempfile
+    from pathlib import Path
+
+    from bayesmag._src.app.artifact import load, save_calibration
+    with tempfile.TemporaryDirectory() as tmp:
+        save_calibration(Path(tmp), pr, config={})
+        cal = load(tmp)
+    np.testing.assert_array_equal(cal.network_transfer_sd, tau_n)
+    np.testing.assert_allclose(cal.predictor(method="analytic").predict(test).total, p_n.total, rtol=1e-6)
+
+
+def test_network_transfer_sd_is_the_grouped_conformal_quantile():
+    # runs 1-4 predicted exactly, run 5 off by 2 uT; unit variance: the 95 % grouped quantile falls in run 5
+    # (weight 1/5 > 5 %, whatever its row count), so tau^2 = (2/z)^2 - 1
+    run = np.repeat(np.arange(1, 6), [10, 20, 30, 40, 5])
+    err = np.where(run[:, None] == 5, 2.0, 0.0) * np.ones((run.size, 3))
+    z = scipy.stats.norm.ppf(0.975)
+    np.testing.assert_allclose(grouped_excess_quantile(err, np.ones_like(err), run), np.sqrt((2 / z) ** 2 - 1),
+                               rtol=1e-12)
+    np.testing.assert_array_equal(grouped_excess_quantile(err, np.full_like(err, 2.0), run), np.zeros(3))   # covered
+    np.testing.assert_allclose(network_transfer_sd(err, np.zeros_like(err), run), 2 / z, rtol=1e-12)
+    # with ten runs one off run weighs 10 %: still above the 5 % tail; with 25 runs (4 %) it drops out
+    for n_runs, want in ((10, 2 / z), (25, 0.0)):
+        r = np.repeat(np.arange(n_runs), 3)
+        e = np.where(r[:, None] == 0, 2.0, 0.0) * np.ones((r.size, 3))
+        np.testing.assert_allclose(network_transfer_sd(e, np.zeros_like(e), r), want, rtol=1e-12)
+
+
+@pytest.mark.parametrize("n_runs,k", [(3, 3), (7, 5), (2, 2)])
+def test_run_folds_put_every_run_in_one_fold(n_runs, k):
+    run = np.repeat(np.arange(10, 10 + n_runs), 4)
+    folds, got = run_folds(run, 5, seed=0)
+    assert got == k and set(folds) == set(range(k))
+    for r in np.unique(run):
+        assert np.unique(folds[run == r]).size == 1
+    np.testing.assert_array_equal(folds, run_folds(run, 5, seed=0)[0])
+
+
+@pytest.mark.parametrize("uq,network,key", [({"transfer": "off"}, {"enabled": True}, "uq.transfer_networks"),
+                                            ({}, {"enabled": False}, "uq.transfer_networks"),
+                                            ({"transfer_networks": "yes"}, {"enabled": True}, "uq.transfer_networks")])
+def test_config_checks_the_option(uq, network, key):
+    raw = {"name": "x", "data": {"path": "unused.csv"},
+           "uq": {"transfer_networks": "by_run_folds", **uq}, "network": network}
+    with pytest.raises(ConfigError, match=key):
+        config_from_dict(raw)
