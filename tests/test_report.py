@@ -199,3 +199,15 @@ def test_figure_worker_draws_in_background_and_surfaces_errors(tmp_path):
     with FigureWorker(enabled=False) as figs:       # [output] figures = false: nothing drawn, nothing moved
         figs.submit(_draw_named, "c.png")
         assert figs.finish(tmp_path) == [] and not (tmp_path / "c.png").exists()
+
+
+def test_budget_names_the_networks_new_session_part_when_estimated():
+    """[uq] transfer_networks: the hybrid adds the network's own new-session sd; the budget must say so."""
+    m, params = _metrics_params()
+    m["transfer"] = {"method": "leave_one_run_out", "sd": {"x": 0.1, "y": 0.2, "z": 0.1}, "per_run": {}}
+    parts = {"network aleatoric": {a: 0.05 for a in "xyz"}}
+    assert "network's own new-session error" not in render_report(m, params, network_parts=parts)
+    m["network"] = {"training": {"gaussian": {"transfer_network": {"method": "by_run_folds",
+                                                                   "sd": {"x": 0.034, "y": 0.102, "z": 0.035}}}}}
+    row = _row(render_report(m, params, network_parts=parts), "network's own new-session error")
+    assert row[1:] == ["A", "0.034", "0.10", "0.035"]

@@ -277,6 +277,11 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                   "| component | type | x | y | z |", "|---|---|---|---|---|"]
         for k_, v in network_parts.items():
             lines.append(f"| {k_} | A | " + " | ".join(_u2(v[a]) for a in AXES) + " |")
+        for name, tr in ((m.get("network") or {}).get("training") or {}).items():
+            nt = tr.get("transfer_network") if isinstance(tr, dict) else None
+            if nt and nt.get("sd"):     # [uq] transfer_networks: the hybrid's new-session rows add it in quadrature
+                lines.append(f"| network's own new-session error ({name}; new session only, `transfer_networks`) | A | "
+                             + " | ".join(_u2(nt["sd"][a]) for a in AXES) + " |")
         if m.get("network", {}).get("fusion", "moment_match") == "paper":
             lines += ["", "With the residual network (fusion `paper`), the hybrid's total variance is the paper's "
                       "root-sum-of-squares of physics aleatoric, physics epistemic, network aleatoric and network "
