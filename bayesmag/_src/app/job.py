@@ -101,6 +101,10 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
                                     covariance=cfg.physics.covariance, progress=progress)
 
 
+#: What the figure process imports while this one computes (the drawing functions of the figure tasks).
+_FIGURE_MODULES = ("bayesmag._src.app.plots", "bayesmag._src.app.hybrid_plots", "bayesmag._src.app.network_plots")
+
+
 def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figure_worker: bool = False) -> JobResult:
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
 
@@ -122,7 +126,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
         # the process's setting (on from the command line, the caller's from Python)
         cc = cfg.output.compile_cache
         with contextlib.nullcontext() if cc == "auto" else compile_cache(bool(cc)):
-            with figures(cfg.output.figures, worker=figure_worker) as figs:
+            with figures(cfg.output.figures, worker=figure_worker, preload=_FIGURE_MODULES) as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)
 
@@ -179,19 +183,22 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
 
     writers: list = []              # writer(staging_dir) for stage files, called in the staging folder
     if cfg.output.figures:
-        from bayesmag._src.app.plots import physics_figures
-        # after the training, not during it: its threads keep both cores of a 2-core machine busy, and
-        # figures drawn alongside only slowed it (2.8 s of 9.7); now they are drawn while this process
-        # draws the hybrid stage's
+        from bayesmag._src.app import plots
+        # after the training, not during it (its threads keep both cores of a 2-core machine busy): every
+        # figure is a task, drawn by the figure process and this one from one queue, the most expensive first
         ps = run.physics
-        train = data.subset(split.train)
-        figs.submit(physics_figures, test, {k: columns[k] for k in ("measured", "predicted", "reference",
-                                                                     "total", "lower", "upper")},
-                    {"train": train, "train_residual": train.b_ref - run.fit.predict(inputs_from_data(train)),
-                     "pit": M.pit(ps.prediction.dist, test.b_ref), "level": cfg.uq.level})
+        tasks = plots.physics_figure_tasks(test, columns, {
+            "train": train, "train_residual": train.b_ref - run.fit.predict(inputs_from_data(train)),
+            "pit": M.pit(ps.prediction.dist, test.b_ref), "level": cfg.uq.level})
+        if run.hybrid is not None:
+            from bayesmag._src.app.hybrid_outputs import hybrid_figure_tasks
+            tasks += hybrid_figure_tasks(run.hybrid, columns, test, cfg.uq.level)
+        tasks.append(plots.residual_histogram_task(columns["reference"], ps.uq.mean, columns.get("hybrid_predicted")))
+        for draw, args, kwargs in plots.by_cost(tasks):
+            figs.submit(draw, *args, **kwargs)
     if run.hybrid is not None:
         from bayesmag._src.app.hybrid_outputs import hybrid_writers
-        writers += hybrid_writers(cfg, run.hybrid, columns, test, cfg.uq.level)
+        writers += hybrid_writers(cfg, run.hybrid, columns, test, cfg.uq.level, figures=False)
     if run.nuts is not None:
         from bayesmag._src.app.nuts_outputs import write_nuts_outputs
         res, figures = run.nuts, cfg.output.figures
@@ -219,12 +226,9 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         except ArtifactError as e:
             raise JobError(f"bayesmag wrote a calibration its own loader refuses ({e}); nothing was written to "
                            f"{out}. Please report this as a bug.") from None
-        for writer in writers:                      # stage files and figures, drawn here while the figure
-            writer(tmp)                             # process draws the physics stage's
-        if cfg.output.figures:
-            from bayesmag._src.app import plots
-            plots.residual_histogram_figure(tmp, result, columns)
-            figs.finish(tmp)
+        for writer in writers:                      # stage files (and NUTS figures), while the figure
+            writer(tmp)                             # process draws
+        figs.finish(tmp)                            # this process draws the figures the worker has not taken
         timings["write"] = time.perf_counter() - t     # files and figures (total: the whole job)
         timings["total"] = time.perf_counter() - t_all
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
