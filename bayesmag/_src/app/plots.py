@@ -210,10 +210,10 @@ def run_tasks(out: Path, tasks: list) -> None:
 #: Relative drawing time of a job's figures (CPU seconds, paper_hybrid on the 2-core machine,
 #: ``benchmarks/bench_figures.py --tasks``): the most expensive go first, so that two processes
 #: sharing the queue finish together.
-_COST = {"physics_residuals_vs_time.png": 1.2, "physics_residuals_vs_reference.png": 0.75,
-         "hybrid_uncertainty_vs_temperature.png": 0.7, "physics_pit.png": 0.5, "residual_histograms.png": 0.45,
-         "physics_residuals_vs_temperature.png": 0.35, "calibration.png": 0.3,
-         "hybrid_residuals_vs_reference.png": 0.3, "network_loss.png": 0.25}
+_COST = {"physics_residuals_vs_time.png": 1.12, "physics_residuals_vs_reference.png": 0.57,
+         "hybrid_uncertainty_vs_temperature.png": 0.42, "residual_histograms.png": 0.40,
+         "hybrid_residuals_vs_reference.png": 0.31, "calibration.png": 0.30, "network_loss.png": 0.23,
+         "physics_pit.png": 0.22, "physics_residuals_vs_temperature.png": 0.22}
 
 
 def by_cost(tasks: list) -> list:
