@@ -42,9 +42,13 @@ def _pixels(path):
 def test_worker_and_in_process_draw_the_same_figures_pixel_for_pixel(tmp_path):
     """The job's twelve figures, shared with the worker process (command line) or drawn here (library):
     the same files with identical pixels, and the same metrics."""
+    from bayesmag._src.app.figure_worker import JOB_MODULES, FigureWorker
     cfg = config_from_dict(SMALL_HYBRID)
     here = run_job(cfg, tmp_path / "inline")
-    shared = run_job(cfg, tmp_path / "worker", figure_worker=True)
+    with FigureWorker(preload=JOB_MODULES) as worker:      # as the command line: started first, closed by it
+        worker.warm()
+        shared = run_job(cfg, tmp_path / "worker", figure_worker=worker)
+        assert worker.pid is not None and worker._proc.poll() is None
     pngs = {p.name for p in (tmp_path / "inline").glob("*.png")}
     assert pngs == FIGURES and {p.name for p in (tmp_path / "worker").glob("*.png")} == FIGURES
     for name in sorted(FIGURES):

@@ -31,6 +31,17 @@ __all__ = ["main"]
 
 
 def _cmd_run(args) -> int:
+    import contextlib
+
+    from bayesmag._src.app.figure_worker import JOB_MODULES, FigureWorker
+    # the figure process starts first: its imports (matplotlib, the plot modules) overlap ours and the job's
+    with FigureWorker(preload=JOB_MODULES) if _figure_worker() else contextlib.nullcontext(False) as worker:
+        if worker:
+            worker.warm()
+        return _run(args, worker)
+
+
+def _run(args, worker) -> int:
     from bayesmag._src.app.config import load_config
     from bayesmag._src.app.job import run_job
     from bayesmag._src.app.outdir import reserve
@@ -43,7 +54,7 @@ def _cmd_run(args) -> int:
     gc.freeze()                     # the imports so far live to the end: the collector need not walk them again
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
         result = run_job(cfg, out, progress=None if _progress(args) else False,   # None: [output] progress
-                         figure_worker=_figure_worker())
+                         figure_worker=worker)
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")

@@ -32,7 +32,10 @@ import threading
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["FigureWorker", "InlineFigures", "figures"]
+__all__ = ["FigureWorker", "InlineFigures", "figures", "JOB_MODULES"]
+
+#: What a job's figure process imports at start, while the job computes (the drawing functions of its tasks).
+JOB_MODULES = ("bayesmag._src.app.plots", "bayesmag._src.app.hybrid_plots", "bayesmag._src.app.network_plots")
 
 # The child: self-contained (it imports nothing of bayesmag but the modules the parent names to preload).
 # Message 1 is the parent's sys.path, message 2 the modules to import at start; then (seq, draw, args, kwargs)

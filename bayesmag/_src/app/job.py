@@ -101,24 +101,21 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
                                     covariance=cfg.physics.covariance, progress=progress)
 
 
-#: What the figure process imports while this one computes (the drawing functions of the figure tasks).
-_FIGURE_MODULES = ("bayesmag._src.app.plots", "bayesmag._src.app.hybrid_plots", "bayesmag._src.app.network_plots")
-
-
-def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figure_worker: bool = False) -> JobResult:
+def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figure_worker=False) -> JobResult:
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
 
     Figures (``[output] figures``) are drawn in this process by default, after
     :func:`~bayesmag.calibrate`: a library call spawns nothing and never re-imports the caller's
-    ``__main__``. ``figure_worker=True`` (the command line with ``BAYESMAG_FIGURE_WORKER=1``) draws
-    the physics stage's figures in one child process
-    (:class:`~bayesmag._src.app.figure_worker.FigureWorker`), which exits when this process does,
-    while this process draws the hybrid stage's. The output folder is swapped in only after they
-    are all drawn. ``progress``: None (default) draws bars as ``[output] progress`` says, but only where
-    someone watches (stderr a terminal, or a Jupyter kernel: never into a log); True / False force it.
+    ``__main__``. ``figure_worker=True`` (the command line, unless ``BAYESMAG_FIGURE_WORKER=0``) shares
+    them with one child process (:class:`~bayesmag._src.app.figure_worker.FigureWorker`, which exits
+    when this process does): both draw from one queue of figure tasks after the training. A started
+    ``FigureWorker`` may be given instead (the command line starts it before its own imports; the
+    caller closes it). The output folder is swapped in only after they are all drawn. ``progress``:
+    None (default) draws bars as ``[output] progress`` says, but only where someone watches (stderr a
+    terminal, or a Jupyter kernel: never into a log); True / False force it.
     """
     from bayesmag._src.core.cache import compile_cache, release_compiled_if_crowded
-    from bayesmag._src.app.figure_worker import figures
+    from bayesmag._src.app.figure_worker import JOB_MODULES, FigureWorker, InlineFigures, figures
     from bayesmag._src.app.outdir import reserve
     release_compiled_if_crowded()           # many jobs in one process: stay under the kernel's mapping limit
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
@@ -126,7 +123,10 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
         # the process's setting (on from the command line, the caller's from Python)
         cc = cfg.output.compile_cache
         with contextlib.nullcontext() if cc == "auto" else compile_cache(bool(cc)):
-            with figures(cfg.output.figures, worker=figure_worker, preload=_FIGURE_MODULES) as figs:
+            drawer = (contextlib.nullcontext(figure_worker if cfg.output.figures else InlineFigures(False))
+                      if isinstance(figure_worker, FigureWorker)
+                      else figures(cfg.output.figures, worker=bool(figure_worker), preload=JOB_MODULES))
+            with drawer as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)
 
