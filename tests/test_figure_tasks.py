@@ -42,10 +42,10 @@ def _pixels(path):
 def test_worker_and_in_process_draw_the_same_figures_pixel_for_pixel(tmp_path):
     """The job's twelve figures, shared with the worker process (command line) or drawn here (library):
     the same files with identical pixels, and the same metrics."""
-    from bayesmag._src.app.figure_worker import JOB_MODULES, FigureWorker
+    from bayesmag._src.app.figure_worker import JOB_BARE, JOB_MODULES, FigureWorker
     cfg = config_from_dict(SMALL_HYBRID)
     here = run_job(cfg, tmp_path / "inline")
-    with FigureWorker(preload=JOB_MODULES) as worker:      # as the command line: started first, closed by it
+    with FigureWorker(preload=JOB_MODULES, bare=JOB_BARE) as worker:   # as the command line: started first
         worker.warm()
         shared = run_job(cfg, tmp_path / "worker", figure_worker=worker)
         assert worker.pid is not None and worker._proc.poll() is None

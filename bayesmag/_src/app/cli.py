@@ -33,9 +33,10 @@ __all__ = ["main"]
 def _cmd_run(args) -> int:
     import contextlib
 
-    from bayesmag._src.app.figure_worker import JOB_MODULES, FigureWorker
+    from bayesmag._src.app.figure_worker import JOB_BARE, JOB_MODULES, FigureWorker
     # the figure process starts first: its imports (matplotlib, the plot modules) overlap ours and the job's
-    with FigureWorker(preload=JOB_MODULES) if _figure_worker() else contextlib.nullcontext(False) as worker:
+    with (FigureWorker(preload=JOB_MODULES, bare=JOB_BARE) if _figure_worker()
+          else contextlib.nullcontext(False)) as worker:
         if worker:
             worker.warm()
         return _run(args, worker)

@@ -32,10 +32,12 @@ import threading
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["FigureWorker", "InlineFigures", "figures", "JOB_MODULES"]
+__all__ = ["FigureWorker", "InlineFigures", "figures", "JOB_MODULES", "JOB_BARE"]
 
 #: What a job's figure process imports at start, while the job computes (the drawing functions of its tasks).
 JOB_MODULES = ("bayesmag._src.app.plots", "bayesmag._src.app.hybrid_plots", "bayesmag._src.app.network_plots")
+#: The package the job's figure process enters bare (no ``__init__``: no JAX; see :class:`FigureWorker`).
+JOB_BARE = {"bayesmag": str(Path(__file__).resolve().parents[2])}
 
 # The child: self-contained (it imports nothing of bayesmag but the modules the parent names to preload).
 # Message 1 is the parent's sys.path, message 2 the modules to import at start; then (seq, draw, args, kwargs)
@@ -46,7 +48,12 @@ signal.signal(signal.SIGINT, signal.SIG_IGN)        # Ctrl-C reaches the whole g
 inp, out = sys.stdin.buffer, sys.stdout.buffer
 sys.stdout = sys.stderr                             # stray prints never corrupt the answers
 sys.path[:] = pickle.load(inp)
-preload = pickle.load(inp)
+preload, bare = pickle.load(inp)
+import types
+for name, path in bare.items():                     # a package entered without running its __init__
+    pkg = types.ModuleType(name)
+    pkg.__path__ = [path]
+    sys.modules[name] = pkg
 tasks = queue.Queue()
 def read():
     while True:
@@ -92,12 +99,16 @@ class FigureWorker:
     a time (a feeder thread here sends the next when it answers), so that the two processes share
     the queue. Used only by the command line (``BAYESMAG_FIGURE_WORKER=0`` turns it off); library
     calls always draw in-process (:class:`InlineFigures`). ``preload``: modules the child imports at
-    start (:meth:`warm`), while this process computes.
+    start (:meth:`warm`), while this process computes. ``bare``: ``{package: folder}`` entered in the child
+    without running the package's ``__init__`` (:data:`JOB_BARE`: ``bayesmag``'s imports JAX and switches
+    it to float64, which a process that only draws never needs: ~1 CPU-s less to start).
     """
 
-    def __init__(self, enabled: bool = True, preload: tuple[str, ...] | list[str] = ()):
+    def __init__(self, enabled: bool = True, preload: tuple[str, ...] | list[str] = (),
+                 bare: dict[str, str] | None = None):
         self.enabled = enabled
         self.preload = list(preload)
+        self.bare = dict(bare or {})
         self._proc: subprocess.Popen | None = None
         self._log = None
         self._tmp = Path(tempfile.mkdtemp(prefix="bayesmag-figures-")) if enabled else None
@@ -119,7 +130,7 @@ class FigureWorker:
             self._proc = subprocess.Popen([sys.executable, "-c", _SERVER], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, stderr=self._log, env=env, close_fds=True)
             self._send(list(sys.path))
-            self._send(self.preload)
+            self._send((self.preload, self.bare))
             self._feeder = threading.Thread(target=self._feed, name="bayesmag-figures", daemon=True)
             self._feeder.start()
 
@@ -128,19 +139,22 @@ class FigureWorker:
         """The worker's process id (None before :meth:`warm` or when disabled)."""
         return None if self._proc is None else self._proc.pid
 
-    def _send(self, msg) -> None:
+    def _send(self, msg, proc: subprocess.Popen | None = None) -> None:
+        proc = proc or self._proc
         try:
-            pickle.dump(msg, self._proc.stdin)
-            self._proc.stdin.flush()
-        except (BrokenPipeError, OSError, ValueError):
+            pickle.dump(msg, proc.stdin)
+            proc.stdin.flush()
+        except (BrokenPipeError, OSError, ValueError, AttributeError):
             raise RuntimeError(f"the figure process died: {self._log_tail()}") from None
 
     def _log_tail(self) -> str:
-        if self._log is None:
+        log, proc = self._log, self._proc
+        try:
+            log.seek(0)
+            lines = log.read().decode(errors="replace").strip().splitlines()
+        except (AttributeError, ValueError, OSError):     # closed meanwhile (close() after a kill)
             return ""
-        self._log.seek(0)
-        lines = self._log.read().decode(errors="replace").strip().splitlines()
-        return lines[-1] if lines else f"exit status {self._proc.poll() if self._proc else None}"
+        return lines[-1] if lines else f"exit status {proc.poll() if proc else None}"
 
     def _feed(self) -> None:
         """Feeder thread: hand the child the next queued task whenever it is idle, collect its answer."""
@@ -156,7 +170,7 @@ class FigureWorker:
             try:
                 self._seq += 1
                 draw, args, kwargs = task
-                self._send((self._seq, draw, (self._tmp, *args), kwargs))
+                self._send((self._seq, draw, (self._tmp, *args), kwargs), proc)
                 _, err = pickle.load(proc.stdout)
             except (RuntimeError, EOFError, pickle.UnpicklingError, OSError, ValueError):
                 with self._wake:
@@ -220,11 +234,11 @@ class FigureWorker:
 
     def close(self, *, kill: bool = False) -> None:
         """Stop the process (asked to quit, or killed on an error or interrupt), remove the private folder."""
-        p, self._proc = self._proc, None
         with self._wake:
             self._stop = True
             self._queue.clear()
             self._wake.notify_all()
+        p, self._proc = self._proc, None
         if p is not None:
             if not kill:
                 if self._feeder is not None:         # it ends after the task in flight, if any
@@ -238,6 +252,8 @@ class FigureWorker:
             if kill:
                 p.kill()
                 p.wait()
+                if self._feeder is not None:         # its read fails at once now
+                    self._feeder.join(timeout=2)
             for f in (p.stdin, p.stdout):
                 try:
                     f.close()
@@ -294,6 +310,7 @@ class InlineFigures:
         self.close()
 
 
-def figures(enabled: bool, *, worker: bool, preload: tuple[str, ...] = ()) -> FigureWorker | InlineFigures:
+def figures(enabled: bool, *, worker: bool, preload: tuple[str, ...] = (),
+            bare: dict[str, str] | None = None) -> FigureWorker | InlineFigures:
     """A figure drawer: shared with a worker process (``worker``, command line) or this process (library calls)."""
-    return FigureWorker(enabled, preload) if worker else InlineFigures(enabled)
+    return FigureWorker(enabled, preload, bare) if worker else InlineFigures(enabled)

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -21,9 +22,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bayesmag._src.core import metrics as M  # noqa: E402
 from bayesmag._src.core.data import AXES  # noqa: E402
-from bayesmag._src.core.likelihoods import Likelihood  # noqa: E402
+
+if TYPE_CHECKING:                       # the figure process imports this module without JAX: metrics and
+    from bayesmag._src.core.likelihoods import Likelihood      # likelihoods only where PIT values are computed
 
 __all__ = ["uncertainty_vs_temperature", "calibration_curves", "pit_histograms",
            "hybrid_figures", "hybrid_figure_tasks"]
@@ -51,6 +53,7 @@ def calibration_curves(path: Path, dists: dict[str, Likelihood], y: np.ndarray,
                        title: str = "Calibration of central intervals (test rows)") -> None:
     """Per axis: observed against nominal coverage, one line per predictive distribution."""
     from bayesmag._src.app.plots import draw_calibration_curves
+    from bayesmag._src.core import metrics as M
     draw_calibration_curves(path, {name: M.calibration_curve(d, y) for name, d in dists.items()}, title)
 
 
@@ -58,6 +61,7 @@ def pit_histograms(path: Path, dists: dict[str, Likelihood], y: np.ndarray, bins
                    title: str = "PIT histograms (flat = calibrated)") -> None:
     """Rows: predictive distributions; columns: axes; dashed line: the uniform density."""
     from bayesmag._src.app.plots import pit_figure
+    from bayesmag._src.core import metrics as M
     pit_figure(path, {name: np.asarray(M.pit(d, y)) for name, d in dists.items()}, bins, title, pad=0.0)
 
 
@@ -66,6 +70,7 @@ def hybrid_figure_tasks(columns: dict[str, np.ndarray], temperature: np.ndarray,
     """The figures of :func:`hybrid_figures` as tasks ``(draw, args, kwargs)``: the calibration curves and
     PIT values are computed here, so that drawing needs plain arrays only (no JAX in a figure process)."""
     from bayesmag._src.app.plots import draw_calibration_curves, draw_file, pit_figure, residual_interval_figure
+    from bayesmag._src.core import metrics as M
     c = {k: np.asarray(v) for k, v in columns.items() if k in (
         "reference", "hybrid_predicted", "hybrid_lower", "hybrid_upper", "aleatoric_physics", "epistemic_physics",
         "aleatoric_nn", "epistemic_nn", "hybrid_total")}

@@ -115,7 +115,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
     terminal, or a Jupyter kernel: never into a log); True / False force it.
     """
     from bayesmag._src.core.cache import compile_cache, release_compiled_if_crowded
-    from bayesmag._src.app.figure_worker import JOB_MODULES, FigureWorker, InlineFigures, figures
+    from bayesmag._src.app.figure_worker import JOB_BARE, JOB_MODULES, FigureWorker, InlineFigures, figures
     from bayesmag._src.app.outdir import reserve
     release_compiled_if_crowded()           # many jobs in one process: stay under the kernel's mapping limit
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
@@ -125,7 +125,8 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
         with contextlib.nullcontext() if cc == "auto" else compile_cache(bool(cc)):
             drawer = (contextlib.nullcontext(figure_worker if cfg.output.figures else InlineFigures(False))
                       if isinstance(figure_worker, FigureWorker)
-                      else figures(cfg.output.figures, worker=bool(figure_worker), preload=JOB_MODULES))
+                      else figures(cfg.output.figures, worker=bool(figure_worker), preload=JOB_MODULES,
+                                   bare=JOB_BARE))
             with drawer as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)

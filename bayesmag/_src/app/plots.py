@@ -60,11 +60,15 @@ def calibration_curve_figure(path: Path, pits: dict[str, np.ndarray],
                              title: str = "Calibration of central intervals (test rows)") -> None:
     """Per axis: observed against nominal coverage of central intervals, from PIT values ``(n, 3)`` per name
     (``y`` is in the central interval of level l iff ``|PIT - 1/2| <= l/2``)."""
+    draw_calibration_curves(path, _coverage_curves(pits), title)
+
+
+def _coverage_curves(pits: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Nominal levels and observed coverage ``(L, 3)`` of central intervals, from PIT values per name."""
     from bayesmag._src.core.metrics import DEFAULT_LEVELS
     levels = np.asarray(DEFAULT_LEVELS)
-    curves = {name: (levels, np.stack([np.mean(np.abs(np.asarray(u) - 0.5) <= lv / 2, axis=0) for lv in levels]))
-              for name, u in pits.items()}
-    draw_calibration_curves(path, curves, title)
+    return {name: (levels, np.stack([np.mean(np.abs(np.asarray(u) - 0.5) <= lv / 2, axis=0) for lv in levels]))
+            for name, u in pits.items()}
 
 
 def draw_calibration_curves(path: Path, curves: dict[str, tuple[np.ndarray, np.ndarray]], title: str) -> None:
@@ -276,8 +280,8 @@ def physics_figure_tasks(test, columns: dict, extra: dict | None = None) -> list
     tasks += residual_figure_tasks(test, col["predicted"], col["total"], train=train)
     if extra.get("pit") is not None:
         pits = {"physics": np.asarray(extra["pit"])}
-        tasks += [(draw_file, ("physics_calibration.png", calibration_curve_figure, pits),
-                   {"title": "Physics stage: calibration of central intervals (test rows)"}),
+        tasks += [(draw_file, ("physics_calibration.png", draw_calibration_curves, _coverage_curves(pits),
+                               "Physics stage: calibration of central intervals (test rows)"), {}),
                   (draw_file, ("physics_pit.png", pit_figure, pits),
                    {"title": "Physics stage: PIT histograms (flat = calibrated)"})]
     return tasks
