@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = ("physics_fit", "physics_uq", "network_train", "hybrid_inference", "total")
+STAGES = ("physics_fit", "physics_uq", "network_train", "hybrid_inference", "write", "total")
 
 
 def one_run(config: str, out: Path, cache_value: str, sets: list[str] = (), code: Path = ROOT) -> dict:
