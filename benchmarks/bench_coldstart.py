@@ -11,8 +11,13 @@ machine) and the job's own stage timings (metrics.json), then medians.
 repeat, so that a machine whose speed drifts compares them fairly (each runs the config of its own
 tree); checkouts without the persistent cache compile on every run.
 
+``--exit`` times the end of the process instead: second runs (cache filled) as shipped and with
+the command's ``gc.freeze()`` made a no-op, alternating; per run the wall time from ``main()``
+returning (every file written) to the process's end, and the whole process's wall and CPU time.
+
     BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_coldstart.py --repeats 3
     BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_coldstart.py --repeats 3 --code /tmp/base
+    BAYESMAG_DATA_DIR=../shared/data python benchmarks/bench_coldstart.py --repeats 3 --exit
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = ("physics_fit", "physics_uq", "network_train", "hybrid_inference", "total")
+STAGES = ("physics_fit", "physics_uq", "network_train", "hybrid_inference", "write", "total")
 
 
 def one_run(config: str, out: Path, cache_value: str, sets: list[str] = (), code: Path = ROOT) -> dict:
@@ -50,6 +55,57 @@ def one_run(config: str, out: Path, cache_value: str, sets: list[str] = (), code
     return {"wall": wall, "cpu": cpu, **{k: timings.get(k, float("nan")) for k in STAGES}}
 
 
+# The command as ``bayesmag`` runs it, printing when main() returned; "nofreeze" disables gc.freeze first.
+_EXIT_WRAPPER = """
+import gc, sys, time
+if sys.argv.pop(1) == "nofreeze":
+    gc.freeze = lambda: None
+sys.argv[0] = "bayesmag"
+from bayesmag._src.app.cli import main
+rc = main()
+print(f"BENCH_MAIN_RETURNED {time.time():.6f}", file=sys.stderr, flush=True)
+sys.exit(rc)
+"""
+
+
+def exit_runs(config: str, repeats: int, sets: list[str]) -> None:
+    """Second runs with and without the command's gc.freeze(): the process's end after main() returned."""
+    modes = [("as shipped (gc.freeze)", "freeze"), ("gc.freeze disabled (job start and exit)", "nofreeze")]
+    rows: dict[str, list[dict]] = {label: [] for label, _ in modes}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        env = {**os.environ, "BAYESMAG_COMPILE_CACHE": str(tmp / "cache"), "PYTHONPATH": str(ROOT)}
+
+        def run(mode: str) -> dict:
+            out = tmp / "out"
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            t = time.perf_counter()
+            r = subprocess.run([sys.executable, "-c", _EXIT_WRAPPER, mode, "run", config, "--out", str(out),
+                                "--no-progress", *(a for s in sets for a in ("--set", s))],
+                               env=env, capture_output=True, text=True, cwd=tmp)
+            end, wall = time.time(), time.perf_counter() - t
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            if r.returncode != 0:
+                raise SystemExit(f"bayesmag run failed:\n{r.stderr[-3000:]}")
+            returned = float(r.stderr.split("BENCH_MAIN_RETURNED ")[1].split()[0])
+            shutil.rmtree(out)
+            return {"exit": end - returned, "wall": wall,
+                    "cpu": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)}
+
+        run("freeze")                                   # fills the cache (not reported)
+        for i in range(repeats):
+            for label, mode in (modes if i % 2 == 0 else modes[::-1]):
+                rows[label].append(run(mode))
+                print(f"repeat {i} {label}: " + ", ".join(f"{k} {v:.2f}" for k, v in rows[label][-1].items()),
+                      flush=True)
+    print(f"\nmedians of {repeats} (second runs of {Path(config).name}; seconds):")
+    print("| exit | main() returned -> process end (wall) | whole process (wall) | whole process (CPU) |")
+    print("|---|---|---|---|")
+    for label, rs in rows.items():
+        med = {k: statistics.median(r[k] for r in rs) for k in rs[0]}
+        print(f"| {label} | {med['exit']:.2f} | {med['wall']:.1f} | {med['cpu']:.1f} |")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=str(ROOT / "configs" / "paper_hybrid.toml"))
@@ -59,7 +115,11 @@ def main(argv=None) -> int:
                     help="config override passed to every run (e.g. output.figures=false)")
     ap.add_argument("--code", nargs="*", default=[], metavar="DIR",
                     help="other checkouts to time as well, interleaved with this one")
+    ap.add_argument("--exit", action="store_true", help="time the process's end, with and without gc.freeze()")
     args = ap.parse_args(argv)
+    if args.exit:
+        exit_runs(str(Path(args.config).resolve()), args.repeats, args.set)
+        return 0
     codes = [ROOT] + [Path(c).resolve() for c in args.code]
     kinds = ["first run (empty cache)", "second run (cache filled)"] + (["cache off"] if args.no_cache else [])
     name = (lambda c: "" if len(codes) == 1 else f"{'this checkout' if c == ROOT else c}: ")   # noqa: E731

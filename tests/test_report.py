@@ -3,6 +3,7 @@
 import math
 import os
 import re
+import time
 
 import numpy as np
 import pytest
@@ -175,6 +176,11 @@ def _draw_named(folder, name):
     (folder / name).write_text(f"{name} {os.getpid()}")
 
 
+def _draw_slowly(folder, name):
+    time.sleep(0.2)
+    _draw_named(folder, name)
+
+
 def _draw_broken(folder):
     raise RuntimeError("bad figure")
 
@@ -188,14 +194,26 @@ def test_figure_worker_draws_in_background_and_surfaces_errors(tmp_path):
         figs.submit(_draw_named, "a.png")
         figs.submit(_draw_named, "b.png")
         private = figs._tmp
-        assert figs.finish(tmp_path) == ["a.png", "b.png"]
+        assert figs.finish(tmp_path, share=False) == ["a.png", "b.png"]
     pids = {(tmp_path / n).read_text().split()[1] for n in ("a.png", "b.png")}
     assert not private.exists() and len(pids) == 1 and pids != {str(os.getpid())}
 
+    shared = tmp_path / "shared"                    # share=True (the job): this process draws what the worker
+    shared.mkdir()                                  # has not taken; every file once, from one of the two
+    names = [f"{i}.png" for i in range(8)]
     with FigureWorker() as figs:
-        figs.submit(_draw_broken)
-        with pytest.raises(RuntimeError, match="bad figure"):
-            figs.finish(tmp_path / "never")
+        for n in names:
+            figs.submit(_draw_slowly, n)
+        assert figs.finish(shared) == sorted(names)
+    pids = [(shared / n).read_text().split()[1] for n in names]
+    assert sorted(p.name for p in shared.iterdir()) == sorted(names)
+    assert str(os.getpid()) in pids and len(set(pids)) == 2       # both processes drew
+
+    for share in (False, True):                     # drawn by the worker, or by whichever process takes it
+        with FigureWorker() as figs:
+            figs.submit(_draw_broken)
+            with pytest.raises(RuntimeError, match="bad figure"):
+                figs.finish(tmp_path, share=share)
     with FigureWorker(enabled=False) as figs:       # [output] figures = false: nothing drawn, nothing moved
         figs.submit(_draw_named, "c.png")
         assert figs.finish(tmp_path) == [] and not (tmp_path / "c.png").exists()

@@ -511,13 +511,13 @@ def test_no_process_outlives_a_sigkilled_run_and_capture_output_returns(tmp_path
     assert not [k for k in kids if _running(k)], "a child of `bayesmag run` outlived it"
 
 
-def test_bayesmag_run_spawns_no_process_by_default(tmp_path):
-    """Without BAYESMAG_FIGURE_WORKER the command draws its figures itself: no child at any time."""
+def test_bayesmag_run_spawns_no_process_with_the_worker_off(tmp_path):
+    """With BAYESMAG_FIGURE_WORKER=0 the command draws its figures itself: no child at any time."""
     cfg = tmp_path / "long.toml"
     cfg.write_text(TRAINING)
     p = subprocess.Popen([sys.executable, "-m", "bayesmag", "run", str(cfg), "--out", str(tmp_path / "out"),
                           "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         env={k: v for k, v in _env().items() if k != "BAYESMAG_FIGURE_WORKER"}, cwd=tmp_path)
+                         env=_env(worker=False), cwd=tmp_path)
     seen = []
     t0 = time.monotonic()
     while time.monotonic() - t0 < 8 and p.poll() is None:

@@ -31,6 +31,18 @@ __all__ = ["main"]
 
 
 def _cmd_run(args) -> int:
+    import contextlib
+
+    from bayesmag._src.app.figure_worker import JOB_BARE, JOB_MODULES, FigureWorker
+    # the figure process starts first: its imports (matplotlib, the plot modules) overlap ours and the job's
+    with (FigureWorker(preload=JOB_MODULES, bare=JOB_BARE) if _figure_worker()
+          else contextlib.nullcontext(False)) as worker:
+        if worker:
+            worker.warm()
+        return _run(args, worker)
+
+
+def _run(args, worker) -> int:
     from bayesmag._src.app.config import load_config
     from bayesmag._src.app.job import run_job
     from bayesmag._src.app.outdir import reserve
@@ -39,9 +51,11 @@ def _cmd_run(args) -> int:
     _refuse_fleet_config(cfg_path, "run")
     cfg = load_config(cfg_path, (args.set or []) + _unit_overrides(args))
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+    import gc
+    gc.freeze()                     # the imports so far live to the end: the collector need not walk them again
     with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
         result = run_job(cfg, out, progress=None if _progress(args) else False,   # None: [output] progress
-                         figure_worker=_figure_worker())
+                         figure_worker=worker)
     m = result["metrics"]
     print(f"bayesmag: wrote {out}/ ({m['split']['description']}; {m['split']['n_train']} train, "
           f"{m['split']['n_test']} test rows)")
@@ -107,10 +121,10 @@ def _cmd_fleet(args) -> int:
 
 
 def _figure_worker() -> bool:
-    """Draw the physics figures in a worker process? Only with ``BAYESMAG_FIGURE_WORKER=1``: measured on the
-    2-core machine it did not pay (docs/benchmarks.md, ``benchmarks/bench_figures.py``)."""
+    """Share the figures with a worker process? Yes unless ``BAYESMAG_FIGURE_WORKER=0``: it starts while this
+    process computes and draws half the figures after the training (docs/benchmarks.md, "Cold start")."""
     import os
-    return os.environ.get("BAYESMAG_FIGURE_WORKER", "0").strip().lower() in ("1", "true", "yes", "on")
+    return os.environ.get("BAYESMAG_FIGURE_WORKER", "1").strip().lower() not in ("0", "false", "no", "off")
 
 
 def _unit_overrides(args) -> list[str]:
@@ -409,11 +423,14 @@ def main(argv: list[str] | None = None) -> int:
     from bayesmag._src.app.signals import Interrupted, announce, handling
     with handling():
         try:
-            return _main(argv)
+            rc = _main(argv)
         except Interrupted as e:
             announce(e.signum)
             sys.stdout.flush()
             os._exit(e.code)                # no waiting for training threads to finish their batch
+    import gc
+    gc.freeze()         # every file is written and closed: the exit skips a last walk of the heap (~0.5 CPU-s)
+    return rc
 
 
 def _main(argv: list[str]) -> int:

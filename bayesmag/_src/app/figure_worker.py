@@ -1,42 +1,59 @@
-"""Where a job's figures are drawn: in this process (library calls), or in one worker process (command line).
+"""Where a job's figures are drawn: in this process (library calls), or shared with one worker process
+(command line).
 
 :class:`FigureWorker` starts a plain ``python -c`` child (no ``multiprocessing``: nothing re-imports
-the user's ``__main__``, no resource tracker). Tasks go to it as pickles over its stdin, answers come
-back over its stdout; its stderr goes to a private temporary file (never the caller's terminal or
-pipe). A reader thread in the child watches stdin: when the parent dies, however it dies (SIGKILL
-included), the pipe closes and the child exits at once. :class:`InlineFigures` has the same
-interface and draws in the calling process at :meth:`~InlineFigures.finish`.
+the user's ``__main__``, no resource tracker). Tasks go to it as pickles over its stdin, one at a
+time, from a feeder thread of this process; answers come back over its stdout; its stderr goes to a
+private temporary file (never the caller's terminal or pipe). A reader thread in the child watches
+stdin: when the parent dies, however it dies (SIGKILL included), the pipe closes and the child exits
+at once. At :meth:`~FigureWorker.finish` this process draws the tasks the worker has not taken yet
+(``share=True``), so that two cores draw. :class:`InlineFigures` has the same interface and draws in
+the calling process at :meth:`~InlineFigures.finish`.
 
 Example::
 
-    with FigureWorker() as figs:          # or InlineFigures()
-        figs.warm()
-        figs.submit(physics_figures, test, columns)    # called as physics_figures(folder, test, columns)
+    with FigureWorker(preload=["bayesmag._src.app.plots"]) as figs:     # or InlineFigures()
+        figs.warm()                                    # interpreter, matplotlib, preload: while we compute
+        figs.submit(draw, name, data)                  # called as draw(folder, name, data)
         ...                                            # the computation goes on meanwhile
         figs.finish(staging)                           # the PNGs land in staging
 """
 
 from __future__ import annotations
 
+import collections
 import os
 import pickle
 import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["FigureWorker", "InlineFigures", "figures"]
+__all__ = ["FigureWorker", "InlineFigures", "figures", "JOB_MODULES", "JOB_BARE"]
 
-# The child: self-contained (it imports nothing of bayesmag until the first task names a function).
-# Message 1 is the parent's sys.path; then (seq, draw, args, kwargs) tuples; None asks it to quit.
+#: What a job's figure process imports at start, while the job computes (the drawing functions of its tasks).
+JOB_MODULES = ("bayesmag._src.app.plots", "bayesmag._src.app.hybrid_plots", "bayesmag._src.app.network_plots")
+#: The package the job's figure process enters bare (no ``__init__``: no JAX; see :class:`FigureWorker`).
+JOB_BARE = {"bayesmag": str(Path(__file__).resolve().parents[2])}
+
+# The child: self-contained (it imports nothing of bayesmag but the modules the parent names to preload).
+# Message 1 is the parent's sys.path, message 2 the modules to import at start; then (seq, draw, args, kwargs)
+# tuples; None asks it to quit.
 _SERVER = r"""
-import os, pickle, queue, signal, sys, threading, traceback
+import importlib, os, pickle, queue, signal, sys, threading, traceback
 signal.signal(signal.SIGINT, signal.SIG_IGN)        # Ctrl-C reaches the whole group: the parent decides
 inp, out = sys.stdin.buffer, sys.stdout.buffer
 sys.stdout = sys.stderr                             # stray prints never corrupt the answers
 sys.path[:] = pickle.load(inp)
+preload, bare = pickle.load(inp)
+import types
+for name, path in bare.items():                     # a package entered without running its __init__
+    pkg = types.ModuleType(name)
+    pkg.__path__ = [path]
+    sys.modules[name] = pkg
 tasks = queue.Queue()
 def read():
     while True:
@@ -50,7 +67,12 @@ def read():
 threading.Thread(target=read, daemon=True).start()
 import matplotlib
 matplotlib.use("Agg")
-import matplotlib.pyplot                            # warm: the slow import happens while the parent computes
+import matplotlib.pyplot                            # warm: the slow imports happen while the parent computes
+for name in preload:
+    try:
+        importlib.import_module(name)
+    except Exception:                               # the task that needs it reports the error
+        pass
 while True:
     msg = tasks.get()
     if msg is None:
@@ -67,51 +89,100 @@ while True:
 
 
 class FigureWorker:
-    """Draws figures in one child process while this one goes on; :meth:`finish` waits, re-raises the
-    first drawing error and moves the files into the output folder.
+    """Draws figures in one child process while this one goes on; :meth:`finish` draws what the child
+    has not taken yet here (``share``), waits, re-raises the first drawing error and moves the files
+    into the output folder.
 
     A process, not a thread: matplotlib is pure Python and would hold the GIL against the main
-    thread's tracing. ``draw`` must be a module-level function of an importable module (never
-    ``__main__``) and its arguments picklable. Used only by the command line, and there only with
-    ``BAYESMAG_FIGURE_WORKER=1`` (it did not pay on the 2-core machine: ``benchmarks/bench_figures.py``);
-    library calls always draw in-process (:class:`InlineFigures`).
+    thread. ``draw`` must be a module-level function of an importable module (never ``__main__``)
+    and its arguments picklable (plain arrays: the child never needs JAX). The child gets one task at
+    a time (a feeder thread here sends the next when it answers), so that the two processes share
+    the queue. Used only by the command line (``BAYESMAG_FIGURE_WORKER=0`` turns it off); library
+    calls always draw in-process (:class:`InlineFigures`). ``preload``: modules the child imports at
+    start (:meth:`warm`), while this process computes. ``bare``: ``{package: folder}`` entered in the child
+    without running the package's ``__init__`` (:data:`JOB_BARE`: ``bayesmag``'s imports JAX and switches
+    it to float64, which a process that only draws never needs: ~1 CPU-s less to start).
     """
 
-    def __init__(self, enabled: bool = True):
+    def __init__(self, enabled: bool = True, preload: tuple[str, ...] | list[str] = (),
+                 bare: dict[str, str] | None = None):
         self.enabled = enabled
+        self.preload = list(preload)
+        self.bare = dict(bare or {})
         self._proc: subprocess.Popen | None = None
         self._log = None
         self._tmp = Path(tempfile.mkdtemp(prefix="bayesmag-figures-")) if enabled else None
-        self._pending: list[int] = []
+        self._queue: collections.deque = collections.deque()    # submitted, not yet taken by either process
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._feeder: threading.Thread | None = None
+        self._busy = False                  # a task is at the child
+        self._stop = False
+        self._errors: list = []             # (name, message, traceback) of failed tasks
+        self._died: str | None = None       # why the child stopped answering
         self._seq = 0
 
     def warm(self) -> None:
-        """Start the process now (interpreter, matplotlib import) rather than at the first figure."""
+        """Start the process now (interpreter, matplotlib, ``preload``) rather than at the first figure."""
         if self.enabled and self._proc is None:
             self._log = tempfile.TemporaryFile(prefix="bayesmag-figures-log-")
             env = {**os.environ, "MPLBACKEND": "Agg"}
             self._proc = subprocess.Popen([sys.executable, "-c", _SERVER], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, stderr=self._log, env=env, close_fds=True)
             self._send(list(sys.path))
+            self._send((self.preload, self.bare))
+            self._feeder = threading.Thread(target=self._feed, name="bayesmag-figures", daemon=True)
+            self._feeder.start()
 
     @property
     def pid(self) -> int | None:
         """The worker's process id (None before :meth:`warm` or when disabled)."""
         return None if self._proc is None else self._proc.pid
 
-    def _send(self, msg) -> None:
+    def _send(self, msg, proc: subprocess.Popen | None = None) -> None:
+        proc = proc or self._proc
         try:
-            pickle.dump(msg, self._proc.stdin)
-            self._proc.stdin.flush()
-        except (BrokenPipeError, OSError):
+            pickle.dump(msg, proc.stdin)
+            proc.stdin.flush()
+        except (BrokenPipeError, OSError, ValueError, AttributeError):
             raise RuntimeError(f"the figure process died: {self._log_tail()}") from None
 
     def _log_tail(self) -> str:
-        if self._log is None:
+        log, proc = self._log, self._proc
+        try:
+            log.seek(0)
+            lines = log.read().decode(errors="replace").strip().splitlines()
+        except (AttributeError, ValueError, OSError):     # closed meanwhile (close() after a kill)
             return ""
-        self._log.seek(0)
-        lines = self._log.read().decode(errors="replace").strip().splitlines()
-        return lines[-1] if lines else f"exit status {self._proc.poll()}"
+        return lines[-1] if lines else f"exit status {proc.poll() if proc else None}"
+
+    def _feed(self) -> None:
+        """Feeder thread: hand the child the next queued task whenever it is idle, collect its answer."""
+        proc = self._proc
+        while True:
+            with self._wake:
+                while not self._queue and not self._stop:
+                    self._wake.wait()
+                if self._stop:
+                    return
+                task = self._queue.popleft()
+                self._busy = True
+            try:
+                self._seq += 1
+                draw, args, kwargs = task
+                self._send((self._seq, draw, (self._tmp, *args), kwargs), proc)
+                _, err = pickle.load(proc.stdout)
+            except (RuntimeError, EOFError, pickle.UnpicklingError, OSError, ValueError):
+                with self._wake:
+                    self._died = f"the figure process died: {self._log_tail()}"
+                    self._busy = False
+                    self._wake.notify_all()
+                return
+            with self._wake:
+                if err is not None:
+                    self._errors.append(err)
+                self._busy = False
+                self._wake.notify_all()
 
     def submit(self, draw: Callable[..., object], *args, **kwargs) -> None:
         """Queue ``draw(folder, *args, **kwargs)``; nothing when the worker is disabled."""
@@ -121,37 +192,57 @@ class FigureWorker:
             raise ValueError(f"{draw!r} lives in __main__; the figure process never imports the caller's script. "
                              f"Give a function of an importable module.")
         self.warm()
-        self._seq += 1
-        self._send((self._seq, draw, (self._tmp, *args), kwargs))
-        self._pending.append(self._seq)
+        with self._wake:
+            self._queue.append((draw, args, kwargs))
+            self._wake.notify_all()
 
-    def finish(self, out: Path) -> list[str]:
-        """Wait for every queued figure, raise the first error, move the files into ``out``; their names."""
+    def finish(self, out: Path, *, share: bool = True) -> list[str]:
+        """Draw the tasks the child has not taken yet here (``share``), wait for the child, raise the first
+        error, move its files into ``out``; the names of every file drawn, sorted."""
         if not self.enabled:
             return []
-        first = None
-        while self._pending:
+        out = Path(out)
+        here: list[str] = []
+        while share:
+            with self._wake:
+                if not self._queue:
+                    break
+                draw, args, kwargs = self._queue.popleft()
             try:
-                seq, err = pickle.load(self._proc.stdout)
-            except (EOFError, pickle.UnpicklingError, OSError):
-                self._pending = []
-                raise RuntimeError(f"the figure process died: {self._log_tail()}") from None
-            self._pending.remove(seq)
-            if err is not None and first is None:
-                first = err
-        if first is not None:
-            name, msg, tb = first
+                before = set(os.listdir(out))
+                draw(out, *args, **kwargs)
+                here += sorted(set(os.listdir(out)) - before)
+            except Exception as e:
+                import traceback
+                with self._wake:
+                    self._errors.append((type(e).__name__, str(e), traceback.format_exc()))
+        with self._wake:
+            while (self._queue or self._busy) and self._died is None:
+                self._wake.wait()
+            died, errors = self._died, list(self._errors)
+            self._queue.clear()
+            self._errors = []
+        if died is not None:
+            raise RuntimeError(died)
+        if errors:
+            name, msg, tb = errors[0]
             raise RuntimeError(f"drawing a figure failed: {name}: {msg}\n{tb}")
         names = sorted(p.name for p in self._tmp.iterdir())
         for name in names:
-            shutil.move(str(self._tmp / name), str(Path(out) / name))
-        return names
+            shutil.move(str(self._tmp / name), str(out / name))
+        return sorted(names + here)
 
     def close(self, *, kill: bool = False) -> None:
         """Stop the process (asked to quit, or killed on an error or interrupt), remove the private folder."""
+        with self._wake:
+            self._stop = True
+            self._queue.clear()
+            self._wake.notify_all()
         p, self._proc = self._proc, None
         if p is not None:
             if not kill:
+                if self._feeder is not None:         # it ends after the task in flight, if any
+                    self._feeder.join(timeout=10)
                 try:
                     pickle.dump(None, p.stdin)
                     p.stdin.close()
@@ -161,6 +252,8 @@ class FigureWorker:
             if kill:
                 p.kill()
                 p.wait()
+                if self._feeder is not None:         # its read fails at once now
+                    self._feeder.join(timeout=2)
             for f in (p.stdin, p.stdout):
                 try:
                     f.close()
@@ -197,8 +290,8 @@ class InlineFigures:
         if self.enabled:
             self._tasks.append((draw, args, kwargs))
 
-    def finish(self, out: Path) -> list[str]:
-        """Draw every queued figure into ``out``; the names of the files that appeared."""
+    def finish(self, out: Path, *, share: bool = True) -> list[str]:
+        """Draw every queued figure into ``out``; the names of the files that appeared (``share``: ignored)."""
         out = Path(out)
         before = set(os.listdir(out)) if self._tasks else set()
         for draw, args, kwargs in self._tasks:
@@ -217,6 +310,7 @@ class InlineFigures:
         self.close()
 
 
-def figures(enabled: bool, *, worker: bool) -> FigureWorker | InlineFigures:
-    """A figure drawer: the worker process (``worker``, command line) or this process (library calls)."""
-    return FigureWorker(enabled) if worker else InlineFigures(enabled)
+def figures(enabled: bool, *, worker: bool, preload: tuple[str, ...] = (),
+            bare: dict[str, str] | None = None) -> FigureWorker | InlineFigures:
+    """A figure drawer: shared with a worker process (``worker``, command line) or this process (library calls)."""
+    return FigureWorker(enabled, preload, bare) if worker else InlineFigures(enabled)

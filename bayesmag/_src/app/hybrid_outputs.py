@@ -10,12 +10,12 @@ from bayesmag._src.core import metrics as M
 from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.pipeline.hybrid import HybridStage, comparison_markdown, comparison_records
 
-__all__ = ["hybrid_writers"]
+__all__ = ["hybrid_writers", "hybrid_figure_tasks"]
 
 
-def hybrid_writers(cfg, hs: HybridStage, columns: dict, test, level: float) -> list:
+def hybrid_writers(cfg, hs: HybridStage, columns: dict, test, level: float, *, figures: bool = True) -> list:
     """Writers ``f(folder)`` of the stage's files: likelihood comparison (several likelihoods), figures
-    (with ``cfg.output.figures``)."""
+    (with ``cfg.output.figures`` and ``figures``; :func:`hybrid_figure_tasks` gives them as tasks instead)."""
     writers = []
     if len(hs.specs) > 1:
         scores = {name: M.score_per_axis(test.b_ref, p.dist, level, mean=p.mean) for name, p in hs.predictions.items()}
@@ -27,16 +27,19 @@ def hybrid_writers(cfg, hs: HybridStage, columns: dict, test, level: float) -> l
             write_json(Path(out) / "likelihood_comparison.json", records)
 
         writers.append(write_comparison)
-    if cfg.output.figures:
-        temperature = np.asarray(test.temperature)
-        dists = {name: p.dist for name, p in hs.predictions.items()}
-        cols = dict(columns)
-
+    if cfg.output.figures and figures:
         def write_figures(out: Path) -> None:
-            from bayesmag._src.app.hybrid_plots import hybrid_figures
-            hybrid_figures(Path(out), cols, temperature, dists, level=level)
-            from bayesmag._src.app.network_plots import loss_curves
-            loss_curves(Path(out) / "network_loss.png", hs.networks)
+            from bayesmag._src.app.plots import run_tasks
+            run_tasks(out, hybrid_figure_tasks(hs, columns, test, level))
 
         writers.append(write_figures)
     return writers
+
+
+def hybrid_figure_tasks(hs: HybridStage, columns: dict, test, level: float) -> list:
+    """The stage's figures as tasks ``(draw, args, kwargs)`` for a figure drawer (plain arrays only):
+    :func:`~bayesmag._src.app.hybrid_plots.hybrid_figure_tasks` and the training loss curves."""
+    from bayesmag._src.app.hybrid_plots import hybrid_figure_tasks as figure_tasks
+    from bayesmag._src.app.network_plots import loss_curve_task
+    dists = {name: p.dist for name, p in hs.predictions.items()}
+    return figure_tasks(columns, np.asarray(test.temperature), dists, level=level) + [loss_curve_task(hs.networks)]

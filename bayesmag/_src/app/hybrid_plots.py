@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -21,12 +22,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bayesmag._src.core import metrics as M  # noqa: E402
 from bayesmag._src.core.data import AXES  # noqa: E402
-from bayesmag._src.core.likelihoods import Likelihood  # noqa: E402
+
+if TYPE_CHECKING:                       # the figure process imports this module without JAX: metrics and
+    from bayesmag._src.core.likelihoods import Likelihood      # likelihoods only where PIT values are computed
 
 __all__ = ["uncertainty_vs_temperature", "calibration_curves", "pit_histograms",
-           "hybrid_figures"]
+           "hybrid_figures", "hybrid_figure_tasks"]
 
 
 def uncertainty_vs_temperature(path: Path, temperature: np.ndarray, components: dict[str, np.ndarray],
@@ -51,43 +53,45 @@ def calibration_curves(path: Path, dists: dict[str, Likelihood], y: np.ndarray,
                        title: str = "Calibration of central intervals (test rows)") -> None:
     """Per axis: observed against nominal coverage, one line per predictive distribution."""
     from bayesmag._src.app.plots import draw_calibration_curves
+    from bayesmag._src.core import metrics as M
     draw_calibration_curves(path, {name: M.calibration_curve(d, y) for name, d in dists.items()}, title)
 
 
 def pit_histograms(path: Path, dists: dict[str, Likelihood], y: np.ndarray, bins: int = 10,
                    title: str = "PIT histograms (flat = calibrated)") -> None:
     """Rows: predictive distributions; columns: axes; dashed line: the uniform density."""
-    names = list(dists)
-    fig, axes = plt.subplots(len(names), 3, figsize=(12, 2.8 * len(names)), squeeze=False)
-    for i, name in enumerate(names):
-        u = M.pit(dists[name], y)
-        for a in range(3):
-            ax = axes[i, a]
-            ax.hist(u[:, a], bins=bins, range=(0, 1), density=True, alpha=0.8)
-            ax.axhline(1.0, color="k", ls="--", lw=0.8)
-            ax.set_title(f"{name}, {AXES[a]} axis", fontsize=9)
-            ax.set_xlim(0, 1)
-            ax.set_xlabel("PIT value F(y)")
-            ax.set_ylabel("density")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from bayesmag._src.app.plots import pit_figure
+    from bayesmag._src.core import metrics as M
+    pit_figure(path, {name: np.asarray(M.pit(d, y)) for name, d in dists.items()}, bins, title, pad=0.0)
+
+
+def hybrid_figure_tasks(columns: dict[str, np.ndarray], temperature: np.ndarray,
+                        dists: dict[str, Likelihood], *, level: float = 0.95) -> list:
+    """The figures of :func:`hybrid_figures` as tasks ``(draw, args, kwargs)``: the calibration curves and
+    PIT values are computed here, so that drawing needs plain arrays only (no JAX in a figure process)."""
+    from bayesmag._src.app.plots import draw_calibration_curves, draw_file, pit_figure, residual_interval_figure
+    from bayesmag._src.core import metrics as M
+    c = {k: np.asarray(v) for k, v in columns.items() if k in (
+        "reference", "hybrid_predicted", "hybrid_lower", "hybrid_upper", "aleatoric_physics", "epistemic_physics",
+        "aleatoric_nn", "epistemic_nn", "hybrid_total")}
+    y = c["reference"]
+    curves = {name: tuple(np.asarray(v) for v in M.calibration_curve(d, y)) for name, d in dists.items()}
+    pits = {name: np.asarray(M.pit(d, y)) for name, d in dists.items()}
+    return [
+        (draw_file, ("hybrid_residuals_vs_reference.png", residual_interval_figure, y, c["hybrid_predicted"],
+                     c["hybrid_lower"], c["hybrid_upper"]),
+         {"level": level, "title": "Hybrid: calibrated - reference, with the prediction interval"}),
+        (draw_file, ("hybrid_uncertainty_vs_temperature.png", uncertainty_vs_temperature, np.asarray(temperature), {
+            "physics aleatoric": c["aleatoric_physics"], "physics epistemic": c["epistemic_physics"],
+            "NN aleatoric": c["aleatoric_nn"], "NN epistemic": c["epistemic_nn"], "total": c["hybrid_total"]}), {}),
+        (draw_file, ("hybrid_calibration.png", draw_calibration_curves, curves,
+                     "Calibration of central intervals (test rows)"), {}),
+        (draw_file, ("hybrid_pit.png", pit_figure, pits, 10, "PIT histograms (flat = calibrated)"), {"pad": 0.0}),
+    ]
 
 
 def hybrid_figures(out: Path, columns: dict[str, np.ndarray], temperature: np.ndarray,
                    dists: dict[str, Likelihood], *, level: float = 0.95) -> None:
     """All hybrid-stage figures into ``out`` (columns of the primary likelihood, all ``dists``)."""
-    out = Path(out)
-    y = columns["reference"]
-    from bayesmag._src.app.plots import residual_interval_figure
-    residual_interval_figure(out / "hybrid_residuals_vs_reference.png", y, columns["hybrid_predicted"],
-                             columns["hybrid_lower"], columns["hybrid_upper"], level=level,
-                             title="Hybrid: calibrated - reference, with the prediction interval")
-    uncertainty_vs_temperature(out / "hybrid_uncertainty_vs_temperature.png", temperature, {
-        "physics aleatoric": columns["aleatoric_physics"], "physics epistemic": columns["epistemic_physics"],
-        "NN aleatoric": columns["aleatoric_nn"], "NN epistemic": columns["epistemic_nn"],
-        "total": columns["hybrid_total"],
-    })
-    calibration_curves(out / "hybrid_calibration.png", dists, y)
-    pit_histograms(out / "hybrid_pit.png", dists, y)
+    from bayesmag._src.app.plots import run_tasks
+    run_tasks(out, hybrid_figure_tasks(columns, temperature, dists, level=level))

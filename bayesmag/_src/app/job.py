@@ -101,20 +101,21 @@ def run_physics_stage(cfg: Config, train: CalibrationData, test: CalibrationData
                                     covariance=cfg.physics.covariance, progress=progress)
 
 
-def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figure_worker: bool = False) -> JobResult:
+def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figure_worker=False) -> JobResult:
     """Run the calibration job described by ``cfg`` and write its outputs into ``out``.
 
     Figures (``[output] figures``) are drawn in this process by default, after
     :func:`~bayesmag.calibrate`: a library call spawns nothing and never re-imports the caller's
-    ``__main__``. ``figure_worker=True`` (the command line with ``BAYESMAG_FIGURE_WORKER=1``) draws
-    the physics stage's figures in one child process
-    (:class:`~bayesmag._src.app.figure_worker.FigureWorker`), which exits when this process does,
-    while this process draws the hybrid stage's. The output folder is swapped in only after they
-    are all drawn. ``progress``: None (default) draws bars as ``[output] progress`` says, but only where
-    someone watches (stderr a terminal, or a Jupyter kernel: never into a log); True / False force it.
+    ``__main__``. ``figure_worker=True`` (the command line, unless ``BAYESMAG_FIGURE_WORKER=0``) shares
+    them with one child process (:class:`~bayesmag._src.app.figure_worker.FigureWorker`, which exits
+    when this process does): both draw from one queue of figure tasks after the training. A started
+    ``FigureWorker`` may be given instead (the command line starts it before its own imports; the
+    caller closes it). The output folder is swapped in only after they are all drawn. ``progress``:
+    None (default) draws bars as ``[output] progress`` says, but only where someone watches (stderr a
+    terminal, or a Jupyter kernel: never into a log); True / False force it.
     """
     from bayesmag._src.core.cache import compile_cache, release_compiled_if_crowded
-    from bayesmag._src.app.figure_worker import figures
+    from bayesmag._src.app.figure_worker import JOB_BARE, JOB_MODULES, FigureWorker, InlineFigures, figures
     from bayesmag._src.app.outdir import reserve
     release_compiled_if_crowded()           # many jobs in one process: stay under the kernel's mapping limit
     with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
@@ -122,7 +123,11 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
         # the process's setting (on from the command line, the caller's from Python)
         cc = cfg.output.compile_cache
         with contextlib.nullcontext() if cc == "auto" else compile_cache(bool(cc)):
-            with figures(cfg.output.figures, worker=figure_worker) as figs:
+            drawer = (contextlib.nullcontext(figure_worker if cfg.output.figures else InlineFigures(False))
+                      if isinstance(figure_worker, FigureWorker)
+                      else figures(cfg.output.figures, worker=bool(figure_worker), preload=JOB_MODULES,
+                                   bare=JOB_BARE))
+            with drawer as figs:
                 figs.warm()                         # its interpreter starts while the physics stage runs
                 return _run_job(cfg, out, figs, progress=progress)
 
@@ -179,19 +184,22 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
 
     writers: list = []              # writer(staging_dir) for stage files, called in the staging folder
     if cfg.output.figures:
-        from bayesmag._src.app.plots import physics_figures
-        # after the training, not during it: its threads keep both cores of a 2-core machine busy, and
-        # figures drawn alongside only slowed it (2.8 s of 9.7); now they are drawn while this process
-        # draws the hybrid stage's
+        from bayesmag._src.app import plots
+        # after the training, not during it (its threads keep both cores of a 2-core machine busy): every
+        # figure is a task, drawn by the figure process and this one from one queue, the most expensive first
         ps = run.physics
-        train = data.subset(split.train)
-        figs.submit(physics_figures, test, {k: columns[k] for k in ("measured", "predicted", "reference",
-                                                                     "total", "lower", "upper")},
-                    {"train": train, "train_residual": train.b_ref - run.fit.predict(inputs_from_data(train)),
-                     "pit": M.pit(ps.prediction.dist, test.b_ref), "level": cfg.uq.level})
+        tasks = plots.physics_figure_tasks(test, columns, {
+            "train": train, "train_residual": train.b_ref - run.fit.predict(inputs_from_data(train)),
+            "pit": M.pit(ps.prediction.dist, test.b_ref), "level": cfg.uq.level})
+        if run.hybrid is not None:
+            from bayesmag._src.app.hybrid_outputs import hybrid_figure_tasks
+            tasks += hybrid_figure_tasks(run.hybrid, columns, test, cfg.uq.level)
+        tasks.append(plots.residual_histogram_task(columns["reference"], ps.uq.mean, columns.get("hybrid_predicted")))
+        for draw, args, kwargs in plots.by_cost(tasks):
+            figs.submit(draw, *args, **kwargs)
     if run.hybrid is not None:
         from bayesmag._src.app.hybrid_outputs import hybrid_writers
-        writers += hybrid_writers(cfg, run.hybrid, columns, test, cfg.uq.level)
+        writers += hybrid_writers(cfg, run.hybrid, columns, test, cfg.uq.level, figures=False)
     if run.nuts is not None:
         from bayesmag._src.app.nuts_outputs import write_nuts_outputs
         res, figures = run.nuts, cfg.output.figures
@@ -219,12 +227,9 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         except ArtifactError as e:
             raise JobError(f"bayesmag wrote a calibration its own loader refuses ({e}); nothing was written to "
                            f"{out}. Please report this as a bug.") from None
-        for writer in writers:                      # stage files and figures, drawn here while the figure
-            writer(tmp)                             # process draws the physics stage's
-        if cfg.output.figures:
-            from bayesmag._src.app import plots
-            plots.residual_histogram_figure(tmp, result, columns)
-            figs.finish(tmp)
+        for writer in writers:                      # stage files (and NUTS figures), while the figure
+            writer(tmp)                             # process draws
+        figs.finish(tmp)                            # this process draws the figures the worker has not taken
         timings["write"] = time.perf_counter() - t     # files and figures (total: the whole job)
         timings["total"] = time.perf_counter() - t_all
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}

@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 
 from bayesmag._src.core.data import AXES  # noqa: E402
 
-__all__ = ["loss_curves"]
+__all__ = ["loss_curves", "loss_curve_task"]
 
 
 def loss_curves(path: Path, networks: Mapping[str, object], axes: tuple[str, ...] = AXES) -> Path:
@@ -41,3 +41,15 @@ def loss_curves(path: Path, networks: Mapping[str, object], axes: tuple[str, ...
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def loss_curve_task(networks: Mapping[str, object], name: str = "network_loss.png") -> tuple:
+    """:func:`loss_curves` of ``networks`` as a figure task ``(draw, args, kwargs)``: the training record only,
+    as NumPy arrays (the figure process never needs the network or JAX)."""
+    from types import SimpleNamespace
+
+    from bayesmag._src.app.plots import draw_file
+    keep = ("epochs_run", "val_loss", "train_loss", "best_epoch", "best_val_loss")
+    nets = {k: SimpleNamespace(info=SimpleNamespace(**{f: np.asarray(getattr(net.info, f)) for f in keep}))
+            for k, net in networks.items()}
+    return (draw_file, (name, loss_curves, nets), {})

@@ -14,7 +14,9 @@ from bayesmag._src.core.data import AXES  # noqa: E402
 
 __all__ = ["residual_interval_figure", "residual_histograms", "residuals_vs",
            "residuals_vs_time", "residual_figures", "physics_figures", "residual_histogram_figure",
-           "calibration_curve_figure", "pit_figure", "draw_calibration_curves", "FigureWorker", "InlineFigures"]
+           "calibration_curve_figure", "pit_figure", "draw_calibration_curves", "FigureWorker", "InlineFigures",
+           "draw_file", "run_tasks", "by_cost", "residual_figure_tasks", "physics_figure_tasks",
+           "residual_histogram_task"]
 
 
 def residual_interval_figure(path: Path, reference: np.ndarray, predicted: np.ndarray, lower: np.ndarray,
@@ -58,11 +60,15 @@ def calibration_curve_figure(path: Path, pits: dict[str, np.ndarray],
                              title: str = "Calibration of central intervals (test rows)") -> None:
     """Per axis: observed against nominal coverage of central intervals, from PIT values ``(n, 3)`` per name
     (``y`` is in the central interval of level l iff ``|PIT - 1/2| <= l/2``)."""
+    draw_calibration_curves(path, _coverage_curves(pits), title)
+
+
+def _coverage_curves(pits: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Nominal levels and observed coverage ``(L, 3)`` of central intervals, from PIT values per name."""
     from bayesmag._src.core.metrics import DEFAULT_LEVELS
     levels = np.asarray(DEFAULT_LEVELS)
-    curves = {name: (levels, np.stack([np.mean(np.abs(np.asarray(u) - 0.5) <= lv / 2, axis=0) for lv in levels]))
-              for name, u in pits.items()}
-    draw_calibration_curves(path, curves, title)
+    return {name: (levels, np.stack([np.mean(np.abs(np.asarray(u) - 0.5) <= lv / 2, axis=0) for lv in levels]))
+            for name, u in pits.items()}
 
 
 def draw_calibration_curves(path: Path, curves: dict[str, tuple[np.ndarray, np.ndarray]], title: str) -> None:
@@ -85,10 +91,11 @@ def draw_calibration_curves(path: Path, curves: dict[str, tuple[np.ndarray, np.n
 
 
 def pit_figure(path: Path, pits: dict[str, np.ndarray], bins: int = 10,
-               title: str = "PIT histograms (flat = calibrated)") -> None:
-    """Rows: names; columns: axes; histogram of PIT values ``(n, 3)``, dashed line the uniform density."""
+               title: str = "PIT histograms (flat = calibrated)", *, pad: float = 0.4) -> None:
+    """Rows: names; columns: axes; histogram of PIT values ``(n, 3)``, dashed line the uniform density
+    (``pad``: inches of height above the rows, for the title)."""
     names = list(pits)
-    fig, axes = plt.subplots(len(names), 3, figsize=(12, 2.8 * len(names) + 0.4), squeeze=False)
+    fig, axes = plt.subplots(len(names), 3, figsize=(12, 2.8 * len(names) + pad), squeeze=False)
     for i, name in enumerate(names):
         for a in range(3):
             ax = axes[i, a]
@@ -192,21 +199,92 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
+def draw_file(folder: Path, name: str, draw, *args, **kwargs):
+    """``draw(folder / name, *args, **kwargs)``: one figure file as a task ``(draw_file, (name, draw, ...), {})``
+    that :class:`FigureWorker` or :class:`InlineFigures` runs with the folder (module level, picklable)."""
+    return draw(Path(folder) / name, *args, **kwargs)
+
+
+def run_tasks(out: Path, tasks: list) -> None:
+    """Draw figure tasks ``(draw, args, kwargs)`` into ``out`` here, in order."""
+    for draw, args, kwargs in tasks:
+        draw(Path(out), *args, **kwargs)
+
+
+#: Relative drawing time of a job's figures (CPU seconds, paper_hybrid on the 2-core machine,
+#: ``benchmarks/bench_figures.py --tasks``): the most expensive go first, so that two processes
+#: sharing the queue finish together.
+_COST = {"physics_residuals_vs_time.png": 1.12, "physics_residuals_vs_reference.png": 0.57,
+         "hybrid_uncertainty_vs_temperature.png": 0.42, "residual_histograms.png": 0.40,
+         "hybrid_residuals_vs_reference.png": 0.31, "calibration.png": 0.30, "network_loss.png": 0.23,
+         "physics_pit.png": 0.22, "physics_residuals_vs_temperature.png": 0.22}
+
+
+def by_cost(tasks: list) -> list:
+    """Figure tasks sorted by :data:`_COST` of the file they draw, the most expensive first (stable)."""
+    def cost(t):
+        draw, args, _ = t
+        return -_COST.get(args[0], 0.2) if draw is draw_file and args else -0.2
+    return sorted(tasks, key=cost)
+
+
+def residuals_vs_figure(path: Path, x, residual, sd, *, xlabels, title: str) -> None:
+    """:func:`residuals_vs` written to ``path``."""
+    _save(residuals_vs(x, residual, sd, xlabels=xlabels, title=title), path)
+
+
+def residuals_vs_time_figure(path: Path, time, run, residual, sd, *, train: tuple | None = None,
+                             title: str = "Physics residuals vs time, per run") -> None:
+    """:func:`residuals_vs_time` written to ``path``."""
+    _save(residuals_vs_time(time, run, residual, sd, train=train, title=title), path)
+
+
+def residual_figure_tasks(data, predicted: np.ndarray, sd: np.ndarray, *, stage: str = "physics",
+                          train: tuple | None = None) -> list:
+    """The three figures of :func:`residual_figures` as tasks (plain arrays: no JAX needed to draw them)."""
+    r = np.asarray(data.b_ref) - np.asarray(predicted)
+    sd, t = np.asarray(sd), np.asarray(data.temperature)
+    train = None if train is None else tuple(np.asarray(x) for x in train)
+    name = stage.capitalize()
+    return [
+        (draw_file, (f"{stage}_residuals_vs_temperature.png", residuals_vs_figure, t, r, sd),
+         {"xlabels": ["temperature (C)"], "title": f"{name} residuals vs temperature (test rows)"}),
+        (draw_file, (f"{stage}_residuals_vs_time.png", residuals_vs_time_figure, np.asarray(data.time),
+                     np.asarray(data.run), r, sd), {"train": train, "title": f"{name} residuals vs time, per run"}),
+        (draw_file, (f"{stage}_residuals_vs_reference.png", residuals_vs_figure, np.asarray(data.b_ref), r, sd),
+         {"xlabels": [f"reference B{a} (uT)" for a in AXES],
+          "title": f"{name} residuals vs the reference field (test rows)"}),
+    ]
+
+
 def residual_figures(out: Path, data, predicted: np.ndarray, sd: np.ndarray, *, stage: str = "physics",
                      train: tuple | None = None) -> list[str]:
     """Belsten-style residual diagnostics of the rows in ``data`` (with reference): vs temperature, vs time per
     run (with the training rows ``train = (time, run, residual)`` marked), vs each reference field component,
     each with the +-2 sd band of the predictive uncertainty."""
-    r = data.b_ref - predicted
-    files = [f"{stage}_residuals_vs_temperature.png", f"{stage}_residuals_vs_time.png",
-             f"{stage}_residuals_vs_reference.png"]
-    _save(residuals_vs(data.temperature, r, sd, xlabels=["temperature (C)"],
-                       title=f"{stage.capitalize()} residuals vs temperature (test rows)"), out / files[0])
-    _save(residuals_vs_time(data.time, data.run, r, sd, train=train,
-                            title=f"{stage.capitalize()} residuals vs time, per run"), out / files[1])
-    _save(residuals_vs(data.b_ref, r, sd, xlabels=[f"reference B{a} (uT)" for a in AXES],
-                       title=f"{stage.capitalize()} residuals vs the reference field (test rows)"), out / files[2])
-    return files
+    tasks = residual_figure_tasks(data, predicted, sd, stage=stage, train=train)
+    run_tasks(out, tasks)
+    return [args[0] for _, args, _ in tasks]
+
+
+def physics_figure_tasks(test, columns: dict, extra: dict | None = None) -> list:
+    """The figures of :func:`physics_figures` as tasks ``(draw, args, kwargs)`` (plain arrays)."""
+    extra = extra or {}
+    level = extra.get("level", 0.95)
+    col = {k: np.asarray(columns[k]) for k in ("reference", "predicted", "lower", "upper", "total")}
+    tasks = [(draw_file, ("calibration.png", residual_interval_figure, col["reference"], col["predicted"],
+                          col["lower"], col["upper"]),
+              {"level": level, "title": "Physics: calibrated - reference, with the prediction interval"})]
+    tr = extra.get("train")
+    train = (tr.time, tr.run, extra["train_residual"]) if tr is not None else None
+    tasks += residual_figure_tasks(test, col["predicted"], col["total"], train=train)
+    if extra.get("pit") is not None:
+        pits = {"physics": np.asarray(extra["pit"])}
+        tasks += [(draw_file, ("physics_calibration.png", draw_calibration_curves, _coverage_curves(pits),
+                               "Physics stage: calibration of central intervals (test rows)"), {}),
+                  (draw_file, ("physics_pit.png", pit_figure, pits),
+                   {"title": "Physics stage: PIT histograms (flat = calibrated)"})]
+    return tasks
 
 
 def physics_figures(out: Path, test, columns: dict, extra: dict | None = None) -> None:
@@ -216,27 +294,21 @@ def physics_figures(out: Path, test, columns: dict, extra: dict | None = None) -
 
     ``extra``: ``train`` (CalibrationData) and ``train_residual`` (n_train, 3), ``pit`` (n_test, 3), ``level``.
     """
-    extra = extra or {}
-    level = extra.get("level", 0.95)
-    residual_interval_figure(out / "calibration.png", columns["reference"], columns["predicted"], columns["lower"],
-                             columns["upper"], level=level,
-                             title="Physics: calibrated - reference, with the prediction interval")
-    tr = extra.get("train")
-    train = (tr.time, tr.run, extra["train_residual"]) if tr is not None else None
-    residual_figures(out, test, columns["predicted"], columns["total"], train=train)
-    if extra.get("pit") is not None:
-        pits = {"physics": np.asarray(extra["pit"])}
-        calibration_curve_figure(out / "physics_calibration.png", pits,
-                                 title="Physics stage: calibration of central intervals (test rows)")
-        pit_figure(out / "physics_pit.png", pits, title="Physics stage: PIT histograms (flat = calibrated)")
+    run_tasks(out, physics_figure_tasks(test, columns, extra))
+
+
+def residual_histogram_task(reference: np.ndarray, physics: np.ndarray, hybrid: np.ndarray | None = None) -> tuple:
+    """``residual_histograms.png`` (test residuals of the physics and, when given, hybrid predictions) as a task."""
+    ref = np.asarray(reference)
+    res = {"physics": ref - np.asarray(physics)}
+    if hybrid is not None:
+        res["hybrid"] = ref - np.asarray(hybrid)
+    return (draw_file, ("residual_histograms.png", residual_histograms, res), {})
 
 
 def residual_histogram_figure(out: Path, result, columns: dict) -> None:
     """Histograms of the test residuals of the physics and (when there) hybrid predictions."""
-    res = {"physics": columns["reference"] - result["uq"].mean}
-    if "hybrid_predicted" in columns:
-        res["hybrid"] = columns["reference"] - columns["hybrid_predicted"]
-    residual_histograms(out / "residual_histograms.png", res)
+    run_tasks(out, [residual_histogram_task(columns["reference"], result["uq"].mean, columns.get("hybrid_predicted"))])
 
 
 from bayesmag._src.app.figure_worker import FigureWorker, InlineFigures  # noqa: E402  (moved there; kept importable here)
