@@ -37,6 +37,24 @@ from bayesmag._src.core.simulate import get_effect  # noqa: E402
 AXES = "xyz"
 
 
+def physics_loro_predictions(train, fit) -> np.ndarray:
+    """(n, 3) prediction of every training row by the physics fit without its run (all folds in one
+    compiled fit, :func:`~bayesmag._src.core.fit.fit_folds`); a fold that cannot be fitted keeps ``fit``'s."""
+    from bayesmag._src.core.fit import fit_folds
+    from bayesmag._src.core.physics import inputs_from_data
+
+    runs = np.unique(train.run)
+    held = np.stack([train.run == r for r in runs])
+    out = np.asarray(fit.predict(inputs_from_data(train)), np.float64).copy()
+    if runs.size < 2:
+        return out
+    thetas, oks = fit_folds(train, fit.model, ~held)
+    for k in np.flatnonzero(oks):
+        rows = np.flatnonzero(held[k])
+        out[rows] = np.asarray(fit.model.predict_all(thetas[k], inputs_from_data(train.subset(rows))))
+    return out
+
+
 def sessions(n: int, rows: int, seed: int) -> bayesmag.CalibrationData:
     """``n`` simulated sessions (runs 1..n), each with its own shifted parameters, one shared distortion."""
     return _session(seed, n, rows=rows, noise_sd=0.05,
@@ -79,7 +97,6 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
 
     from bayesmag._src.core.predictor import estimate_transfer
     from bayesmag._src.pipeline.calibrate import calibrate
-    from bayesmag._src.pipeline.network_transfer import physics_loro_predictions
 
     raw = {"name": "hybrid_shift", "data": {"path": "unused.csv"}, "split": {"kind": "by_run", "test_runs": [run]},
            "physics": {"t0": "mean"}, "uq": {"method": "psqmc", "n_params": 100, "n_qmc": 128, "seed": 0,

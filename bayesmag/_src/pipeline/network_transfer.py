@@ -32,8 +32,7 @@ import scipy.stats
 from bayesmag._src.core.data import AXES
 from bayesmag._src.core.predictor import _weighted_quantile
 
-__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "fold_domain_mask", "physics_loro_predictions", "grouped_excess_quantile",
-           "network_transfer_sd"]
+__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "fold_domain_mask", "grouped_excess_quantile", "network_transfer_sd"]
 
 #: Values of ``[uq] transfer_networks``.
 TRANSFER_NETWORKS = ("none", "by_run_folds")
@@ -89,24 +88,6 @@ def fold_domain_mask(train, run_fold: np.ndarray) -> np.ndarray:
         other = train.subset(np.flatnonzero(run_fold != k))
         inside[rows] = ~Domain.from_data(other, rates=False).outside(train.subset(rows)).any(axis=1)
     return inside
-
-
-def physics_loro_predictions(train, fit) -> np.ndarray:
-    """(n, 3) prediction of every training row by the physics fit without its run (all folds in one
-    compiled fit, :func:`~bayesmag._src.core.fit.fit_folds`); a fold that cannot be fitted keeps ``fit``'s."""
-    from bayesmag._src.core.fit import fit_folds
-    from bayesmag._src.core.physics import inputs_from_data
-
-    runs = np.unique(train.run)
-    held = np.stack([train.run == r for r in runs])
-    out = np.asarray(fit.predict(inputs_from_data(train)), np.float64).copy()
-    if runs.size < 2:
-        return out
-    thetas, oks = fit_folds(train, fit.model, ~held)
-    for k in np.flatnonzero(oks):
-        rows = np.flatnonzero(held[k])
-        out[rows] = np.asarray(fit.model.predict_all(thetas[k], inputs_from_data(train.subset(rows))))
-    return out
 
 
 def grouped_excess_quantile(err: np.ndarray, var: np.ndarray, run: np.ndarray, level: float = 0.95) -> np.ndarray:
