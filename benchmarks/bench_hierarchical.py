@@ -87,7 +87,8 @@ def generators(args):
             pr = _calibrate(train)
             t = time.perf_counter()
             post = H.fit_sessions(train, pr.fit, seed=draw, likelihood=args.likelihood, df=args.df,
-                                  importance=args.laplace_draws == "importance", mode_search=args.mode_search)
+                                  importance=args.laplace_draws == "importance", mode_search=args.mode_search,
+                                  within_uninformed=args.within_uninformed == "free")
             secs = time.perf_counter() - t
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
@@ -171,7 +172,7 @@ def belsten(args):
         sin = sigma_in if sigma_in is not None else np.diag([0.02**2] * 3 + [1e-4])
         base = Predictor(fit=fit, sigma_in=sin, residual_sd=np.sqrt(_residual_variance(_Cfg, fit, train, sin)),
                          domain=Domain.from_data(train), uq=UQOptions(method="analytic"))
-        post = H.fit_sessions(train, fit, mode_search=args.mode_search)
+        post = H.fit_sessions(train, fit, mode_search=args.mode_search, within_uninformed=args.within_uninformed == "free")
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
             p = pr.predict(test)
@@ -226,9 +227,11 @@ def belsten_tau(args):
     model = bayesmag.PhysicsModel.paper(t0=0.0)
     fit = bayesmag.fit_physics(train, model)
     eff, dropped = H.select_effects(train, fit)
-    st = H.run_stats(train, fit, eff)
+    within = H.uninformed_within(train, fit, list(dropped)) if args.within_uninformed == "free" else None
+    st = H.run_stats(train, fit, eff, within=within)
     names = list(model.param_names)
-    print(f"run {r} left out, axis {args.axis}: learned effects {list(eff)}, uninformed {dropped}\n")
+    print(f"run {r} left out, axis {args.axis}: learned effects {list(eff)}, uninformed {dropped}; within-run "
+          f"nuisance columns {st.nuisance} ({args.within_uninformed})\n")
     if eff != ("O",):
         print("(the grid integration below is written for one learned effect)")
         return
@@ -262,6 +265,11 @@ def belsten_tau(args):
           f"{slope:+.4f}, mean {e.mean():+.3f} uT, sd {e.std():.3f} uT")
     lt = np.arange(-6.0, 2.5, 0.15)
     logm = _grid_marginal(lambda h: lp(h)[0], lt, found[0][0][1:])
+    bad = ~np.isfinite(logm)
+    if bad.any():    # the conditional Newton failed there: say where, and the lowest finite value, for scale
+        print(f"grid: {bad.sum()} non-finite points at log tau {lt[bad].round(2).tolist()}, left out (the finite "
+              f"points span {np.nanmax(logm) - np.nanmin(logm):.1f} nats below the top)")
+        logm = np.where(bad, -np.inf, logm)
     w = np.exp(logm - logm.max())
     w /= w.sum()
     tau = np.exp(lt)
@@ -273,7 +281,7 @@ def belsten_tau(args):
         post = H.fit_laplace(st, names, seed=seed, mode_search=True)
         print(f"fit_laplace(mode_search=True) seed {seed}: E tau^2 = {post.w_mean[a, 0]:.3f}, importance ESS "
               f"{post.ess[a]:.0f} of {H.N_PROPOSALS}")
-    if len(found) > 1:
+    if len(found) > 1 and not st.nuisance:
         print("\nlog posterior maximised over (log sigma, atanh rho) at the large-tau mode's tau minus the same at the "
               "small-tau mode's, with one training run dropped:")
         big, small = sorted((h for h, _ in found), key=lambda h: h[0])[::-1]
@@ -336,6 +344,9 @@ def main():
     ap.add_argument("--first-draw", type=int, default=0, help="generators: training draws first..first+draws-1")
     ap.add_argument("--mode-search", action="store_true", help="generators, belsten: fit_laplace(mode_search=True)")
     ap.add_argument("--run", type=int, default=3, help="belsten_tau: the left-out run")
+    ap.add_argument("--within-uninformed", default="free", choices=["free", "shared"],
+                    help="generators, belsten, belsten_tau: an uninformed candidate's within-run variation with its "
+                         "own coefficient in the runs that do not inform it (free, the default) or the shared mu")
     ap.add_argument("--axis", default="y", choices=list("xyz"), help="belsten_tau: the axis")
     ap.add_argument("--logs", nargs="*", default=[], help="summarise: logs holding DRAW lines")
     ap.add_argument("--sessions", type=int, default=40)

@@ -80,6 +80,7 @@ class RunStats(NamedTuple):
     scale: np.ndarray   # (3, p) column RMS of J
     effects: np.ndarray  # (q,) indices of the parameters with random effects
     runs: np.ndarray    # (R,) run ids
+    nuisance: int = 0   # trailing columns of J (before y): within-run deviations with their own coefficient
 
     def select(self, keep: np.ndarray) -> "RunStats":
         """The stats of the runs ``keep`` (bool (R,) or indices)."""
@@ -94,11 +95,15 @@ def _jacobian(fit, data) -> np.ndarray:
     return np.asarray(_jac_jit(_Problem(fit.model), jnp.asarray(fit.theta), inputs_from_data(data)))
 
 
-def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.ndarray | None = None) -> RunStats:
+def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.ndarray | None = None,
+              within: dict | None = None) -> RunStats:
     """Lag-moment matrices of every run of ``data`` (with a reference) for :class:`~bayesmag.PhysicsFit` ``fit``.
 
     ``y`` is linearised at the fit: ``y - f(theta) + J theta`` (equal to ``y`` for a linear model).
     ``scale``: column scales to reuse (default: the RMS of each Jacobian column over ``data``).
+    ``within``: ``{parameter: runs}``; each such run's within-run deviation of that parameter's Jacobian column
+    from its run mean becomes a column of its own (a nuisance coefficient, flat like ``mu``, appended after
+    ``J``), so that variation does not inform the shared parameter (:func:`uninformed_within`).
     """
     names = list(fit.model.param_names)
     missing = [e for e in effects if e not in names]
@@ -107,9 +112,19 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
     J = _jacobian(fit, data)                                               # (3, n, p)
     pred = np.asarray(fit.predict(inputs_from_data(data)))
     y = np.asarray(data.b_ref) - pred + np.einsum("anp,ap->na", J, np.asarray(fit.theta))
-    if scale is None:
-        scale = np.sqrt(np.mean(J**2, axis=1))
-        scale = np.where(scale > 0, scale, 1.0)
+    extra = []
+    for e, rs in (within or {}).items():
+        for r in rs:
+            m = np.asarray(data.run) == r
+            c = np.zeros(J.shape[:2])
+            c[:, m] = J[:, m, names.index(e)] - J[:, m, names.index(e)].mean(axis=1, keepdims=True)
+            if np.abs(c).max() > 1e-12 * np.abs(J[:, :, names.index(e)]).max():    # a constant column: nothing
+                extra.append(c)
+    p = J.shape[2]
+    if extra:
+        J = np.concatenate([J, np.stack(extra, axis=2)], axis=2)
+    rms = np.sqrt(np.mean(J**2, axis=1))
+    scale = np.where(rms > 0, rms, 1.0) if scale is None else np.concatenate([scale, rms[:, p:]], axis=1)
     z = np.concatenate([J / scale[:, None, :], y.T[:, :, None]], axis=2)   # (3, n, p+1)
     order = np.lexsort((data.time, data.run))
     z, run = z[:, order], np.asarray(data.run)[order]
@@ -123,7 +138,8 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
     m2 = np.einsum("rn,ani,anj->arij", w, zp, zp)
     zf = z[:, first_idx]
     first = np.einsum("ari,arj->arij", zf, zf)
-    return RunStats(m0, m1, m2, first, onehot.sum(1), scale, np.array([names.index(e) for e in effects], int), runs)
+    return RunStats(m0, m1, m2, first, onehot.sum(1), scale, np.array([names.index(e) for e in effects], int), runs,
+                    len(extra))
 
 
 def whitened_gram(m0, m1, m2, first, rho):
@@ -575,8 +591,10 @@ def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level
         w = w * df / (df - 2)                      # shape -> variance of the scale mixture
     w_mean = w.mean(1)
     w_cov = np.einsum("aki,akj->aij", w - w_mean[:, None], w - w_mean[:, None]) / max(w.shape[1] - 1, 1)
-    return SessionPosterior(w_mean, w_cov, mu_draws_cov, stats.scale, tuple(names[i] for i in stats.effects),
-                            float(level), int(stats.n.size), method, mu_mean / stats.scale,
+    p = stats.scale.shape[1] - stats.nuisance      # the model's parameters; the nuisance columns' margin dropped
+    return SessionPosterior(w_mean, w_cov, mu_draws_cov[:, :p, :p], stats.scale[:, :p],
+                            tuple(names[i] for i in stats.effects),
+                            float(level), int(stats.n.size), method, mu_mean[:, :p] / stats.scale[:, :p],
                             effect_index=tuple(int(i) for i in stats.effects), df=float(df), laplace=laplace)
 
 
@@ -705,7 +723,7 @@ def fit_nuts(stats: RunStats, names, fit, *, level: float = 0.95, tau_scale: flo
     tau2, noise, covs, mus, raw = [], [], [], [], []
     for a in range(3):
         args = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n))
-        mu0 = jnp.asarray(np.asarray(fit.theta[a]) * stats.scale[a])
+        mu0 = jnp.asarray(np.r_[np.asarray(fit.theta[a]) * stats.scale[a, :len(fit.theta[a])], np.zeros(stats.nuisance)])
         h = _init_h(stats, a, tau_scale)
         init = {"mu": mu0, "tau": jnp.exp(jnp.asarray(h[:q])), "sigma": float(np.exp(h[q])),
                 "rho": float(np.tanh(h[q + 1])), "z": jnp.zeros((stats.n.size, q)),
@@ -738,26 +756,62 @@ def select_effects(train, fit, effects: Sequence[str] = DEFAULT_EFFECTS,
     offset ``O``, a constant column, is informed by every run). Counted on the x axis's Jacobian (the
     same design for every axis of the paper's model).
     """
+    keep, dropped = [], {}
+    for e, inf in _informing(train, fit, effects).items():
+        count = int(inf.sum())
+        (keep.append(e) if count >= min_runs else dropped.__setitem__(e, count))
+    return tuple(keep), dropped
+
+
+def _informing(train, fit, effects: Sequence[str]) -> dict:
+    """``{effect: bool (R,)}``: which runs (``np.unique(train.run)`` order) inform each of the model's ``effects``
+    on their own (:data:`INFORM_FRACTION`; a constant column, the offset, is informed by every run)."""
     names = list(fit.model.param_names)
     J = _jacobian(fit, train)[0]
     rms = np.sqrt(np.mean(J**2, axis=0))
-    keep, dropped = [], {}
+    out = {}
     for e in effects:
         if e not in names:
             continue
         j = names.index(e)
         col = J[:, j]
         const = np.ptp(col) <= 1e-12 * max(rms[j], 1e-300)
-        count = sum(bool(const or col[train.run == r].std() > INFORM_FRACTION * rms[j]) for r in np.unique(train.run))
-        (keep.append(e) if count >= min_runs else dropped.__setitem__(e, count))
-    return tuple(keep), dropped
+        out[e] = np.array([bool(const or col[train.run == r].std() > INFORM_FRACTION * rms[j])
+                           for r in np.unique(train.run)])
+    return out
+
+
+#: Default of ``fit_sessions(within_uninformed=...)``: True, an uninformed candidate's column varies inside a run
+#: that does not inform it with a coefficient of its own (:func:`uninformed_within`); False: the shared ``mu``.
+WITHIN_UNINFORMED = True
+
+
+def uninformed_within(train, fit, dropped: Sequence[str]) -> dict:
+    r"""``{effect: runs}``: for every candidate the selection rule dropped, the runs that do not inform it.
+
+    The rule (:func:`select_effects`) says such a run sees the parameter only as a constant: its column varies
+    inside the run by less than :data:`INFORM_FRACTION` of its RMS (e.g. Belsten's x field wobbling by 0.6-1.7
+    uT inside the runs that sweep y or z or hold it at 37 uT). Fitted with the shared :math:`\mu_j`, that
+    wobble still estimates the parameter -- its slope is the DUT's own reading noise and drift (errors in
+    variables), and cross-talk from the field the run does sweep -- and where the runs' levels disagree with
+    it, the model reads a large between-session sd (Belsten, run 3 left out, y: a second mode at 1.57 uT,
+    docs/sessions.md). :func:`run_stats` (``within``) gives each such run's within-run deviation of the column
+    its own flat coefficient, so :math:`\mu_j` is learned only from the runs that sweep it and from the runs'
+    levels -- the selection rule's verdict, made part of the likelihood. Where every run informs every
+    candidate (the simulated campaigns) the result is empty and nothing changes.
+    """
+    runs = np.unique(train.run)
+    return {e: [r for r, inf in zip(runs, v) if not inf] for e, v in _informing(train, fit, dropped).items()
+            if not v.all()}
 
 
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
                  level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float = 4.0,
-                 uninformed: str | None = None, **kw) -> SessionPosterior:
+                 uninformed: str | None = None, within_uninformed: bool = WITHIN_UNINFORMED, **kw) -> SessionPosterior:
     """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
-    effects are the ``effects`` that enough runs inform (:func:`select_effects`)."""
+    effects are the ``effects`` that enough runs inform (:func:`select_effects`); ``within_uninformed``: the
+    dropped ones vary inside the runs that do not inform them with a coefficient of their own
+    (:func:`uninformed_within`)."""
     runs = np.unique(train.run)
     if runs.size < 2:
         raise ValueError(f"the hierarchical transfer model needs at least 2 training runs (sessions); the "
@@ -765,7 +819,8 @@ def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] 
     eff, dropped = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
     if not eff:
         eff = ("O",) if "O" in fit.model.param_names else ()
-    stats = run_stats(train, fit, eff)
+    within = uninformed_within(train, fit, [e for e in dropped if e not in eff]) if within_uninformed else None
+    stats = run_stats(train, fit, eff, within=within)
     if method == "laplace":
         post = fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
     elif method == "nuts":
