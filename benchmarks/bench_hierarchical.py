@@ -227,7 +227,7 @@ def belsten_tau(args):
     model = bayesmag.PhysicsModel.paper(t0=0.0)
     fit = bayesmag.fit_physics(train, model)
     eff, dropped = H.select_effects(train, fit)
-    within = H.uninformed_within(train, fit, list(dropped)) if args.within_uninformed == "free" else None
+    within = H.uninformed_within(train, fit, list(dropped), a) if args.within_uninformed == "free" else None
     st = H.run_stats(train, fit, eff, within=within)
     names = list(model.param_names)
     print(f"run {r} left out, axis {args.axis}: learned effects {list(eff)}, uninformed {dropped}; within-run "

@@ -786,8 +786,9 @@ def _informing(train, fit, effects: Sequence[str]) -> dict:
 WITHIN_UNINFORMED = True
 
 
-def uninformed_within(train, fit, dropped: Sequence[str]) -> dict:
-    r"""``{effect: runs}``: for every candidate the selection rule dropped, the runs that do not inform it.
+def uninformed_within(train, fit, dropped: Sequence[str], axis: int | None = None) -> dict:
+    r"""``{effect: runs}``: for every candidate the selection rule dropped, the runs that do not inform it
+    (``axis``: for that output axis, whose own gain ``S_<axis>`` is left out, below).
 
     The rule (:func:`select_effects`) says such a run sees the parameter only as a constant: its column varies
     inside the run by less than :data:`INFORM_FRACTION` of its RMS (e.g. Belsten's x field wobbling by 0.6-1.7
@@ -799,10 +800,16 @@ def uninformed_within(train, fit, dropped: Sequence[str]) -> dict:
     its own flat coefficient, so :math:`\mu_j` is learned only from the runs that sweep it and from the runs'
     levels -- the selection rule's verdict, made part of the likelihood. Where every run informs every
     candidate (the simulated campaigns) the result is empty and nothing changes.
+
+    The output axis's own gain is not decoupled: a wobble of its field is read at unit gain, a direct signal
+    of the axis's own reading (on Belsten, run 1 left out, x, decoupling it moved the offset sd from 0.018 to
+    1.19 uT: each run's own gain read from its wobble, against the shared one at run 6's 37 uT level), where a
+    cross-axis term or a thermal slope sees a tenth or less of it, the size of the drifts.
     """
     runs = np.unique(train.run)
+    own = None if axis is None else f"S_{AXES[axis]}"
     return {e: [r for r, inf in zip(runs, v) if not inf] for e, v in _informing(train, fit, dropped).items()
-            if not v.all()}
+            if not v.all() and e != own}
 
 
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
@@ -819,14 +826,19 @@ def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] 
     eff, dropped = select_effects(train, fit, effects, min_runs=min(MIN_INFORMING_RUNS, runs.size))
     if not eff:
         eff = ("O",) if "O" in fit.model.param_names else ()
-    within = uninformed_within(train, fit, [e for e in dropped if e not in eff]) if within_uninformed else None
-    stats = run_stats(train, fit, eff, within=within)
-    if method == "laplace":
-        post = fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
-    elif method == "nuts":
-        post = fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
-    else:
+    if method not in ("laplace", "nuts"):
         raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
+    drop = [e for e in dropped if e not in eff]
+    withins = [uninformed_within(train, fit, drop, a) if within_uninformed else {} for a in range(3)]
+    post = None
+    for w in [w for k, w in enumerate(withins) if w not in withins[:k]]:      # one fit per distinct design
+        stats = run_stats(train, fit, eff, within=w)
+        if method == "laplace":
+            part = fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
+        else:
+            part = fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, likelihood=likelihood, df=df,
+                            **kw)
+        post = part if post is None else _take_axes(post, part, [a for a in range(3) if withins[a] == w])
     uninformed = (UNINFORMED if PRIOR_FOR_UNINFORMED else "fixed") if uninformed is None else uninformed
     if uninformed not in UNINFORMED_CHOICES:
         raise ValueError(f"uninformed = {uninformed!r} must be one of {list(UNINFORMED_CHOICES)}.")
@@ -838,6 +850,18 @@ def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] 
         mom = (post.w_mean[:, :q].mean(axis=1), np.diagonal(post.w_cov[:, :q, :q], axis1=1, axis2=2).mean(axis=1))
         return with_prior_effects(post, fit, train, prior, moments=mom)
     return with_prior_effects(post, fit, train, prior, kw.get("tau_scale", TAU_PRIOR_SCALE))
+
+
+def _take_axes(post: SessionPosterior, part: SessionPosterior, axes: Sequence[int]) -> SessionPosterior:
+    """``post`` with the output ``axes`` taken from ``part`` (the same effects; a fit of another design)."""
+    ax = list(axes)
+    arrays = {}
+    for k in ("w_mean", "w_cov", "mu_cov", "scale", "mu"):
+        v = np.array(getattr(post, k))
+        v[ax] = getattr(part, k)[ax]
+        arrays[k] = v
+    ess = tuple(part.ess[a] if a in ax else e for a, e in enumerate(post.ess)) if post.ess and part.ess else post.ess
+    return dataclasses.replace(post, ess=ess, **arrays)
 
 
 #: Carry the candidate effects too few runs inform (:func:`with_prior_effects`) instead of taking them as fixed.
