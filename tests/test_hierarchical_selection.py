@@ -1,0 +1,138 @@
+"""Effect selection and the uninformed candidates' within-run variation (pipeline/sessions/hierarchical, issue 24 4a).
+
+The mechanism Belsten run 3 left out showed (docs/sessions.md): a cross-axis term that no run sweeps is still
+estimated as a shared parameter from the small within-run wobble of its input, and a run held at a large
+field on that input then disagrees at its level; the model buys the disagreement with a large between-session
+offset sd. Simulated here with a known truth; the reference is the truth and a grid integration of the
+collapsed posterior.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import bayesmag
+from bayesmag._src.core.data import CalibrationData
+from bayesmag._src.pipeline.sessions import hierarchical as H
+
+jax.config.update("jax_enable_x64", True)
+
+TAU = 0.1            # true between-session offset sd, uT (every axis)
+CROSS = 0.1          # the DUT's y reading picks up 0.1 of the x field (so the calibration's y-from-x term is +0.1)
+
+
+def _ar1(rng, n, sd, rho):
+    e = rng.normal(0.0, sd * np.sqrt(1 - rho**2), n)
+    out = np.empty(n)
+    out[0] = rng.normal(0.0, sd)
+    for t in range(1, n):
+        out[t] = rho * out[t - 1] + e[t]
+    return out
+
+
+def _conflict_campaign(seed: int, rows: int = 200, wobble: float = 1.0) -> CalibrationData:
+    """Nine runs: one sweeps the y field (+-50 uT), one the z field, six sit near zero field, one holds x at 40
+    uT; no run sweeps x. The DUT's x reading carries white noise of sd ``wobble`` uT that the reference does not
+    see (errors in variables; below the selection rule's 10 % of the column's RMS, 13 uT), so the within-run slope
+    of the y error on the x reading says y-from-x = 0 while the held run's level says +0.1. Session offsets
+    N(0, TAU) per axis, reference noise AR(1) sd 0.02 uT, lag-1 0.8, constant temperature."""
+    rng = np.random.default_rng(seed)
+    parts, t0 = [], 0.0
+    for r, kind in enumerate(["y", "z"] + ["zero"] * 6 + ["held_x"], start=1):
+        B = rng.normal(0.0, 0.2, (rows, 3))
+        if kind in ("y", "z"):
+            B[:, "xyz".index(kind)] = np.linspace(-50.0, 50.0, rows)
+        if kind == "held_x":
+            B[:, 0] = 40.0
+        meas = B + rng.normal(0.0, TAU, 3)
+        meas[:, 1] -= CROSS * B[:, 0]
+        meas[:, 0] += rng.normal(0.0, wobble, rows)
+        ref = B + np.column_stack([_ar1(rng, rows, 0.02, 0.8) for _ in range(3)])
+        parts.append((meas, ref, t0 + 0.25 * np.arange(rows), np.full(rows, r)))
+        t0 += 0.25 * rows + 100.0
+    m, ref, t, run = (np.concatenate(v) for v in zip(*parts))
+    return CalibrationData(m, np.full(t.size, 24.0), ref, t, run)
+
+
+def _fit(d):
+    return bayesmag.fit_physics(d, bayesmag.PhysicsModel.paper(t0=24.0, temperature=False))
+
+
+def test_uninformed_within_lists_the_runs_that_do_not_inform_a_dropped_candidate():
+    """The selection rule drops the three gains (x swept by no run, y and z by one each); the runs whose
+    within-run variation is decoupled are every run but the one that sweeps the column, per output axis without
+    the axis's own gain; with every candidate informed (the simulated campaigns) nothing is decoupled."""
+    d = _conflict_campaign(0)
+    fit = _fit(d)
+    eff, dropped = H.select_effects(d, fit)
+    assert eff == ("O",) and dropped == {"S_x": 0, "S_y": 1, "S_z": 1}
+    w = H.uninformed_within(d, fit, list(dropped), axis=1)
+    assert set(w) == {"S_x", "S_z"} and w["S_x"] == list(range(1, 10)) and 2 not in w["S_z"] and len(w["S_z"]) == 8
+    from test_transfer import _session
+    s = _session(0, 6, rows=60)
+    sfit = bayesmag.fit_physics(s, bayesmag.PhysicsModel.paper(t0=float(np.mean(s.temperature))))
+    keep, drop = H.select_effects(s, sfit)
+    assert all(H.uninformed_within(s, sfit, list(drop), a) == {} for a in range(3)) or drop
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_decoupled_within_run_variation_recovers_the_between_session_sd(seed):
+    """y axis: with the uninformed x term shared inside the runs (the old model) the posterior rms offset sd is
+    spuriously large (declared: > 3 TAU; measured 1.08 / 1.10 uT against the true 0.1, the y-from-x term 0.002 /
+    0.004: the noisy reading's attenuated slope); with the within-run variation decoupled (the default) it is
+    within 0.5-2 TAU (measured 0.122 / 0.105), and the y-from-x term comes from the held run's level: within 0.01
+    of the true +0.1 (measured 0.096 / 0.099). Not addressed: the x axis's own gain is not decoupled
+    (uninformed_within), and the same noise in its own reading gives the x axis an offset sd of 4.2 uT under
+    both models."""
+    d = _conflict_campaign(seed)
+    fit = _fit(d)
+    old = H.fit_sessions(d, fit, within_uninformed=False, uninformed="fixed", mode_search=True)
+    new = H.fit_sessions(d, fit, uninformed="fixed", mode_search=True)
+    assert old.tau[1, 0] > 3 * TAU, old.tau[1]
+    assert 0.5 * TAU < new.tau[1, 0] < 2 * TAU, new.tau[1]
+    assert new.mu[1, list(fit.model.param_names).index("S_x")] == pytest.approx(CROSS, abs=0.01)
+
+
+@pytest.mark.slow
+def test_decoupled_posterior_matches_grid_integration():
+    """The importance-corrected Laplace posterior of the decoupled model against numerical integration of the
+    same collapsed posterior (y axis, seed 0): a grid in log tau (step 0.2) and at each tau an 11 x 11 grid over
+    +-6 conditional sds of (log sigma, atanh rho). Declared: E tau^2 within 10 %, P(tau > 0.2 uT) within 0.03;
+    the posterior is unimodal (BFGS from both starts finds one mode)."""
+    d = _conflict_campaign(0)
+    fit = _fit(d)
+    eff, dropped = H.select_effects(d, fit)
+    st = H.run_stats(d, fit, eff, within=H.uninformed_within(d, fit, list(dropped), axis=1))
+    a = 1
+    args = tuple(jnp.asarray(x) for x in (st.m0[a], st.m1[a], st.m2[a], st.first[a], st.n, st.effects))
+    lp = lambda h: H._collapsed(h, *args, H.TAU_PRIOR_SCALE, H.SIGMA_PRIOR_SCALE, H.REML)[0]  # noqa: E731
+    fg = lambda h: tuple(np.asarray(v, np.float64) for v in H._neg_lp_and_grad(  # noqa: E731
+        jnp.asarray(h), *args, H.TAU_PRIOR_SCALE, H.SIGMA_PRIOR_SCALE, H.REML))
+    fg = (lambda f: lambda h: (float(f(h)[0]), f(h)[1]))(fg)
+    found = H._modes(fg, H._init_h(st, a, H.TAU_PRIOR_SCALE), 1, H.TAU_PRIOR_SCALE)
+    assert len(found) == 1
+    lt = np.arange(-5.0, 1.5, 0.2)
+    u = np.linspace(-6.0, 6.0, 11)
+    U = jnp.asarray(np.stack(np.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2))
+
+    @jax.jit
+    def log_marginal(t):
+        f = lambda sr: lp(jnp.r_[t, sr])  # noqa: E731
+        x = jax.lax.fori_loop(0, 12, lambda _, x: x - jnp.linalg.solve(jax.hessian(f)(x), jax.grad(f)(x)),
+                              jnp.asarray(found[0][0][1:]))
+        L = jnp.linalg.cholesky(jnp.linalg.inv(-jax.hessian(f)(x)))
+        vals = jax.vmap(f)(x + U @ L.T)
+        return jax.scipy.special.logsumexp(jnp.where(jnp.isfinite(vals), vals, -jnp.inf)) + jnp.log(jnp.linalg.det(L))
+
+    logm = np.asarray(jax.lax.map(log_marginal, jnp.asarray(lt)))
+    logm = np.where(np.isfinite(logm), logm, -np.inf)
+    w = np.exp(logm - logm.max())
+    w /= w.sum()
+    tau = np.exp(lt)
+    e_tau2, p_big = float(w @ tau**2), float(w[tau > 0.2].sum())
+    post = H.fit_laplace(st, fit.model.param_names, seed=0)
+    assert post.w_mean[a, 0] == pytest.approx(e_tau2, rel=0.10)
+    hs, _, _ = H._importance_draws(np.random.default_rng(0), *found[0], lambda x: H._lp_mu_cov(
+        jnp.asarray(x), *args, H.TAU_PRIOR_SCALE, H.SIGMA_PRIOR_SCALE, H.REML), 1200)
+    assert np.mean(np.exp(hs[:, 0]) > 0.2) == pytest.approx(p_big, abs=0.03)
