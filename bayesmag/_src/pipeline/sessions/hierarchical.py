@@ -113,12 +113,20 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
     pred = np.asarray(fit.predict(inputs_from_data(data)))
     y = np.asarray(data.b_ref) - pred + np.einsum("anp,ap->na", J, np.asarray(fit.theta))
     extra = []
+    rms = np.sqrt(np.mean(J**2, axis=1))                                   # (3, p)
     for e, rs in (within or {}).items():
         for r in rs:
             m = np.asarray(data.run) == r
+            dev = J[:, m] - J[:, m].mean(axis=1, keepdims=True)              # (3, n_r, p)
             c = np.zeros(J.shape[:2])
-            c[:, m] = J[:, m, names.index(e)] - J[:, m, names.index(e)].mean(axis=1, keepdims=True)
-            if np.abs(c).max() > 1e-12 * np.abs(J[:, :, names.index(e)]).max():    # a constant column: nothing
+            for a in range(3):
+                # less its least-squares part along the columns the run does inform (a swept field's cross-talk
+                # into this reading is that sweep's signal, which stays with the shared parameters)
+                inf = dev[a].std(axis=0) > INFORM_FRACTION * rms[a]
+                D = dev[a][:, inf]
+                x = dev[a, :, names.index(e)]
+                c[a, m] = x - D @ np.linalg.lstsq(D, x, rcond=None)[0] if D.shape[1] else x
+            if np.abs(c).max() > 1e-9 * np.abs(J[:, :, names.index(e)]).max():     # nothing left: no column
                 extra.append(c)
     p = J.shape[2]
     if extra:
