@@ -172,7 +172,8 @@ def belsten(args):
         sin = sigma_in if sigma_in is not None else np.diag([0.02**2] * 3 + [1e-4])
         base = Predictor(fit=fit, sigma_in=sin, residual_sd=np.sqrt(_residual_variance(_Cfg, fit, train, sin)),
                          domain=Domain.from_data(train), uq=UQOptions(method="analytic"))
-        post = H.fit_sessions(train, fit, mode_search=args.mode_search, within_uninformed=args.within_uninformed == "free")
+        post = H.fit_sessions(train, fit, mode_search=args.mode_search,
+                              within_uninformed=args.within_uninformed == "free")
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
             p = pr.predict(test)

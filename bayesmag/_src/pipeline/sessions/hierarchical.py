@@ -102,8 +102,10 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
     ``y`` is linearised at the fit: ``y - f(theta) + J theta`` (equal to ``y`` for a linear model).
     ``scale``: column scales to reuse (default: the RMS of each Jacobian column over ``data``).
     ``within``: ``{parameter: runs}``; each such run's within-run deviation of that parameter's Jacobian column
-    from its run mean becomes a column of its own (a nuisance coefficient, flat like ``mu``, appended after
-    ``J``), so that variation does not inform the shared parameter (:func:`uninformed_within`).
+    from its run mean, less its least-squares part along the columns that run informs (per axis), becomes a
+    column of its own (a nuisance coefficient, flat like ``mu``, appended after ``J``), so that variation does
+    not inform the shared parameter (:func:`uninformed_within`). ``select`` does not drop such columns: a
+    selection without their run leaves them zero (singular), so select before adding them.
     """
     names = list(fit.model.param_names)
     missing = [e for e in effects if e not in names]
@@ -731,7 +733,8 @@ def fit_nuts(stats: RunStats, names, fit, *, level: float = 0.95, tau_scale: flo
     tau2, noise, covs, mus, raw = [], [], [], [], []
     for a in range(3):
         args = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n))
-        mu0 = jnp.asarray(np.r_[np.asarray(fit.theta[a]) * stats.scale[a, :len(fit.theta[a])], np.zeros(stats.nuisance)])
+        mu0 = jnp.asarray(np.r_[np.asarray(fit.theta[a]) * stats.scale[a, :len(fit.theta[a])],
+                                np.zeros(stats.nuisance)])        # the decoupled columns' coefficients start at 0
         h = _init_h(stats, a, tau_scale)
         init = {"mu": mu0, "tau": jnp.exp(jnp.asarray(h[:q])), "sigma": float(np.exp(h[q])),
                 "rho": float(np.tanh(h[q + 1])), "z": jnp.zeros((stats.n.size, q)),
@@ -806,8 +809,11 @@ def uninformed_within(train, fit, dropped: Sequence[str], axis: int | None = Non
     it, the model reads a large between-session sd (Belsten, run 3 left out, y: a second mode at 1.57 uT,
     docs/sessions.md). :func:`run_stats` (``within``) gives each such run's within-run deviation of the column
     its own flat coefficient, so :math:`\mu_j` is learned only from the runs that sweep it and from the runs'
-    levels -- the selection rule's verdict, made part of the likelihood. Where every run informs every
-    candidate (the simulated campaigns) the result is empty and nothing changes.
+    levels -- the selection rule's verdict, made part of the likelihood (the part of the wobble along the
+    columns the run does inform, e.g. a reading that follows the run's sweep, stays shared: :func:`run_stats`).
+    Where every run informs every candidate (the simulated campaigns) the result is empty and nothing changes.
+    Not a cure for an input no run sweeps: on Belsten with run 3 left out the z axis's offset sd became bimodal
+    instead (the z-from-x term then rests on run 6's level alone, docs/sessions.md, Limits).
 
     The output axis's own gain is not decoupled: a wobble of its field is read at unit gain, a direct signal
     of the axis's own reading (on Belsten, run 1 left out, x, decoupling it moved the offset sd from 0.018 to
