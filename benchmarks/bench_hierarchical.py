@@ -19,6 +19,8 @@ intervals, and the width ratio hierarchical / loro on the rows loro already cove
 
 ``belsten``: each of the six runs left out; physics fit and transfer on the other five (loro and
 hierarchical), the left-out run predicted as a new session: covered or flagged per run and axis.
+``--within-uninformed shared`` (generators, belsten, belsten_tau): the model before the uninformed candidates'
+within-run variation was decoupled (``fit_sessions(within_uninformed=False)``).
 
 ``pooling``: complete pooling (no random effects), no pooling (free per-session effects, a new session
 predicted by the training sessions' effects) and partial pooling (the hierarchical model) by exact
