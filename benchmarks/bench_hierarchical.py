@@ -92,6 +92,9 @@ def generators(args):
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
             rec = {"generator": name, "draw": draw, "fit_s": round(secs, 2), "ess": [round(e, 1) for e in post.ess]}
+            if post.df_grid:       # learned dof: its posterior per axis on the grid
+                rec["df_grid"] = [g if np.isfinite(g) else None for g in post.df_grid]
+                rec["df_weight"] = np.round(post.df_weight, 6).tolist()
             for key, p in (("loro", pr), ("hier", ph)):
                 c, d, w = _scores(p, news)
                 rec[f"ok_{key}"] = (c | ~d[:, None]).mean(0).tolist()
@@ -342,7 +345,8 @@ def main():
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--generator", nargs="+", default=list(GENERATORS), choices=sorted(GENERATORS))
     ap.add_argument("--likelihood", default="gaussian", choices=list(H.LIKELIHOODS), help="hierarchical model's likelihood")
-    ap.add_argument("--df", type=float, default=4.0, help="its Student-t dof")
+    ap.add_argument("--df", type=lambda v: v if v == "learned" else float(v), default=4.0,
+                    help="its Student-t dof, or 'learned' (a posterior on a grid, issue 24)")
     ap.add_argument("--laplace-draws", default="importance", choices=["importance", "gaussian"],
                     help="Laplace path: draws corrected to the exact posterior (default) or the Gaussian's own")
     args = ap.parse_args()
