@@ -1349,10 +1349,36 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
         raise ValueError(f"field 'sessions.likelihood' = {lik!r} must be one of {list(LIKELIHOODS)}.")
     if lik in ("gaussian", "laplace") and df is not None:
         raise ValueError(f"field 'sessions.df' = {df!r} must be null for the {lik} likelihood.")
-    if lik == "student_t" and (isinstance(df, bool) or not isinstance(df, (int, float)) or not 2 < df < math.inf):
-        raise ValueError(f"field 'sessions.df' = {df!r} must be a number > 2 for the Student-t likelihood.")
+    learned = lik == "student_t" and df == LEARNED
+    if lik == "student_t" and not learned and (isinstance(df, bool) or not isinstance(df, (int, float))
+                                               or not 2 < df < math.inf):
+        raise ValueError(f"field 'sessions.df' = {df!r} must be a number > 2 or {LEARNED!r} for the Student-t "
+                         "likelihood.")
+    mix = {}
+    if learned:
+        grid = meta.get("df_grid")
+        if not isinstance(grid, list) or not grid or any(
+                not (g is None or not isinstance(g, bool) and isinstance(g, (int, float)) and 2 < g < math.inf)
+                for g in grid) or len(set(grid)) != len(grid):
+            raise ValueError(f"field 'sessions.df_grid' = {grid!r} must list distinct dofs > 2 (null: the Gaussian "
+                             "limit) for a learned dof.")
+        K = len(grid)
+        for k, shape in (("df_weight", (3, K)), ("mix_w_mean", (3, K, q + 1)), ("mix_w_cov", (3, K, q + 1, q + 1))):
+            v = np.asarray(arrays.get(k, np.zeros(0)))
+            if k not in arrays or v.shape != shape or v.dtype.kind != "f" or not np.isfinite(v).all():
+                raise ValueError(f"array 'sessions/{k}' must be finite floats of shape {shape}; got "
+                                 f"{v.dtype} {v.shape}.")
+            mix[k] = v.astype(np.float64)
+        if (mix["df_weight"] < 0).any() or not np.allclose(mix["df_weight"].sum(1), 1.0, atol=1e-9):
+            raise ValueError("array 'sessions/df_weight' must hold weights >= 0 summing to 1 per axis.")
+        m = mix["mix_w_cov"]
+        if (mix["mix_w_mean"] < 0).any() or not np.allclose(m, np.swapaxes(m, -1, -2), rtol=1e-8, atol=1e-300) or \
+                (np.linalg.eigvalsh(m).min(axis=-1) < -1e-8 * np.abs(m).max(axis=(-2, -1))).any():
+            raise ValueError("array 'sessions/mix_w_mean' or 'sessions/mix_w_cov' is not variance moments "
+                             "(means >= 0, symmetric positive semi-definite covariances).")
+        mix["df_grid"] = tuple(math.inf if g is None else float(g) for g in grid)
     idx = tuple(list(param_names).index(e) for e in effects)
     return SessionPosterior(out["w_mean"], out["w_cov"], out["mu_cov"], out["scale"], tuple(effects), float(level),
                             int(n_runs), meta["method"], out["mu"], effect_index=idx,
-                            df=float(df) if lik == "student_t" else math.inf, centre=centre,
-                            prior_only=tuple(prior_only), laplace=lik == "laplace")
+                            df=float(df) if lik == "student_t" and not learned else math.inf, centre=centre,
+                            prior_only=tuple(prior_only), laplace=lik == "laplace", **mix)
