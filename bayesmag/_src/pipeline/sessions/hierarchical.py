@@ -443,8 +443,8 @@ DF_PRIOR = (2.0, 0.1)
 #: Upper edge of the last finite grid point's cell; the Gaussian limit holds the prior mass above it.
 DF_GAUSS_EDGE = 100.0
 #: Components of the predictive mixture below this posterior weight are dropped (the rest renormalised):
-#: the tail probability of an interval moves by less than this.
-MIN_DF_WEIGHT = 1e-6
+#: the tail probability of an interval moves by less than this (its 95 % half-width by < 0.1 %).
+MIN_DF_WEIGHT = 1e-4
 
 
 def df_prior_weights(grid=DF_GRID, prior=DF_PRIOR) -> np.ndarray:
@@ -650,33 +650,58 @@ def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level
 
 def _mixture_variance(post: "SessionPosterior", J: np.ndarray, level: float) -> np.ndarray:
     """(n, 3) Gaussian variance with the same central ``level`` interval as the learned-dof predictive: the
-    mixture over the dof grid (posterior weights, those below :data:`MIN_DF_WEIGHT` dropped) of every dof's
-    row-wise Student-t (:meth:`SessionPosterior.predictive_t` of :meth:`SessionPosterior.components`); its
-    quantile by Newton steps on the mixture's cdf, kept inside the bracket of the components' quantiles
-    (bisection where a step leaves it), to ``|F - u| < 1e-12``."""
+    mixture over the dof grid (posterior weights; those below :data:`MIN_DF_WEIGHT` dropped, the rest
+    renormalised) of every dof's row-wise Student-t (as :meth:`SessionPosterior.predictive_t` of
+    :meth:`SessionPosterior.components`, all dofs in one einsum). Its quantile by Newton steps on the mixture's
+    cdf from the weighted mean of the two most probable dofs' quantiles: the cdf is concave above 0 (symmetric unimodal components), so
+    after the first step the iterates rise monotonically to the root (never below ``z_u min_k s_k``, a lower
+    bound), to a relative step of 1e-10; only the rows not yet converged are iterated."""
     u = 0.5 + level / 2
     W = np.where(post.df_weight >= MIN_DF_WEIGHT, post.df_weight, 0.0)
     W = W / W.sum(axis=1, keepdims=True)                                    # (3, K)
     used = np.flatnonzero((W > 0).any(axis=0))
-    comps = post.components()
     if used.size == 1:
-        return comps[used[0]].new_session_variance(J, level)
-    nu, sc = (np.stack(v) for v in zip(*(comps[k].predictive_t(J) for k in used)))   # (K', n, 3) each
-    w = W[:, used].T[:, None, :]                                                        # (K', 1, 3)
-    qk = sc * scipy.special.stdtrit(nu, u)
-    lo = np.where(w > 0, qk, np.inf).min(0)
-    hi = np.where(w > 0, qk, -np.inf).max(0)
-    x = np.sum(w * qk, axis=0)
-    for _ in range(100):
-        z = x / sc
-        F = np.sum(w * scipy.special.stdtr(nu, z), axis=0) - u
-        if np.max(np.abs(F)) < 1e-12:
+        return post.components()[used[0]].new_session_variance(J, level)
+    f = np.asarray(J) / post.scale[:, None, :]
+    eidx = np.asarray(post.effect_index, int)
+    fe = f[:, :, eidx] - (0.0 if post.centre is None else np.asarray(post.centre)[:, None, :])
+    wvec = np.concatenate([fe**2, np.ones(fe.shape[:2] + (1,))], axis=2)   # (3, n, q+1)
+    fcf = np.einsum("anp,apk,ank->na", f, post.mu_cov, f)
+    m = np.einsum("anq,akq->kna", wvec, post.mix_w_mean[:, used]) + fcf    # (K', n, 3)
+    v = np.maximum(np.einsum("anq,akqr,anr->kna", wvec, post.mix_w_cov[:, used], wvec), 0.0)
+    dfk = np.asarray(post.df_grid, np.float64)[used][:, None, None]
+    ratio = v / np.maximum(m, 1e-300) ** 2
+    mid = np.isfinite(dfk) & (dfk > 4)
+    ratio = np.where(mid, (1 + ratio) * (1 + 2 / np.where(mid, dfk - 4, 1.0)) - 1, ratio)
+    nu = np.where(np.isfinite(dfk) & (dfk <= 4), dfk, np.minimum(4.0 + 2.0 / np.maximum(ratio, 1e-12), 1e6))
+    sc = np.sqrt(m * (nu - 2) / nu)
+    w = np.broadcast_to(W[:, used].T[:, None, :], nu.shape)
+    nu, sc, w = (a.reshape(used.size, -1) for a in (nu, sc, w))             # (K', n*3)
+    # start: the weighted mean of the quantiles of the (up to) two most probable dofs of the axis
+    order = np.argsort(-W[:, used], axis=1)[:, :2]                         # (3, 2)
+    cols = np.arange(nu.shape[1])
+    x, tot = np.zeros(nu.shape[1]), np.zeros(nu.shape[1])
+    for j in range(order.shape[1]):
+        pick = np.broadcast_to(order[None, :, j], m.shape[1:]).ravel()
+        wj = w[pick, cols]
+        x += wj * sc[pick, cols] * scipy.special.stdtrit(nu[pick, cols], u)
+        tot += wj
+    x = x / tot
+    lower = scipy.stats.norm.ppf(u) * np.where(w > 0, sc, np.inf).min(0)
+    lognorm = (scipy.special.gammaln((nu + 1) / 2) - scipy.special.gammaln(nu / 2) - 0.5 * np.log(nu * np.pi)
+               - np.log(sc))
+    act = np.arange(x.size)
+    for _ in range(60):
+        n_, s_, w_, z = nu[:, act], sc[:, act], w[:, act], x[act] / sc[:, act]
+        F = np.sum(w_ * scipy.special.stdtr(n_, z), axis=0) - u
+        dens = np.sum(w_ * np.exp(lognorm[:, act] - 0.5 * (n_ + 1) * np.log1p(z**2 / n_)), axis=0)
+        new = np.maximum(x[act] - F / np.maximum(dens, 1e-300), lower[act])
+        done = np.abs(new - x[act]) <= 1e-10 * np.abs(new)
+        x[act] = new
+        act = act[~done]
+        if act.size == 0:
             break
-        lo, hi = np.where(F < 0, x, lo), np.where(F < 0, hi, x)
-        f = np.sum(w * scipy.stats.t.pdf(z, nu) / sc, axis=0)
-        step = x - F / np.maximum(f, 1e-300)
-        x = np.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
-    return (x / scipy.stats.norm.ppf(u)) ** 2
+    return (x.reshape(m.shape[1:]) / scipy.stats.norm.ppf(u)) ** 2
 
 
 def _pool_components(post: "SessionPosterior", comps: Sequence["SessionPosterior"]) -> "SessionPosterior":
