@@ -741,8 +741,8 @@ def _t_log_norm(d: int) -> float:
     return float(scipy.special.gammaln((nu + d) / 2) - scipy.special.gammaln(nu / 2) - 0.5 * d * np.log(nu * np.pi))
 
 
-#: Total importance proposals of the learned-dof fit, split equally over the dofs the screen keeps.
-N_PROPOSALS_LEARNED = 2 * N_PROPOSALS
+#: Total importance proposals of the learned-dof fit (as many as a fixed dof's), split over the dofs the screen keeps.
+N_PROPOSALS_LEARNED = N_PROPOSALS
 #: Fewest importance proposals of a dof the screen keeps (its evidence matters, its draws hardly).
 MIN_PROPOSALS_DF = 100
 #: Screen of the learned-dof fit: a dof whose Laplace log posterior is more than this many nats below the best
@@ -828,7 +828,9 @@ def _fit_learned_df(stats: RunStats, names, *, level, tau_scale, sigma_scale, dr
             return out
 
         rounds = evaluate(modes, covh)
-        redo = [k for k in keep if _ess(rounds[k][0][3]) < MIN_ESS_FRACTION * len(rounds[k][0][3])]
+        # dofs the screen gives >= 1 % of the mass whose proposal missed (a negligible dof's weight stays negligible)
+        redo = [k for k, c in zip(keep, counts) if wl[list(keep).index(k)] / wl.sum() >= 0.01
+                and _ess(rounds[k][0][3]) < MIN_ESS_FRACTION * c]
         if redo:    # a second, re-centred round for the dofs whose proposal missed (as _importance_draws)
             cen, cs = list(modes), list(covh)
             for k in redo:
