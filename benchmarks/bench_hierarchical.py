@@ -110,6 +110,7 @@ def generators(args):
                   f"width ratio {' / '.join(f'{v:.2f}' for v in rec['ratio'])}; fit {secs:.2f} s", flush=True)
             recs.append(rec)
     _table(recs, f"{args.draws} training draws x {args.sessions} new sessions")
+    _df_table(recs)
 
 
 def _table(recs, title):
@@ -139,6 +140,27 @@ def _table(recs, title):
                   f"{' / '.join(f'{v:.0f}' for v in ess.min(0)) if hier and ess.size else '-'} |")
 
 
+def _df_table(recs):
+    """Learned dof (records with ``df_weight``): per generator, the posterior mass on df <= 6 and the posterior
+    mean of log df (the Gaussian limit counted as df 1000), per axis, mean over draws."""
+    recs = [r for r in recs if "df_weight" in r]
+    if not recs:
+        return
+    print("\n| generator | draws | posterior mass on df <= 6, mean (min-max) over draws x / y / z | posterior median "
+          "dof, median over draws x / y / z |")
+    print("|---|---|---|---|")
+    for name in dict.fromkeys(r["generator"] for r in recs):
+        rs = [r for r in recs if r["generator"] == name]
+        g = np.array([1000.0 if v is None else v for v in rs[0]["df_grid"]])
+        w = np.array([r["df_weight"] for r in rs])                       # (draws, 3, K)
+        small = w[:, :, g <= 6].sum(-1)
+        med = g[np.argmax(np.cumsum(w, -1) >= 0.5, axis=-1)]              # (draws, 3)
+        lab = lambda v: "inf" if v >= 1000 else f"{v:g}"   # noqa: E731
+        print(f"| {name} | {len(rs)} | " + " / ".join(f"{small[:, a].mean():.2f} ({small[:, a].min():.2f}-"
+                                                     f"{small[:, a].max():.2f})" for a in range(3))
+              + " | " + " / ".join(lab(np.median(med[:, a])) for a in range(3)) + " |")
+
+
 def summarise(args):
     """The generator table rebuilt from the ``DRAW`` lines of benchmark logs (``--logs``)."""
     recs = []
@@ -149,6 +171,7 @@ def summarise(args):
     order = {g: i for i, g in enumerate(GENERATORS)}
     recs.sort(key=lambda r: (order[r["generator"]], r["draw"]))
     _table(recs, f"from {len(args.logs)} logs, {len(recs)} generator-draws x {args.sessions} new sessions")
+    _df_table(recs)
 
 
 def belsten(args):
@@ -174,7 +197,8 @@ def belsten(args):
         sin = sigma_in if sigma_in is not None else np.diag([0.02**2] * 3 + [1e-4])
         base = Predictor(fit=fit, sigma_in=sin, residual_sd=np.sqrt(_residual_variance(_Cfg, fit, train, sin)),
                          domain=Domain.from_data(train), uq=UQOptions(method="analytic"))
-        post = H.fit_sessions(train, fit, mode_search=args.mode_search)
+        post = H.fit_sessions(train, fit, mode_search=args.mode_search, likelihood=args.likelihood,
+                              **({} if args.likelihood == "gaussian" else {"df": args.df}))
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
             p = pr.predict(test)
