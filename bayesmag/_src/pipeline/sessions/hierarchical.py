@@ -788,7 +788,17 @@ def _fit_learned_df(stats: RunStats, names, *, level, tau_scale, sigma_scale, dr
             v, g = float(v), np.asarray(g, np.float64).ravel()
             return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
 
-        res = scipy.optimize.minimize(fg, np.tile(_init_h(stats, a, tau_scale), K), jac=True, method="BFGS",
+        def fg_gauss(h):
+            v, g = _neg_lp_and_grad(jnp.asarray(h), *args, df=None)
+            v, g = float(v), np.asarray(g, np.float64)
+            return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
+
+        # every dof from the Gaussian model's mode (found as the default path finds it, from the moment start):
+        # the dofs' modes then lie in the basin the default uses; from the moment start some dofs' BFGS reached
+        # the absurd large-tau mode of docs/sessions.md "Several modes", whose evidence is higher
+        h_gauss = scipy.optimize.minimize(fg_gauss, _init_h(stats, a, tau_scale), jac=True, method="BFGS",
+                                          options={"gtol": 1e-6, "maxiter": 500}).x
+        res = scipy.optimize.minimize(fg, np.tile(h_gauss, K), jac=True, method="BFGS",
                                       options={"gtol": 1e-6, "maxiter": 3000})
         modes = res.x.reshape(K, d)
         lp_modes = -np.asarray(_neg_lp_grad_grid(jnp.asarray(modes), dfs, *args)[2], np.float64)
