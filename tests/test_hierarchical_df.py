@@ -210,3 +210,35 @@ def test_config_accepts_learned_and_names_bad_values():
         config_from_dict({**raw, "uq": {**raw["uq"], "transfer": "hierarchical_nuts"}})
     with pytest.raises(ValueError, match="Laplace path"):
         H.fit_nuts(_stats(0, math.inf), NAMES, None, likelihood="student_t", df="learned")
+
+
+def test_uninformed_effects_are_carried_by_every_dof():
+    """`with_prior_effects` on a learned-dof posterior adds the effect to every dof's component with that dof's
+    prior moments (closed form: E tau^2 = s^2 df/(df-2), Var = 2 E^2; the Gaussian limit s^2), and the mixture's
+    interval lies between its components' at every row."""
+    import bayesmag
+    from test_transfer import _session
+    d = _session(0, 3, rows=40)
+    fit = bayesmag.fit_physics(d, bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature))))
+    names = list(fit.model.param_names)
+    p, o = len(names), names.index("O")
+    K = len(H.DF_GRID)
+    W = np.zeros((3, K))
+    W[:, 1], W[:, 4], W[:, -1] = 0.2, 0.5, 0.3
+    mm = np.tile([0.09, 0.01], (3, K, 1))
+    mc = np.zeros((3, K, 2, 2))
+    base = H.SessionPosterior(w_mean=mm[:, 0], w_cov=mc[:, 0], mu_cov=np.zeros((3, p, p)), scale=np.ones((3, p)),
+                              effects=("O",), level=0.95, n_runs=3, method="laplace", mu=np.zeros((3, p)),
+                              effect_index=(o,), df_grid=H.DF_GRID, df_weight=W)
+    post = H._pool_components(base, [H.dataclasses.replace(base, w_mean=mm[:, k], w_cov=mc[:, k], df=float(g),
+                                                           df_grid=(), df_weight=None) for k, g in enumerate(H.DF_GRID)])
+    out = H.with_prior_effects(post, fit, d, ["S_x"], tau_scale=0.5)
+    assert out.effects == ("O", "S_x") and out.prior_only == ("S_x",) and out.df_grid == H.DF_GRID
+    g = np.array(H.DF_GRID)
+    want = 0.25 * np.where(np.isfinite(g), g / np.where(np.isfinite(g), g - 2, 1.0), 1.0)
+    np.testing.assert_allclose(out.mix_w_mean[0, :, 1], want, rtol=1e-12)
+    np.testing.assert_allclose(out.mix_w_cov[0, :, 1, 1], 2 * want**2, rtol=1e-12)
+    J = H._jacobian(fit, d)
+    var = out.new_session_variance(J)
+    comp = np.stack([c.new_session_variance(J) for k, c in enumerate(out.components()) if W[0, k] > 0])
+    assert np.all(var >= comp.min(0) * (1 - 1e-9)) and np.all(var <= comp.max(0) * (1 + 1e-9))
