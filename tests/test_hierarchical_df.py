@@ -61,9 +61,9 @@ def test_gaussian_limit_of_the_grid_is_the_gaussian_model():
     st = _stats(0, math.inf)
     args = tuple(jnp.asarray(v[0]) for v in (st.m0, st.m1, st.m2, st.first)) + (jnp.asarray(st.n), jnp.asarray(st.effects),
                                                                              0.5, 1.0, 1.0)
-    hs = np.random.default_rng(1).normal([-1.2, -2.3, 0.5], 0.3, (5, 3))
-    got = H._lp_mu_cov_grid(jnp.asarray(hs), jnp.full(5, jnp.inf), *args)
-    for i, h in enumerate(hs):
+    hs = np.random.default_rng(1).normal([-1.2, -2.3, 0.5], 0.3, (H.N_PROPOSALS_LEARNED, 3))   # the fit's shape
+    got = H._lp_mu_cov_grid(jnp.asarray(hs), jnp.full(len(hs), jnp.inf), *args)
+    for i, h in enumerate(hs[:5]):
         want = H._collapsed(jnp.asarray(h), *args[:-1], reml=1.0)
         for g, w in zip(got, want):
             np.testing.assert_allclose(np.asarray(g[i]), np.asarray(w), rtol=1e-9, atol=1e-12)
