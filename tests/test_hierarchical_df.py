@@ -59,8 +59,8 @@ def test_gaussian_limit_of_the_grid_is_the_gaussian_model():
     """The grid's inf dof (a traced dof, :func:`_mix_log_g`) gives the Gaussian collapsed posterior exactly: log
     posterior, mu and its covariance against :func:`_collapsed` (REML) at random hyperparameters, to 1e-9."""
     st = _stats(0, math.inf)
-    args = tuple(jnp.asarray(v[0]) for v in (st.m0, st.m1, st.m2, st.first)) + (jnp.asarray(st.n), jnp.asarray(st.effects),
-                                                                             0.5, 1.0, 1.0)
+    args = (tuple(jnp.asarray(v[0]) for v in (st.m0, st.m1, st.m2, st.first))
+            + (jnp.asarray(st.n), jnp.asarray(st.effects), 0.5, 1.0, 1.0))
     hs = np.random.default_rng(1).normal([-1.2, -2.3, 0.5], 0.3, (H.N_PROPOSALS_LEARNED, 3))   # the fit's shape
     got = H._lp_mu_cov_grid(jnp.asarray(hs), jnp.full(len(hs), jnp.inf), *args)
     for i, h in enumerate(hs[:5]):

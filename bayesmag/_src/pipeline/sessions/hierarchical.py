@@ -39,6 +39,10 @@ of :math:`\mu`). Few runs leave :math:`\tau` uncertain and the mixture heavy-tai
 by row, to a Student-t by the first two moments of :math:`v` (a scaled inverse chi-square mixing law
 has :math:`\mathrm{Var}\,v / (\mathrm E v)^2 = 2/(\nu - 4)`), and :meth:`SessionPosterior.transfer_sd`
 returns the Gaussian sd with the same central ``level`` interval, less the within-session noise.
+
+The Student-t dof can be learned (``df = "learned"``, :func:`_fit_learned_df`): a discrete posterior over
+:data:`DF_GRID` from a discretised Gamma(2, 0.1) prior and each dof's importance-sampled marginal likelihood; the
+predictive is then the mixture over the dofs (:func:`_mixture_variance`).
 """
 
 from __future__ import annotations
@@ -653,9 +657,9 @@ def _mixture_variance(post: "SessionPosterior", J: np.ndarray, level: float) -> 
     mixture over the dof grid (posterior weights; those below :data:`MIN_DF_WEIGHT` dropped, the rest
     renormalised) of every dof's row-wise Student-t (as :meth:`SessionPosterior.predictive_t` of
     :meth:`SessionPosterior.components`, all dofs in one einsum). Its quantile by Newton steps on the mixture's
-    cdf from the weighted mean of the two most probable dofs' quantiles: the cdf is concave above 0 (symmetric unimodal components), so
-    after the first step the iterates rise monotonically to the root (never below ``z_u min_k s_k``, a lower
-    bound), to a relative step of 1e-10; only the rows not yet converged are iterated."""
+    cdf from the weighted mean of the two most probable dofs' quantiles: the cdf is concave above 0 (symmetric
+    unimodal components), so after the first step the iterates rise monotonically to the root (never below
+    ``z_u min_k s_k``, a lower bound), to a relative step of 1e-10; only the rows not yet converged are iterated."""
     u = 0.5 + level / 2
     W = np.where(post.df_weight >= MIN_DF_WEIGHT, post.df_weight, 0.0)
     W = W / W.sum(axis=1, keepdims=True)                                    # (3, K)
@@ -953,13 +957,14 @@ def _modes(fg, h_init, q, tau_scale, search: bool = True):
 
 def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
                 sigma_scale: float = SIGMA_PRIOR_SCALE, draws: int = N_DRAWS, seed: int = 0,
-                return_modes: bool = False, likelihood: str = "gaussian", df: float = 4.0,
+                return_modes: bool = False, likelihood: str = "gaussian", df: float | str = 4.0,
                 reml: float = REML, importance: bool = True, mode_search: bool = MODE_SEARCH) -> SessionPosterior:
     """Laplace approximation of the collapsed hyperparameter posterior (module docstring), per axis.
 
     The mode by BFGS (JAX gradients), the covariance the inverse Hessian there; ``draws`` draws of
     ``h`` from it give the variance moments and, averaged, the covariance of ``mu``. ``likelihood``:
-    ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`); ``reml``: 1 integrates
+    ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`, or ``df = "learned"``: a
+    posterior over :data:`DF_GRID`, :func:`_fit_learned_df`); ``reml``: 1 integrates
     the flat ``mu`` out (restricted likelihood), 0 profiles it (maximum); ``importance``: the draws are
     corrected to the exact collapsed posterior by importance resampling (:func:`_importance_draws`; False:
     the Gaussian approximation's own draws); ``mode_search``: BFGS from a second start too and the importance
@@ -1095,7 +1100,7 @@ def select_effects(train, fit, effects: Sequence[str] = DEFAULT_EFFECTS,
 
 
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
-                 level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float = 4.0,
+                 level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float | str = 4.0,
                  uninformed: str | None = None, **kw) -> SessionPosterior:
     """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
     effects are the ``effects`` that enough runs inform (:func:`select_effects`)."""
@@ -1290,7 +1295,7 @@ FEW_RUNS = 6
 
 
 def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
-                          effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float = 4.0,
+                          effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float | str = 4.0,
                           uninformed: str | None = None):
     """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
 
