@@ -95,6 +95,9 @@ def generators(args):
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
             rec = {"generator": name, "draw": draw, "fit_s": round(secs, 2), "ess": [round(e, 1) for e in post.ess]}
+            if post.df_grid:       # learned dof: its posterior per axis on the grid
+                rec["df_grid"] = [g if np.isfinite(g) else None for g in post.df_grid]
+                rec["df_weight"] = np.round(post.df_weight, 6).tolist()
             for key, p in (("loro", pr), ("hier", ph)):
                 c, d, w = _scores(p, news)
                 rec[f"ok_{key}"] = (c | ~d[:, None]).mean(0).tolist()
@@ -110,6 +113,7 @@ def generators(args):
                   f"width ratio {' / '.join(f'{v:.2f}' for v in rec['ratio'])}; fit {secs:.2f} s", flush=True)
             recs.append(rec)
     _table(recs, f"{args.draws} training draws x {args.sessions} new sessions")
+    _df_table(recs)
 
 
 def _table(recs, title):
@@ -139,6 +143,27 @@ def _table(recs, title):
                   f"{' / '.join(f'{v:.0f}' for v in ess.min(0)) if hier and ess.size else '-'} |")
 
 
+def _df_table(recs):
+    """Learned dof (records with ``df_weight``): per generator, the posterior mass on df <= 6 and the posterior
+    mean of log df (the Gaussian limit counted as df 1000), per axis, mean over draws."""
+    recs = [r for r in recs if "df_weight" in r]
+    if not recs:
+        return
+    print("\n| generator | draws | posterior mass on df <= 6, mean (min-max) over draws x / y / z | posterior median "
+          "dof, median over draws x / y / z |")
+    print("|---|---|---|---|")
+    for name in dict.fromkeys(r["generator"] for r in recs):
+        rs = [r for r in recs if r["generator"] == name]
+        g = np.array([1000.0 if v is None else v for v in rs[0]["df_grid"]])
+        w = np.array([r["df_weight"] for r in rs])                       # (draws, 3, K)
+        small = w[:, :, g <= 6].sum(-1)
+        med = g[np.argmax(np.cumsum(w, -1) >= 0.5, axis=-1)]              # (draws, 3)
+        lab = lambda v: "inf" if v >= 1000 else f"{v:g}"   # noqa: E731
+        print(f"| {name} | {len(rs)} | " + " / ".join(f"{small[:, a].mean():.2f} ({small[:, a].min():.2f}-"
+                                                     f"{small[:, a].max():.2f})" for a in range(3))
+              + " | " + " / ".join(lab(np.median(med[:, a])) for a in range(3)) + " |")
+
+
 def summarise(args):
     """The generator table rebuilt from the ``DRAW`` lines of benchmark logs (``--logs``)."""
     recs = []
@@ -149,6 +174,7 @@ def summarise(args):
     order = {g: i for i, g in enumerate(GENERATORS)}
     recs.sort(key=lambda r: (order[r["generator"]], r["draw"]))
     _table(recs, f"from {len(args.logs)} logs, {len(recs)} generator-draws x {args.sessions} new sessions")
+    _df_table(recs)
 
 
 def belsten(args):
@@ -174,8 +200,9 @@ def belsten(args):
         sin = sigma_in if sigma_in is not None else np.diag([0.02**2] * 3 + [1e-4])
         base = Predictor(fit=fit, sigma_in=sin, residual_sd=np.sqrt(_residual_variance(_Cfg, fit, train, sin)),
                          domain=Domain.from_data(train), uq=UQOptions(method="analytic"))
-        post = H.fit_sessions(train, fit, mode_search=args.mode_search,
-                              within_uninformed=args.within_uninformed == "free")
+        post = H.fit_sessions(train, fit, mode_search=args.mode_search, likelihood=args.likelihood,
+                              within_uninformed=args.within_uninformed == "free",
+                              **({} if args.likelihood == "gaussian" else {"df": args.df}))
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
             p = pr.predict(test)
@@ -356,7 +383,8 @@ def main():
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--generator", nargs="+", default=list(GENERATORS), choices=sorted(GENERATORS))
     ap.add_argument("--likelihood", default="gaussian", choices=list(H.LIKELIHOODS), help="hierarchical model's likelihood")
-    ap.add_argument("--df", type=float, default=4.0, help="its Student-t dof")
+    ap.add_argument("--df", type=lambda v: v if v == "learned" else float(v), default=4.0,
+                    help="its Student-t dof, or 'learned' (a posterior on a grid, issue 24)")
     ap.add_argument("--laplace-draws", default="importance", choices=["importance", "gaussian"],
                     help="Laplace path: draws corrected to the exact posterior (default) or the Gaussian's own")
     args = ap.parse_args()

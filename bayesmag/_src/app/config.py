@@ -77,7 +77,7 @@ class UQConfig:
     transfer: str = "loro"              # between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" (per-run random effects, Laplace; docs/sessions.md) | "hierarchical_nuts" (the same by NUTS) | "off"
     reference_sd: Union[float, list] = 0.0   # the reference magnetometer's own standard uncertainty, uT (or per axis)
     transfer_likelihood: str = "gaussian"    # hierarchical transfer: "gaussian" | "student_t" | "laplace" (per run, docs/sessions.md)
-    transfer_df: float = 4.0                 # its Student-t degrees of freedom (> 2)
+    transfer_df: Union[float, str] = 4.0     # its Student-t degrees of freedom (> 2), or "learned" (a posterior over a grid)
     transfer_uninformed: str = "pooled"      # hierarchical: effects < 3 runs inform: "pooled" (as the learned ones) | "prior" | "fixed" (no change)
     transfer_networks: str = "none"          # "by_run_folds": the hybrid transfer part includes the network's own new-session error (docs/sessions.md)
 
@@ -425,9 +425,12 @@ def _check_semantics(cfg: Config) -> None:
             raise ConfigError(f"Config key 'uq.sigma_in' = {s!r} holds {bad[0]!r}: each standard deviation "
                               f"[Bx, By, Bz (uT), T (C)] must be >= 0 and at most {_MAX_SD:g}.")
     tdf = cfg.uq.transfer_df
-    if isinstance(tdf, bool) or not isinstance(tdf, (int, float)) or not 2 < tdf < 1e6:
+    if tdf != "learned" and (isinstance(tdf, bool) or not isinstance(tdf, (int, float)) or not 2 < tdf < 1e6):
         raise ConfigError(f"Config key 'uq.transfer_df' = {tdf!r} must be a number > 2 (Student-t degrees of freedom "
-                          "with a finite variance; e.g. 4).")
+                          "with a finite variance; e.g. 4) or \"learned\".")
+    if tdf == "learned" and cfg.uq.transfer == "hierarchical_nuts" and cfg.uq.transfer_likelihood == "student_t":
+        raise ConfigError("Config key 'uq.transfer_df' = \"learned\" is fitted on the Laplace path only: set "
+                          "uq.transfer = \"hierarchical\" or give uq.transfer_df a number > 2.")
     if cfg.uq.transfer_networks == "by_run_folds" and (cfg.uq.transfer == "off" or not cfg.network.enabled):
         raise ConfigError("Config key 'uq.transfer_networks' = \"by_run_folds\" adds the network's new-session error to "
                           "the hybrid transfer part: it needs network.enabled = true and uq.transfer other than \"off\" "

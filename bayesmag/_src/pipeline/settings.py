@@ -72,7 +72,7 @@ class UQSettings:
     residual variance beyond the input noise; ``transfer``: ``"loro"`` (leave one run out),
     ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them);
     ``transfer_likelihood`` / ``transfer_df``: the hierarchical model's likelihood, ``"gaussian"``,
-    ``"student_t"`` with ``transfer_df`` dof or ``"laplace"``; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
+    ``"student_t"`` with ``transfer_df`` dof (or ``"learned"``: a posterior on a grid) or ``"laplace"``; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
     (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`); ``transfer_networks``:
     ``"none"`` or ``"by_run_folds"`` (the hybrid transfer part includes the network's own new-session error,
     :mod:`~bayesmag._src.pipeline.network_transfer`).
@@ -89,7 +89,7 @@ class UQSettings:
     transfer: str = "loro"
     reference_sd: Union[float, Any] = 0.0
     transfer_likelihood: str = "gaussian"
-    transfer_df: float = 4.0
+    transfer_df: Union[float, str] = 4.0
     transfer_uninformed: str = "pooled"
     transfer_networks: str = "none"
 

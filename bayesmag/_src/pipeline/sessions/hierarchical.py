@@ -39,6 +39,10 @@ of :math:`\mu`). Few runs leave :math:`\tau` uncertain and the mixture heavy-tai
 by row, to a Student-t by the first two moments of :math:`v` (a scaled inverse chi-square mixing law
 has :math:`\mathrm{Var}\,v / (\mathrm E v)^2 = 2/(\nu - 4)`), and :meth:`SessionPosterior.transfer_sd`
 returns the Gaussian sd with the same central ``level`` interval, less the within-session noise.
+
+The Student-t dof can be learned (``df = "learned"``, :func:`_fit_learned_df`): a discrete posterior over
+:data:`DF_GRID` from a discretised Gamma(2, 0.1) prior and each dof's importance-sampled marginal likelihood; the
+predictive is then the mixture over the dofs (:func:`_mixture_variance`).
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
+import scipy.special
 import scipy.stats
 
 from bayesmag._src.core.physics import AXES, inputs_from_data
@@ -250,8 +255,15 @@ def _mix_log_g(Q, n, df):
     Laplace (``df = "laplace"``); the ``-log|V|/2`` is added by the caller."""
     if isinstance(df, str):
         return _laplace_log_g(Q, n)
-    return (jax.scipy.special.gammaln((df + n) / 2) - jax.scipy.special.gammaln(df / 2)
-            - 0.5 * n * jnp.log(df * jnp.pi) - 0.5 * (df + n) * jnp.log1p(Q / df))
+    if isinstance(df, (int, float)):
+        return (jax.scipy.special.gammaln((df + n) / 2) - jax.scipy.special.gammaln(df / 2)
+                - 0.5 * n * jnp.log(df * jnp.pi) - 0.5 * (df + n) * jnp.log1p(Q / df))
+    # a traced dof (the learned-df grid, :func:`_fit_learned_df`): inf is the Gaussian limit, exactly
+    gauss = jnp.isinf(df)
+    d = jnp.where(gauss, 1.0, df)
+    t = (jax.scipy.special.gammaln((d + n) / 2) - jax.scipy.special.gammaln(d / 2)
+         - 0.5 * n * jnp.log(d * jnp.pi) - 0.5 * (d + n) * jnp.log1p(Q / d))
+    return jnp.where(gauss, -0.5 * n * jnp.log(2 * jnp.pi) - 0.5 * Q, t)
 
 
 def _collapsed_t(h, m0, m1, m2, first, n, effects, tau_scale, sigma_scale, reml=0.0, df=4.0, iters=60):
@@ -451,8 +463,38 @@ MIN_CURVATURE = 1.0 / LOG_TAU_PRIOR_SD**2
 REML = 1.0
 
 
+#: ``transfer_df`` value that learns the Student-t dof (:func:`_fit_learned_df`).
+LEARNED = "learned"
+#: Grid of the learned dof (``inf``: the Gaussian limit, evaluated exactly by :func:`_mix_log_g`).
+DF_GRID = (2.5, 3.0, 4.0, 6.0, 10.0, 20.0, 50.0, math.inf)
+#: Gamma(shape, rate) prior of the dof (Juarez and Steel 2010: mean 20, mode 10, P(df < 6) = 0.12), truncated
+#: to df > 2 (a finite variance) and discretised on the cells of :data:`DF_GRID` (:func:`df_prior_weights`).
+DF_PRIOR = (2.0, 0.1)
+#: Upper edge of the last finite grid point's cell; the Gaussian limit holds the prior mass above it.
+DF_GAUSS_EDGE = 100.0
+#: Components of the predictive mixture below this posterior weight are dropped (the rest renormalised):
+#: the tail probability of an interval moves by less than this (its 95 % half-width by < 0.1 %).
+MIN_DF_WEIGHT = 1e-4
+
+
+def df_prior_weights(grid=DF_GRID, prior=DF_PRIOR) -> np.ndarray:
+    """Prior mass of every grid dof: the Gamma(shape, rate) prior, truncated to df > 2, integrated over the
+    grid point's cell (edges at the geometric means of neighbours, 2 below the first, :data:`DF_GAUSS_EDGE`
+    between the last finite point and ``inf``).
+
+    Example: ``df_prior_weights()`` -> 8 weights summing to 1, the Gaussian limit's ``P(df > 100) / P(df > 2)``.
+    """
+    g = np.asarray(grid, np.float64)
+    fin = g[np.isfinite(g)]
+    edges = np.r_[2.0, np.sqrt(fin[1:] * fin[:-1]), DF_GAUSS_EDGE if np.isinf(g[-1]) else np.inf]
+    edges = np.r_[edges, np.inf] if np.isinf(g[-1]) else edges
+    cdf = scipy.stats.gamma(prior[0], scale=1.0 / prior[1]).cdf(edges)
+    w = np.diff(cdf)
+    return w / w.sum()
+
+
 def _check_likelihood(likelihood: str, df) -> float | str | None:
-    """``None`` (Gaussian), the Student-t dof or ``"laplace"``; ValueError naming the bad value."""
+    """``None`` (Gaussian), the Student-t dof, ``"learned"`` or ``"laplace"``; ValueError naming the bad value."""
     from bayesmag._src.core.likelihoods import get_likelihood
 
     if likelihood not in LIKELIHOODS:
@@ -462,6 +504,8 @@ def _check_likelihood(likelihood: str, df) -> float | str | None:
         return None
     if likelihood == "laplace":
         return "laplace"
+    if df == LEARNED:
+        return LEARNED
     get_likelihood(likelihood).shape_params["df"].check("uq.transfer_df", df, likelihood)
     return float(df)
 
@@ -498,6 +542,20 @@ class SessionPosterior:
     prior_only: tuple = ()
     laplace: bool = False
     ess: tuple = ()     # per axis: effective sample size of the importance correction (Laplace path; () if none)
+    # learned dof (``transfer_df = "learned"``): the dof grid, its posterior weight per axis (3, K) and the variance
+    # moments given each dof (3, K, q+1) / (3, K, q+1, q+1); w_mean / w_cov are then the mixture's (summaries)
+    df_grid: tuple = ()
+    df_weight: np.ndarray | None = None
+    mix_w_mean: np.ndarray | None = None
+    mix_w_cov: np.ndarray | None = None
+    df_log_evidence: np.ndarray | None = None   # (3, K) log marginal likelihood of each dof (diagnostic, not saved)
+
+    def components(self) -> list["SessionPosterior"]:
+        """The fixed-dof posteriors a learned-dof one mixes (``[]`` if the dof is fixed); ``mu`` and its
+        covariance are the mixture's (pooled over the dof by the law of total covariance)."""
+        return [dataclasses.replace(self, w_mean=self.mix_w_mean[:, k], w_cov=self.mix_w_cov[:, k], df=float(d),
+                                    df_grid=(), df_weight=None, mix_w_mean=None, mix_w_cov=None, df_log_evidence=None)
+                for k, d in enumerate(self.df_grid)]
 
     @property
     def tau(self) -> np.ndarray:
@@ -514,6 +572,9 @@ class SessionPosterior:
 
     def predictive_t(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row-wise Student-t of the new-session error: ``(df, scale)`` (n, 3) each (moment matched)."""
+        if self.df_grid:
+            raise ValueError("a learned-dof session posterior is a mixture of Student-t's, one per dof "
+                             "(components(), new_session_variance); it has no single row-wise t.")
         m, v, _ = self.variance_moments(J)
         ratio = v / np.maximum(m, 1e-300) ** 2
         if self.laplace:
@@ -533,6 +594,8 @@ class SessionPosterior:
     def new_session_variance(self, J: np.ndarray, level: float | None = None) -> np.ndarray:
         """(n, 3) Gaussian variance with the same central ``level`` interval as the new-session predictive."""
         level = self.level if level is None else level
+        if self.df_grid:
+            return _mixture_variance(self, J, level)
         df, s = self.predictive_t(J)
         u = 0.5 + level / 2
         var = (scipy.stats.t.ppf(u, df) * s / scipy.stats.norm.ppf(u)) ** 2
@@ -556,24 +619,33 @@ class SessionPosterior:
 
     def as_arrays(self) -> dict:
         return {"w_mean": self.w_mean, "w_cov": self.w_cov, "mu_cov": self.mu_cov, "scale": self.scale,
-                "mu": self.mu, **({} if self.centre is None else {"centre": self.centre})}
+                "mu": self.mu, **({} if self.centre is None else {"centre": self.centre}),
+                **({"df_weight": self.df_weight, "mix_w_mean": self.mix_w_mean, "mix_w_cov": self.mix_w_cov}
+                   if self.df_grid else {})}
 
     def meta(self) -> dict:
         return {"effects": list(self.effects), "effect_index": list(map(int, self.effect_index)),
                 "level": float(self.level), "n_runs": int(self.n_runs), "method": self.method,
-                "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None,
-                "prior_only": list(self.prior_only)}
+                "likelihood": self.likelihood, "df": self._df_meta(),
+                "prior_only": list(self.prior_only),
+                **({"df_grid": [float(d) if math.isfinite(d) else None for d in self.df_grid]} if self.df_grid else {})}
+
+    def _df_meta(self):
+        return LEARNED if self.df_grid else float(self.df) if math.isfinite(self.df) else None
 
     @property
     def likelihood(self) -> str:
         """``"gaussian"``, ``"student_t"`` or ``"laplace"``."""
-        return "laplace" if self.laplace else "student_t" if math.isfinite(self.df) else "gaussian"
+        return "laplace" if self.laplace else "student_t" if math.isfinite(self.df) or self.df_grid else "gaussian"
 
     def as_dict(self) -> dict:
         """JSON summary: per axis the random-effect sds and the noise sd (posterior root means)."""
         return {"method": self.method, "n_runs": int(self.n_runs), "effects": list(self.effects),
-                "likelihood": self.likelihood, "df": float(self.df) if math.isfinite(self.df) else None,
+                "likelihood": self.likelihood, "df": self._df_meta(),
                 "prior_only": list(self.prior_only),
+                **({"df_posterior": {ax: {("inf" if math.isinf(d) else f"{d:g}"): round(float(self.df_weight[a, k]), 6)
+                                          for k, d in enumerate(self.df_grid)} for a, ax in enumerate(AXES)}}
+                   if self.df_grid else {}),
                 **({"importance_ess": [round(float(e), 1) for e in self.ess]} if self.ess else {}),
                 "tau": {ax: dict(zip(self.effects, map(float, self.tau[a]))) for a, ax in enumerate(AXES)},
                 "noise_sd": {ax: float(np.sqrt(self.w_mean[a, -1])) for a, ax in enumerate(AXES)}}
@@ -606,6 +678,270 @@ def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level
                             tuple(names[i] for i in stats.effects),
                             float(level), int(stats.n.size), method, mu_mean[:, :p] / stats.scale[:, :p],
                             effect_index=tuple(int(i) for i in stats.effects), df=float(df), laplace=laplace)
+
+
+def _mixture_variance(post: "SessionPosterior", J: np.ndarray, level: float) -> np.ndarray:
+    """(n, 3) Gaussian variance with the same central ``level`` interval as the learned-dof predictive: the
+    mixture over the dof grid (posterior weights; those below :data:`MIN_DF_WEIGHT` dropped, the rest
+    renormalised) of every dof's row-wise Student-t (as :meth:`SessionPosterior.predictive_t` of
+    :meth:`SessionPosterior.components`, all dofs in one einsum). Its quantile by Newton steps on the mixture's
+    cdf from the weighted mean of the two most probable dofs' quantiles: the cdf is concave above 0 (symmetric
+    unimodal components), so after the first step the iterates rise monotonically to the root (never below
+    ``z_u min_k s_k``, a lower bound), to a relative step of 1e-10; only the rows not yet converged are iterated."""
+    u = 0.5 + level / 2
+    W = np.where(post.df_weight >= MIN_DF_WEIGHT, post.df_weight, 0.0)
+    W = W / W.sum(axis=1, keepdims=True)                                    # (3, K)
+    used = np.flatnonzero((W > 0).any(axis=0))
+    if used.size == 1:
+        return post.components()[used[0]].new_session_variance(J, level)
+    f = np.asarray(J) / post.scale[:, None, :]
+    eidx = np.asarray(post.effect_index, int)
+    fe = f[:, :, eidx] - (0.0 if post.centre is None else np.asarray(post.centre)[:, None, :])
+    wvec = np.concatenate([fe**2, np.ones(fe.shape[:2] + (1,))], axis=2)   # (3, n, q+1)
+    fcf = np.einsum("anp,apk,ank->na", f, post.mu_cov, f)
+    m = np.einsum("anq,akq->kna", wvec, post.mix_w_mean[:, used]) + fcf    # (K', n, 3)
+    v = np.maximum(np.einsum("anq,akqr,anr->kna", wvec, post.mix_w_cov[:, used], wvec), 0.0)
+    dfk = np.asarray(post.df_grid, np.float64)[used][:, None, None]
+    ratio = v / np.maximum(m, 1e-300) ** 2
+    mid = np.isfinite(dfk) & (dfk > 4)
+    ratio = np.where(mid, (1 + ratio) * (1 + 2 / np.where(mid, dfk - 4, 1.0)) - 1, ratio)
+    nu = np.where(np.isfinite(dfk) & (dfk <= 4), dfk, np.minimum(4.0 + 2.0 / np.maximum(ratio, 1e-12), 1e6))
+    sc = np.sqrt(m * (nu - 2) / nu)
+    w = np.broadcast_to(W[:, used].T[:, None, :], nu.shape)
+    nu, sc, w = (a.reshape(used.size, -1) for a in (nu, sc, w))             # (K', n*3)
+    # start: the weighted mean of the quantiles of the (up to) two most probable dofs of the axis
+    order = np.argsort(-W[:, used], axis=1)[:, :2]                         # (3, 2)
+    cols = np.arange(nu.shape[1])
+    x, tot = np.zeros(nu.shape[1]), np.zeros(nu.shape[1])
+    for j in range(order.shape[1]):
+        pick = np.broadcast_to(order[None, :, j], m.shape[1:]).ravel()
+        wj = w[pick, cols]
+        x += wj * sc[pick, cols] * scipy.special.stdtrit(nu[pick, cols], u)
+        tot += wj
+    x = x / tot
+    lower = scipy.stats.norm.ppf(u) * np.where(w > 0, sc, np.inf).min(0)
+    lognorm = (scipy.special.gammaln((nu + 1) / 2) - scipy.special.gammaln(nu / 2) - 0.5 * np.log(nu * np.pi)
+               - np.log(sc))
+    act = np.arange(x.size)
+    for _ in range(60):
+        n_, s_, w_, z = nu[:, act], sc[:, act], w[:, act], x[act] / sc[:, act]
+        F = np.sum(w_ * scipy.special.stdtr(n_, z), axis=0) - u
+        dens = np.sum(w_ * np.exp(lognorm[:, act] - 0.5 * (n_ + 1) * np.log1p(z**2 / n_)), axis=0)
+        new = np.maximum(x[act] - F / np.maximum(dens, 1e-300), lower[act])
+        done = np.abs(new - x[act]) <= 1e-10 * np.abs(new)
+        x[act] = new
+        act = act[~done]
+        if act.size == 0:
+            break
+    return (x.reshape(m.shape[1:]) / scipy.stats.norm.ppf(u)) ** 2
+
+
+def _pool_components(post: "SessionPosterior", comps: Sequence["SessionPosterior"]) -> "SessionPosterior":
+    """The learned-dof posterior of ``comps`` (one per dof of ``post.df_grid``, sharing ``mu`` and its covariance)
+    with ``post``'s weights: ``w_mean`` / ``w_cov`` the mixture's moments (law of total covariance)."""
+    W = post.df_weight
+    wm = np.stack([c.w_mean for c in comps], 1)                             # (3, K, q+1)
+    wc = np.stack([c.w_cov for c in comps], 1)
+    mean = np.einsum("ak,aki->ai", W, wm)
+    dev = wm - mean[:, None]
+    cov = np.einsum("ak,akij->aij", W, wc + dev[..., :, None] * dev[..., None, :])
+    return dataclasses.replace(comps[0], w_mean=mean, w_cov=cov, df=math.inf, df_grid=tuple(post.df_grid),
+                               df_weight=W, mix_w_mean=wm, mix_w_cov=wc, df_log_evidence=post.df_log_evidence,
+                               ess=post.ess)
+
+
+@jax.jit
+def _neg_lp_grad_grid(H, dfs, m0, m1, m2, first, n, effects, ts, ss, reml):
+    """``-sum_k lp(H_k; dfs_k)`` of the Student-t collapsed posterior (:func:`_collapsed_t`), its gradient (K, d)
+    and the per-dof ``lp`` (K,): every dof of the grid in one vmapped call (the blocks are independent)."""
+    def f(Hm):
+        lp = jax.vmap(lambda h, d: _collapsed_t(h, m0, m1, m2, first, n, effects, ts, ss, reml, d)[0])(Hm, dfs)
+        return -jnp.sum(lp), lp
+    (v, lp), g = jax.value_and_grad(f, has_aux=True)(H)
+    return v, g, lp
+
+
+@jax.jit
+def _lp_mu_cov_grid(hs, dfs, m0, m1, m2, first, n, effects, ts, ss, reml):
+    """:func:`_collapsed_t` at every row of ``hs`` with the dof ``dfs`` of that row (vmapped)."""
+    return jax.vmap(lambda h, d: _collapsed_t(h, m0, m1, m2, first, n, effects, ts, ss, reml, d))(hs, dfs)
+
+
+def _t_log_norm(d: int) -> float:
+    """log normalising constant of the :data:`PROPOSAL_DF` multivariate t that :func:`_t_logq` leaves out."""
+    nu = PROPOSAL_DF
+    return float(scipy.special.gammaln((nu + d) / 2) - scipy.special.gammaln(nu / 2) - 0.5 * d * np.log(nu * np.pi))
+
+
+#: Total importance proposals of the learned-dof fit (as many as a fixed dof's), split over the dofs the screen keeps.
+N_PROPOSALS_LEARNED = N_PROPOSALS
+#: Fewest importance proposals of a dof the screen keeps (its evidence matters, its draws hardly).
+MIN_PROPOSALS_DF = 100
+#: Screen of the learned-dof fit: a dof whose Laplace log posterior is more than this many nats below the best
+#: one's gets weight 0 (it would get < 2e-9 of the mass unless the Laplace evidence is off by nats).
+DF_SCREEN = 20.0
+
+
+def _fit_learned_df(stats: RunStats, names, *, level, tau_scale, sigma_scale, draws, seed, reml,
+                    proposals: int = N_PROPOSALS_LEARNED) -> "SessionPosterior":
+    r"""The Student-t model with its dof learned (``transfer_df = "learned"``), per axis.
+
+    The dof is given a discrete posterior on :data:`DF_GRID` (2.5 ... 50 and the Gaussian limit): prior
+    :func:`df_prior_weights` (Gamma(2, 0.1), Juarez and Steel 2010, discretised) times each dof's marginal
+    likelihood :math:`p(y \mid \nu) = \int p(y \mid h, \nu)\, p(h)\, dh` (``mu`` flat and integrated as in
+    :func:`_collapsed_t`: the same improper constant for every dof, so the ratios are proper). All dofs are
+    fitted together: BFGS on the sum of the (independent) negative log posteriors, one vmapped JAX call per
+    step, and the Hessians by central differences of that gradient, every dof's block at once. Their Laplace
+    evidences screen the grid (:data:`DF_SCREEN`); for the dofs kept, the integral is estimated by the
+    importance sample that also corrects their draws (as :func:`_importance_draws`: the mean of
+    :math:`p(y, h \mid \nu) / q(h)` over a t proposal around the dof's mode with its normalised density; exact
+    where the Laplace approximation is not: a between-session sd near 0 skews the posterior of
+    :math:`\log\tau`), :data:`N_PROPOSALS_LEARNED` proposals in one vmapped call, :data:`MIN_PROPOSALS_DF` per
+    dof kept and the rest by the Laplace posterior weight. A grid,
+    not a continuous dof in ``h``: its Gaussian limit is exact, and the dof's posterior is far from Gaussian in
+    any scale (flat towards the Gaussian, sharp below 4 on heavy-tailed data).
+    """
+    grid = np.asarray(DF_GRID, np.float64)
+    K = grid.size
+    log_prior = np.log(df_prior_weights(grid))
+    rng = np.random.default_rng(seed)
+    q = stats.effects.size
+    d = q + 2
+    eff = jnp.asarray(stats.effects)
+    dfs = jnp.asarray(grid)
+    logc = _t_log_norm(d)
+    weight, logZ, mix_mean, mix_cov, mus, covs, esss = [], [], [], [], [], [], []
+    for a in range(3):
+        args = (jnp.asarray(stats.m0[a]), jnp.asarray(stats.m1[a]), jnp.asarray(stats.m2[a]),
+                jnp.asarray(stats.first[a]), jnp.asarray(stats.n), eff, tau_scale, sigma_scale, float(reml))
+
+        def fg(x):
+            v, g, _ = _neg_lp_grad_grid(jnp.asarray(x.reshape(K, d)), dfs, *args)
+            v, g = float(v), np.asarray(g, np.float64).ravel()
+            return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
+
+        def fg_gauss(h):
+            v, g = _neg_lp_and_grad(jnp.asarray(h), *args, df=None)
+            v, g = float(v), np.asarray(g, np.float64)
+            return (v, g) if np.isfinite(v) else (1e300, np.zeros_like(g))
+
+        # every dof from the Gaussian model's mode (found as the default path finds it, from the moment start):
+        # the dofs' modes then lie in the basin the default uses; from the moment start some dofs' BFGS reached
+        # the absurd large-tau mode of docs/sessions.md "Several modes", whose evidence is higher
+        h_gauss = scipy.optimize.minimize(fg_gauss, _init_h(stats, a, tau_scale), jac=True, method="BFGS",
+                                          options={"gtol": 1e-6, "maxiter": 500}).x
+        res = scipy.optimize.minimize(fg, np.tile(h_gauss, K), jac=True, method="BFGS",
+                                      options={"gtol": 1e-6, "maxiter": 3000})
+        modes = res.x.reshape(K, d)
+        lp_modes = -np.asarray(_neg_lp_grad_grid(jnp.asarray(modes), dfs, *args)[2], np.float64)
+        Hs = np.zeros((K, d, d))
+        for j in range(d):
+            e = np.zeros((K, d))
+            e[:, j] = 1e-4
+            Hs[:, :, j] = (fg((modes + e).ravel())[1] - fg((modes - e).ravel())[1]).reshape(K, d) / 2e-4
+        covh, lap = [], np.zeros(K)
+        for k in range(K):
+            w_, V = np.linalg.eigh(0.5 * (Hs[k] + Hs[k].T))
+            w_ = np.maximum(w_, MIN_CURVATURE)
+            covh.append((V / w_) @ V.T)
+            lap[k] = -lp_modes[k] + 0.5 * d * np.log(2 * np.pi) - 0.5 * np.sum(np.log(w_))
+        lap = np.where(np.isfinite(lap), lap, -np.inf)
+        keep = np.flatnonzero(log_prior + lap >= np.max(log_prior + lap) - DF_SCREEN)
+        # proposals: MIN_PROPOSALS_DF per dof kept, the rest by Laplace posterior weight (a fixed total: one shape)
+        wl = np.exp(log_prior[keep] + lap[keep] - np.max(log_prior[keep] + lap[keep]))
+        extra = proposals - MIN_PROPOSALS_DF * keep.size
+        counts = MIN_PROPOSALS_DF + np.floor(extra * wl / wl.sum()).astype(int)
+        counts[np.argmax(wl)] += proposals - counts.sum()
+        split = np.split(np.arange(proposals), np.cumsum(counts)[:-1])
+        rows = jnp.asarray(np.concatenate([np.full(p_.size, grid[k]) for k, p_ in zip(keep, split)]))
+
+        def evaluate(centres, cs):
+            hs = []
+            for k, p_ in zip(keep, split):
+                z = rng.multivariate_normal(np.zeros(d), cs[k], size=p_.size, method="eigh")
+                hs.append(centres[k] + z / np.sqrt(rng.chisquare(PROPOSAL_DF, size=p_.size) / PROPOSAL_DF)[:, None])
+            hs = np.concatenate(hs)
+            lp, mu_k, cov_k = (np.asarray(v, np.float64) for v in _lp_mu_cov_grid(jnp.asarray(hs), rows, *args))
+            out = {}
+            for k, p_ in zip(keep, split):
+                ok = np.isfinite(lp[p_]) & np.isfinite(mu_k[p_]).all(1) & np.isfinite(cov_k[p_]).all((1, 2))
+                logw = np.where(ok, lp[p_] - _t_logq(hs[p_], centres[k], cs[k]) - logc, -np.inf)
+                out[k] = [(hs[p_], mu_k[p_], cov_k[p_], logw)]
+            return out
+
+        rounds = evaluate(modes, covh)
+        # dofs the screen gives >= 1 % of the mass whose proposal missed (a negligible dof's weight stays negligible)
+        redo = [k for k, c in zip(keep, counts) if wl[list(keep).index(k)] / wl.sum() >= 0.01
+                and _ess(rounds[k][0][3]) < MIN_ESS_FRACTION * c]
+        if redo:    # a second, re-centred round for the dofs whose proposal missed (as _importance_draws)
+            cen, cs = list(modes), list(covh)
+            for k in redo:
+                hk, _, _, lw = rounds[k][0]
+                w = _normalised(lw)
+                if w.sum() > 0:
+                    m = w @ hk
+                    cen[k], cs[k] = m, (hk - m).T @ ((hk - m) * w[:, None]) + covh[k] * 0.25
+            second = evaluate(cen, cs)
+            for k in redo:
+                rounds[k] += second[k]
+        lz = np.full(K, -np.inf)
+        tau2, noise = np.zeros((K, draws, q)), np.zeros((K, draws))
+        mu_m, mu_c = np.zeros((K, stats.scale.shape[1])), np.zeros((K, stats.scale.shape[1], stats.scale.shape[1]))
+        ess_k = np.zeros(K)
+        for k in keep:
+            # each round's mean weight estimates p(y | df); pooled with their effective sizes as weights
+            es = np.array([_ess(r[3]) for r in rounds[k]])
+            zs = np.array([np.logaddexp.reduce(r[3]) - np.log(r[3].size) for r in rounds[k]])
+            if es.sum() > 0:
+                lz[k] = np.logaddexp.reduce(zs + np.log(np.maximum(es, 1e-300))) - np.log(es.sum())
+            hk, mk, ck = (np.concatenate([r[i] for r in rounds[k]]) for i in range(3))
+            w = np.concatenate([_normalised(r[3]) * e for r, e in zip(rounds[k], es)])
+            w = w / w.sum() if w.sum() > 0 else np.full(w.size, 1.0 / w.size)
+            ess_k[k] = 1.0 / np.sum(w**2)
+            idx = np.minimum(np.searchsorted(np.cumsum(w), (rng.uniform() + np.arange(draws)) / draws), w.size - 1)
+            f = grid[k] / (grid[k] - 2) if np.isfinite(grid[k]) else 1.0      # shape -> variance
+            tau2[k] = np.exp(2 * hk[idx, :q]) * f
+            noise[k] = np.exp(2 * hk[idx, q]) / (1 - np.tanh(hk[idx, q + 1]) ** 2) * f
+            mu_m[k] = mk[idx].mean(0)
+            mu_c[k] = ck[idx].mean(0) + np.atleast_2d(np.cov(mk[idx].T))
+        lpost = log_prior + lz
+        wk = np.exp(lpost - lpost.max())
+        wk /= wk.sum()
+        wv = np.concatenate([tau2, noise[..., None]], axis=2)                 # (K, draws, q+1)
+        mix_mean.append(wv.mean(1))
+        mix_cov.append(np.einsum("kdi,kdj->kij", wv - wv.mean(1, keepdims=True), wv - wv.mean(1, keepdims=True))
+                       / max(draws - 1, 1))
+        mu = wk @ mu_m
+        dm = mu_m - mu
+        covs.append(np.einsum("k,kij->ij", wk, mu_c + dm[:, :, None] * dm[:, None, :]))
+        mus.append(mu)
+        weight.append(wk)
+        logZ.append(lz)
+        esss.append(float(ess_k[int(np.argmax(wk))]))
+    mix_mean, mix_cov = np.stack(mix_mean), np.stack(mix_cov)
+    if not (np.isfinite(mix_mean).all() and np.isfinite(mix_cov).all() and np.isfinite(np.stack(covs)).all()):
+        raise RuntimeError("the hierarchical transfer model's posterior is not finite (a between-session sd "
+                           "without a bound); use [uq] transfer = \"loro\" for these data.")
+    base = SessionPosterior(mix_mean[:, 0], mix_cov[:, 0], np.stack(covs), stats.scale,
+                            tuple(names[i] for i in stats.effects), float(level), int(stats.n.size), "laplace",
+                            np.stack(mus) / stats.scale, effect_index=tuple(int(i) for i in stats.effects),
+                            df_grid=tuple(float(g) for g in grid), df_weight=np.stack(weight),
+                            df_log_evidence=np.stack(logZ), ess=tuple(esss))
+    comps = [dataclasses.replace(base, w_mean=mix_mean[:, k], w_cov=mix_cov[:, k], df=float(grid[k]), df_grid=(),
+                                 df_weight=None) for k in range(K)]
+    return _pool_components(base, comps)
+
+
+def _normalised(logw: np.ndarray) -> np.ndarray:
+    if not np.isfinite(logw).any():
+        return np.zeros_like(logw)
+    w = np.exp(logw - logw[np.isfinite(logw)].max())
+    return w / w.sum()
+
+
+def _ess(logw: np.ndarray) -> float:
+    w = _normalised(logw)
+    return float(1.0 / np.sum(w**2)) if w.sum() > 0 else 0.0
 
 
 def _init_h(stats: RunStats, a: int, tau_scale: float) -> np.ndarray:
@@ -649,19 +985,26 @@ def _modes(fg, h_init, q, tau_scale, search: bool = True):
 
 def fit_laplace(stats: RunStats, names, *, level: float = 0.95, tau_scale: float = TAU_PRIOR_SCALE,
                 sigma_scale: float = SIGMA_PRIOR_SCALE, draws: int = N_DRAWS, seed: int = 0,
-                return_modes: bool = False, likelihood: str = "gaussian", df: float = 4.0,
+                return_modes: bool = False, likelihood: str = "gaussian", df: float | str = 4.0,
                 reml: float = REML, importance: bool = True, mode_search: bool = MODE_SEARCH) -> SessionPosterior:
     """Laplace approximation of the collapsed hyperparameter posterior (module docstring), per axis.
 
     The mode by BFGS (JAX gradients), the covariance the inverse Hessian there; ``draws`` draws of
     ``h`` from it give the variance moments and, averaged, the covariance of ``mu``. ``likelihood``:
-    ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`); ``reml``: 1 integrates
+    ``"gaussian"`` or ``"student_t"`` (with ``df`` > 2 dof, :func:`_collapsed_t`, or ``df = "learned"``: a
+    posterior over :data:`DF_GRID`, :func:`_fit_learned_df`); ``reml``: 1 integrates
     the flat ``mu`` out (restricted likelihood), 0 profiles it (maximum); ``importance``: the draws are
     corrected to the exact collapsed posterior by importance resampling (:func:`_importance_draws`; False:
     the Gaussian approximation's own draws); ``mode_search``: BFGS from a second start too and the importance
     proposal a mixture over the modes found (:func:`_modes`).
     """
     dfs = _check_likelihood(likelihood, df)
+    if dfs == LEARNED:
+        if return_modes or mode_search or not importance:
+            raise ValueError("transfer_df = 'learned' takes the default Laplace path only (importance draws, one "
+                             "mode per dof, no return_modes).")
+        return _fit_learned_df(stats, names, level=level, tau_scale=tau_scale, sigma_scale=sigma_scale, draws=draws,
+                               seed=seed, reml=reml)
     rng = np.random.default_rng(seed)
     q = stats.effects.size
     eff = jnp.asarray(stats.effects)
@@ -729,6 +1072,9 @@ def fit_nuts(stats: RunStats, names, fit, *, level: float = 0.95, tau_scale: flo
     from numpyro.infer import MCMC, NUTS, init_to_value
 
     dfs = _check_likelihood(likelihood, df)
+    if dfs == LEARNED:
+        raise ValueError("transfer_df = 'learned' is fitted on the Laplace path only (uq.transfer = \"hierarchical\"); "
+                         "give hierarchical_nuts a number > 2.")
     q = stats.effects.size
     tau2, noise, covs, mus, raw = [], [], [], [], []
     for a in range(3):
@@ -827,7 +1173,7 @@ def uninformed_within(train, fit, dropped: Sequence[str], axis: int | None = Non
 
 
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
-                 level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float = 4.0,
+                 level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float | str = 4.0,
                  uninformed: str | None = None, within_uninformed: bool = WITHIN_UNINFORMED, **kw) -> SessionPosterior:
     """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
     effects are the ``effects`` that enough runs inform (:func:`select_effects`); ``within_uninformed``: the
@@ -870,7 +1216,9 @@ def _take_axes(post: SessionPosterior, part: SessionPosterior, axes: Sequence[in
     """``post`` with the output ``axes`` taken from ``part`` (the same effects; a fit of another design)."""
     ax = list(axes)
     arrays = {}
-    for k in ("w_mean", "w_cov", "mu_cov", "scale", "mu"):
+    for k in ("w_mean", "w_cov", "mu_cov", "scale", "mu", "df_weight", "mix_w_mean", "mix_w_cov", "df_log_evidence"):
+        if getattr(post, k) is None or getattr(part, k) is None:     # the learned dof's arrays: only with it
+            continue
         v = np.array(getattr(post, k))
         v[ax] = getattr(part, k)[ax]
         arrays[k] = v
@@ -910,6 +1258,9 @@ def with_prior_effects(post: SessionPosterior, fit, train, names: Sequence[str],
     names = [e for e in names if e not in post.effects]
     if not names:
         return post
+    if post.df_grid:       # learned dof: every dof's posterior carries them (with its own dof), then re-pooled
+        return _pool_components(post, [with_prior_effects(c, fit, train, names, tau_scale, moments)
+                                       for c in post.components()])
     param = list(fit.model.param_names)
     idx = [param.index(e) for e in names]
     f = _jacobian(fit, train)[:, :, idx] / post.scale[:, None, idx]          # (3, n, k)
@@ -1039,7 +1390,7 @@ FEW_RUNS = 6
 
 
 def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
-                          effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float = 4.0,
+                          effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float | str = 4.0,
                           uninformed: str | None = None):
     """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
 
@@ -1135,10 +1486,36 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
         raise ValueError(f"field 'sessions.likelihood' = {lik!r} must be one of {list(LIKELIHOODS)}.")
     if lik in ("gaussian", "laplace") and df is not None:
         raise ValueError(f"field 'sessions.df' = {df!r} must be null for the {lik} likelihood.")
-    if lik == "student_t" and (isinstance(df, bool) or not isinstance(df, (int, float)) or not 2 < df < math.inf):
-        raise ValueError(f"field 'sessions.df' = {df!r} must be a number > 2 for the Student-t likelihood.")
+    learned = lik == "student_t" and df == LEARNED
+    if lik == "student_t" and not learned and (isinstance(df, bool) or not isinstance(df, (int, float))
+                                               or not 2 < df < math.inf):
+        raise ValueError(f"field 'sessions.df' = {df!r} must be a number > 2 or {LEARNED!r} for the Student-t "
+                         "likelihood.")
+    mix = {}
+    if learned:
+        grid = meta.get("df_grid")
+        if not isinstance(grid, list) or not grid or any(
+                not (g is None or not isinstance(g, bool) and isinstance(g, (int, float)) and 2 < g < math.inf)
+                for g in grid) or len(set(grid)) != len(grid):
+            raise ValueError(f"field 'sessions.df_grid' = {grid!r} must list distinct dofs > 2 (null: the Gaussian "
+                             "limit) for a learned dof.")
+        K = len(grid)
+        for k, shape in (("df_weight", (3, K)), ("mix_w_mean", (3, K, q + 1)), ("mix_w_cov", (3, K, q + 1, q + 1))):
+            v = np.asarray(arrays.get(k, np.zeros(0)))
+            if k not in arrays or v.shape != shape or v.dtype.kind != "f" or not np.isfinite(v).all():
+                raise ValueError(f"array 'sessions/{k}' must be finite floats of shape {shape}; got "
+                                 f"{v.dtype} {v.shape}.")
+            mix[k] = v.astype(np.float64)
+        if (mix["df_weight"] < 0).any() or not np.allclose(mix["df_weight"].sum(1), 1.0, atol=1e-9):
+            raise ValueError("array 'sessions/df_weight' must hold weights >= 0 summing to 1 per axis.")
+        m = mix["mix_w_cov"]
+        if (mix["mix_w_mean"] < 0).any() or not np.allclose(m, np.swapaxes(m, -1, -2), rtol=1e-8, atol=1e-300) or \
+                (np.linalg.eigvalsh(m).min(axis=-1) < -1e-8 * np.abs(m).max(axis=(-2, -1))).any():
+            raise ValueError("array 'sessions/mix_w_mean' or 'sessions/mix_w_cov' is not variance moments "
+                             "(means >= 0, symmetric positive semi-definite covariances).")
+        mix["df_grid"] = tuple(math.inf if g is None else float(g) for g in grid)
     idx = tuple(list(param_names).index(e) for e in effects)
     return SessionPosterior(out["w_mean"], out["w_cov"], out["mu_cov"], out["scale"], tuple(effects), float(level),
                             int(n_runs), meta["method"], out["mu"], effect_index=idx,
-                            df=float(df) if lik == "student_t" else math.inf, centre=centre,
-                            prior_only=tuple(prior_only), laplace=lik == "laplace")
+                            df=float(df) if lik == "student_t" and not learned else math.inf, centre=centre,
+                            prior_only=tuple(prior_only), laplace=lik == "laplace", **mix)
