@@ -90,8 +90,10 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
     the training sessions, without the transfer part), so swapping the transfer part of the predictor
     gives what a job with that transfer would predict (``--separate-jobs`` runs the jobs). With
     ``transfer_networks = "by_run_folds"`` every transfer is scored twice, without and with the calibration's
-    network part (``<transfer>+net``; it does not depend on the transfer). ``save``: an ``.npz`` of the per-row
-    pieces (test and training rows) for :func:`analyse`.
+    network part (``<transfer>+net``; it does not depend on the transfer), and the hierarchical transfer a third
+    time as the calibration predicts it: the session model refitted on the out-of-fold hybrid residuals, no
+    network part added (``hierarchical_oof``, :func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`).
+    ``save``: an ``.npz`` of the per-row pieces (test and training rows) for :func:`analyse`.
     """
     import dataclasses
 
@@ -110,17 +112,25 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
     nt = cr.hybrid.network_transfer.get(cr.hybrid.primary)
     loro = estimate_transfer(train, cr.fit).sd
     variants = [(t, False) for t in transfers] + ([(t, True) for t in transfers] if nt is not None else [])
-    hyb0 = dataclasses.replace(hyb, network_transfer_sd=None)
+    oof = nt is not None and nt.session_model is not None        # the calibration's own hybrid session model
+    if oof:
+        variants.append(("hierarchical_oof", False))
+    # the physics session model, without and with the network part in quadrature (the predictor before the
+    # out-of-fold session model)
+    hyb0 = dataclasses.replace(hyb, sessions=phys.sessions, network_transfer_sd=None)
     out, dump = {}, {"test_b_ref": test.b_ref}
     for t, net in variants:
         if t == "loro":
             hp, pp = (dataclasses.replace(p, sessions=None, transfer_sd=loro) for p in (hyb0, phys))
             tau = loro
             if net:
-                hp = dataclasses.replace(hp, network_transfer_sd=hyb.network_transfer_sd)
-        else:
-            hp, pp = (hyb if net else hyb0), phys
+                hp = dataclasses.replace(hp, network_transfer_sd=nt.sd)
+        elif t == "hierarchical_oof":
+            hp, pp = hyb, phys
             tau = np.sqrt(np.mean(hyb.transfer_part(train) ** 2, axis=0))
+        else:
+            hp, pp = (dataclasses.replace(hyb0, network_transfer_sd=nt.sd) if net else hyb0), phys
+            tau = np.sqrt(np.mean(hyb0.transfer_part(train) ** 2, axis=0))
         name = t + ("+net" if net else "")
         res, width = {}, None
         for key, pr in (("hybrid", hp), ("physics", pp)):
