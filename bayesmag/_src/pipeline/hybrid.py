@@ -259,9 +259,10 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
     (``[uq] transfer_networks``): the network's own new-session error enters the transfer part
     (:mod:`~bayesmag._src.pipeline.network_transfer`; its fold networks train with the others, and
     ``training[name]["transfer_network"]`` reports it); it needs a physics transfer part and 2 runs, else it is
-    skipped. With a hierarchical physics session model and ``uq_settings`` (the :class:`UQSettings`) the hybrid's session
-    model is refitted on the out-of-fold hybrid residuals and replaces physics model + network part
-    (:func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`). Adds ``timings["network_train"]`` (all networks) and ``["hybrid_inference"]`` (s).
+    skipped. With a hierarchical physics session model and ``uq_settings`` (the :class:`UQSettings`) the
+    hybrid's session model is refitted on the out-of-fold hybrid residuals and replaces physics model + network
+    part (:func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`; ``timings["hybrid_transfer"]``).
+    Adds ``timings["network_train"]`` (all networks) and ``["hybrid_inference"]`` (s).
     """
     if hasattr(settings, "network") and hasattr(settings, "split"):    # the job's Config (the old signature)
         full = settings.settings()
