@@ -766,6 +766,11 @@ def transfer_section(m: dict) -> list[str]:
             lines.append(f"> **Warning.** {tr['warning']}")
     else:
         lines.append(f"> **Warning.** {tr['warning']}")
+    hb = hybrid_new_session(m)
+    if hb is not None:          # the saved (hybrid) predictor adds its own transfer part: the budget's U new session
+        lines.append("The saved calibration is the hybrid predictor, and it adds its own transfer sd to a new session "
+                     "(root mean square over the training rows " + " / ".join(_u2(hb["transfer_sd"][a]) for a in AXES)
+                     + " uT; `[uq] transfer_networks`, docs/sessions.md): the budget's U new session is the hybrid's.")
     n_new = tr.get("n_test_rows_new_session", 0)
     lines += ["", f"Test rows from runs not in the training data (they include the transfer part): {n_new}."
               + (" The test rows share sessions with the training rows, so their scores above do not include it."
