@@ -90,8 +90,10 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
     the training sessions, without the transfer part), so swapping the transfer part of the predictor
     gives what a job with that transfer would predict (``--separate-jobs`` runs the jobs). With
     ``transfer_networks = "by_run_folds"`` every transfer is scored twice, without and with the calibration's
-    network part (``<transfer>+net``; it does not depend on the transfer). ``save``: an ``.npz`` of the per-row
-    pieces (test and training rows) for :func:`analyse`.
+    network part (``<transfer>+net``; it does not depend on the transfer), and the hierarchical transfer a third
+    time as the calibration predicts it: the session model refitted on the out-of-fold hybrid residuals, no
+    network part added (``hierarchical_oof``, :func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`).
+    ``save``: an ``.npz`` of the per-row pieces (test and training rows) for :func:`analyse`.
     """
     import dataclasses
 
@@ -110,17 +112,25 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
     nt = cr.hybrid.network_transfer.get(cr.hybrid.primary)
     loro = estimate_transfer(train, cr.fit).sd
     variants = [(t, False) for t in transfers] + ([(t, True) for t in transfers] if nt is not None else [])
-    hyb0 = dataclasses.replace(hyb, network_transfer_sd=None)
+    oof = nt is not None and nt.session_model is not None        # the calibration's own hybrid session model
+    if oof:
+        variants.append(("hierarchical_oof", False))
+    # the physics session model, without and with the network part in quadrature (the predictor before the
+    # out-of-fold session model)
+    hyb0 = dataclasses.replace(hyb, sessions=phys.sessions, network_transfer_sd=None)
     out, dump = {}, {"test_b_ref": test.b_ref}
     for t, net in variants:
         if t == "loro":
             hp, pp = (dataclasses.replace(p, sessions=None, transfer_sd=loro) for p in (hyb0, phys))
             tau = loro
             if net:
-                hp = dataclasses.replace(hp, network_transfer_sd=hyb.network_transfer_sd)
-        else:
-            hp, pp = (hyb if net else hyb0), phys
+                hp = dataclasses.replace(hp, network_transfer_sd=nt.sd)
+        elif t == "hierarchical_oof":
+            hp, pp = hyb, phys
             tau = np.sqrt(np.mean(hyb.transfer_part(train) ** 2, axis=0))
+        else:
+            hp, pp = (dataclasses.replace(hyb0, network_transfer_sd=nt.sd) if net else hyb0), phys
+            tau = np.sqrt(np.mean(hyb0.transfer_part(train) ** 2, axis=0))
         name = t + ("+net" if net else "")
         res, width = {}, None
         for key, pr in (("hybrid", hp), ("physics", pp)):
@@ -167,7 +177,13 @@ def main(argv=None) -> int:
     ap.add_argument("--save", default=None, help="with --both: a folder for one .npz of per-row pieces per session")
     ap.add_argument("--analyse", default=None, help="a --save folder: score other estimates of the network part "
                                                     "offline (diagnostic; nothing is trained)")
+    ap.add_argument("--analyse-oof", default=None, help="a --save folder: refit the hybrid session model on the out-of-fold "
+                                                        "hybrid residuals with --effects and score it (diagnostic)")
+    ap.add_argument("--effects", nargs="+", default=None, help="with --analyse-oof: the candidate random effects "
+                                                               "(default: the library's)")
     a = ap.parse_args(argv)
+    if a.analyse_oof:
+        return analyse_oof(Path(a.analyse_oof), a.effects)
     if a.analyse:
         return analyse(Path(a.analyse))
     if a.both:
@@ -295,6 +311,57 @@ def analyse(folder: Path) -> int:
               f"{f2([np.median(ratio[base[:, k], k]) for k in range(3)])} | "
               f"{f2([np.max(ratio[base[:, k], k]) for k in range(3)])} | "
               f"{' / '.join(str(int(np.sum(ratio[base[:, k], k] > 1.5))) for k in range(3))} | {miss} |")
+    return 0
+
+
+def analyse_oof(folder: Path, effects=None) -> int:
+    """The hybrid session model on the out-of-fold hybrid residuals, refitted from ``--save`` files with the
+    candidate random ``effects`` (None: the library's, which reproduces ``hierarchical_oof``) and scored against
+    loro: the hybrid's within-session variance is the saved loro total less loro's transfer variance, the
+    transfer sd the refitted model's at the left-out session's rows (Gaussian intervals ``mean +- z total``)."""
+    import scipy.stats
+
+    from bayesmag._src.core.fit import fit_physics
+    from bayesmag._src.pipeline.network_transfer import (NetworkTransfer, fold_domain_mask, hybrid_residual_rows,
+                                                        run_folds)
+    from bayesmag._src.pipeline.sessions import DEFAULT_EFFECTS, hierarchical_transfer
+
+    z = scipy.stats.norm.ppf(0.975)
+    eff = tuple(effects) if effects else DEFAULT_EFFECTS
+    settings = config_from_dict({"name": "x", "data": {"path": "unused.csv"}, "physics": {"t0": "mean"}}).settings()
+    files = sorted(folder.glob("s*_r*.npz"), key=lambda q: tuple(int(v) for v in q.stem[1:].split("_r")))
+    data, rows = {}, []
+    for q in files:
+        d = np.load(q)
+        seed, left = (int(v) for v in q.stem[1:].split("_r"))
+        if seed not in data:
+            data[seed] = sessions(8, d["test_b_ref"].shape[0], seed)
+        train = data[seed].subset(np.flatnonzero(data[seed].run != left))
+        test = data[seed].subset(np.flatnonzero(data[seed].run == left))
+        fit = fit_physics(train, settings.physics.model(train))
+        inside = fold_domain_mask(train, run_folds(train.run, 5, 2)[0])   # the job's folds (conformal_folds 5, seed 0)
+        nt = NetworkTransfer(np.zeros(3), 0, (), np.zeros(3), np.zeros(3), 0, {"nn_oof": d["train_nn_oof"],
+                                                                               "inside": inside})
+        _, post = hierarchical_transfer(hybrid_residual_rows(train, nt), fit, effects=eff)
+        within2 = d["loro_total"] ** 2 - d["loro"] ** 2
+        y, ind = d["test_b_ref"], d["in_domain"].astype(bool)
+        out = {}
+        for name, tot in (("loro", d["loro_total"]), ("oof", np.sqrt(within2 + post.transfer_sd_for(fit, test) ** 2))):
+            cov = np.abs(y - d["loro_mean"]) <= z * tot
+            out[name] = ((cov | ~ind[:, None]).mean(0), (2 * z * tot)[ind].mean(0))
+        rows.append((q.stem, out))
+    base = np.array([o["loro"][0] for _, o in rows]) >= 0.95
+    ratio = np.array([o["oof"][1] for _, o in rows]) / np.array([o["loro"][1] for _, o in rows])
+    fc = np.array([o["oof"][0] for _, o in rows])
+    f2 = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
+    miss = ", ".join(f"{n[1:].replace('_r', '-')} {AXES[k]} {100 * o['oof'][0][k]:.1f}" for n, o in rows
+                     for k in range(3) if o["oof"][0][k] < 0.95)
+    print(f"## `python benchmarks/bench_hybrid_shift.py --analyse-oof {folder}{' --effects ' + ' '.join(eff) if effects else ''}` "
+          f"({len(rows)} sessions)\n")
+    print(f"effects {', '.join(eff)}: under 95 % {' / '.join(str(int(v)) for v in (fc < 0.95).sum(0))} ({miss}); width / "
+          f"loro width where loro covers: median {f2([np.median(ratio[base[:, k], k]) for k in range(3)])}, largest "
+          f"{f2([np.max(ratio[base[:, k], k]) for k in range(3)])}, over 1.5x "
+          f"{' / '.join(str(int(np.sum(ratio[base[:, k], k] > 1.5))) for k in range(3))}")
     return 0
 
 

@@ -145,3 +145,143 @@ def test_config_checks_the_option(uq, network, key):
            "uq": {"transfer_networks": "by_run_folds", **uq}, "network": network}
     with pytest.raises(ConfigError, match=key):
         config_from_dict(raw)
+
+
+# --- the hybrid session model: the hierarchical transfer refitted on the out-of-fold hybrid residuals ---------------
+
+@pytest.fixture(scope="module")
+def hier():
+    data = _runs()
+    test = _runs(seed=1, n_runs=2)
+    on = calibrate(data, _settings("by_run_folds", "hierarchical"), test=test)
+    off = calibrate(data, _settings("none", "hierarchical"), test=test)
+    return data, test, on, off
+
+
+def _hybrid_rows(data, nt):
+    """The rows and out-of-fold hybrid residual reference the session model must be fitted on, built here."""
+    inside = np.asarray(nt.rows["inside"], bool)
+    rows = np.flatnonzero(inside)
+    sub = data.subset(rows)
+    return rows, dataclasses.replace(sub, b_ref=sub.b_ref - nt.rows["nn_oof"][rows])
+
+
+def test_hybrid_session_model_reads_the_shift_from_networks_that_did_not_see_the_run(hier):
+    from bayesmag._src.pipeline.sessions import hierarchical_transfer
+
+    data, test, on, off = hier
+    nt = on.hybrid.network_transfer["gaussian"]
+    post_h, post_p = on.predictor.sessions, on.physics.predictor.sessions
+    # the hybrid carries its own session model and no network part on top (tau_n is inside its residuals)
+    assert post_h is not None and post_h is not post_p and on.predictor.network_transfer_sd is None
+    assert on.hybrid.training["gaussian"]["transfer_network"]["combined"] == "hierarchical_out_of_fold"
+    rows, oof_rows = _hybrid_rows(data, nt)
+    assert rows.size > 0.9 * data.n
+    held = data.run[rows] == OFFSET_RUN
+    resid = nt.rows["resid"][rows]
+    # run 3's shift survives in the out-of-fold hybrid residual (its fold network never saw run 3) and is mostly
+    # gone from the in-sample one (the full network learned it from run 3's temperature band)
+    fit = on.fit
+    e_oof = oof_rows.b_ref - np.asarray(fit.predict(bayesmag.inputs_from_data(oof_rows)))
+    e_ins = resid - nt.rows["nn_full"][rows]
+    assert e_oof[held, 0].mean() > 0.8 * resid[held, 0].mean() > 0.8 and abs(e_ins[held, 0].mean()) < 0.5 * \
+        e_oof[held, 0].mean()
+    # the predictor's model is the hierarchical model of exactly those residuals (refitted here: same numbers) ...
+    _, refit = hierarchical_transfer(oof_rows, fit, level=0.95, seed=0)
+    np.testing.assert_allclose(post_h.w_mean, refit.w_mean, rtol=1e-9)
+    # ... whose x offset spread is run 3's shift; fitted on the in-sample residuals it would mostly be lost
+    ins_rows = dataclasses.replace(oof_rows, b_ref=oof_rows.b_ref + nt.rows["nn_oof"][rows] - nt.rows["nn_full"][rows])
+    _, post_ins = hierarchical_transfer(ins_rows, fit, level=0.95, seed=0)
+    o = list(post_h.effects).index("O")
+    assert post_h.tau[0, o] > 0.5 and post_h.tau[0, o] > 2 * post_ins.tau[0, list(post_ins.effects).index("O")]
+    # a new session's rows get that model's row-wise transfer sd and nothing else on top of the within-session part
+    c = on.predictor.components(test)
+    same, new = on.predictor.compose(c, new_session=False), on.predictor.compose(c, new_session=True)
+    tau = post_h.transfer_sd_for(fit, test)
+    np.testing.assert_allclose(new.transfer, tau, rtol=1e-12)
+    np.testing.assert_allclose(new.total**2 - same.total**2, tau**2, rtol=1e-9, atol=1e-12)
+    # saved in the calibration: apply predicts the same, with the hybrid's session model
+    import tempfile
+    from pathlib import Path
+
+    from bayesmag._src.app.artifact import load, save_calibration
+    with tempfile.TemporaryDirectory() as tmp:
+        save_calibration(Path(tmp), on.predictor, config={})
+        cal = load(tmp)
+    np.testing.assert_allclose(cal.sessions.w_mean, post_h.w_mean, rtol=1e-12)
+    assert cal.network_transfer_sd is None
+    got = cal.predictor(method="analytic").predict(test)
+    want = on.predictor.predict(test)
+    np.testing.assert_allclose(got.total, want.total, rtol=1e-6)
+    np.testing.assert_allclose(got.transfer, want.transfer, rtol=1e-6)
+
+
+def test_hierarchical_with_the_option_off_is_today(hier):
+    data, test, on, off = hier
+    # off: the physics session model, no network part, no hybrid session model, nothing new in the metrics
+    assert off.predictor.sessions is off.physics.predictor.sessions and off.predictor.network_transfer_sd is None
+    assert not off.hybrid.network_transfer and "transfer_network" not in off.hybrid.training["gaussian"]
+    assert "hybrid_transfer" not in off.timings and "hybrid_transfer" in on.timings
+    # the physics stage and the main network do not depend on the option: with the physics session model put
+    # back, the option's predictor predicts exactly what today's does
+    np.testing.assert_array_equal(on.physics.predictor.sessions.w_mean, off.physics.predictor.sessions.w_mean)
+    back = dataclasses.replace(on.predictor, sessions=on.physics.predictor.sessions)
+    p_back, p_off = back.predict(test), off.predictor.predict(test)
+    np.testing.assert_array_equal(p_back.mean, p_off.mean)
+    np.testing.assert_array_equal(p_back.total, p_off.total)
+
+
+def test_certificate_new_session_U_is_the_hybrids(hier):
+    """Item 6: with the network's new-session part, U for a new session combines the hybrid's within-session parts
+    and the transfer part it adds (recomputed here: Welch-Satterthwaite by its closed form, scipy's t quantile)."""
+    from bayesmag._src.app.report import condition_uncertainties, expanded_uncertainties, uncertainty_budget
+
+    data, test, on, _ = hier
+    p = len(on.fit.model.param_names)
+    per = lambda v: {a: float(x) for a, x in zip("xyz", v)}  # noqa: E731
+    phys = on.physics.prediction
+    m = {"split": {"n_train": data.n}, "transfer": on.physics.transfer.as_dict(),
+         "uq": {"level": 0.95, "mean_aleatoric": per(phys.aleatoric_physics.mean(0)),
+                "residual_term": per(on.physics.residual_sd), "mean_epistemic": per(phys.epistemic_physics.mean(0)),
+                "sigma_in_sd": {"bx": 0.02, "by": 0.02, "bz": 0.02, "T": 0.0}, "sigma_in_source": "auto: x"},
+         "network": {"primary": "gaussian", "fusion": "moment_match", "training": on.hybrid.training}}
+    params = {"n_rows": data.n, "model": {"param_names": list(on.fit.model.param_names)}}
+    ref = 0.01
+    pred = on.hybrid.predictions["gaussian"]                       # the hybrid's parts on the test rows
+    c = np.ones(3) if on.predictor.scale is None else np.asarray(on.predictor.scale)
+    a_nn, e_nn, e_p = (c * np.mean(pred.parts[k], axis=0) for k in ("aleatoric_nn", "epistemic_nn",
+                                                                      "epistemic_physics"))
+    tau = np.sqrt(np.mean(on.predictor.transfer_part(data) ** 2, axis=0))     # RMS over the training rows
+    ex = expanded_uncertainties(m, params, reference_sd=ref)
+    assert ex["new_session_source"] == "hybrid"
+    for k, ax in enumerate("xyz"):
+        u = np.array([a_nn[k], e_nn[k], e_p[k], ref, tau[k]])
+        uc = np.sqrt(np.sum(u**2))
+        nu = uc**4 / (e_p[k] ** 4 / (data.n - p))                 # only the physics epistemic part has finite dof
+        U = scipy.stats.t.ppf(0.975, nu) * uc
+        assert ex["new_session"][ax]["u_c"] == pytest.approx(uc, rel=1e-9)
+        assert ex["new_session"][ax]["U"] == pytest.approx(U, rel=1e-9)
+        assert ex["transfer_sd"][ax] == pytest.approx(tau[k], rel=1e-9)
+        # the same session stays the physics budget's (no transfer, no network)
+        same = np.sqrt(m["uq"]["mean_aleatoric"][ax] ** 2 + m["uq"]["residual_term"][ax] ** 2
+                       + m["uq"]["mean_epistemic"][ax] ** 2 + ref**2)
+        assert ex["same_session"][ax]["u_c"] == pytest.approx(same, rel=1e-9)
+    lines = uncertainty_budget(m, params, reference_sd=ref)
+    row = next(ln for ln in lines if ln.startswith("| **expanded uncertainty U = k u_c, new session"))
+    assert [float(v) for v in row.strip("|").split("|")[3:6]] == pytest.approx(
+        [ex["new_session"][a]["U"] for a in "xyz"], rel=0.05)
+    assert any("hybrid: network aleatoric x c (new session)" in ln for ln in lines)
+    # the corner table: the hybrid's transfer sd at the corners, with the same hybrid within-session parts
+    table = condition_uncertainties(m, params, reference_sd=ref)
+    assert len(table) == 6 and all(r["source"] == "hybrid" for r in table)
+    lo, hi = data.b_meas.min(axis=0), data.b_meas.max(axis=0)
+    corner = CalibrationData(np.array([lo, np.clip(0, lo, hi), hi] * 2), np.repeat([data.temperature.min(),
+                                                                                   data.temperature.max()], 3),
+                             None, np.arange(6.0), np.zeros(6, int))
+    t_c = on.predictor.sessions.transfer_sd_for(on.fit, corner)
+    for i, r in enumerate(table):
+        for k, ax in enumerate("xyz"):
+            uc = np.sqrt(a_nn[k] ** 2 + e_nn[k] ** 2 + e_p[k] ** 2 + ref**2 + t_c[i, k] ** 2)
+            nu = uc**4 / (e_p[k] ** 4 / (data.n - p))
+            assert r["transfer_sd"][ax] == pytest.approx(t_c[i, k], rel=1e-9)
+            assert r["U"][ax] == pytest.approx(scipy.stats.t.ppf(0.975, nu) * uc, rel=1e-9)

@@ -47,7 +47,8 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "uq.transfer_df": ("", 'degrees of freedom of the Student-t transfer likelihood (> 2), or "learned": a posterior '
                            'on a grid 2.5-50 and the Gaussian limit (docs/sessions.md)'),
     "uq.transfer_networks": ("", '"none" | "by_run_folds": the hybrid transfer part adds the residual network\'s own '
-                                 'new-session error, from fold networks that never saw a run (docs/sessions.md)'),
+                                 'new-session error, from fold networks that never saw a run; with the hierarchical '
+                                 'transfer the session model is refitted on their residuals (docs/sessions.md)'),
     "uq.reference_sd": ("uT", "standard uncertainty of the reference magnetometer (one value or per axis)"),
     "network.enabled": ("", "train the residual network (hybrid stage)"),
     "network.likelihoods": ("", "likelihood families, one network each (the first is the primary)"),

@@ -31,7 +31,7 @@ import numpy as np
 
 __all__ = ["write_report", "render_report", "render_html", "welch_satterthwaite", "coverage_factor",
            "parameter_unit", "uncertainty_budget", "fit_statistics", "gum_round", "gum_format",
-           "expanded_uncertainties", "transfer_missing", "condition_uncertainties", "certificate_record", "ReportContext", "SECTIONS"]
+           "expanded_uncertainties", "hybrid_new_session", "transfer_missing", "condition_uncertainties", "certificate_record", "ReportContext", "SECTIONS"]
 
 AXES = ("x", "y", "z")
 
@@ -189,24 +189,64 @@ def transfer_missing(m: dict) -> str | None:
     return None
 
 
+def hybrid_new_session(m: dict) -> dict | None:
+    """The hybrid's new-session budget (``metrics["network"]["training"][primary]["transfer_network"]["new_session"]``,
+    written where ``[uq] transfer_networks`` estimated the network's own new-session part), or None."""
+    net = m.get("network") or {}
+    training = net.get("training") or {}
+    tr = training.get(net.get("primary")) or next(iter(training.values()), None)
+    nt = tr.get("transfer_network") if isinstance(tr, dict) else None
+    block = nt.get("new_session") if isinstance(nt, dict) else None
+    return block if isinstance(block, dict) and block.get("parts") else None
+
+
+def _hybrid_components(m: dict, params: dict, reference_sd, block: dict) -> list[tuple]:
+    """(label, per-axis u, dof) of the hybrid's within-session parts for a new session: every part of its
+    variance times the conformal interval scale ``c`` (network parts: infinite dof, learned from the residuals
+    of all training rows and recalibrated; physics epistemic: ``n - p``), and the reference (Type B)."""
+    n = int(params.get("n_rows") or m["split"]["n_train"])
+    p = len(params["model"]["param_names"])
+    c = block.get("interval_scale") or {a: 1.0 for a in AXES}
+    labels = {"aleatoric_nn": ("hybrid: network aleatoric x c", math.inf),
+              "epistemic_nn": ("hybrid: network epistemic x c", math.inf),
+              "epistemic_physics": ("hybrid: physics epistemic x c", n - p),
+              "aleatoric_physics": ("hybrid: physics aleatoric x c (fusion paper)", n - 1)}
+    out = [(labels[k][0], {a: float(c[a]) * float(v[a]) for a in AXES}, labels[k][1])
+           for k, v in block["parts"].items() if k in labels]
+    return out + [("reference magnetometer", _per_axis_sd(reference_sd), math.inf)]
+
+
 def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0) -> dict:
     """Combined ``u_c``, ``nu_eff``, ``k`` and ``U = k u_c`` per axis for a same-session and a new-session
     recording (the latter with the between-session transfer sd in quadrature, counted with infinite dof:
     it is already an upper confidence bound over the training runs, ``core/predictor.estimate_transfer``).
 
+    Where the run holds the hybrid's new-session budget (:func:`hybrid_new_session`: ``[uq] transfer_networks``,
+    the network's own new-session part estimated), U for a new session is the *hybrid's*, the predictor that
+    ``bayesmag apply`` uses: its within-session parts (:func:`_hybrid_components`) and the transfer sd it adds
+    to a new session (network part included), ``new_session_source`` ``"hybrid"`` (else ``"physics"``).
+
     Returns ``{"level", "same_session": {axis: {u_c, nu_eff, k, U}}, "new_session": {...}, "transfer_sd",
-    "new_session_missing"}``; ``new_session_missing`` (:func:`transfer_missing`) is None, or why the transfer
-    term was not estimated: then ``new_session`` lacks it and understates U for a new session.
+    "new_session_missing", "new_session_source"}``; ``new_session_missing`` (:func:`transfer_missing`) is None,
+    or why the transfer term was not estimated: then ``new_session`` lacks it and understates U for a new session.
     """
     level = m["uq"]["level"]
     comps = _components(m, params, reference_sd)
     tau = _transfer_sd(m)
     out = {"level": level, "transfer_sd": tau, "same_session": {}, "new_session": {},
-           "new_session_missing": transfer_missing(m)}
+           "new_session_missing": transfer_missing(m), "new_session_source": "physics"}
     for a in AXES:
         us, nus = [c[1][a] for c in comps], [c[3] for c in comps]
         for key, extra_u in (("same_session", []), ("new_session", [tau[a]])):
             out[key][a] = _combine(us + extra_u, nus + [math.inf] * len(extra_u), level)
+    block = hybrid_new_session(m)
+    if block is not None and out["new_session_missing"] is None:
+        hc = _hybrid_components(m, params, reference_sd, block)
+        out["transfer_sd"] = {a: float(block["transfer_sd"][a]) for a in AXES}
+        out["new_session_source"] = "hybrid"
+        for a in AXES:
+            out["new_session"][a] = _combine([c[1][a] for c in hc] + [out["transfer_sd"][a]],
+                                             [c[2] for c in hc] + [math.inf], level)
     return out
 
 
@@ -216,6 +256,13 @@ def _combine(uu: list, nn: list, level: float) -> dict:
     nu = welch_satterthwaite(uu, nn)
     k = coverage_factor(nu, level)
     return {"u_c": uc, "nu_eff": nu, "k": k, "U": k * uc}
+
+
+def _network_combined(m: dict) -> bool:
+    """The hybrid's session model was fitted on the out-of-fold hybrid residuals (``network_transfer``)."""
+    net = m.get("network") or {}
+    return any(isinstance(t, dict) and (t.get("transfer_network") or {}).get("combined")
+               for t in (net.get("training") or {}).values())
 
 
 def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None, reference_sd=0.0) -> list[str]:
@@ -265,13 +312,27 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                   "set `[uq] transfer = \"loro\"` (the default). Inside the calibration domain only (section "
                   "Calibration domain)."]
     else:
+        hybrid = ex.get("new_session_source") == "hybrid"
+        if hybrid:              # the new-session U is the hybrid predictor's: its own within-session parts
+            for label, vals, nu in _hybrid_components(m, params, reference_sd, hybrid_new_session(m))[:-1]:
+                lines.append(f"| {label} (new session) | A | {dof(nu)} | " + " | ".join(_u2(vals[a]) for a in AXES)
+                             + " | the hybrid predictor's within-session part (mean over the test rows; c the "
+                               "interval scale) |")
+            how = ("the hybrid's: " + ("hierarchical session model on the out-of-fold hybrid residuals (the "
+                                       "network's own new-session error inside it)"
+                                       if _network_combined(m) else "physics transfer part and the network's own "
+                                       "new-session error in quadrature")
+                   + "; root mean square over the training rows, counted with infinite dof")
         lines.append("| transfer (between sessions; new session only) | A | inf | "
                      + " | ".join(_u2(tau[a]) for a in AXES) + f" | {how} |")
         lines += block("new_session", "new session")
         lines += ["", same_applies + "; **U new session** "
                   f"({' / '.join(_u2(new[a]['U']) for a in AXES)} uT) holds for any later recording, i.e. in the "
                   "field (`bayesmag apply` adds the transfer term to every row of a new recording; column "
-                  "`transfer`). Inside the calibration domain only (section Calibration domain)."]
+                  "`transfer`). Inside the calibration domain only (section Calibration domain)."
+                  + (" U new session is the hybrid predictor's (the one `bayesmag apply` uses): its within-session "
+                     "parts and the transfer part it adds, the residual network's own new-session error included "
+                     "(`[uq] transfer_networks`); U same session is the physics budget's." if hybrid else "")]
     if network_parts:
         lines += ["", "Hybrid stage (residual network), for comparison:", "",
                   "| component | type | x | y | z |", "|---|---|---|---|---|"]
@@ -279,9 +340,10 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
             lines.append(f"| {k_} | A | " + " | ".join(_u2(v[a]) for a in AXES) + " |")
         for name, tr in ((m.get("network") or {}).get("training") or {}).items():
             nt = tr.get("transfer_network") if isinstance(tr, dict) else None
-            if nt and nt.get("sd"):     # [uq] transfer_networks: the hybrid's new-session rows add it in quadrature
-                lines.append(f"| network's own new-session error ({name}; new session only, `transfer_networks`) | A | "
-                             + " | ".join(_u2(nt["sd"][a]) for a in AXES) + " |")
+            if nt and nt.get("sd"):     # [uq] transfer_networks: in the hybrid's new-session transfer part
+                lines.append(f"| network's own new-session error ({name}; new session only, `transfer_networks`"
+                             + ("; inside the hybrid session model, not added again" if nt.get("combined") else "")
+                             + ") | A | " + " | ".join(_u2(nt["sd"][a]) for a in AXES) + " |")
         if m.get("network", {}).get("fusion", "moment_match") == "paper":
             lines += ["", "With the residual network (fusion `paper`), the hybrid's total variance is the paper's "
                       "root-sum-of-squares of physics aleatoric, physics epistemic, network aleatoric and network "
@@ -584,20 +646,26 @@ def condition_uncertainties(m: dict, params: dict, reference_sd=0.0) -> list[dic
     Per condition and axis: :math:`u_c^2 = u_{c,\mathrm{same}}^2 + \tau(x)^2` with the budget's
     same-session :math:`u_c` (mean over the test rows) and the row-dependent transfer sd :math:`\tau(x)` of the
     hierarchical model at that condition (``metrics["transfer"]["per_run"]["conditions"]``), ``k`` by
-    Welch-Satterthwaite with the transfer part at infinite dof, ``U = k u_c``. Returns
-    ``[{"field", "temperature", "transfer_sd", "U"}]`` (``transfer_sd`` and ``U`` per axis, uT).
+    Welch-Satterthwaite with the transfer part at infinite dof, ``U = k u_c``. Where the run holds the hybrid's
+    new-session budget with its conditions (:func:`hybrid_new_session`), the hybrid's: its within-session parts
+    and the transfer sd it adds there. Returns ``[{"field", "temperature", "transfer_sd", "U", "source"}]``
+    (``transfer_sd`` and ``U`` per axis, uT; ``source`` ``"physics"`` or ``"hybrid"``).
     """
     tr = m.get("transfer") or {}
     conds = (tr.get("per_run") or {}).get("conditions") if str(tr.get("method", "")).startswith("hierarchical") else None
     if not conds:
         return []
     level = m["uq"]["level"]
-    comps = _components(m, params, reference_sd)
+    comps = [(c[0], c[1], c[3]) for c in _components(m, params, reference_sd)]
+    hb, source = hybrid_new_session(m), "physics"
+    if hb is not None and hb.get("conditions"):     # the hybrid's new-session U (expanded_uncertainties)
+        conds, comps, source = hb["conditions"], _hybrid_components(m, params, reference_sd, hb), "hybrid"
     out = []
     for c in conds:
-        U = {a: _combine([x[1][a] for x in comps] + [c["transfer_sd"][a]], [x[3] for x in comps] + [math.inf],
+        U = {a: _combine([x[1][a] for x in comps] + [c["transfer_sd"][a]], [x[2] for x in comps] + [math.inf],
                          level)["U"] for a in AXES}
-        out.append({"field": c["field"], "temperature": c["temperature"], "transfer_sd": c["transfer_sd"], "U": U})
+        out.append({"field": c["field"], "temperature": c["temperature"], "transfer_sd": c["transfer_sd"], "U": U,
+                    "source": source})
     return out
 
 
@@ -608,7 +676,11 @@ def condition_table_lines(table: list[dict], level: float) -> list[str]:
              "maximum of the training rows; lowest and highest training temperature), added in quadrature to "
              "the same-session u_c of the budget above (uT). A corner of the per-input ranges may combine inputs "
              "no training row combined (e.g. the highest temperature with a large field): the model's "
-             "extrapolation there is what the large values say.", "",
+             "extrapolation there is what the large values say."
+             + (" Hybrid: the transfer sd the hybrid predictor adds there (its session model on the out-of-fold "
+                "hybrid residuals, or the physics one with the network's own new-session part), added to the "
+                "hybrid's within-session u_c of the budget." if table and table[0].get("source") == "hybrid" else ""),
+             "",
              "| B x / y / z (uT) | T (C) | transfer sd x / y / z | U new session x / y / z |", "|---|---|---|---|"]
     for r in table:
         lines.append(f"| {' / '.join(f'{v:.4g}' for v in r['field'])} | {r['temperature']:.4g} | "
@@ -694,6 +766,11 @@ def transfer_section(m: dict) -> list[str]:
             lines.append(f"> **Warning.** {tr['warning']}")
     else:
         lines.append(f"> **Warning.** {tr['warning']}")
+    hb = hybrid_new_session(m)
+    if hb is not None:          # the saved (hybrid) predictor adds its own transfer part: the budget's U new session
+        lines.append("The saved calibration is the hybrid predictor, and it adds its own transfer sd to a new session "
+                     "(root mean square over the training rows " + " / ".join(_u2(hb["transfer_sd"][a]) for a in AXES)
+                     + " uT; `[uq] transfer_networks`, docs/sessions.md): the budget's U new session is the hybrid's.")
     n_new = tr.get("n_test_rows_new_session", 0)
     lines += ["", f"Test rows from runs not in the training data (they include the transfer part): {n_new}."
               + (" The test rows share sessions with the training rows, so their scores above do not include it."

@@ -106,7 +106,7 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
         hs = stages.run_hybrid_stage(s.network, ps.predictor, ps.uq, data, test, timings, level=s.uq.level,
                                      conformal=s.conformal,
                                      new_session=ps.new_session if test is not None else False, progress=progress,
-                                     transfer_networks=s.uq.transfer_networks)
+                                     transfer_networks=s.uq.transfer_networks, uq_settings=s.uq)
         predictor = hs.predictors[hs.primary]
     if s.nuts is not None:
         t = time.perf_counter()

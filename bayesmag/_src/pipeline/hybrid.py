@@ -63,7 +63,8 @@ from bayesmag._src.core.network import (MCPrediction, NetworkEnsemble, NetworkSp
 from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.physics_uq import PhysicsUQ
 from bayesmag._src.core.predictor import FUSIONS, Components, Prediction, Predictor, compose, network_inputs
-from bayesmag._src.pipeline.network_transfer import NetworkTransfer, fold_domain_mask, network_transfer_sd, run_folds
+from bayesmag._src.pipeline.network_transfer import (NetworkTransfer, fold_domain_mask, hybrid_session_model,
+                                                    network_transfer_sd, new_session_transfer_rows, run_folds)
 from bayesmag._src.pipeline.conformal import conformal_folds, conformal_plan, conformal_quantile, conformal_ratios
 from bayesmag._src.pipeline.settings import ConformalPlan, NetworkSettings
 
@@ -234,7 +235,7 @@ def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
 def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsUQ | None, train: CalibrationData,
                      test: CalibrationData | None, timings: dict[str, float], *, level: float = 0.95,
                      conformal: ConformalPlan | None = None, new_session=False,
-                     progress: bool = False, transfer_networks: str = "none") -> HybridStage:
+                     progress: bool = False, transfer_networks: str = "none", uq_settings=None) -> HybridStage:
     """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them
     (``test`` and ``uq`` None: train only, ``predictions`` and ``alternates`` empty).
 
@@ -258,7 +259,10 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
     (``[uq] transfer_networks``): the network's own new-session error enters the transfer part
     (:mod:`~bayesmag._src.pipeline.network_transfer`; its fold networks train with the others, and
     ``training[name]["transfer_network"]`` reports it); it needs a physics transfer part and 2 runs, else it is
-    skipped. Adds ``timings["network_train"]`` (all networks) and ``["hybrid_inference"]`` (s).
+    skipped. With a hierarchical physics session model and ``uq_settings`` (the :class:`UQSettings`) the
+    hybrid's session model is refitted on the out-of-fold hybrid residuals and replaces physics model + network
+    part (:func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`; ``timings["hybrid_transfer"]``).
+    Adds ``timings["network_train"]`` (all networks) and ``["hybrid_inference"]`` (s).
     """
     if hasattr(settings, "network") and hasattr(settings, "split"):    # the job's Config (the old signature)
         full = settings.settings()
@@ -345,8 +349,18 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             if run_nets:
                 t = time.perf_counter()
                 nt = _network_transfer(pr, train, run_fold, run_nets, level)
-                pr = dataclasses.replace(pr, network_transfer_sd=nt.sd)
                 timings["hybrid_inference"] += time.perf_counter() - t
+                hsm = None
+                if (pr.sessions is not None and uq_settings is not None
+                        and str(uq_settings.transfer).startswith("hierarchical")):
+                    t = time.perf_counter()
+                    hsm = hybrid_session_model(train, fit, nt, uq_settings)
+                    timings["hybrid_transfer"] = timings.get("hybrid_transfer", 0.0) + time.perf_counter() - t
+                if hsm is not None:     # tau_n is inside the out-of-fold residuals: not added again
+                    nt = dataclasses.replace(nt, session_model=hsm[0])
+                    pr = dataclasses.replace(pr, sessions=hsm[1], network_transfer_sd=None)
+                else:
+                    pr = dataclasses.replace(pr, network_transfer_sd=nt.sd)
             networks[name], predictors[name] = net, pr
             if test is not None:
                 t = time.perf_counter()
@@ -363,6 +377,8 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                     training[name][ax]["interval_scale"] = float(pr.scale[a])
             if nt is not None:
                 training[name]["transfer_network"] = nt.as_dict()
+                if test is not None:
+                    training[name]["transfer_network"]["new_session"] = _new_session_budget(pr, preds[name], train)
                 network_transfer[name] = nt
             if net.variance_scale is not None:
                 for a, ax in enumerate(AXES):
@@ -392,6 +408,27 @@ def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarra
     fold_runs = tuple(tuple(np.unique(train.run[run_fold == k]).tolist()) for k in range(len(run_nets)))
     return NetworkTransfer(sd, len(run_nets), fold_runs, rmse(resid - nn_oof), rmse(resid - nn_full), int(inside.sum()),
                            {"nn_oof": nn_oof, "nn_full": nn_full, "resid": resid, "run": train.run, "inside": inside})
+
+
+def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData) -> dict:
+    """The hybrid's new-session budget for the certificate (``app/report.py``): the within-session parts of
+    ``pred`` (mean sd over its rows, the test rows), the interval scale, the transfer sd the hybrid adds to a new
+    session (root mean square over the training rows) and, with a session model, at the training domain's corners."""
+    ax = lambda v: {a: float(x) for a, x in zip(AXES, v)}  # noqa: E731
+    names = ["aleatoric_nn", "epistemic_nn", "epistemic_physics"] + (["aleatoric_physics"] if pred.fusion == "paper"
+                                                                     else [])
+    out = {"parts": {k: ax(np.mean(np.asarray(pred.parts[k], np.float64), axis=0)) for k in names},
+           "interval_scale": ax(np.ones(3) if pr.scale is None else pr.scale),
+           "transfer_sd": ax(np.sqrt(np.mean(new_session_transfer_rows(pr, train) ** 2, axis=0))),
+           "family": pred.family}
+    if pr.sessions is not None:
+        from bayesmag._src.pipeline.sessions.hierarchical import condition_table
+
+        class _Rows:        # the transfer sd the hybrid adds at a row, as condition_table asks a posterior for it
+            transfer_sd_for = staticmethod(lambda fit, rows: new_session_transfer_rows(pr, rows))
+
+        out["conditions"] = condition_table(_Rows(), pr.fit, train)
+    return out
 
 
 def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, level: float, passes: int, *,

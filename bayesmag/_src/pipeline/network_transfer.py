@@ -20,6 +20,16 @@ the training rows, every run weighted equally (the grouped conformal quantile of
 :func:`~bayesmag._src.core.predictor.estimate_transfer`), :func:`network_transfer_sd`. The hybrid predictor
 adds :math:`\tau_n` in quadrature to its transfer part (``Predictor.network_transfer_sd``); rows of the
 training sessions never get it. No chi-square bound is applied (the physics transfer part carries one).
+
+**With the hierarchical transfer** (``[uq] transfer = "hierarchical"``) the two parts are not added: the session
+model is refitted on the *out-of-fold hybrid residuals* :math:`e_i = y_i - f(x_i, \hat\theta) - \mu_{\text{fold}}(x_i)`
+(:func:`hybrid_session_model`), on the training rows inside the other folds' domain. In them the distortion all
+sessions share is removed by networks that learned it from the other runs (the physics-residual model read it as
+session change), while the session's own shift and the network's error on a session it did not see stay (the
+in-sample residuals after the full network lose about half of every training run's shift: the network absorbed
+it). That model's row-wise transfer sd then *replaces* physics session model + :math:`\tau_n` for the hybrid's
+new-session rows: :math:`d` is already inside those residuals, so adding :math:`\tau_n` again would count the
+network's new-session error twice.
 """
 
 from __future__ import annotations
@@ -32,7 +42,8 @@ import scipy.stats
 from bayesmag._src.core.data import AXES
 from bayesmag._src.core.predictor import _weighted_quantile
 
-__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "fold_domain_mask", "grouped_excess_quantile", "network_transfer_sd"]
+__all__ = ["TRANSFER_NETWORKS", "NetworkTransfer", "run_folds", "fold_domain_mask", "grouped_excess_quantile",
+           "network_transfer_sd", "hybrid_residual_rows", "hybrid_session_model", "new_session_transfer_rows"]
 
 #: Values of ``[uq] transfer_networks``.
 TRANSFER_NETWORKS = ("none", "by_run_folds")
@@ -56,12 +67,18 @@ class NetworkTransfer:
     rmse_in_sample: np.ndarray
     rows_in_domain: int = 0
     rows: dict | None = dataclasses.field(default=None, repr=False, compare=False)   # per training row, for benchmarks
+    session_model: object = None    # TransferEstimate of the hybrid session model (hierarchical transfer), or None
 
     def as_dict(self) -> dict:
         ax = lambda v: {a: float(x) for a, x in zip(AXES, v)}  # noqa: E731
-        return {"method": "by_run_folds", "sd": ax(self.sd), "folds": self.folds,
-                "fold_runs": [list(map(int, r)) for r in self.fold_runs], "rows_in_domain": int(self.rows_in_domain),
-                "rmse_out_of_fold": ax(self.rmse_out_of_fold), "rmse_in_sample": ax(self.rmse_in_sample)}
+        out = {"method": "by_run_folds", "sd": ax(self.sd), "folds": self.folds,
+               "fold_runs": [list(map(int, r)) for r in self.fold_runs], "rows_in_domain": int(self.rows_in_domain),
+               "rmse_out_of_fold": ax(self.rmse_out_of_fold), "rmse_in_sample": ax(self.rmse_in_sample)}
+        if self.session_model is not None:      # sd is then reported, not added (it is inside the model's residuals)
+            out["combined"] = "hierarchical_out_of_fold"
+            out["session_model"] = {"residuals": "out-of-fold hybrid (physics residual - fold network)",
+                                    **self.session_model.as_dict()}
+        return out
 
 
 def run_folds(run: np.ndarray, n_folds: int, seed: int) -> tuple[np.ndarray, int]:
@@ -112,3 +129,55 @@ def network_transfer_sd(nn_oof: np.ndarray, nn_full: np.ndarray, run: np.ndarray
     """
     d = np.asarray(nn_oof, np.float64) - np.asarray(nn_full, np.float64)
     return grouped_excess_quantile(d, 0.0, run, level)
+
+
+#: A run enters the hybrid session model with at least this many rows inside the other folds' domain.
+MIN_ROWS_PER_RUN = 2
+
+
+def hybrid_residual_rows(train, nt: NetworkTransfer):
+    r"""The training rows the hybrid session model is fitted on: those inside the other folds' domain, of runs with
+    at least :data:`MIN_ROWS_PER_RUN` of them, with reference :math:`B_{ref} - \mu_{\text{fold}}` (so that the
+    physics residual at the pooled fit is the out-of-fold hybrid residual); None when fewer than 2 runs remain.
+
+    Rows outside are left out, not given the full network's correction: a fold network extrapolating there is
+    not the error a new session inside the domain sees (and the domain check flags such rows of a new session).
+    The AR(1) model then takes the kept rows of a run as consecutive (a run's gaps are not modelled).
+    """
+    keep = np.asarray(nt.rows["inside"], bool).copy()
+    runs, counts = np.unique(train.run[keep], return_counts=True)
+    keep &= np.isin(train.run, runs[counts >= MIN_ROWS_PER_RUN])
+    if np.unique(train.run[keep]).size < 2:
+        return None
+    rows = np.flatnonzero(keep)
+    sub = train.subset(rows)
+    return dataclasses.replace(sub, b_ref=np.asarray(sub.b_ref, np.float64) - nt.rows["nn_oof"][rows])
+
+
+def hybrid_session_model(train, fit, nt: NetworkTransfer, uq):
+    """``(TransferEstimate, SessionPosterior)`` of the hierarchical session model fitted on the out-of-fold hybrid
+    residuals (:func:`hybrid_residual_rows`) with the physics stage's options (``uq``: a
+    :class:`~bayesmag._src.pipeline.settings.UQSettings`, ``transfer`` hierarchical), around the pooled LM ``fit``;
+    None when fewer than 2 runs have rows inside the other folds' domain (then the physics session model and
+    :math:`\\tau_n` are used, as without this model).
+    """
+    from bayesmag._src.pipeline.sessions import hierarchical_transfer
+
+    rows = hybrid_residual_rows(train, nt)
+    if rows is None:
+        return None
+    tr, post = hierarchical_transfer(rows, fit, method="nuts" if uq.transfer.endswith("nuts") else "laplace",
+                                     level=uq.level, seed=uq.seed, likelihood=uq.transfer_likelihood,
+                                     df=uq.transfer_df, uninformed=uq.transfer_uninformed)
+    return (tr, post) if post is not None else None
+
+
+def new_session_transfer_rows(pr, data) -> np.ndarray:
+    """(n, 3) transfer sd a :class:`~bayesmag._src.core.predictor.Predictor` adds to a new session's rows of ``data``
+    (its row-wise session model or constant, with the network part in quadrature, as ``Predictor.compose``)."""
+    n = data.n
+    t = pr.transfer_part(data) if pr.sessions is not None else \
+        np.broadcast_to(np.zeros(3) if pr.transfer_sd is None else np.asarray(pr.transfer_sd, np.float64), (n, 3))
+    if pr.network_transfer_sd is not None and pr.network is not None:
+        t = np.sqrt(np.asarray(t, np.float64) ** 2 + np.asarray(pr.network_transfer_sd, np.float64) ** 2)
+    return np.asarray(t, np.float64)
