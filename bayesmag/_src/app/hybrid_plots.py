@@ -22,6 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from bayesmag._src.app.figure_layout import fixed_layout  # noqa: E402
 from bayesmag._src.core.data import AXES  # noqa: E402
 
 if TYPE_CHECKING:                       # the figure process imports this module without JAX: metrics and
@@ -44,7 +45,7 @@ def uncertainty_vs_temperature(path: Path, temperature: np.ndarray, components: 
         ax.set_title(f"{AXES[a]} axis")
     axes[0].legend(fontsize=7, markerscale=2)
     fig.suptitle(title)
-    fig.tight_layout()
+    fixed_layout(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
