@@ -15,7 +15,8 @@ import numpy as np
 import optax
 
 from bayesmag._src.core.network.spec import DTYPE, MAX_PARAMS_PER_ROW, MIN_VALIDATION_ROWS, NetworkSpec, VALIDATION_KINDS
-from bayesmag._src.core.network.model import Params, apply, embed, fourier_frequencies, init, regularized_nll
+from bayesmag._src.core.network.model import (Params, apply, drop_positions, embed, fourier_frequencies, init,
+                                              regularized_nll, uses_drop_positions)
 from bayesmag._src.core.network.progress import TrainProgress, merged_reporter, progress_bar
 
 __all__ = ['TrainInfo', 'TrainState', 'build_trainer', 'TRAIN_CHUNK_EPOCHS', 'SCAN_UNROLL', 'training_threads', 'Standardizer', 'ResidualNetwork', 'validation_rows', 'check_network_size', 'fit_residual_network']
@@ -92,8 +93,22 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
     bs = spec.batch_size
     lr_min = spec.learning_rate * spec.lr_min_factor
 
-    def loss_fn(params, key, xb, rb, wb):
-        raw = apply(params, xb, key, dropconnect=spec.dropconnect, activation=spec.activation)
+    # DropConnect at the paper's rates: every minibatch's dropped positions of an epoch drawn at once (vmapped
+    # over the step keys: the same bits, so the same masks, as one draw per step), the masks built per step
+    shapes = tuple((a, b) for a, b in zip([spec.n_features] + [spec.width] * spec.hidden_layers,
+                                          [spec.width] * spec.hidden_layers + [spec.n_out]))
+    by_drops = uses_drop_positions(spec.dropconnect)
+    n_weights = sum(a * b for a, b in shapes)
+
+    def step_noise(keys):
+        """What each step's mask is made of: its key, or its dropped positions (drawn here, vmapped)."""
+        return jax.vmap(lambda k: drop_positions(k, n_weights, spec.dropconnect))(keys) if by_drops else keys
+
+    def loss_fn(params, noise, xb, rb, wb):
+        if by_drops:
+            raw = apply(params, xb, dropconnect=spec.dropconnect, activation=spec.activation, dropped=noise)
+        else:
+            raw = apply(params, xb, noise, dropconnect=spec.dropconnect, activation=spec.activation)
         return regularized_nll(spec, raw, rb, wb)
 
     grad_fn = jax.value_and_grad(loss_fn)
@@ -121,7 +136,7 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
         key, k_perm, k_steps = jax.random.split(s.key, 3)
         perm = jax.random.permutation(k_perm, n)
         idx = jnp.concatenate([perm, perm[:pad]]).reshape(n_batches, bs)
-        step_keys = jax.random.split(k_steps, n_batches)
+        step_keys = step_noise(jax.random.split(k_steps, n_batches))
         (params, opt_state), losses = jax.lax.scan(step, (s.params, s.opt_state), (idx, weight, step_keys),
                                                    unroll=SCAN_UNROLL)
         train_loss = jnp.sum(losses) / n
@@ -142,7 +157,7 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
         idx = perm[src].reshape(n_batches_max, bs)
         weight = (p < n_fit).astype(DTYPE).reshape(n_batches_max, bs)
         active = jnp.arange(n_batches_max) < -(-n_fit // bs)
-        step_keys = jax.random.split(k_steps, n_batches_max)   # a prefix is the unpadded epoch's keys
+        step_keys = step_noise(jax.random.split(k_steps, n_batches_max))   # a prefix is the unpadded epoch's keys
 
         def step(carry, batch):
             params, opt_state = carry
