@@ -191,7 +191,7 @@ def residuals_vs_time(time: np.ndarray, run: np.ndarray, residual: np.ndarray, s
     axes[0, 0].legend(fontsize=6, loc="upper right", markerscale=2)
     fig.suptitle(title + " (test rows: dots with +-2 sd band; train rows: crosses)"
                  + ("" if len(all_runs) <= max_runs else f" (first {max_runs} runs)"))
-    fixed_layout(fig, wspace=0.35)   # shared y: tick labels on the first column only
+    fixed_layout(fig, wspace=0.45)   # shared y: tick labels on the first column only
     return fig
 
 
