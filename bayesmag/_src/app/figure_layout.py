@@ -1,9 +1,26 @@
 """Fixed figure margins in inches: the layout :meth:`~matplotlib.figure.Figure.tight_layout` would find for
-this project's figures, without its extra pass over every tick label (a third of a job's figure time)."""
+this project's figures, without its extra pass over every tick label (a third of a job's figure time); and
+``plt``, pyplot on the Agg backend imported at the first figure, not when a plot module is imported (the
+command's process builds the figure tasks without matplotlib; the figure process imported it at its start)."""
 
 from __future__ import annotations
 
-__all__ = ["fixed_layout"]
+__all__ = ["fixed_layout", "plt"]
+
+
+class _Pyplot:
+    """``matplotlib.pyplot`` (Agg backend), imported on first attribute access."""
+
+    def __getattr__(self, name: str):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as pyplot
+
+        return getattr(pyplot, name)
+
+
+plt = _Pyplot()
 
 
 def fixed_layout(fig, *, left: float = 1.0, right: float = 0.2, bottom: float = 0.6, top: float = 0.7,

@@ -16,14 +16,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from bayesmag._src.app.figure_layout import fixed_layout  # noqa: E402
-from bayesmag._src.core.data import AXES  # noqa: E402
+from bayesmag._src.app.figure_layout import fixed_layout, plt  # pyplot (Agg) imported at the first figure
+from bayesmag._src.core.data import AXES
 
 if TYPE_CHECKING:                       # the figure process imports this module without JAX: metrics and
     from bayesmag._src.core.likelihoods import Likelihood      # likelihoods only where PIT values are computed

@@ -4,14 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from bayesmag._src.app.figure_layout import fixed_layout  # noqa: E402
-from bayesmag._src.core.data import AXES  # noqa: E402
+from bayesmag._src.app.figure_layout import fixed_layout, plt  # pyplot (Agg) imported at the first figure
+from bayesmag._src.core.data import AXES
 
 __all__ = ["residual_interval_figure", "residual_histograms", "residuals_vs",
            "residuals_vs_time", "residual_figures", "physics_figures", "residual_histogram_figure",
