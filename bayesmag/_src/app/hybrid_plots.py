@@ -16,13 +16,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from bayesmag._src.core.data import AXES  # noqa: E402
+from bayesmag._src.app.figure_layout import fixed_layout, plt  # pyplot (Agg) imported at the first figure
+from bayesmag._src.core.data import AXES
 
 if TYPE_CHECKING:                       # the figure process imports this module without JAX: metrics and
     from bayesmag._src.core.likelihoods import Likelihood      # likelihoods only where PIT values are computed
@@ -44,7 +41,7 @@ def uncertainty_vs_temperature(path: Path, temperature: np.ndarray, components: 
         ax.set_title(f"{AXES[a]} axis")
     axes[0].legend(fontsize=7, markerscale=2)
     fig.suptitle(title)
-    fig.tight_layout()
+    fixed_layout(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

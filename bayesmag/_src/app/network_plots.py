@@ -5,13 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Mapping
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from bayesmag._src.core.data import AXES  # noqa: E402
+from bayesmag._src.app.figure_layout import fixed_layout, plt  # pyplot (Agg) imported at the first figure
+from bayesmag._src.core.data import AXES
 
 __all__ = ["loss_curves", "loss_curve_task"]
 
@@ -36,7 +33,7 @@ def loss_curves(path: Path, networks: Mapping[str, object], axes: tuple[str, ...
     panels[0][0].set_ylabel("regularised NLL (standardised residual)")
     panels[0][-1].legend(fontsize=7)
     fig.suptitle("Residual network training (dot: epoch of the kept weights)", fontsize=10)
-    fig.tight_layout()
+    fixed_layout(fig)
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -4,13 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from bayesmag._src.core.data import AXES  # noqa: E402
+from bayesmag._src.app.figure_layout import fixed_layout, plt  # pyplot (Agg) imported at the first figure
+from bayesmag._src.core.data import AXES
 
 __all__ = ["residual_interval_figure", "residual_histograms", "residuals_vs",
            "residuals_vs_time", "residual_figures", "physics_figures", "residual_histogram_figure",
@@ -50,7 +47,7 @@ def residual_interval_figure(path: Path, reference: np.ndarray, predicted: np.nd
         ax.set_title(f"{AXES[a]} axis: RMSE {np.sqrt(np.mean(e**2)):.3g} uT, {cov.mean():.1%} covered", fontsize=9)
     axes[0].legend(fontsize=7, loc="upper left")
     fig.suptitle(f"{title} ({level:.0%}; {min(n, max_points)} of {n} test rows drawn)")
-    fig.tight_layout()
+    fixed_layout(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return float(np.mean(covs))
@@ -85,7 +82,7 @@ def draw_calibration_curves(path: Path, curves: dict[str, tuple[np.ndarray, np.n
         ax.set_ylim(0, 1)
     axes[0].legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
+    fixed_layout(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -106,7 +103,7 @@ def pit_figure(path: Path, pits: dict[str, np.ndarray], bins: int = 10,
             ax.set_xlabel("PIT value F(y)")
             ax.set_ylabel("density")
     fig.suptitle(title)
-    fig.tight_layout()
+    fixed_layout(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -124,7 +121,7 @@ def residual_histograms(path: Path, residuals: dict[str, np.ndarray], title: str
         ax.set_title(f"{AXES[a]} axis")
         ax.legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
+    fixed_layout(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -156,7 +153,7 @@ def residuals_vs(x: np.ndarray, residual: np.ndarray, sd: np.ndarray, *, xlabels
             ax.set_ylabel(f"residual B{AXES[a]} (uT)")
     axes[0, 0].legend(fontsize=7, loc="upper right")
     fig.suptitle(title)
-    fig.tight_layout()
+    fixed_layout(fig)
     return fig
 
 
@@ -190,7 +187,7 @@ def residuals_vs_time(time: np.ndarray, run: np.ndarray, residual: np.ndarray, s
     axes[0, 0].legend(fontsize=6, loc="upper right", markerscale=2)
     fig.suptitle(title + " (test rows: dots with +-2 sd band; train rows: crosses)"
                  + ("" if len(all_runs) <= max_runs else f" (first {max_runs} runs)"))
-    fig.tight_layout()
+    fixed_layout(fig, wspace=0.45)   # shared y: tick labels on the first column only
     return fig
 
 

@@ -87,6 +87,7 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
     """
     from bayesmag._src.core.cache import ensure_compile_cache, release_compiled_if_crowded
     from bayesmag._src.core.domain import Domain
+    from bayesmag._src.pipeline.prefetch import start_training
 
     ensure_compile_cache()
     release_compiled_if_crowded()           # a long-lived process must not pass the kernel's mapping limit
@@ -99,15 +100,27 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
     timings: dict[str, float] = {}
     model = s.physics.model(data)
     domain = Domain.from_data(data)
-    ps = stages.run_physics_stage(s.uq, data, test, model, domain, timings, covariance=s.physics.covariance,
-                                  progress=progress)
-    predictor, hs, nuts = ps.predictor, None, None
-    if s.network is not None:
-        hs = stages.run_hybrid_stage(s.network, ps.predictor, ps.uq, data, test, timings, level=s.uq.level,
-                                     conformal=s.conformal,
-                                     new_session=ps.new_session if test is not None else False, progress=progress,
-                                     transfer_networks=s.uq.transfer_networks, uq_settings=s.uq)
-        predictor = hs.predictors[hs.primary]
+    training = []                   # the networks train while the physics stage's uncertainty parts are computed
+
+    def after_fit(fit):
+        if s.network is not None and s.uq.transfer_networks == "none":
+            training.append(start_training(s.network, fit, data, progress=progress))
+
+    try:
+        ps = stages.run_physics_stage(s.uq, data, test, model, domain, timings, covariance=s.physics.covariance,
+                                      progress=progress, after_fit=after_fit)
+        predictor, hs, nuts = ps.predictor, None, None
+        if s.network is not None:
+            hs = stages.run_hybrid_stage(s.network, ps.predictor, ps.uq, data, test, timings, level=s.uq.level,
+                                         conformal=s.conformal,
+                                         new_session=ps.new_session if test is not None else False, progress=progress,
+                                         transfer_networks=s.uq.transfer_networks, uq_settings=s.uq,
+                                         pretrained=training[0] if training else None)
+            predictor = hs.predictors[hs.primary]
+    finally:                        # an error or interrupt meanwhile: stop the training (a no-op once it finished)
+        for t in training:
+            if t is not None:
+                t.cancel()
     if s.nuts is not None:
         t = time.perf_counter()
         nuts = stages.run_nuts_stage(s.nuts, ps.fit, data, progress=progress)

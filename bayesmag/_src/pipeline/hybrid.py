@@ -235,7 +235,8 @@ def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
 def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsUQ | None, train: CalibrationData,
                      test: CalibrationData | None, timings: dict[str, float], *, level: float = 0.95,
                      conformal: ConformalPlan | None = None, new_session=False,
-                     progress: bool = False, transfer_networks: str = "none", uq_settings=None) -> HybridStage:
+                     progress: bool = False, transfer_networks: str = "none", uq_settings=None,
+                     pretrained=None) -> HybridStage:
     """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them
     (``test`` and ``uq`` None: train only, ``predictions`` and ``alternates`` empty).
 
@@ -262,7 +263,9 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
     skipped. With a hierarchical physics session model and ``uq_settings`` (the :class:`UQSettings`) the
     hybrid's session model is refitted on the out-of-fold hybrid residuals and replaces physics model + network
     part (:func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`; ``timings["hybrid_transfer"]``).
-    Adds ``timings["network_train"]`` (all networks) and ``["hybrid_inference"]`` (s).
+    Adds ``timings["network_train"]`` (all networks) and ``["hybrid_inference"]`` (s). ``pretrained``:
+    a :class:`~bayesmag._src.pipeline.prefetch.Training` started on the physics fit, whose networks the plain
+    stage takes instead of training them (the same networks).
     """
     if hasattr(settings, "network") and hasattr(settings, "split"):    # the job's Config (the old signature)
         full = settings.settings()
@@ -319,11 +322,15 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             elif n_folds:
                 nets = train_fold_networks(x_train, r_train, spec, net_cfg, train.run, folds, n_folds,
                                            progress=progress)
+            elif pretrained is not None and name in pretrained:      # trained while the physics stage finished
+                net, train_s = pretrained.network(name)               # (its own time: it overlapped that stage)
+                nets = [net]
             else:
                 nets = [train_network(x_train[fit_idx], r_train[fit_idx], spec, net_cfg, groups=train.run[fit_idx],
                                       progress=progress)]
             net = nets[0]
-            train_s = time.perf_counter() - t
+            if n_run_folds or n_folds or pretrained is None or name not in pretrained:
+                train_s = time.perf_counter() - t
             timings["network_train"] += train_s
             for k, nk in enumerate(nets):
                 nan_messages += _warn_nan(name if k == 0 else f"{name}, conformal fold {k}", nk)

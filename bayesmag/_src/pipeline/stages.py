@@ -65,10 +65,11 @@ class PhysicsStage:
 
 def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: CalibrationData | None,
                       model: PhysicsModel, domain, timings: dict[str, float], *, covariance: str = "white",
-                      progress: bool = False) -> PhysicsStage:
+                      progress: bool = False, after_fit=None) -> PhysicsStage:
     """Fit ``model`` on ``train`` and (when given) predict ``test`` through a :class:`Predictor`.
 
-    Adds ``timings["physics_fit"]``, ``["physics_uq"]`` and ``["transfer"]`` (s).
+    Adds ``timings["physics_fit"]``, ``["physics_uq"]`` and ``["transfer"]`` (s). ``after_fit(fit)``: called
+    once the fit converged, before the uncertainty parts (the hybrid stage starts its training there).
 
     Raises:
         CalibrationError: the Levenberg-Marquardt fit did not converge.
@@ -80,6 +81,8 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
     if not fit.converged:
         raise CalibrationError(f"The Levenberg-Marquardt fit did not converge: {dict(zip(AXES, fit.result))}. "
                                "Check the data for outliers or give a better starting point.")
+    if after_fit is not None:
+        after_fit(fit)
 
     t = time.perf_counter()
     sigma_in, sigma_src = uq_settings.sigma_in_matrix(train)

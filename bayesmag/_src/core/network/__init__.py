@@ -91,7 +91,7 @@ bars), ``train`` (the compiled epoch loop, threads, validation rows, :func:`fit_
 from bayesmag._src.core.network.spec import DTYPE, MAX_PARAMS_PER_ROW, MIN_VALIDATION_ROWS, VALIDATION_KINDS, FOURIER_STREAM, ACTIVATIONS, shape_settings, count_params, LEARN, NetworkSpec  # noqa: F401
 from bayesmag._src.core.network.model import Dense, Params, init, DROP_TAIL, max_drops, keep_masks, drop_connect, apply, fourier_frequencies, embed, head_distribution, regularized_nll  # noqa: F401
 from bayesmag._src.core.network.progress import TrainProgress, progress_bar, merged_reporter, merge_progress  # noqa: F401
-from bayesmag._src.core.network.train import TrainInfo, TrainState, _Trainer, _trainer, build_trainer, TRAIN_CHUNK_EPOCHS, SCAN_UNROLL, _init_axes, _train_chunk, _axis_keys, _train_axes, training_threads, _train_parallel, Standardizer, ResidualNetwork, validation_rows, check_network_size, fit_residual_network  # noqa: F401
+from bayesmag._src.core.network.train import TrainInfo, TrainState, _Trainer, _trainer, build_trainer, TRAIN_CHUNK_EPOCHS, SCAN_UNROLL, _init_axes, _train_chunk, _axis_keys, _train_axes, training_threads, _train_parallel, Standardizer, ResidualNetwork, validation_rows, check_network_size, start_residual_network, fit_residual_network  # noqa: F401
 from bayesmag._src.core.network.ensemble import NetworkEnsemble, ensemble_passes  # noqa: F401
 from bayesmag._src.core.network.infer import MCPrediction, _mc_raw, _mc_passes, _mc_axes, pool_mc, mc_predict, mc_samples  # noqa: F401
 from bayesmag._src.core.network.recalibration import RECALIBRATION_GRID, recalibrate  # noqa: F401
@@ -100,5 +100,5 @@ __all__ = ["Dense", "NetworkSpec", "Standardizer", "TrainInfo", "ResidualNetwork
            "ACTIVATIONS", "MAX_PARAMS_PER_ROW", "MIN_VALIDATION_ROWS", "init", "apply", "drop_connect", "keep_masks", "max_drops",
            "count_params", "fourier_frequencies", "embed", "head_distribution", "regularized_nll", "build_trainer",
            "validation_rows", "TrainProgress", "TRAIN_CHUNK_EPOCHS", "progress_bar", "merge_progress", "merged_reporter", "LEARN", "shape_settings",
-           "check_network_size", "fit_residual_network", "mc_predict", "mc_samples", "recalibrate", "VALIDATION_KINDS",
+           "check_network_size", "start_residual_network", "fit_residual_network", "mc_predict", "mc_samples", "recalibrate", "VALIDATION_KINDS",
            "NetworkEnsemble", "ensemble_passes", "pool_mc"]

@@ -78,13 +78,35 @@ def keep_masks(key: jax.Array, shapes: tuple[tuple[int, ...], ...], rate: float)
     elif rate > 0.125:
         flat = jax.random.bernoulli(key, 1.0 - rate, (n,))
     else:
-        # gaps - 1 ~ Geometric(rate) on {0, 1, ...} by inversion, in float64 where enabled so that
-        # a floor never flips between differently fused programs (the chunked training's invariance)
-        u = jax.random.uniform(key, (max_drops(n, rate),), jnp.float64, minval=jnp.finfo(jnp.float64).tiny)
-        gaps = jnp.minimum(jnp.floor(jnp.log(u) / math.log1p(-rate)), n) + 1   # capped: no int32 overflow
-        dropped = jnp.cumsum(gaps.astype(jnp.int32)) - 1
-        flat = jnp.ones((n,), bool).at[dropped].set(False, mode="drop")
+        return masks_from_drops(drop_positions(key, n, rate), shapes)
+    return _split_flat(flat, shapes)
+
+
+def drop_positions(key: jax.Array, n: int, rate: float) -> jax.Array:
+    """``(max_drops(n, rate),)`` int32: the dropped positions of :func:`keep_masks`' geometric path
+    (``0 < rate <= 1/8``; positions ``>= n`` drop nothing). Drawn apart from the masks so that training can
+    draw every minibatch's positions of an epoch in one vmapped call (:func:`masks_from_drops` per step)."""
+    # gaps - 1 ~ Geometric(rate) on {0, 1, ...} by inversion, in float64 where enabled so that
+    # a floor never flips between differently fused programs (the chunked training's invariance)
+    u = jax.random.uniform(key, (max_drops(n, rate),), jnp.float64, minval=jnp.finfo(jnp.float64).tiny)
+    gaps = jnp.minimum(jnp.floor(jnp.log(u) / math.log1p(-rate)), n) + 1   # capped: no int32 overflow
+    return jnp.cumsum(gaps.astype(jnp.int32)) - 1
+
+
+def masks_from_drops(dropped: jax.Array, shapes: tuple[tuple[int, ...], ...]) -> tuple[jax.Array, ...]:
+    """The boolean keep masks of ``shapes`` with the positions ``dropped`` (:func:`drop_positions`) off."""
+    n = sum(math.prod(shape) for shape in shapes)
+    return _split_flat(jnp.ones((n,), bool).at[dropped].set(False, mode="drop"), shapes)
+
+
+def _split_flat(flat: jax.Array, shapes: tuple[tuple[int, ...], ...]) -> tuple[jax.Array, ...]:
+    sizes = [math.prod(shape) for shape in shapes]
     return tuple(part.reshape(shape) for part, shape in zip(jnp.split(flat, np.cumsum(sizes)[:-1]), shapes))
+
+
+def uses_drop_positions(rate: float) -> bool:
+    """Whether :func:`keep_masks` draws ``rate``'s masks by :func:`drop_positions` (the geometric path)."""
+    return 0.0 < rate <= 0.125
 
 
 
@@ -95,7 +117,11 @@ def drop_connect(params: Params, key: jax.Array, rate: float) -> Params:
     """
     if rate == 0.0:
         return params
-    masks = keep_masks(key, tuple(layer.w.shape for layer in params), rate)
+    return _masked(params, keep_masks(key, tuple(layer.w.shape for layer in params), rate), rate)
+
+
+def _masked(params: Params, masks: tuple[jax.Array, ...], rate: float) -> Params:
+    """``params`` with every weight matrix where ``masks`` keep it, scaled by 1/(1 - rate), else 0."""
     out = []
     for mask, layer in zip(masks, params):
         w = layer.w
@@ -106,12 +132,16 @@ def drop_connect(params: Params, key: jax.Array, rate: float) -> Params:
 
 
 def apply(params: Params, x: jax.Array, key: jax.Array | None = None, *, dropconnect: float = 0.0,
-          activation: str = "relu") -> jax.Array:
+          activation: str = "relu", dropped: jax.Array | None = None) -> jax.Array:
     """Raw head ``(..., n_out)`` for inputs ``x`` ``(..., n_in)``; one DropConnect mask from ``key``.
 
-    ``key=None`` (or ``dropconnect=0``) evaluates the network with its expected weights.
+    ``key=None`` (or ``dropconnect=0``) evaluates the network with its expected weights. ``dropped``
+    instead of ``key``: the mask's dropped positions, drawn beforehand (``drop_positions(key, ...)``: the same
+    mask as ``key`` gives).
     """
-    if key is not None:
+    if dropped is not None:
+        params = _masked(params, masks_from_drops(dropped, tuple(layer.w.shape for layer in params)), dropconnect)
+    elif key is not None:
         params = drop_connect(params, key, dropconnect)
     act = ACTIVATIONS[activation]
     h = x

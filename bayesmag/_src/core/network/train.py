@@ -15,10 +15,11 @@ import numpy as np
 import optax
 
 from bayesmag._src.core.network.spec import DTYPE, MAX_PARAMS_PER_ROW, MIN_VALIDATION_ROWS, NetworkSpec, VALIDATION_KINDS
-from bayesmag._src.core.network.model import Params, apply, embed, fourier_frequencies, init, regularized_nll
+from bayesmag._src.core.network.model import (Params, apply, drop_positions, embed, fourier_frequencies, init,
+                                              regularized_nll, uses_drop_positions)
 from bayesmag._src.core.network.progress import TrainProgress, merged_reporter, progress_bar
 
-__all__ = ['TrainInfo', 'TrainState', 'build_trainer', 'TRAIN_CHUNK_EPOCHS', 'SCAN_UNROLL', 'training_threads', 'Standardizer', 'ResidualNetwork', 'validation_rows', 'check_network_size', 'fit_residual_network']
+__all__ = ['TrainInfo', 'TrainState', 'build_trainer', 'TRAIN_CHUNK_EPOCHS', 'SCAN_UNROLL', 'training_threads', 'Standardizer', 'ResidualNetwork', 'validation_rows', 'check_network_size', 'start_residual_network', 'fit_residual_network']
 
 
 class TrainInfo(NamedTuple):
@@ -92,8 +93,22 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
     bs = spec.batch_size
     lr_min = spec.learning_rate * spec.lr_min_factor
 
-    def loss_fn(params, key, xb, rb, wb):
-        raw = apply(params, xb, key, dropconnect=spec.dropconnect, activation=spec.activation)
+    # DropConnect at the paper's rates: every minibatch's dropped positions of an epoch drawn at once (vmapped
+    # over the step keys: the same bits, so the same masks, as one draw per step), the masks built per step
+    shapes = tuple((a, b) for a, b in zip([spec.n_features] + [spec.width] * spec.hidden_layers,
+                                          [spec.width] * spec.hidden_layers + [spec.n_out]))
+    by_drops = uses_drop_positions(spec.dropconnect)
+    n_weights = sum(a * b for a, b in shapes)
+
+    def step_noise(keys):
+        """What each step's mask is made of: its key, or its dropped positions (drawn here, vmapped)."""
+        return jax.vmap(lambda k: drop_positions(k, n_weights, spec.dropconnect))(keys) if by_drops else keys
+
+    def loss_fn(params, noise, xb, rb, wb):
+        if by_drops:
+            raw = apply(params, xb, dropconnect=spec.dropconnect, activation=spec.activation, dropped=noise)
+        else:
+            raw = apply(params, xb, noise, dropconnect=spec.dropconnect, activation=spec.activation)
         return regularized_nll(spec, raw, rb, wb)
 
     grad_fn = jax.value_and_grad(loss_fn)
@@ -121,7 +136,7 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
         key, k_perm, k_steps = jax.random.split(s.key, 3)
         perm = jax.random.permutation(k_perm, n)
         idx = jnp.concatenate([perm, perm[:pad]]).reshape(n_batches, bs)
-        step_keys = jax.random.split(k_steps, n_batches)
+        step_keys = step_noise(jax.random.split(k_steps, n_batches))
         (params, opt_state), losses = jax.lax.scan(step, (s.params, s.opt_state), (idx, weight, step_keys),
                                                    unroll=SCAN_UNROLL)
         train_loss = jnp.sum(losses) / n
@@ -142,7 +157,7 @@ def _trainer(spec: NetworkSpec) -> _Trainer:
         idx = perm[src].reshape(n_batches_max, bs)
         weight = (p < n_fit).astype(DTYPE).reshape(n_batches_max, bs)
         active = jnp.arange(n_batches_max) < -(-n_fit // bs)
-        step_keys = jax.random.split(k_steps, n_batches_max)   # a prefix is the unpadded epoch's keys
+        step_keys = step_noise(jax.random.split(k_steps, n_batches_max))   # a prefix is the unpadded epoch's keys
 
         def step(carry, batch):
             params, opt_state = carry
@@ -443,6 +458,52 @@ def check_network_size(spec: NetworkSpec, n_fit: int) -> None:
 
 
 
+def start_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
+                           validation_fraction: float | None = None, seed: int | None = None,
+                           validation: str | None = None, groups: np.ndarray | None = None
+                           ) -> Callable[..., ResidualNetwork]:
+    """:func:`fit_residual_network` up to the training, on this thread: the checks, the validation rows, the
+    standardisation and the compilation of the training programs. Returns ``train(progress=False, pool=None)
+    -> ResidualNetwork``, which runs no new compilation and may run on another thread (the hybrid stage trains
+    there while the physics stage finishes: :func:`~bayesmag._src.pipeline.prefetch.start_training`)."""
+    validation_fraction = spec.validation_fraction if validation_fraction is None else validation_fraction
+    seed = spec.seed if seed is None else seed
+    validation = spec.validation if validation is None else validation
+    x = np.asarray(x, np.float64)
+    r = np.asarray(r, np.float64)
+    if x.ndim != 2 or x.shape[1] != spec.n_in:
+        raise ValueError(f"x must have shape (n, {spec.n_in}), got {x.shape}")
+    if r.ndim != 2 or r.shape[0] != x.shape[0]:
+        raise ValueError(f"r must have shape ({x.shape[0]}, A), got {r.shape}")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
+        raise ValueError("x and r must be finite")
+    fit_rows, val_rows = validation_rows(x.shape[0], validation_fraction, seed=seed, kind=validation, groups=groups)
+    check_network_size(spec, fit_rows.size)
+    st = Standardizer.fit(x[fit_rows], r[fit_rows])
+    keys = _axis_keys(seed, r.shape[1])
+    freqs = fourier_frequencies(spec, seed) if spec.fourier_features else None
+    # residuals as NumPy, as _train_parallel takes them: the programs compiled here are the ones it runs
+    arrays = (embed(st.x(x[fit_rows]), freqs), np.asarray(st.r(r[fit_rows])), embed(st.x(x[val_rows]), freqs),
+              np.asarray(st.r(r[val_rows])))
+    _compile_once(spec, keys, *arrays)
+
+    def train(progress: bool | Callable[[TrainProgress], None] = False, pool: Executor | None = None) -> ResidualNetwork:
+        bar = None
+        if progress is True:
+            progress, bar = progress_bar(spec.max_epochs, r.shape[1],
+                                         desc=f"network training ({spec.likelihood}, {r.shape[1]} axes)")
+        try:
+            params, info = _train_parallel(spec, keys, *arrays, progress=progress or None, pool=pool)
+        finally:
+            if bar is not None:
+                bar.close()
+        return ResidualNetwork(spec, params, st, jax.device_get(info), int(fit_rows.size), int(val_rows.size), freqs,
+                               None, val_rows)
+
+    return train
+
+
+
 def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
                          validation_fraction: float | None = None, seed: int | None = None,
                          validation: str | None = None, groups: np.ndarray | None = None,
@@ -461,33 +522,5 @@ def fit_residual_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, *,
     the spec's. ``pool``: an executor the axes train on, shared with other trainings (see
     :func:`_train_parallel`); the result does not depend on it.
     """
-    validation_fraction = spec.validation_fraction if validation_fraction is None else validation_fraction
-    seed = spec.seed if seed is None else seed
-    validation = spec.validation if validation is None else validation
-    x = np.asarray(x, np.float64)
-    r = np.asarray(r, np.float64)
-    if x.ndim != 2 or x.shape[1] != spec.n_in:
-        raise ValueError(f"x must have shape (n, {spec.n_in}), got {x.shape}")
-    if r.ndim != 2 or r.shape[0] != x.shape[0]:
-        raise ValueError(f"r must have shape ({x.shape[0]}, A), got {r.shape}")
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
-        raise ValueError("x and r must be finite")
-    fit_rows, val_rows = validation_rows(x.shape[0], validation_fraction, seed=seed, kind=validation, groups=groups)
-    check_network_size(spec, fit_rows.size)
-    st = Standardizer.fit(x[fit_rows], r[fit_rows])
-    keys = _axis_keys(seed, r.shape[1])
-    freqs = fourier_frequencies(spec, seed) if spec.fourier_features else None
-    bar = None
-    if progress is True:
-        progress, bar = progress_bar(spec.max_epochs, r.shape[1],
-                                     desc=f"network training ({spec.likelihood}, {r.shape[1]} axes)")
-    try:
-        params, info = _train_parallel(spec, keys, embed(st.x(x[fit_rows]), freqs), st.r(r[fit_rows]),
-                                       embed(st.x(x[val_rows]), freqs), st.r(r[val_rows]), progress=progress or None,
-                                       pool=pool)
-    finally:
-        if bar is not None:
-            bar.close()
-    return ResidualNetwork(spec, params, st, jax.device_get(info), int(fit_rows.size), int(val_rows.size), freqs,
-                           None, val_rows)
-
+    return start_residual_network(x, r, spec, validation_fraction=validation_fraction, seed=seed,
+                                  validation=validation, groups=groups)(progress=progress, pool=pool)
