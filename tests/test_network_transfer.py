@@ -285,3 +285,26 @@ def test_certificate_new_session_U_is_the_hybrids(hier):
             nu = uc**4 / (e_p[k] ** 4 / (data.n - p))
             assert r["transfer_sd"][ax] == pytest.approx(t_c[i, k], rel=1e-9)
             assert r["U"][ax] == pytest.approx(scipy.stats.t.ppf(0.975, nu) * uc, rel=1e-9)
+
+
+def test_the_out_of_fold_refit_needs_every_training_run():
+    """The hybrid session model is refitted on out-of-fold residuals only when every training run keeps rows inside
+    the other folds' domain: a run left out (Belsten's run 6, the only one whose temperature varies) would take what
+    only it shows with it, so the physics session model and the network part are used instead (None)."""
+    from types import SimpleNamespace
+
+    from bayesmag._src.pipeline.network_transfer import MIN_ROWS_PER_RUN, hybrid_residual_rows
+
+    d = bayesmag.simulate.simulate(300, design="campaign", seed=3)
+    runs = np.unique(d.run)
+    assert runs.size >= 3
+    nn = np.full((d.n, 3), 0.25)
+    inside = np.ones(d.n, bool)
+    rows = hybrid_residual_rows(d, SimpleNamespace(rows={"inside": inside, "nn_oof": nn}))
+    assert rows is not None and rows.n == d.n
+    np.testing.assert_allclose(rows.b_ref, d.b_ref - 0.25)            # reference less the out-of-fold correction
+    inside[d.run == runs[-1]] = False                                   # one run entirely outside
+    assert hybrid_residual_rows(d, SimpleNamespace(rows={"inside": inside, "nn_oof": nn})) is None
+    inside[:] = True
+    inside[np.flatnonzero(d.run == runs[0])[MIN_ROWS_PER_RUN - 1:]] = False   # one run with too few rows inside
+    assert hybrid_residual_rows(d, SimpleNamespace(rows={"inside": inside, "nn_oof": nn})) is None

@@ -138,7 +138,10 @@ MIN_ROWS_PER_RUN = 2
 def hybrid_residual_rows(train, nt: NetworkTransfer):
     r"""The training rows the hybrid session model is fitted on: those inside the other folds' domain, of runs with
     at least :data:`MIN_ROWS_PER_RUN` of them, with reference :math:`B_{ref} - \mu_{\text{fold}}` (so that the
-    physics residual at the pooled fit is the out-of-fold hybrid residual); None when fewer than 2 runs remain.
+    physics residual at the pooled fit is the out-of-fold hybrid residual); None unless every training run keeps
+    :data:`MIN_ROWS_PER_RUN` rows (a run left out takes what only it shows with it: on Belsten ``paper_hybrid`` run 6,
+    the only run whose temperature varies, has no row inside the other folds' domain, and the refitted model's
+    transfer sd ran to 130-520 uT at the hottest rows; the physics session model and :math:`\tau_n` are used then).
 
     Rows outside are left out, not given the full network's correction: a fold network extrapolating there is
     not the error a new session inside the domain sees (and the domain check flags such rows of a new session).
@@ -147,8 +150,8 @@ def hybrid_residual_rows(train, nt: NetworkTransfer):
     keep = np.asarray(nt.rows["inside"], bool).copy()
     runs, counts = np.unique(train.run[keep], return_counts=True)
     keep &= np.isin(train.run, runs[counts >= MIN_ROWS_PER_RUN])
-    if np.unique(train.run[keep]).size < 2:
-        return None
+    if np.unique(train.run[keep]).size < max(2, np.unique(train.run).size):
+        return None     # a session left out (e.g. the only run that varies temperature): its information would be lost
     rows = np.flatnonzero(keep)
     sub = train.subset(rows)
     return dataclasses.replace(sub, b_ref=np.asarray(sub.b_ref, np.float64) - nt.rows["nn_oof"][rows])
@@ -158,8 +161,8 @@ def hybrid_session_model(train, fit, nt: NetworkTransfer, uq):
     """``(TransferEstimate, SessionPosterior)`` of the hierarchical session model fitted on the out-of-fold hybrid
     residuals (:func:`hybrid_residual_rows`) with the physics stage's options (``uq``: a
     :class:`~bayesmag._src.pipeline.settings.UQSettings`, ``transfer`` hierarchical), around the pooled LM ``fit``;
-    None when fewer than 2 runs have rows inside the other folds' domain (then the physics session model and
-    :math:`\\tau_n` are used, as without this model).
+    None when a training run has too few rows inside the other folds' domain (:func:`hybrid_residual_rows`; then the
+    physics session model and :math:`\\tau_n` are used, as without this model).
     """
     from bayesmag._src.pipeline.sessions import hierarchical_transfer
 
