@@ -11,6 +11,7 @@ import scipy.stats
 import bayesmag
 from bayesmag._src.pipeline.sessions import hierarchical as H
 from test_transfer import _session
+from helpers import tau_grid_posterior
 
 jax.config.update("jax_enable_x64", True)
 
@@ -489,24 +490,7 @@ def test_bimodal_between_session_sd_matches_grid_integration():
     a = 1
     args = tuple(jnp.asarray(x) for x in (st.m0[a], st.m1[a], st.m2[a], st.first[a], st.n, st.effects))
     lp = lambda h: H._collapsed(h, *args, H.TAU_PRIOR_SCALE, H.SIGMA_PRIOR_SCALE, H.REML)[0]  # noqa: E731
-    lt = np.arange(-6.0, 2.5, 0.15)
-    u = np.linspace(-6.0, 6.0, 15)
-    U = jnp.asarray(np.stack(np.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2))
-
-    @jax.jit
-    def log_marginal(t):
-        f = lambda sr: lp(jnp.r_[t, sr])  # noqa: E731
-        x = jax.lax.fori_loop(0, 12, lambda _, x: x - jnp.linalg.solve(jax.hessian(f)(x), jax.grad(f)(x)),
-                              jnp.array([-3.4, 0.9]))
-        L = jnp.linalg.cholesky(jnp.linalg.inv(-jax.hessian(f)(x)))
-        vals = jax.vmap(f)(x + U @ L.T)
-        vals = jnp.where(jnp.isfinite(vals), vals, -jnp.inf)
-        return jax.scipy.special.logsumexp(vals) + jnp.log(jnp.linalg.det(L))
-
-    logm = np.asarray(jax.lax.map(log_marginal, jnp.asarray(lt)))
-    w = np.exp(logm - logm.max())
-    w /= w.sum()
-    tau = np.exp(lt)
+    w, tau = tau_grid_posterior(lp, [-3.4, 0.9], np.arange(-6.0, 2.5, 0.15), np.linspace(-6.0, 6.0, 15))
     e_tau2, p_big = float(w @ tau**2), float(w[tau > 0.3].sum())
     assert 0.5 < p_big < 0.995                      # the reference itself: mass on both sides of 0.3 uT
     post = H.fit_laplace(st, fit.model.param_names, seed=0, mode_search=True)

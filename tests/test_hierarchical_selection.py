@@ -15,6 +15,7 @@ import pytest
 import bayesmag
 from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.pipeline.sessions import hierarchical as H
+from helpers import tau_grid_posterior
 
 jax.config.update("jax_enable_x64", True)
 
@@ -112,24 +113,7 @@ def test_decoupled_posterior_matches_grid_integration():
     fg = (lambda f: lambda h: (float(f(h)[0]), f(h)[1]))(fg)
     found = H._modes(fg, H._init_h(st, a, H.TAU_PRIOR_SCALE), 1, H.TAU_PRIOR_SCALE)
     assert len(found) == 1
-    lt = np.arange(-5.0, 1.5, 0.2)
-    u = np.linspace(-6.0, 6.0, 11)
-    U = jnp.asarray(np.stack(np.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2))
-
-    @jax.jit
-    def log_marginal(t):
-        f = lambda sr: lp(jnp.r_[t, sr])  # noqa: E731
-        x = jax.lax.fori_loop(0, 12, lambda _, x: x - jnp.linalg.solve(jax.hessian(f)(x), jax.grad(f)(x)),
-                              jnp.asarray(found[0][0][1:]))
-        L = jnp.linalg.cholesky(jnp.linalg.inv(-jax.hessian(f)(x)))
-        vals = jax.vmap(f)(x + U @ L.T)
-        return jax.scipy.special.logsumexp(jnp.where(jnp.isfinite(vals), vals, -jnp.inf)) + jnp.log(jnp.linalg.det(L))
-
-    logm = np.asarray(jax.lax.map(log_marginal, jnp.asarray(lt)))
-    logm = np.where(np.isfinite(logm), logm, -np.inf)
-    w = np.exp(logm - logm.max())
-    w /= w.sum()
-    tau = np.exp(lt)
+    w, tau = tau_grid_posterior(lp, found[0][0][1:], np.arange(-5.0, 1.5, 0.2), np.linspace(-6.0, 6.0, 11))
     e_tau2, p_big = float(w @ tau**2), float(w[tau > 0.2].sum())
     post = H.fit_laplace(st, fit.model.param_names, seed=0)
     assert post.w_mean[a, 0] == pytest.approx(e_tau2, rel=0.10)
