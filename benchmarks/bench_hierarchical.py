@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_transfer import GENERATORS as BASE  # noqa: E402
 from test_transfer import _calibrate, _new_sessions, _session, _shifted_params  # noqa: E402
+from helpers import tau_grid_log_marginal  # noqa: E402
 
 import bayesmag  # noqa: E402
 from bayesmag._src.core.simulate import TrueParams  # noqa: E402
@@ -215,26 +216,6 @@ def belsten(args):
                   flush=True)
 
 
-def _grid_marginal(lp, lt, start):
-    """log marginal posterior of log tau on the grid ``lt`` (q = 1): at each tau, Newton to the conditional mode
-    of (log sigma, atanh rho) from ``start``, then a 15 x 15 grid over +-6 conditional sds around it."""
-    import jax
-    import jax.numpy as jnp
-    u = np.linspace(-6.0, 6.0, 15)
-    U = jnp.asarray(np.stack(np.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2))
-
-    @jax.jit
-    def one(t):
-        f = lambda sr: lp(jnp.r_[t, sr])  # noqa: E731
-        x = jax.lax.fori_loop(0, 12, lambda _, x: x - jnp.linalg.solve(jax.hessian(f)(x), jax.grad(f)(x)),
-                              jnp.asarray(start))
-        L = jnp.linalg.cholesky(jnp.linalg.inv(-jax.hessian(f)(x)))
-        vals = jax.vmap(f)(x + U @ L.T)
-        return jax.scipy.special.logsumexp(jnp.where(jnp.isfinite(vals), vals, -jnp.inf)) + jnp.log(jnp.linalg.det(L))
-
-    return np.asarray(jax.lax.map(one, jnp.asarray(lt)))
-
-
 def belsten_tau(args):
     """Belsten, run ``--run`` left out, axis ``--axis``: the posterior of the offset's between-session sd.
 
@@ -294,7 +275,7 @@ def belsten_tau(args):
           f"{cross(np.asarray(full.theta[a])):+.4f}; run {r}'s error against B_x with the five-run fit: slope "
           f"{slope:+.4f}, mean {e.mean():+.3f} uT, sd {e.std():.3f} uT")
     lt = np.arange(-6.0, 2.5, 0.15)
-    logm = _grid_marginal(lambda h: lp(h)[0], lt, found[0][0][1:])
+    logm = tau_grid_log_marginal(lambda h: lp(h)[0], found[0][0][1:], lt, np.linspace(-6.0, 6.0, 15))
     bad = ~np.isfinite(logm)
     if bad.any():    # the conditional Newton failed there: say where, and the lowest finite value, for scale
         print(f"grid: {bad.sum()} non-finite points at log tau {lt[bad].round(2).tolist()}, left out (the finite "

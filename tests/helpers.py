@@ -108,12 +108,13 @@ progress = false
 """
 
 
-def tau_grid_posterior(lp, start, lt, u):
-    """``(weights, tau)`` of a between-session sd on the grid ``log tau = lt``, by numerical integration: the
-    collapsed log posterior ``lp(h)``, ``h = (log tau, log sigma, atanh rho)``, integrated over its other two
-    coordinates at every grid point on a tensor grid ``u x u`` (in sds) around their conditional mode (12 Newton
-    steps from ``start``), scaled by the Laplace covariance there. The independent reference of the session
-    model's Laplace / importance-sampling path (tests/test_hierarchical*.py)."""
+def tau_grid_log_marginal(lp, start, lt, u):
+    """Log marginal posterior (unnormalised, NaN where the Newton step failed) of a between-session sd on the grid
+    ``log tau = lt``, by numerical integration: the collapsed log posterior ``lp(h)``, ``h = (log tau, log sigma,
+    atanh rho)``, integrated over its other two coordinates at every grid point on a tensor grid ``u x u`` (in sds)
+    around their conditional mode (12 Newton steps from ``start``), scaled by the Laplace covariance there. The
+    independent reference of the session model's Laplace / importance-sampling path (tests/test_hierarchical*.py,
+    benchmarks/bench_hierarchical.py belsten_tau)."""
     u = np.asarray(u, np.float64)
     grid = jnp.asarray(np.stack(np.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2))
 
@@ -126,7 +127,12 @@ def tau_grid_posterior(lp, start, lt, u):
         vals = jax.vmap(f)(x + grid @ L.T)
         return jax.scipy.special.logsumexp(jnp.where(jnp.isfinite(vals), vals, -jnp.inf)) + jnp.log(jnp.linalg.det(L))
 
-    logm = np.asarray(jax.lax.map(log_marginal, jnp.asarray(lt)))
+    return np.asarray(jax.lax.map(log_marginal, jnp.asarray(lt)))
+
+
+def tau_grid_posterior(lp, start, lt, u):
+    """``(weights, tau)`` on the grid ``log tau = lt`` (:func:`tau_grid_log_marginal`, non-finite points left out)."""
+    logm = tau_grid_log_marginal(lp, start, lt, u)
     logm = np.where(np.isfinite(logm), logm, -np.inf)
     w = np.exp(logm - logm.max())
     return w / w.sum(), np.exp(lt)

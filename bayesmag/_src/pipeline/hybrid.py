@@ -130,6 +130,11 @@ def train_network(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, net_cfg: Netw
     """
     net = fit_residual_network(x, r, spec, validation_fraction=net_cfg.validation_fraction, seed=net_cfg.seed,
                                validation=net_cfg.validation, groups=groups, progress=progress, pool=pool)
+    return recalibrated(net, x, r, net_cfg)
+
+
+def recalibrated(net: ResidualNetwork, x: np.ndarray, r: np.ndarray, net_cfg: NetworkSettings) -> ResidualNetwork:
+    """``net`` with its MC variances recalibrated on its validation rows of ``(x, r)`` when the settings ask."""
     if net_cfg.recalibrate:
         net = recalibrate(net, x[net.val_rows], r[net.val_rows], passes=net_cfg.mc_passes, seed=net_cfg.seed)
     return net
@@ -313,7 +318,7 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             if bar is not None:
                 bar.set_postfix_str(f"training {name}")
             t = time.perf_counter()
-            run_nets = []
+            run_nets, own_s = [], None
             if n_run_folds:                  # every network of this likelihood on one pool of threads
                 main = [folds == k for k in range(max(n_folds, 1))]
                 nets = train_networks_excluding(x_train, r_train, spec, net_cfg, train.run,
@@ -323,14 +328,13 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                 nets = train_fold_networks(x_train, r_train, spec, net_cfg, train.run, folds, n_folds,
                                            progress=progress)
             elif pretrained is not None and name in pretrained:      # trained while the physics stage finished
-                net, train_s = pretrained.network(name)               # (its own time: it overlapped that stage)
+                net, own_s = pretrained.network(name)                 # (its own time: it overlapped that stage)
                 nets = [net]
             else:
                 nets = [train_network(x_train[fit_idx], r_train[fit_idx], spec, net_cfg, groups=train.run[fit_idx],
                                       progress=progress)]
             net = nets[0]
-            if n_run_folds or n_folds or pretrained is None or name not in pretrained:
-                train_s = time.perf_counter() - t
+            train_s = own_s if own_s is not None else time.perf_counter() - t
             timings["network_train"] += train_s
             for k, nk in enumerate(nets):
                 nan_messages += _warn_nan(name if k == 0 else f"{name}, conformal fold {k}", nk)

@@ -17,9 +17,10 @@ import time
 from typing import Callable
 
 from bayesmag._src.core.data import CalibrationData
-from bayesmag._src.core.network import ResidualNetwork, recalibrate, start_residual_network
+from bayesmag._src.core.network import NetworkSpec, ResidualNetwork, start_residual_network
 from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.predictor import network_inputs
+from bayesmag._src.pipeline.hybrid import check_network_config, recalibrated
 from bayesmag._src.pipeline.settings import NetworkSettings
 
 __all__ = ["Training", "start_training"]
@@ -33,18 +34,19 @@ class Training:
     """Networks training on a background thread: :meth:`network` waits for one, :meth:`cancel` stops them all
     at their next chunk of epochs (an error or interrupt before the hybrid stage took them)."""
 
-    def __init__(self, starts: list[tuple[str, Callable[..., ResidualNetwork]]], settings: NetworkSettings,
+    def __init__(self, starts: list[tuple[NetworkSpec, Callable[..., ResidualNetwork]]], settings: NetworkSettings,
                  x, r, progress: bool):
         self._settings, self._x, self._r = settings, x, r
         self._cancel = threading.Event()
-        self._done = {name: threading.Event() for name, _ in starts}
+        self._done = {spec.likelihood: threading.Event() for spec, _ in starts}
         self._result: dict[str, tuple] = {}
         self._thread = threading.Thread(target=self._run, args=(starts, progress), name="bayesmag-prefetch",
                                         daemon=True)
         self._thread.start()
 
     def _run(self, starts, progress: bool) -> None:
-        for name, train in starts:
+        for spec, train in starts:
+            name = spec.likelihood
             t = time.perf_counter()
             try:
                 if self._cancel.is_set():
@@ -52,7 +54,6 @@ class Training:
                 bar_update, bar = None, None
                 if progress:
                     from bayesmag._src.core.network import progress_bar
-                    spec = train.spec
                     bar_update, bar = progress_bar(spec.max_epochs, self._r.shape[1],
                                                    desc=f"network training ({spec.likelihood}, {self._r.shape[1]} axes)")
 
@@ -77,10 +78,7 @@ class Training:
         net, err, seconds = self._result[name]
         if err is not None:
             raise err
-        s = self._settings
-        if s.recalibrate:
-            net = recalibrate(net, self._x[net.val_rows], self._r[net.val_rows], passes=s.mc_passes, seed=s.seed)
-        return net, seconds
+        return recalibrated(net, self._x, self._r, self._settings), seconds
 
     def __contains__(self, name: str) -> bool:
         return name in self._done
@@ -95,8 +93,6 @@ def start_training(settings: NetworkSettings, fit, train: CalibrationData, *, pr
     """Start the plain hybrid stage's networks (one per likelihood) on a background thread, or None where the
     stage trains other networks too (cross-conformal or by-run folds) or where the settings or data would fail
     (the hybrid stage then reports it as before)."""
-    from bayesmag._src.pipeline.hybrid import check_network_config
-
     if settings.interval_calibration == "conformal":
         return None
     try:
@@ -105,10 +101,9 @@ def start_training(settings: NetworkSettings, fit, train: CalibrationData, *, pr
         r = train.b_ref - fit.predict(inputs_from_data(train))
         starts = []
         for spec in specs:
-            go = start_residual_network(x, r, spec, validation_fraction=settings.validation_fraction,
-                                        seed=settings.seed, validation=settings.validation, groups=train.run)
-            go.spec = spec
-            starts.append((spec.likelihood, go))
+            starts.append((spec, start_residual_network(x, r, spec, validation_fraction=settings.validation_fraction,
+                                                        seed=settings.seed, validation=settings.validation,
+                                                        groups=train.run)))
     except Exception:
         return None
     return Training(starts, settings, x, r, progress)
