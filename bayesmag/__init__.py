@@ -39,12 +39,48 @@ def _started_as_command() -> bool:
 if _started_as_command() and "numpy" not in _sys.modules:
     _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+
+
+def _lapack_pool_deadlocks() -> bool:
+    """Whether the installed jaxlib splits a batched LAPACK call (a vmapped Cholesky or triangular solve) over
+    its intra-op thread pool and blocks a pool thread until the pieces finish: 0.10.x and 0.11.0 (the path is
+    in the 0.10.0 source and compiled out of open-source builds from 0.11.1). When as many such calls run at
+    once as the pool has threads, every thread waits for pieces no thread is left to run: the process hangs
+    for good (two on this 2-core machine; CI hung 90 minutes in tests/test_hierarchical.py)."""
+    try:
+        from importlib.metadata import version
+        major, minor, patch = (int("".join(c for c in p if c.isdigit()) or 0) for p in version("jaxlib").split(".")[:3])
+    except Exception:
+        return False
+    return (major, minor) == (0, 10) or (major, minor, patch) == (0, 11, 0)
+
+
+#: Whether ``import bayesmag`` sized JAX's CPU thread pool to one thread and made its CPU computations run on the
+#: calling thread (``BAYESMAG_CPU_THREADS=default`` keeps JAX's own settings). Done only for the jaxlib releases
+#: of :func:`_lapack_pool_deadlocks`, only if no ``PJRT_NPROC``/``NPROC`` is set, and only before JAX creates its
+#: CPU client (it reads both once). With one pool thread a batched LAPACK call runs in one piece on the thread
+#: that calls it; inline computations keep the network axes, trained on their own Python threads, on both
+#: cores (with JAX's asynchronous dispatch they would queue for the one pool thread).
+def _cpu_client_created() -> bool:
+    xb = _sys.modules.get("jax._src.xla_bridge")
+    return bool(getattr(xb, "_backends", None))
+
+
+CPU_POOL_AT_IMPORT = (_os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower() != "default"
+                      and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC"))
+                      and not _cpu_client_created() and _lapack_pool_deadlocks())
+
 import jax as _jax  # noqa: E402
+
+if CPU_POOL_AT_IMPORT:
+    _os.environ["PJRT_NPROC"] = "1"
+    _jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 #: Whether ``import bayesmag`` switched JAX to float64 (``BAYESMAG_ENABLE_X64`` not "0").
 X64_AT_IMPORT = _os.environ.get("BAYESMAG_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no", "off")
 if X64_AT_IMPORT:
     _jax.config.update("jax_enable_x64", True)
+
 
 
 class Float64Warning(UserWarning):

@@ -80,6 +80,52 @@ def test_choice_lists_come_from_the_library():
         del network.ACTIVATIONS["swish"]
 
 
+# Four independent vmapped triangular solves in one program, each large enough for jaxlib 0.10.2 to split its
+# batch over the CPU thread pool: with two pool threads both block waiting for pieces nobody runs (hangs 4 of 4
+# times on the 2-core CI machine with JAX's own thread settings).
+_POOL_DEADLOCK = """
+import jax, jax.numpy as jnp
+import bayesmag
+from jax.scipy.linalg import solve_triangular
+def g(A, b):
+    outs = [jax.vmap(lambda a, c: solve_triangular(a, c, lower=True))(jnp.tanh(A * (k + 1)) + 5 * jnp.eye(8), b * k)
+            for k in range(4)]
+    return sum(o.sum() for o in outs)
+f = jax.jit(g)
+A, b = jnp.tril(jnp.ones((4000, 8, 8))), jnp.ones((4000, 8, 3))
+for i in range(300):
+    f(A + i, b).block_until_ready()
+print(bayesmag.CPU_POOL_AT_IMPORT)
+"""
+
+
+@pytest.mark.parametrize("setting", ["", "default"])
+def test_import_keeps_batched_lapack_from_deadlocking_the_cpu_pool(setting):
+    """`import bayesmag` (before JAX's CPU client exists) sizes the pool to one thread where jaxlib splits batched
+    LAPACK calls over it (bayesmag/__init__.py): 300 runs of a program of four concurrent batched triangular solves
+    finish (about 2 s). With BAYESMAG_CPU_THREADS=default (JAX's own pool of one thread per core) the same program
+    hangs on a 2-core machine; checked only where the pool has exactly two threads and jaxlib has the split."""
+    import os
+    import subprocess
+    import sys
+
+    import bayesmag
+    env = {**os.environ, "BAYESMAG_CPU_THREADS": setting, "JAX_PLATFORMS": "cpu"}
+    env.pop("PJRT_NPROC", None)
+    env.pop("NPROC", None)
+    if not setting:
+        out = subprocess.run([sys.executable, "-c", _POOL_DEADLOCK], env=env, capture_output=True, text=True,
+                             timeout=240)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.split()[-1] == str(bayesmag._lapack_pool_deadlocks())
+        return
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if cores != 2 or not bayesmag._lapack_pool_deadlocks():
+        pytest.skip("the contrast is checked on 2-core machines with a jaxlib that splits LAPACK batches")
+    with pytest.raises(subprocess.TimeoutExpired):
+        subprocess.run([sys.executable, "-c", _POOL_DEADLOCK], env=env, capture_output=True, text=True, timeout=20)
+
+
 def test_float64_opt_out_leaves_the_callers_jax_state_alone():
     """BAYESMAG_ENABLE_X64=0: importing bayesmag keeps JAX in float32; enable_x64() scopes float64 and
     restores the caller's setting; a float64 entry point run in float32 warns."""
