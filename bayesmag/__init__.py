@@ -40,7 +40,6 @@ if _started_as_command() and "numpy" not in _sys.modules:
     _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-
 def _lapack_pool_deadlocks() -> bool:
     """Whether the installed jaxlib splits a batched LAPACK call (a vmapped Cholesky or triangular solve) over
     its intra-op thread pool and blocks a pool thread until the pieces finish: 0.10.x and 0.11.0 (the path is
@@ -55,17 +54,18 @@ def _lapack_pool_deadlocks() -> bool:
     return (major, minor) == (0, 10) or (major, minor, patch) == (0, 11, 0)
 
 
-#: Whether ``import bayesmag`` sized JAX's CPU thread pool to one thread and made its CPU computations run on the
-#: calling thread (``BAYESMAG_CPU_THREADS=default`` keeps JAX's own settings). Done only for the jaxlib releases
-#: of :func:`_lapack_pool_deadlocks`, only if no ``PJRT_NPROC``/``NPROC`` is set, and only before JAX creates its
-#: CPU client (it reads both once). With one pool thread a batched LAPACK call runs in one piece on the thread
-#: that calls it; inline computations keep the network axes, trained on their own Python threads, on both
-#: cores (with JAX's asynchronous dispatch they would queue for the one pool thread).
 def _cpu_client_created() -> bool:
+    """Whether JAX has created its backends (after which the pool size and the dispatch mode are fixed)."""
     xb = _sys.modules.get("jax._src.xla_bridge")
     return bool(getattr(xb, "_backends", None))
 
 
+#: Whether ``import bayesmag`` sized JAX's CPU thread pool to one thread (``PJRT_NPROC=1``) and made its CPU
+#: computations run on the calling thread (``BAYESMAG_CPU_THREADS=default`` keeps JAX's own settings). Done only
+#: for the jaxlib releases of :func:`_lapack_pool_deadlocks`, only if no ``PJRT_NPROC``/``NPROC`` is set, and only
+#: before JAX creates its CPU client (it reads both once). With one pool thread a batched LAPACK call runs in one
+#: piece. The cost: one core per computation, and the network axes, trained on threads, take turns on the one
+#: pool thread (second run of paper_hybrid 9.9 -> 13.8 s on 2 cores, docs/benchmarks.md).
 CPU_POOL_AT_IMPORT = (_os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower() != "default"
                       and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC"))
                       and not _cpu_client_created() and _lapack_pool_deadlocks())
@@ -80,7 +80,6 @@ if CPU_POOL_AT_IMPORT:
 X64_AT_IMPORT = _os.environ.get("BAYESMAG_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no", "off")
 if X64_AT_IMPORT:
     _jax.config.update("jax_enable_x64", True)
-
 
 
 class Float64Warning(UserWarning):
