@@ -75,6 +75,12 @@ import jax as _jax  # noqa: E402
 if CPU_POOL_AT_IMPORT:
     _os.environ["PJRT_NPROC"] = "1"
     _jax.config.update("jax_cpu_enable_async_dispatch", False)
+elif (_cpu_client_created() and _os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower() != "default"
+      and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC")) and _lapack_pool_deadlocks()):
+    _warnings.warn("JAX's CPU client was created before `import bayesmag`, with JAX's own thread pool: with this "
+                   "jaxlib, batched linear algebra (the hierarchical session model, NUTS) can hang for good. Import "
+                   "bayesmag before running any JAX computation, or set PJRT_NPROC=1 before starting Python "
+                   "(BAYESMAG_CPU_THREADS=default silences this).", RuntimeWarning, stacklevel=2)
 
 #: Whether ``import bayesmag`` switched JAX to float64 (``BAYESMAG_ENABLE_X64`` not "0").
 X64_AT_IMPORT = _os.environ.get("BAYESMAG_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no", "off")

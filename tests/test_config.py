@@ -126,6 +126,30 @@ def test_import_keeps_batched_lapack_from_deadlocking_the_cpu_pool(setting):
         subprocess.run([sys.executable, "-c", _POOL_DEADLOCK], env=env, capture_output=True, text=True, timeout=20)
 
 
+def test_import_after_jax_ran_warns_that_the_pool_cannot_be_sized():
+    """JAX computed before `import bayesmag`: its pool is fixed, so bayesmag cannot size it and says so (naming
+    the fix), where the installed jaxlib has the hang; nothing is said with PJRT_NPROC set."""
+    import os
+    import subprocess
+    import sys
+
+    import bayesmag
+    code = """
+import warnings, jax.numpy as jnp
+jnp.ones(2).sum().block_until_ready()
+with warnings.catch_warnings(record=True) as w:
+    warnings.simplefilter("always")
+    import bayesmag
+print(bayesmag.CPU_POOL_AT_IMPORT, any("PJRT_NPROC=1" in str(x.message) for x in w))
+"""
+    for nproc, want in (("", str(bayesmag._lapack_pool_deadlocks())), ("2", "False")):
+        env = {**os.environ, "JAX_PLATFORMS": "cpu", "BAYESMAG_CPU_THREADS": "", "PJRT_NPROC": nproc}
+        env.pop("NPROC", None)
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.split() == ["False", want], (nproc, out.stdout)
+
+
 def test_float64_opt_out_leaves_the_callers_jax_state_alone():
     """BAYESMAG_ENABLE_X64=0: importing bayesmag keeps JAX in float32; enable_x64() scopes float64 and
     restores the caller's setting; a float64 entry point run in float32 warns."""
