@@ -66,17 +66,17 @@ def _cpu_client_created() -> bool:
 #: before JAX creates its CPU client (it reads both once). With one pool thread a batched LAPACK call runs in one
 #: piece. The cost: one core per computation, and the network axes, trained on threads, take turns on the one
 #: pool thread (second run of paper_hybrid 9.9 -> 13.8 s on 2 cores, docs/benchmarks.md).
-CPU_POOL_AT_IMPORT = (_os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower() != "default"
-                      and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC"))
-                      and not _cpu_client_created() and _lapack_pool_deadlocks())
+_POOL_NEEDS_ONE_THREAD = (_os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower() != "default"
+                          and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC"))
+                          and _lapack_pool_deadlocks())
+CPU_POOL_AT_IMPORT = _POOL_NEEDS_ONE_THREAD and not _cpu_client_created()
 
 import jax as _jax  # noqa: E402
 
 if CPU_POOL_AT_IMPORT:
     _os.environ["PJRT_NPROC"] = "1"
     _jax.config.update("jax_cpu_enable_async_dispatch", False)
-elif (_cpu_client_created() and _os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower() != "default"
-      and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC")) and _lapack_pool_deadlocks()):
+elif _POOL_NEEDS_ONE_THREAD:         # but JAX's CPU client exists already: too late to size its pool
     _warnings.warn("JAX's CPU client was created before `import bayesmag`, with JAX's own thread pool: with this "
                    "jaxlib, batched linear algebra (the hierarchical session model, NUTS) can hang for good. Import "
                    "bayesmag before running any JAX computation, or set PJRT_NPROC=1 before starting Python "
