@@ -99,3 +99,26 @@ def test_fold_networks_are_not_prefetched(split, monkeypatch, net, transfer_netw
     run = calibrate(train, s, test=test)
     assert run.hybrid is not None
     assert got == ([None] if asked else [])
+
+
+def test_on_physics_hears_the_physics_stage_before_the_hybrid_stage_and_changes_nothing(split, monkeypatch):
+    """``calibrate(on_physics=)`` (the command line queues the physics figures there, drawn while the networks
+    train): called once, with the run's own physics stage, before the hybrid stage starts; a callback that runs
+    JAX work of its own (as the figures' columns do) leaves the run bit-identical."""
+    train, test = split
+    order = []
+    real = stages.run_hybrid_stage
+    monkeypatch.setattr(stages, "run_hybrid_stage", lambda *a, **k: order.append("hybrid") or real(*a, **k))
+    heard = []
+
+    def on_physics(ps):
+        order.append("physics")
+        heard.append(ps)
+        np.asarray(ps.prediction.interval(0.95)[0])      # JAX work on this thread while the networks train
+
+    run = calibrate(train, _settings(), test=test, on_physics=on_physics)
+    assert order == ["physics", "hybrid"] and heard[0] is run.physics
+    plain = calibrate(train, _settings(), test=test)
+    for a, b in zip(_leaves(run), _leaves(plain)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(run.prediction.total, plain.prediction.total)

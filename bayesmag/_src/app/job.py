@@ -175,30 +175,32 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
 
     from bayesmag._src.pipeline.calibrate import calibrate
     from bayesmag._src.pipeline.hybrid import NetworkSizeError
+
+    def physics_figures(ps) -> None:
+        """The physics figures as tasks, queued as soon as the physics stage is done: the figure process draws
+        them while the networks train (one pool thread: the other core is free), this one goes on."""
+        from bayesmag._src.app import plots
+        lo, hi = ps.prediction.interval(cfg.uq.level)
+        physics_columns = {"reference": test.b_ref, "predicted": ps.uq.mean, "lower": lo, "upper": hi,
+                           "total": ps.prediction.total}      # the columns they show, as job_metrics makes them
+        tasks = plots.physics_figure_tasks(test, physics_columns, {
+            "train": train, "train_residual": train.b_ref - ps.fit.predict(inputs_from_data(train)),
+            "pit": M.pit(ps.prediction.dist, test.b_ref), "level": cfg.uq.level})
+        for draw, args, kwargs in plots.by_cost(tasks):     # the most expensive first
+            figs.submit(draw, *args, **kwargs)
+
     try:
-        run = calibrate(train, settings, test=test, progress=progress)
+        run = calibrate(train, settings, test=test, progress=progress,
+                        on_physics=physics_figures if cfg.output.figures else None)
     except NetworkSizeError as e:
         raise config_error(e, "network", cfg.network.table()) from None
     timings = {"load": load_s, **run.timings}
-    if cfg.output.figures:
-        from bayesmag._src.app import plots
-        # after the training, not during it (its threads keep both cores of a 2-core machine busy): every
-        # figure is a task, drawn by the figure process and this one from one queue, the most expensive first;
-        # the physics figures at once (the columns they show, as job_metrics makes them), so that the figure
-        # process draws them while this one scores the run
-        ps = run.physics
-        lo, hi = ps.prediction.interval(cfg.uq.level)
-        physics_columns = {"reference": test.b_ref, "predicted": ps.uq.mean, "lower": lo, "upper": hi,
-                           "total": ps.prediction.total}
-        tasks = plots.physics_figure_tasks(test, physics_columns, {
-            "train": train, "train_residual": train.b_ref - run.fit.predict(inputs_from_data(train)),
-            "pit": M.pit(ps.prediction.dist, test.b_ref), "level": cfg.uq.level})
-        for draw, args, kwargs in plots.by_cost(tasks):
-            figs.submit(draw, *args, **kwargs)
+    ps = run.physics
     metrics, columns = job_metrics(cfg, run, data, split, test)
 
     writers: list = []              # writer(staging_dir) for stage files, called in the staging folder
     if cfg.output.figures:
+        from bayesmag._src.app import plots
         tasks = []
         if run.hybrid is not None:
             from bayesmag._src.app.hybrid_outputs import hybrid_figure_tasks

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -60,7 +60,8 @@ class CalibrationRun:
 
 
 def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None, *,
-              test: CalibrationData | None = None, progress: bool = False) -> CalibrationRun:
+              test: CalibrationData | None = None, progress: bool = False,
+              on_physics: Callable[[PhysicsStage], None] | None = None) -> CalibrationRun:
     """Calibrate on the rows ``data`` (with a reference) and, when given, predict the ``test`` rows.
 
     Args:
@@ -69,6 +70,9 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
         PS-QMC uncertainty, T0 the training mean).
       test: held-out rows to predict (their predictions are in the stages and :attr:`CalibrationRun.prediction`).
       progress: progress bars.
+      on_physics: called with the :class:`PhysicsStage` as soon as it is done, before the hybrid stage (whose
+        networks may still be training): e.g. the command line draws the physics figures meanwhile. What it
+        does cannot change the result.
 
     Returns:
       a frozen :class:`CalibrationRun`.
@@ -109,6 +113,8 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
     try:
         ps = stages.run_physics_stage(s.uq, data, test, model, domain, timings, covariance=s.physics.covariance,
                                       progress=progress, after_fit=after_fit)
+        if on_physics is not None:
+            on_physics(ps)
         predictor, hs, nuts = ps.predictor, None, None
         if s.network is not None:
             hs = stages.run_hybrid_stage(s.network, ps.predictor, ps.uq, data, test, timings, level=s.uq.level,
