@@ -60,16 +60,23 @@ def _cpu_client_created() -> bool:
     return bool(getattr(xb, "_backends", None))
 
 
+#: ``BAYESMAG_CPU_THREADS``: unset (default) lowers batched LAPACK calls one matrix at a time where the jaxlib would
+#: deadlock (:mod:`bayesmag._src.core.lapack_guard`); ``"one"`` sizes JAX's CPU pool to one thread instead (the fix
+#: before; one core per computation); ``"default"`` leaves JAX as it is (and the hang possible with those jaxlibs).
+_CPU_THREADS = _os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower()
+_JAXLIB_SPLITS = _CPU_THREADS != "default" and _lapack_pool_deadlocks()
+_POOL_NEEDS_ONE_THREAD = (_JAXLIB_SPLITS and _CPU_THREADS == "one"
+                          and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC")))
 #: Whether ``import bayesmag`` sized JAX's CPU thread pool to one thread (``PJRT_NPROC=1``) and made its CPU
-#: computations run on the calling thread (``BAYESMAG_CPU_THREADS=default`` keeps JAX's own settings). Done only
-#: for the jaxlib releases of :func:`_lapack_pool_deadlocks`, only if no ``PJRT_NPROC``/``NPROC`` is set, and only
-#: before JAX creates its CPU client (it reads both once). With one pool thread a batched LAPACK call runs in one
-#: piece. The cost: one core per computation, and the network axes, trained on threads, take turns on the one
-#: pool thread (second run of paper_hybrid 9.9 -> 13.8 s on 2 cores, docs/benchmarks.md).
-_POOL_NEEDS_ONE_THREAD = (_os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower() != "default"
-                          and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC"))
-                          and _lapack_pool_deadlocks())
+#: computations run on the calling thread: only with ``BAYESMAG_CPU_THREADS=one``, for the jaxlib releases of
+#: :func:`_lapack_pool_deadlocks`, if no ``PJRT_NPROC``/``NPROC`` is set, and before JAX creates its CPU client (it
+#: reads both once). The cost: one core per computation (second run of paper_hybrid 9.9 -> 13.8 s on 2 cores).
 CPU_POOL_AT_IMPORT = _POOL_NEEDS_ONE_THREAD and not _cpu_client_created()
+#: Whether ``import bayesmag`` made batched LAPACK calls on the CPU run one matrix at a time
+#: (:mod:`bayesmag._src.core.lapack_guard`): the jaxlib releases of :func:`_lapack_pool_deadlocks`, unless
+#: ``BAYESMAG_CPU_THREADS`` is "one" or "default". JAX keeps its thread pool; programs compiled after the import
+#: (bayesmag's and the caller's) are covered, whenever JAX's client was created.
+LAPACK_GUARD_AT_IMPORT = _JAXLIB_SPLITS and _CPU_THREADS != "one"
 
 import jax as _jax  # noqa: E402
 
@@ -77,10 +84,13 @@ if CPU_POOL_AT_IMPORT:
     _os.environ["PJRT_NPROC"] = "1"
     _jax.config.update("jax_cpu_enable_async_dispatch", False)
 elif _POOL_NEEDS_ONE_THREAD:         # but JAX's CPU client exists already: too late to size its pool
-    _warnings.warn("JAX's CPU client was created before `import bayesmag`, with JAX's own thread pool: with this "
-                   "jaxlib, batched linear algebra (the hierarchical session model, NUTS) can hang for good. Import "
-                   "bayesmag before running any JAX computation, or set PJRT_NPROC=1 before starting Python "
-                   "(BAYESMAG_CPU_THREADS=default silences this).", RuntimeWarning, stacklevel=2)
+    _warnings.warn("BAYESMAG_CPU_THREADS=one, but JAX's CPU client was created before `import bayesmag`, with JAX's "
+                   "own thread pool: import bayesmag before running any JAX computation, or set PJRT_NPROC=1 before "
+                   "starting Python (or unset BAYESMAG_CPU_THREADS: bayesmag then lowers batched linear algebra one "
+                   "matrix at a time instead).", RuntimeWarning, stacklevel=2)
+if LAPACK_GUARD_AT_IMPORT:
+    from bayesmag._src.core.lapack_guard import install as _install_lapack_guard
+    _install_lapack_guard()
 
 #: Whether ``import bayesmag`` switched JAX to float64 (``BAYESMAG_ENABLE_X64`` not "0").
 X64_AT_IMPORT = _os.environ.get("BAYESMAG_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no", "off")
