@@ -89,8 +89,19 @@ elif _POOL_NEEDS_ONE_THREAD:         # but JAX's CPU client exists already: too 
                    "starting Python (or unset BAYESMAG_CPU_THREADS: bayesmag then lowers batched linear algebra one "
                    "matrix at a time instead).", RuntimeWarning, stacklevel=2)
 if LAPACK_GUARD_AT_IMPORT:
-    from bayesmag._src.core.lapack_guard import install as _install_lapack_guard
-    _install_lapack_guard()
+    try:
+        from bayesmag._src.core.lapack_guard import install as _install_lapack_guard
+        _install_lapack_guard()
+    except Exception as _e:          # JAX's lowering registry moved: the one-thread pool instead, where still possible
+        LAPACK_GUARD_AT_IMPORT = False
+        if not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC")) and not _cpu_client_created():
+            _os.environ["PJRT_NPROC"] = "1"
+            _jax.config.update("jax_cpu_enable_async_dispatch", False)
+            CPU_POOL_AT_IMPORT = True
+        else:
+            _warnings.warn(f"bayesmag could not guard batched linear algebra against this jaxlib's thread-pool hang "
+                           f"({type(_e).__name__}: {_e}); set PJRT_NPROC=1 before starting Python.", RuntimeWarning,
+                           stacklevel=2)
 
 #: Whether ``import bayesmag`` switched JAX to float64 (``BAYESMAG_ENABLE_X64`` not "0").
 X64_AT_IMPORT = _os.environ.get("BAYESMAG_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no", "off")

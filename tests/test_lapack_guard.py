@@ -156,3 +156,22 @@ def test_a_batched_call_is_a_loop_and_a_single_matrix_is_not(jit):
     m = np.array([[4.0, 2.0], [2.0, 3.0]])
     got = np.asarray(f(jnp.asarray(np.stack([m, 2 * m, 3 * m]))))
     np.testing.assert_allclose(got, np.linalg.cholesky(np.stack([m, 2 * m, 3 * m])), atol=1e-14)
+
+
+def test_without_the_jax_internals_it_falls_back_to_one_pool_thread():
+    """If JAX's lowering registry cannot be patched (its internals moved), `import bayesmag` falls back to the
+    one-thread pool (before JAX's client exists): the concurrent batched solves still finish."""
+    if not SPLITS:
+        pytest.skip("the guard is installed for jaxlibs that split LAPACK batches")
+    before = ("from jax._src.interpreters import mlir\n"
+              "_real = mlir.register_lowering\n"
+              "def _moved(*a, **k): raise AttributeError('moved')\n"
+              "mlir.register_lowering = _moved")
+    code = _DEADLOCK.format(before=before).replace("import bayesmag\n", "import bayesmag\nmlir.register_lowering = _real\n", 1)
+    env = {**os.environ, "BAYESMAG_CPU_THREADS": "", "JAX_PLATFORMS": "cpu"}
+    env.pop("PJRT_NPROC", None)
+    env.pop("NPROC", None)
+    out = subprocess.run([sys.executable, "-c", code, "triangular_solve", "100"], env=env, capture_output=True,
+                         text=True, timeout=240)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["False", "True"]

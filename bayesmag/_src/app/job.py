@@ -178,7 +178,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
 
     def physics_figures(ps) -> None:
         """The physics figures as tasks, queued as soon as the physics stage is done: the figure process draws
-        them while the networks train (one pool thread: the other core is free), this one goes on."""
+        them while the networks train, instead of after the training."""
         from bayesmag._src.app import plots
         lo, hi = ps.prediction.interval(cfg.uq.level)
         physics_columns = {"reference": test.b_ref, "predicted": ps.uq.mean, "lower": lo, "upper": hi,

@@ -11,10 +11,11 @@ pool thread waits for pieces no thread is left to run, and the process hangs for
 a batched call as ``lax.map`` over the matrices, each an unbatched call of the original rule (an unbatched call
 keeps the original rule as it is). LAPACK computes every matrix of a batched call by the same routine on the same
 numbers, so each call's result is bit-identical (``tests/test_lapack_guard.py``); a whole program can differ in the
-last bits where XLA lays out the code around the loop differently (about 1e-13 relative in the hierarchical transfer).
-The price is a loop step per matrix (a few microseconds). It applies to
-programs compiled after it, bayesmag's and the caller's; the pool keeps its threads. ``import bayesmag`` installs it
-for the affected jaxlib releases (``bayesmag/__init__.py``; docs/architecture.md, "Global state").
+last bits where XLA lays out the code around the loop differently (about 1e-13 relative in the hierarchical
+transfer). The price is a loop step per matrix (a few microseconds). It applies to programs compiled after it,
+bayesmag's and the caller's; the pool keeps its threads. ``import bayesmag`` installs it for the affected jaxlib
+releases, and falls back to a one-thread pool if JAX's internals it uses are not there (``bayesmag/__init__.py``;
+docs/architecture.md, "Global state").
 """
 
 from __future__ import annotations
