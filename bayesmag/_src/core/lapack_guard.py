@@ -38,8 +38,8 @@ def _one_matrix_at_a_time(prim, original, core_rank: int):
     def rule(ctx, *args, **params):
         nb = len(ctx.avals_in[0].shape) - core_rank
         batch = tuple(ctx.avals_in[0].shape[:nb])
-        if nb <= 0 or math.prod(batch) <= 1:
-            return original(ctx, *args, **params)
+        if nb <= 0 or not all(isinstance(d, int) for d in batch) or math.prod(batch) <= 1:
+            return original(ctx, *args, **params)          # one matrix, or symbolic batch sizes (jax.export)
         size = math.prod(batch)
 
         def mapped(*xs, **_):
