@@ -175,3 +175,17 @@ def test_without_the_jax_internals_it_falls_back_to_one_pool_thread():
                          text=True, timeout=240)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["False", "True"]
+
+
+def test_symbolic_batch_sizes_keep_jaxlibs_rule():
+    """A shape-polymorphic export (`jax.export`, batch size symbolic) lowers and runs: a symbolic batch keeps
+    jaxlib's own rule (no loop of unknown length)."""
+    import jax
+    import jax.numpy as jnp
+    from jax import export
+
+    exp = export.export(jax.jit(jnp.linalg.cholesky))(
+        jax.ShapeDtypeStruct(export.symbolic_shape("b, 3, 3"), jnp.float64))
+    m = np.array([[4.0, 2.0, 0.0], [2.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
+    got = np.asarray(exp.call(jnp.asarray(np.stack([m, 2 * m]))))
+    np.testing.assert_allclose(got, np.linalg.cholesky(np.stack([m, 2 * m])), atol=1e-14)
