@@ -65,8 +65,8 @@ def _cpu_client_created() -> bool:
 #: before; one core per computation); ``"default"`` leaves JAX as it is (and the hang possible with those jaxlibs).
 _CPU_THREADS = _os.environ.get("BAYESMAG_CPU_THREADS", "").strip().lower()
 _JAXLIB_SPLITS = _CPU_THREADS != "default" and _lapack_pool_deadlocks()
-_POOL_NEEDS_ONE_THREAD = (_JAXLIB_SPLITS and _CPU_THREADS == "one"
-                          and not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC")))
+_NPROC_SET = bool(_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC"))
+_POOL_NEEDS_ONE_THREAD = _JAXLIB_SPLITS and _CPU_THREADS == "one" and not _NPROC_SET
 #: Whether ``import bayesmag`` sized JAX's CPU thread pool to one thread (``PJRT_NPROC=1``) and made its CPU
 #: computations run on the calling thread: only with ``BAYESMAG_CPU_THREADS=one``, for the jaxlib releases of
 #: :func:`_lapack_pool_deadlocks`, if no ``PJRT_NPROC``/``NPROC`` is set, and before JAX creates its CPU client (it
@@ -80,9 +80,15 @@ LAPACK_GUARD_AT_IMPORT = _JAXLIB_SPLITS and _CPU_THREADS != "one"
 
 import jax as _jax  # noqa: E402
 
-if CPU_POOL_AT_IMPORT:
+
+def _one_pool_thread() -> None:
+    """JAX's CPU pool sized to one thread and its computations run on the calling thread (before its client exists)."""
     _os.environ["PJRT_NPROC"] = "1"
     _jax.config.update("jax_cpu_enable_async_dispatch", False)
+
+
+if CPU_POOL_AT_IMPORT:
+    _one_pool_thread()
 elif _POOL_NEEDS_ONE_THREAD:         # but JAX's CPU client exists already: too late to size its pool
     _warnings.warn("BAYESMAG_CPU_THREADS=one, but JAX's CPU client was created before `import bayesmag`, with JAX's "
                    "own thread pool: import bayesmag before running any JAX computation, or set PJRT_NPROC=1 before "
@@ -94,9 +100,8 @@ if LAPACK_GUARD_AT_IMPORT:
         _install_lapack_guard()
     except Exception as _e:          # JAX's lowering registry moved: the one-thread pool instead, where still possible
         LAPACK_GUARD_AT_IMPORT = False
-        if not (_os.environ.get("PJRT_NPROC") or _os.environ.get("NPROC")) and not _cpu_client_created():
-            _os.environ["PJRT_NPROC"] = "1"
-            _jax.config.update("jax_cpu_enable_async_dispatch", False)
+        if not _NPROC_SET and not _cpu_client_created():
+            _one_pool_thread()
             CPU_POOL_AT_IMPORT = True
         else:
             _warnings.warn(f"bayesmag could not guard batched linear algebra against this jaxlib's thread-pool hang "

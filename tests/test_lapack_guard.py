@@ -42,11 +42,18 @@ print(bayesmag.LAPACK_GUARD_AT_IMPORT, bayesmag.CPU_POOL_AT_IMPORT)
 """
 
 
-def _run(setting: str, op: str = "triangular_solve", runs: int = 300, *, before: str = "", timeout: float = 240):
+def _env(setting: str) -> dict:
+    """This process's environment with ``BAYESMAG_CPU_THREADS = setting``, CPU only, no pool size of its own."""
     env = {**os.environ, "BAYESMAG_CPU_THREADS": setting, "JAX_PLATFORMS": "cpu"}
     env.pop("PJRT_NPROC", None)
     env.pop("NPROC", None)
-    return subprocess.run([sys.executable, "-c", _DEADLOCK.format(before=before), op, str(runs)], env=env,
+    return env
+
+
+def _run(setting: str, op: str = "triangular_solve", runs: int = 300, *, before: str = "", timeout: float = 240,
+         code: str | None = None):
+    code = _DEADLOCK.format(before=before) if code is None else code
+    return subprocess.run([sys.executable, "-c", code, op, str(runs)], env=_env(setting),
                           capture_output=True, text=True, timeout=timeout)
 
 
@@ -123,8 +130,7 @@ def test_guarded_results_are_bit_identical_to_batched_lapack(tmp_path):
     1e-12 where NumPy has the routine."""
     res = {}
     for setting in ("", "one"):
-        env = {**os.environ, "BAYESMAG_CPU_THREADS": setting, "JAX_PLATFORMS": "cpu"}
-        out = subprocess.run([sys.executable, "-c", _OPS, str(tmp_path / f"r{setting}.npz")], env=env,
+        out = subprocess.run([sys.executable, "-c", _OPS, str(tmp_path / f"r{setting}.npz")], env=_env(setting),
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
         assert out.stdout.split() == [str(SPLITS and setting == "")]
@@ -168,11 +174,7 @@ def test_without_the_jax_internals_it_falls_back_to_one_pool_thread():
               "def _moved(*a, **k): raise AttributeError('moved')\n"
               "mlir.register_lowering = _moved")
     code = _DEADLOCK.format(before=before).replace("import bayesmag\n", "import bayesmag\nmlir.register_lowering = _real\n", 1)
-    env = {**os.environ, "BAYESMAG_CPU_THREADS": "", "JAX_PLATFORMS": "cpu"}
-    env.pop("PJRT_NPROC", None)
-    env.pop("NPROC", None)
-    out = subprocess.run([sys.executable, "-c", code, "triangular_solve", "100"], env=env, capture_output=True,
-                         text=True, timeout=240)
+    out = _run("", runs=100, code=code)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["False", "True"]
 
