@@ -95,6 +95,23 @@ def test_decoupled_within_run_variation_recovers_the_between_session_sd(seed):
     assert new.mu[1, list(fit.model.param_names).index("S_x")] == pytest.approx(CROSS, abs=0.01)
 
 
+def test_learned_dof_with_decoupled_columns_drops_their_margin():
+    """The learned-dof path (``transfer_df = "learned"``) on data with decoupled within-run columns: its posterior
+    is over the model's parameters only, as the fixed-dof path's (the decoupled coefficients' margin dropped; before,
+    the learned path kept them and the job failed on Belsten-like data with a shape mismatch in ``_take_axes``),
+    the y-from-x term comes from the held run's level as with the Gaussian (within 0.01 of the true +0.1), and the
+    row-wise transfer sd is finite, positive on y and z (x: the noisy own reading, above, puts the learned dof at
+    2.5, whose 95 % interval is inside the within-session noise's Gaussian one: transfer sd 0, by construction)."""
+    d = _conflict_campaign(0)
+    fit = _fit(d)
+    p = len(fit.model.param_names)
+    post = H.fit_sessions(d, fit, likelihood="student_t", df="learned", uninformed="fixed")
+    assert post.scale.shape == (3, p) and post.mu.shape == (3, p) and post.mu_cov.shape == (3, p, p)
+    assert post.mu[1, list(fit.model.param_names).index("S_x")] == pytest.approx(CROSS, abs=0.01)
+    sd = post.transfer_sd_for(fit, d)
+    assert sd.shape == (d.b_ref.shape[0], 3) and np.isfinite(sd).all() and (sd[:, 1:] > 0).all()
+
+
 @pytest.mark.slow
 def test_decoupled_posterior_matches_grid_integration():
     """The importance-corrected Laplace posterior of the decoupled model against numerical integration of the

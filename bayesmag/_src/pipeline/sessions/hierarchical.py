@@ -922,9 +922,10 @@ def _fit_learned_df(stats: RunStats, names, *, level, tau_scale, sigma_scale, dr
     if not (np.isfinite(mix_mean).all() and np.isfinite(mix_cov).all() and np.isfinite(np.stack(covs)).all()):
         raise RuntimeError("the hierarchical transfer model's posterior is not finite (a between-session sd "
                            "without a bound); use [uq] transfer = \"loro\" for these data.")
-    base = SessionPosterior(mix_mean[:, 0], mix_cov[:, 0], np.stack(covs), stats.scale,
+    p = stats.scale.shape[1] - stats.nuisance      # the model's parameters; the nuisance columns' margin dropped
+    base = SessionPosterior(mix_mean[:, 0], mix_cov[:, 0], np.stack(covs)[:, :p, :p], stats.scale[:, :p],
                             tuple(names[i] for i in stats.effects), float(level), int(stats.n.size), "laplace",
-                            np.stack(mus) / stats.scale, effect_index=tuple(int(i) for i in stats.effects),
+                            np.stack(mus)[:, :p] / stats.scale[:, :p], effect_index=tuple(int(i) for i in stats.effects),
                             df_grid=tuple(float(g) for g in grid), df_weight=np.stack(weight),
                             df_log_evidence=np.stack(logZ), ess=tuple(esss))
     comps = [dataclasses.replace(base, w_mean=mix_mean[:, k], w_cov=mix_cov[:, k], df=float(grid[k]), df_grid=(),
