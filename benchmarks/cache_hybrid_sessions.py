@@ -2,9 +2,11 @@
 
 Saved per session (``DIR/seed{S}_run{R}.pkl``): the training and test rows, the physics fit, the calibrated hybrid
 predictor (its session model fitted as the job fits it) and the network's in-sample correction on the training rows,
-so that other session models can be scored against loro offline (``diag_session_residuals.py --load DIR``).
+so that other session models can be scored against loro offline (``benchmarks/score_hybrid_sessions.py DIR``).
+With ``--folds`` the job runs with ``[uq] transfer_networks = "by_run_folds"`` and the pickle also holds the
+physics stage's session model and the by-run fold networks' per-row pieces (``NetworkTransfer``).
 
-    python benchmarks/cache_hybrid_sessions.py DIR 0 1 2      # the seeds
+    python benchmarks/cache_hybrid_sessions.py DIR 0 1 2 [--folds]     # the seeds
 """
 import pickle
 import sys
@@ -26,7 +28,10 @@ RAW = {"name": "x", "data": {"path": "unused.csv"}, "physics": {"t0": "mean"},
 
 
 def main(argv):
+    folds = "--folds" in argv
+    argv = [a for a in argv if a != "--folds"]
     out, seeds = Path(argv[0]), [int(x) for x in argv[1:]] or [0]
+    raw = {**RAW, "uq": {**RAW["uq"], **({"transfer_networks": "by_run_folds"} if folds else {})}}
     out.mkdir(parents=True, exist_ok=True)
     for seed in seeds:
         d = B.sessions(8, 600, seed)
@@ -36,12 +41,14 @@ def main(argv):
                 continue
             t = time.perf_counter()
             train, test = d.subset(np.flatnonzero(d.run != run)), d.subset(np.flatnonzero(d.run == run))
-            s = config_from_dict({**RAW, "split": {"kind": "by_run", "test_runs": [run]}}).settings()
+            s = config_from_dict({**raw, "split": {"kind": "by_run", "test_runs": [run]}}).settings()
             cr = calibrate(train, s, test=test)
             nn = np.asarray(cr.predictor.network_part(train).mean, np.float64)
             tmp = path.with_suffix(".tmp")
             with open(tmp, "wb") as f:
-                pickle.dump({"train": train, "test": test, "fit": cr.fit, "hybrid": cr.predictor, "nn": nn}, f)
+                nt = next(iter(cr.hybrid.network_transfer.values()), None) if folds else None
+                pickle.dump({"train": train, "test": test, "fit": cr.fit, "hybrid": cr.predictor, "nn": nn,
+                             "physics_sessions": cr.physics.predictor.sessions, "network_transfer": nt}, f)
             tmp.rename(path)
             print(seed, run, f"{time.perf_counter() - t:.0f}s", flush=True)
 

@@ -101,7 +101,7 @@ def _jacobian(fit, data) -> np.ndarray:
 
 
 def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.ndarray | None = None,
-              within: dict | None = None) -> RunStats:
+              within: dict | None = None, shared: np.ndarray | None = None) -> RunStats:
     """Lag-moment matrices of every run of ``data`` (with a reference) for :class:`~bayesmag.PhysicsFit` ``fit``.
 
     ``y`` is linearised at the fit: ``y - f(theta) + J theta`` (equal to ``y`` for a linear model).
@@ -111,6 +111,9 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
     column of its own (a nuisance coefficient, flat like ``mu``, appended after ``J``), so that variation does
     not inform the shared parameter (:func:`uninformed_within`). ``select`` does not drop such columns: a
     selection without their run leaves them zero (singular), so select before adding them.
+    ``shared``: (3, n, k) further columns (rows of ``data``) with one flat coefficient each, shared by every run
+    and not a random effect, appended after those (e.g. a distortion the physics model lacks, learned elsewhere:
+    :func:`fit_sessions`); like them, their margin is dropped from the posterior.
     """
     names = list(fit.model.param_names)
     missing = [e for e in effects if e not in names]
@@ -136,6 +139,11 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
             if np.abs(c).max() > 1e-9 * np.abs(J[:, :, names.index(e)]).max():     # nothing left: no column
                 extra.append(c)
     p = J.shape[2]
+    if shared is not None:
+        shared = np.asarray(shared, np.float64)
+        if shared.ndim != 3 or shared.shape[:2] != J.shape[:2]:
+            raise ValueError(f"shared columns must have shape (3, {J.shape[1]}, k); got {shared.shape}.")
+        extra += [shared[:, :, k] for k in range(shared.shape[2])]
     if extra:
         J = np.concatenate([J, np.stack(extra, axis=2)], axis=2)
     rms = np.sqrt(np.mean(J**2, axis=1))
@@ -1175,11 +1183,13 @@ def uninformed_within(train, fit, dropped: Sequence[str], axis: int | None = Non
 
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
                  level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float | str = 4.0,
-                 uninformed: str | None = None, within_uninformed: bool = WITHIN_UNINFORMED, **kw) -> SessionPosterior:
+                 uninformed: str | None = None, within_uninformed: bool = WITHIN_UNINFORMED,
+                 shared: np.ndarray | None = None, **kw) -> SessionPosterior:
     """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
     effects are the ``effects`` that enough runs inform (:func:`select_effects`); ``within_uninformed``: the
     dropped ones vary inside the runs that do not inform them with a coefficient of their own
-    (:func:`uninformed_within`)."""
+    (:func:`uninformed_within`); ``shared``: (3, n, k) columns with a coefficient shared by all runs
+    (:func:`run_stats`), fitted and then integrated out."""
     runs = np.unique(train.run)
     if runs.size < 2:
         raise ValueError(f"the hierarchical transfer model needs at least 2 training runs (sessions); the "
@@ -1193,7 +1203,7 @@ def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] 
     withins = [uninformed_within(train, fit, drop, a) if within_uninformed else {} for a in range(3)]
     post = None
     for w in [w for k, w in enumerate(withins) if w not in withins[:k]]:      # one fit per distinct design
-        stats = run_stats(train, fit, eff, within=w)
+        stats = run_stats(train, fit, eff, within=w, shared=shared)
         if method == "laplace":
             part = fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
         else:
