@@ -156,3 +156,28 @@ def test_identifiability_reported_on_real_data(belsten):
     assert d["condition_number"] > 1e4
     assert any("only in run(s) [6]" in n for n in fit.design_notes)
     assert 0.7 < fit.cov_info[0]["rho1"] < 0.9                      # the README's lag-1 autocorrelation ~0.8
+
+
+def _bartlett_loop(u, run, L):
+    """The Newey-West middle by its definition, one product per lag (the reference)."""
+    S = u.T @ u
+    for lag in range(1, L + 1):
+        same = run[lag:] == run[:-lag]
+        G = (u[lag:][same]).T @ (u[:-lag][same])
+        S += (1 - lag / (L + 1)) * (G + G.T)
+    return S
+
+
+@pytest.mark.parametrize("runs, L", [([200], 0), ([100, 400], 7), ([10, 40], 80), ([600] * 5, 273), ([3, 1, 50], 5)])
+def test_bartlett_scores_equal_the_lag_sum(runs, L):
+    """Windowed sums (one product) equal the lag-by-lag Bartlett sum to 1e-12 relative, windows longer than a run
+    and one-row runs included; a run whose rows come back after another run's takes the lag loop (same pairs)."""
+    from bayesmag._src.core.fit import bartlett_scores
+
+    rng = np.random.default_rng(L)
+    run = np.repeat(np.arange(len(runs)), runs)
+    u = rng.normal(size=(run.size, 4)).cumsum(0)
+    want = _bartlett_loop(u, run, L)
+    np.testing.assert_allclose(bartlett_scores(u, run, L), want, rtol=0, atol=1e-12 * np.abs(want).max())
+    back = np.where(np.arange(run.size) >= run.size - 2, 0, run)      # run 0 again at the end
+    np.testing.assert_allclose(bartlett_scores(u, back, L), _bartlett_loop(u, back, L), rtol=1e-12)
