@@ -4,9 +4,11 @@ Saved per session (``DIR/seed{S}_run{R}.pkl``): the training and test rows, the 
 predictor (its session model fitted as the job fits it) and the network's in-sample correction on the training rows,
 so that other session models can be scored against loro offline (``benchmarks/score_hybrid_sessions.py DIR``).
 With ``--folds`` the job runs with ``[uq] transfer_networks = "by_run_folds"`` and the pickle also holds the
-physics stage's session model and the by-run fold networks' per-row pieces (``NetworkTransfer``).
+physics stage's session model and the by-run fold networks' per-row pieces (``NetworkTransfer``); with ``--extra
+NAME`` the physics model carries that catalogue term (``[physics] extra_terms = [{name = NAME}]``, e.g.
+``axis_quadratic``, the distortion the simulated sessions share, as ``bayesmag discover`` reports it).
 
-    python benchmarks/cache_hybrid_sessions.py DIR 0 1 2 [--folds]     # the seeds
+    python benchmarks/cache_hybrid_sessions.py DIR 0 1 2 [--folds] [--extra axis_quadratic]     # the seeds
 """
 import pickle
 import sys
@@ -30,8 +32,13 @@ RAW = {"name": "x", "data": {"path": "unused.csv"}, "physics": {"t0": "mean"},
 def main(argv):
     folds = "--folds" in argv
     argv = [a for a in argv if a != "--folds"]
+    extra = None
+    if "--extra" in argv:
+        i = argv.index("--extra")
+        extra, argv = argv[i + 1], argv[:i] + argv[i + 2:]
     out, seeds = Path(argv[0]), [int(x) for x in argv[1:]] or [0]
-    raw = {**RAW, "uq": {**RAW["uq"], **({"transfer_networks": "by_run_folds"} if folds else {})}}
+    raw = {**RAW, "uq": {**RAW["uq"], **({"transfer_networks": "by_run_folds"} if folds else {})},
+           "physics": {**RAW["physics"], **({"extra_terms": [{"name": extra}]} if extra else {})}}
     out.mkdir(parents=True, exist_ok=True)
     for seed in seeds:
         d = B.sessions(8, 600, seed)

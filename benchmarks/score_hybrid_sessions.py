@@ -15,7 +15,10 @@ hybrid predictor carrying one of these transfer parts:
 Printed per session: covered-or-flagged share and in-domain mean 95 % width per axis; then per variant the
 session-axes under 95 %, and the width / loro's where loro covers or flags >= 95 % (median, largest, count over 1.5x).
 
-    python benchmarks/score_hybrid_sessions.py DIR [VARIANT,VARIANT,...]
+``--base DIR2``: also score loro from the pickles of the same sessions in ``DIR2`` (``loro_base``, e.g. the affine
+physics model when ``DIR`` was cached with ``--extra``), and take the width ratios over that.
+
+    python benchmarks/score_hybrid_sessions.py DIR [VARIANT,VARIANT,...] [--base DIR2]
 """
 import dataclasses
 import pickle
@@ -67,6 +70,10 @@ def score(pr, test) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv) -> int:
+    base = None
+    if "--base" in argv:
+        i = argv.index("--base")
+        base, argv = Path(argv[i + 1]), argv[:i] + argv[i + 2:]
     folder = Path(argv[0])
     wanted = tuple(argv[1].split(",")) if len(argv) > 1 else VARIANTS
     wanted = tuple(dict.fromkeys(("loro",) + wanted))
@@ -76,13 +83,17 @@ def main(argv) -> int:
         t = time.perf_counter()
         d = pickle.load(open(f, "rb"))
         res = {k: score(pr, d["test"]) for k, pr in predictors(d, wanted).items()}
+        if base is not None:
+            b = pickle.load(open(base / f.name, "rb"))
+            res = {"loro_base": score(predictors(b, ("loro",))["loro"], b["test"]), **res}
         for k, v in res.items():
             agg.setdefault(k, []).append(v)
         print(f.stem, " | ".join(f"{k}: fc {np.round(100 * v[0], 1)} w {np.round(v[1], 3)}" for k, v in res.items()),
               f"({time.perf_counter() - t:.0f}s)", flush=True)
-    covers = np.array([v[0] for v in agg["loro"]]) >= 0.95
-    wl = np.array([v[1] for v in agg["loro"]])
-    print(f"\n{len(files)} sessions; width ratio over loro's on the session-axes loro covers or flags >= 95 % "
+    ref = "loro_base" if base is not None else "loro"
+    covers = np.array([v[0] for v in agg[ref]]) >= 0.95
+    wl = np.array([v[1] for v in agg[ref]])
+    print(f"\n{len(files)} sessions; width ratio over {ref}'s on the session-axes it covers or flags >= 95 % "
           f"({covers.sum(0).tolist()} per axis)\n")
     print("| transfer | under 95 % x / y / z | mean covered or flagged (%) | width / loro's, median | largest | over 1.5x |")
     print("|---|---|---|---|---|---|")
