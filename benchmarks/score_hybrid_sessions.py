@@ -16,10 +16,13 @@ Printed per session: covered-or-flagged share and in-domain mean 95 % width per 
 session-axes under 95 %, and the width / loro's where loro covers or flags >= 95 % (median, largest, count over 1.5x).
 
 ``--base DIR2``: also score loro from the pickles of the same sessions in ``DIR2`` (``loro_base``, e.g. the affine
-physics model when ``DIR`` was cached with ``--extra``), and take the width ratios over that.
+physics model when ``DIR`` was cached with ``--extra``), and take the width ratios over that. ``--pick LOG`` (with
+``--base``): per session, the calibration of ``DIR`` only where ``discover_hybrid_sessions.py``'s LOG lists an extra
+term for that training set, else ``DIR2``'s (the workflow "discover, then calibrate with what it found").
 
-    python benchmarks/score_hybrid_sessions.py DIR [VARIANT,VARIANT,...] [--base DIR2]
+    python benchmarks/score_hybrid_sessions.py DIR [VARIANT,VARIANT,...] [--base DIR2 [--pick LOG]]
 """
+import json
 import dataclasses
 import pickle
 import sys
@@ -70,10 +73,15 @@ def score(pr, test) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv) -> int:
-    base = None
+    base = pick = None
     if "--base" in argv:
         i = argv.index("--base")
         base, argv = Path(argv[i + 1]), argv[:i] + argv[i + 2:]
+    if "--pick" in argv:
+        i = argv.index("--pick")
+        pick = {(r["seed"], r["run"]): bool(r["extra_terms"] and set(r["extra_terms"]) - {"run_offset"})
+                for r in map(json.loads, Path(argv[i + 1]).read_text().splitlines())}
+        argv = argv[:i] + argv[i + 2:]
     folder = Path(argv[0])
     wanted = tuple(argv[1].split(",")) if len(argv) > 1 else VARIANTS
     wanted = tuple(dict.fromkeys(("loro",) + wanted))
@@ -81,10 +89,16 @@ def main(argv) -> int:
     agg = {}
     for f in files:
         t = time.perf_counter()
+        key = tuple(int(x) for x in f.stem[4:].split("_run"))
+        if pick is not None and key not in pick:
+            continue
         d = pickle.load(open(f, "rb"))
-        res = {k: score(pr, d["test"]) for k, pr in predictors(d, wanted).items()}
         if base is not None:
             b = pickle.load(open(base / f.name, "rb"))
+            if pick is not None and not pick[key]:
+                d = b
+        res = {k: score(pr, d["test"]) for k, pr in predictors(d, wanted).items()}
+        if base is not None:
             res = {"loro_base": score(predictors(b, ("loro",))["loro"], b["test"]), **res}
         for k, v in res.items():
             agg.setdefault(k, []).append(v)
@@ -93,7 +107,7 @@ def main(argv) -> int:
     ref = "loro_base" if base is not None else "loro"
     covers = np.array([v[0] for v in agg[ref]]) >= 0.95
     wl = np.array([v[1] for v in agg[ref]])
-    print(f"\n{len(files)} sessions; width ratio over {ref}'s on the session-axes it covers or flags >= 95 % "
+    print(f"\n{len(agg[ref])} sessions; width ratio over {ref}'s on the session-axes it covers or flags >= 95 % "
           f"({covers.sum(0).tolist()} per axis)\n")
     print("| transfer | under 95 % x / y / z | mean covered or flagged (%) | width / loro's, median | largest | over 1.5x |")
     print("|---|---|---|---|---|---|")
