@@ -201,10 +201,10 @@ def bartlett_scores(u: np.ndarray, run: np.ndarray, lags: int) -> np.ndarray:
 
     The Bartlett weights are the overlap of two boxes of length :math:`L+1`, so the sum is
     :math:`C^\top C / (L+1)`, ``C`` the sums of ``u`` over every window of :math:`L+1` consecutive rows clipped to
-    its run (cumulative sums; one product instead of one per lag: the lag loop made ``bayesmag discover`` take
-    minutes at :math:`L \approx 270`, strongly autocorrelated residuals of many runs). Runs must be contiguous
-    blocks of rows for that; otherwise (a run's label back after another's) the lag loop is used, which also pairs
-    rows of a run across the other run.
+    its run (cumulative sums): one product of :math:`O(n p^2)` instead of one per lag, :math:`O(L n p^2)` (strongly
+    autocorrelated residuals give :math:`L \approx 270` at 12 600 rows). Runs must be contiguous blocks of rows
+    for that; otherwise (a run's label back after another's) the lag loop is used, which also pairs rows of a run
+    across the other run.
     """
     u = np.asarray(u, dtype=np.float64)
     run = np.asarray(run)
