@@ -87,6 +87,11 @@ class RunStats(NamedTuple):
     runs: np.ndarray    # (R,) run ids
     nuisance: int = 0   # trailing columns of J (before y): within-run deviations with their own coefficient
 
+    @property
+    def n_params(self) -> int:
+        """The model's parameters: the columns of ``J`` less the nuisance ones (whose margin a posterior drops)."""
+        return self.scale.shape[1] - self.nuisance
+
     def select(self, keep: np.ndarray) -> "RunStats":
         """The stats of the runs ``keep`` (bool (R,) or indices)."""
         k = np.asarray(keep)
@@ -681,7 +686,7 @@ def _summarise(tau2, noise, mu_draws_cov, mu_mean, stats: RunStats, names, level
         w = w * df / (df - 2)                      # shape -> variance of the scale mixture
     w_mean = w.mean(1)
     w_cov = np.einsum("aki,akj->aij", w - w_mean[:, None], w - w_mean[:, None]) / max(w.shape[1] - 1, 1)
-    p = stats.scale.shape[1] - stats.nuisance      # the model's parameters; the nuisance columns' margin dropped
+    p = stats.n_params                             # the nuisance columns' margin dropped
     return SessionPosterior(w_mean, w_cov, mu_draws_cov[:, :p, :p], stats.scale[:, :p],
                             tuple(names[i] for i in stats.effects),
                             float(level), int(stats.n.size), method, mu_mean[:, :p] / stats.scale[:, :p],
@@ -930,7 +935,7 @@ def _fit_learned_df(stats: RunStats, names, *, level, tau_scale, sigma_scale, dr
     if not (np.isfinite(mix_mean).all() and np.isfinite(mix_cov).all() and np.isfinite(np.stack(covs)).all()):
         raise RuntimeError("the hierarchical transfer model's posterior is not finite (a between-session sd "
                            "without a bound); use [uq] transfer = \"loro\" for these data.")
-    p = stats.scale.shape[1] - stats.nuisance      # the model's parameters; the nuisance columns' margin dropped
+    p = stats.n_params                             # the nuisance columns' margin dropped
     base = SessionPosterior(mix_mean[:, 0], mix_cov[:, 0], np.stack(covs)[:, :p, :p], stats.scale[:, :p],
                             tuple(names[i] for i in stats.effects), float(level), int(stats.n.size), "laplace",
                             np.stack(mus)[:, :p] / stats.scale[:, :p], effect_index=tuple(int(i) for i in stats.effects),
