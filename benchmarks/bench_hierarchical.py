@@ -20,7 +20,8 @@ intervals, and the width ratio hierarchical / loro on the rows loro already cove
 ``belsten``: each of the six runs left out; physics fit and transfer on the other five (loro and
 hierarchical), the left-out run predicted as a new session: covered or flagged per run and axis.
 ``--within-uninformed shared`` (generators, belsten, belsten_tau): the model before the uninformed candidates'
-within-run variation was decoupled (``fit_sessions(within_uninformed=False)``).
+within-run variation was decoupled (``fit_sessions(within_uninformed=False)``); ``--weak off`` (generators, belsten):
+the model before the runs' noise-only directions were decoupled (``fit_sessions(weak=None)``).
 
 ``pooling``: complete pooling (no random effects), no pooling (free per-session effects, a new session
 predicted by the training sessions' effects) and partial pooling (the hierarchical model) by exact
@@ -91,7 +92,7 @@ def generators(args):
             t = time.perf_counter()
             post = H.fit_sessions(train, pr.fit, seed=draw, likelihood=args.likelihood, df=args.df,
                                   importance=args.laplace_draws == "importance", mode_search=args.mode_search,
-                                  within_uninformed=args.within_uninformed == "free")
+                                  within_uninformed=args.within_uninformed == "free", weak=args.weak)
             secs = time.perf_counter() - t
             ph = dataclasses.replace(pr, transfer_sd=None, sessions=post)
             news = _new_sessions(draw, args.sessions, gen)
@@ -202,7 +203,7 @@ def belsten(args):
         base = Predictor(fit=fit, sigma_in=sin, residual_sd=np.sqrt(_residual_variance(_Cfg, fit, train, sin)),
                          domain=Domain.from_data(train), uq=UQOptions(method="analytic"))
         post = H.fit_sessions(train, fit, mode_search=args.mode_search, likelihood=args.likelihood,
-                              within_uninformed=args.within_uninformed == "free",
+                              within_uninformed=args.within_uninformed == "free", weak=args.weak,
                               **({} if args.likelihood == "gaussian" else {"df": args.df}))
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
@@ -361,6 +362,8 @@ def main():
     ap.add_argument("--axis", default="y", choices=list("xyz"), help="belsten_tau: the axis")
     ap.add_argument("--logs", nargs="*", default=[], help="summarise: logs holding DRAW lines")
     ap.add_argument("--sessions", type=int, default=40)
+    ap.add_argument("--weak", type=lambda v: None if v == "off" else float(v), default=H.WEAK_NOISE_MULTIPLE,
+                    help="generators, belsten: fit_sessions(weak=...), 'off' for the model before the weak directions")
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--generator", nargs="+", default=list(GENERATORS), choices=sorted(GENERATORS))
     ap.add_argument("--likelihood", default="gaussian", choices=list(H.LIKELIHOODS), help="hierarchical model's likelihood")

@@ -62,7 +62,7 @@ import scipy.stats
 from bayesmag._src.core.physics import AXES, inputs_from_data
 
 __all__ = ["DEFAULT_EFFECTS", "TAU_PRIOR_SCALE", "SIGMA_PRIOR_SCALE", "RunStats", "SessionPosterior", "run_stats",
-           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "hierarchical_transfer", "condition_table", "run_loglik", "loro_elpd", "whitened_gram"]
+           "fit_laplace", "fit_nuts", "fit_sessions", "select_effects", "weak_directions", "hierarchical_transfer", "condition_table", "run_loglik", "loro_elpd", "whitened_gram"]
 
 #: Parameters with per-session random effects (the others are shared by all sessions).
 DEFAULT_EFFECTS = ("O", "Ko", "S_x", "S_y", "S_z")
@@ -106,7 +106,8 @@ def _jacobian(fit, data) -> np.ndarray:
 
 
 def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.ndarray | None = None,
-              within: dict | None = None, shared: np.ndarray | None = None) -> RunStats:
+              within: dict | None = None, shared: np.ndarray | None = None,
+              directions: dict | None = None) -> RunStats:
     """Lag-moment matrices of every run of ``data`` (with a reference) for :class:`~bayesmag.PhysicsFit` ``fit``.
 
     ``y`` is linearised at the fit: ``y - f(theta) + J theta`` (equal to ``y`` for a linear model).
@@ -116,6 +117,8 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
     column of its own (a nuisance coefficient, flat like ``mu``, appended after ``J``), so that variation does
     not inform the shared parameter (:func:`uninformed_within`). ``select`` does not drop such columns: a
     selection without their run leaves them zero (singular), so select before adding them.
+    ``directions``: ``{run: W}``, ``W`` (p, k): each of the run's ``k`` directions ``J W`` (its within-run deviation
+    from the run mean) becomes a nuisance column of its own, like ``within``'s (:func:`weak_directions`).
     ``shared``: (3, n, k) further columns (rows of ``data``) with one flat coefficient each, shared by every run
     and not a random effect, appended after those (e.g. a distortion the physics model lacks, learned elsewhere:
     :func:`fit_sessions`); like them, their margin is dropped from the posterior.
@@ -143,6 +146,13 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
                 c[a, m] = x - D @ np.linalg.lstsq(D, x, rcond=None)[0] if D.shape[1] else x
             if np.abs(c).max() > 1e-9 * np.abs(J[:, :, names.index(e)]).max():     # nothing left: no column
                 extra.append(c)
+    for r, W in (directions or {}).items():
+        m = np.asarray(data.run) == r
+        dev = J[:, m] - J[:, m].mean(axis=1, keepdims=True)
+        for k in range(W.shape[1]):
+            c = np.zeros(J.shape[:2])
+            c[:, m] = dev @ W[:, k]
+            extra.append(c)
     p = J.shape[2]
     if shared is not None:
         shared = np.asarray(shared, np.float64)
@@ -1186,15 +1196,74 @@ def uninformed_within(train, fit, dropped: Sequence[str], axis: int | None = Non
             if not v.all() and e != own}
 
 
+#: Default of ``fit_sessions(weak=...)``: a run's direction of the random-effect columns whose within-run sd is under
+#: this many times its white-noise sd (and under INFORM_FRACTION of the columns' RMS) gets a coefficient of its own
+#: (:func:`weak_directions`); None: off.
+WEAK_NOISE_MULTIPLE = 5.0
+
+
+def weak_directions(train, fit, effects: Sequence[str], axis: int = 0,
+                    multiple: float = WEAK_NOISE_MULTIPLE) -> dict:
+    r"""``{run: W}``, ``W`` (p, k): the directions of the random ``effects``' Jacobian columns along which a run's
+    within-run variation is small and mostly reading noise.
+
+    Per run (rows in time order), the within-run deviations of the non-constant effect columns of ``axis`` (each
+    scaled to unit RMS over ``train``) are split by SVD into orthogonal directions. A direction is weak where its
+    sd is under :data:`INFORM_FRACTION` (the selection rule's share of the RMS, :func:`select_effects`) and under
+    ``multiple`` times its own white-noise sd, read from its first differences
+    (:math:`1.4826\,\mathrm{MAD}/\sqrt2`: steps and sweeps move few differences, reading noise moves all).
+
+    Why: a run that holds the field still (or sweeps it along one line) sees the DUT's reading noise, and nothing
+    of the reference, along the unswept directions. Fitted with the run's own random effects, the noise reads as
+    a gain of about zero there (errors in variables: the slope is attenuated by
+    :math:`s^2 / (s^2 + \sigma_{noise}^2)`), a gain of one in the runs that sweep it, and the fit buys the lower
+    residual with a large between-session sd of the gains: on clean simulated campaigns of eight 100-row runs
+    (``tests/test_transfer.py::_session``, reading noise 0.05 uT) that mode is the posterior's global one by 30-70
+    nats, and the transfer sd of one axis 4.1-4.7 uT against leave-one-run-out's 0.2-0.4 on 6 of 8 seeds
+    (docs/sessions.md). A weak direction gets a coefficient of its own in that run (:func:`run_stats`
+    ``directions``), so its wobble informs neither the shared parameters nor the run's random effects; the run's
+    level still informs them. The two conditions keep real signal: a wobble that is a real field both sensors read
+    (Belsten's 0.6-1.7 uT, slow) is not white, and a design whose rows are independent draws (a shuffled or
+    subsampled record) varies by far more than a tenth of the RMS.
+    """
+    names = list(fit.model.param_names)
+    J = _jacobian(fit, train)[axis]
+    idx = np.array([names.index(e) for e in effects if e in names], int)
+    rms = np.sqrt(np.mean(J[:, idx] ** 2, axis=0))
+    varies = np.ptp(J[:, idx], axis=0) > 1e-12 * np.maximum(rms, 1e-300)          # the offset's column does not
+    idx, rms = idx[varies], rms[varies]
+    out = {}
+    run, time = np.asarray(train.run), np.asarray(train.time)
+    for r in np.unique(run):
+        m = np.flatnonzero(run == r)
+        m = m[np.argsort(time[m], kind="stable")]
+        if m.size < 3 or idx.size == 0:
+            continue
+        X = J[np.ix_(m, idx)] / rms
+        X = X - X.mean(axis=0)
+        _, sv, vt = np.linalg.svd(X, full_matrices=False)
+        d = np.diff(X @ vt.T, axis=0)
+        noise = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2)
+        sd = sv / np.sqrt(m.size)
+        weak = (sd < multiple * noise) & (sd < INFORM_FRACTION) & (sv > 1e-9 * max(sv[0], 1e-300))
+        if weak.any():
+            W = np.zeros((J.shape[1], int(weak.sum())))
+            W[idx] = vt[weak].T / rms[:, None]
+            out[r] = W
+    return out
+
+
 def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] = DEFAULT_EFFECTS,
                  level: float = 0.95, seed: int = 0, likelihood: str = "gaussian", df: float | str = 4.0,
                  uninformed: str | None = None, within_uninformed: bool = WITHIN_UNINFORMED,
-                 shared: np.ndarray | None = None, **kw) -> SessionPosterior:
+                 shared: np.ndarray | None = None, weak: float | None = WEAK_NOISE_MULTIPLE, **kw) -> SessionPosterior:
     """The hierarchical session model of ``train`` (at least 2 runs) around the pooled LM ``fit``; the random
     effects are the ``effects`` that enough runs inform (:func:`select_effects`); ``within_uninformed``: the
     dropped ones vary inside the runs that do not inform them with a coefficient of their own
     (:func:`uninformed_within`); ``shared``: (3, n, k) columns with a coefficient shared by all runs
-    (:func:`run_stats`), fitted and then integrated out."""
+    (:func:`run_stats`), fitted and then integrated out; ``weak``: a run's directions of the effect columns whose
+    within-run variation is small and mostly noise get a coefficient of their own (:func:`weak_directions`, ``weak``
+    its noise multiple; None: off)."""
     runs = np.unique(train.run)
     if runs.size < 2:
         raise ValueError(f"the hierarchical transfer model needs at least 2 training runs (sessions); the "
@@ -1206,15 +1275,18 @@ def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] 
         raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
     drop = [e for e in dropped if e not in eff]
     withins = [uninformed_within(train, fit, drop, a) if within_uninformed else {} for a in range(3)]
+    weaks = [weak_directions(train, fit, eff, a, weak) if weak is not None else {} for a in range(3)]
+    designs = [(w, {r: np.round(W, 12).tobytes() for r, W in v.items()}) for w, v in zip(withins, weaks)]
     post = None
-    for w in [w for k, w in enumerate(withins) if w not in withins[:k]]:      # one fit per distinct design
-        stats = run_stats(train, fit, eff, within=w, shared=shared)
+    for a0 in [a for a in range(3) if designs[a] not in designs[:a]]:       # one fit per distinct design
+        w = withins[a0]
+        stats = run_stats(train, fit, eff, within=w, shared=shared, directions=weaks[a0])
         if method == "laplace":
             part = fit_laplace(stats, fit.model.param_names, level=level, seed=seed, likelihood=likelihood, df=df, **kw)
         else:
             part = fit_nuts(stats, fit.model.param_names, fit, level=level, seed=seed, likelihood=likelihood, df=df,
                             **kw)
-        post = part if post is None else _take_axes(post, part, [a for a in range(3) if withins[a] == w])
+        post = part if post is None else _take_axes(post, part, [a for a in range(3) if designs[a] == designs[a0]])
     uninformed = (UNINFORMED if PRIOR_FOR_UNINFORMED else "fixed") if uninformed is None else uninformed
     if uninformed not in UNINFORMED_CHOICES:
         raise ValueError(f"uninformed = {uninformed!r} must be one of {list(UNINFORMED_CHOICES)}.")
