@@ -220,3 +220,6 @@ def test_noise_only_directions_no_longer_inflate_short_campaigns(seed):
     after = tr.sd / loro
     assert before.max() > 5.0, before
     assert after.max() < 1.5 and tr.warning is None, (after, tr.warning)
+    # metrics.json says how many directions each run set aside (the held runs: the most)
+    per_run = tr.per_run["model"]["weak_directions_per_run"]
+    assert per_run and all(int(r) in set(d.run) and 1 <= k <= 4 for r, k in per_run.items()), per_run

@@ -1507,7 +1507,10 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
         warnings.append(f"The training data hold {runs.size} runs (sessions): the between-session sds of the "
                         f"hierarchical transfer model are then set largely by their prior (half-normal, scale "
                         f"{TAU_PRIOR_SCALE} uT), and new-session intervals are wide. Record at least {FEW_RUNS} sessions.")
-    summary = {**post.as_dict(), "dropped_effects_informing_runs": select_effects(train, fit, effects)[1]}
+    kept, dropped = select_effects(train, fit, effects)
+    weak = weak_directions(train, fit, [e for e in kept if e in post.effects]) if WEAK_NOISE_MULTIPLE else {}
+    summary = {**post.as_dict(), "dropped_effects_informing_runs": dropped,
+               "weak_directions_per_run": {str(r): int(W.shape[1]) for r, W in weak.items()}}
     if runs.size >= 3:
         loro = estimate_transfer(train, fit, level=level).sd
         summary["loro_sd"] = {ax: float(v) for ax, v in zip(AXES, loro)}
