@@ -3,6 +3,8 @@
 
 Run: ``python benchmarks/time_learned_df.py [--repeats 3]``: the first fit of each variant (compilation
 included), then ``--repeats`` compiled fits of each, interleaved; medians. Also the learned dof's posterior.
+``--apply``: instead, the predictive's cost: ``new_session_variance`` of each variant's posterior at 100 000 rows
+(``_session(5, 10, rows=10000)``'s Jacobian, three axes), ``--repeats`` interleaved calls, medians.
 """
 
 import argparse
@@ -27,10 +29,26 @@ VARIANTS = {"gaussian": dict(likelihood="gaussian"), "student_t df 4": dict(like
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--apply", action="store_true")
     args = ap.parse_args()
     d = _session(0, 30, rows=100)
     model = bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature)))
-    st = H.run_stats(d, bayesmag.fit_physics(d, model))
+    fit = bayesmag.fit_physics(d, model)
+    st = H.run_stats(d, fit)
+    if args.apply:
+        posts = {k: H.fit_laplace(st, model.param_names, **kw) for k, kw in VARIANTS.items()}
+        J = H._jacobian(fit, _session(5, 10, rows=10000))
+        used = (posts["student_t learned"].df_weight >= H.MIN_DF_WEIGHT).sum(1)
+        print(f"{J.shape[1]} rows x 3 axes; learned dof: {used.tolist()} dofs in the mixture per axis")
+        times = {k: [] for k in posts}
+        for _ in range(args.repeats):
+            for k, post in posts.items():
+                t = time.perf_counter()
+                post.new_session_variance(J)
+                times[k].append(time.perf_counter() - t)
+        for k, v in times.items():
+            print(f"{k}: new_session_variance {' '.join(f'{x:.2f}' for x in v)} s, median {np.median(v):.2f} s")
+        return
     times = {k: [] for k in VARIANTS}
     for k, kw in VARIANTS.items():
         t = time.perf_counter()
