@@ -1228,9 +1228,9 @@ def weak_directions(train, fit, effects: Sequence[str], axis: int = 0,
     residual with a large between-session sd of the gains: on clean simulated campaigns of eight 100-row runs
     (``tests/test_transfer.py::_session``, reading noise 0.05 uT) the transfer sd of one axis was 3.0-4.7 uT against
     leave-one-run-out's 0.19-0.40 on 5 of 8 seeds, and where a second start finds the mode at small sds, the large
-    one is higher by 33-72 nats (docs/sessions.md). A weak direction gets a coefficient of its own in that run (:func:`run_stats`
-    ``directions``), so its wobble informs neither the shared parameters nor the run's random effects; the run's
-    level still informs them. The two conditions keep real signal: a wobble that is a real field both sensors read
+    one is higher by 33-72 nats (docs/sessions.md). A weak direction gets a coefficient of its own in that run
+    (:func:`run_stats` ``directions``), so its wobble informs neither the shared parameters nor the run's random
+    effects; the run's level still informs them. The two conditions keep real signal: a wobble that is a real field both sensors read
     (Belsten's 0.6-1.7 uT, slow) is not white, and a design whose rows are independent draws (a shuffled or
     subsampled record) varies by far more than a tenth of the RMS.
     """
@@ -1515,8 +1515,8 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
         warnings.append(f"The training data hold {runs.size} runs (sessions): the between-session sds of the "
                         f"hierarchical transfer model are then set largely by their prior (half-normal, scale "
                         f"{TAU_PRIOR_SCALE} uT), and new-session intervals are wide. Record at least {FEW_RUNS} sessions.")
-    kept, dropped = select_effects(train, fit, effects)
-    weak = weak_directions(train, fit, [e for e in kept if e in post.effects]) if WEAK_NOISE_MULTIPLE else {}
+    dropped = select_effects(train, fit, effects)[1]
+    weak = weak_directions(train, fit, [e for e in post.effects if e not in post.prior_only])     # as fit_sessions
     summary = {**post.as_dict(), "dropped_effects_informing_runs": dropped,
                "weak_directions_per_run": {str(r): int(W.shape[1]) for r, W in weak.items()}}
     if runs.size >= 3:
@@ -1530,7 +1530,8 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
                 + ". Two known causes (docs/sessions.md, Limits): physics that every session shares but the model "
                 "lacks, read as session change (run `bayesmag discover` on the training data and put the terms it names "
                 "in [physics] extra_terms), and runs that leave field directions unswept beyond what the model sets "
-                "aside as reading noise (a second posterior mode). Compare with [uq] transfer = \"loro\" before using these intervals.")
+                "aside as reading noise (a second posterior mode). Compare with [uq] transfer = \"loro\" before "
+                "using these intervals.")
     warning = " ".join(warnings) or None
     return (TransferEstimate(sd, f"hierarchical_{post.method}",
                              {"model": summary, "conditions": condition_table(post, fit, train)}, warning), post)
