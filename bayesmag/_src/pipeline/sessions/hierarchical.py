@@ -148,11 +148,9 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
                 extra.append(c)
     for r, W in (directions or {}).items():
         m = np.asarray(data.run) == r
-        dev = J[:, m] - J[:, m].mean(axis=1, keepdims=True)
-        for k in range(W.shape[1]):
-            c = np.zeros(J.shape[:2])
-            c[:, m] = dev @ W[:, k]
-            extra.append(c)
+        cols = np.zeros(J.shape[:2] + (W.shape[1],))
+        cols[:, m] = (J[:, m] - J[:, m].mean(axis=1, keepdims=True)) @ W
+        extra += list(np.moveaxis(cols, 2, 0))
     p = J.shape[2]
     if shared is not None:
         shared = np.asarray(shared, np.float64)
@@ -1211,7 +1209,7 @@ WEAK_NOISE_MULTIPLE = 5.0
 
 
 def weak_directions(train, fit, effects: Sequence[str], axis: int = 0,
-                    multiple: float = WEAK_NOISE_MULTIPLE) -> dict:
+                    multiple: float = WEAK_NOISE_MULTIPLE, J: np.ndarray | None = None) -> dict:
     r"""``{run: W}``, ``W`` (p, k): the directions of the random ``effects``' Jacobian columns along which a run's
     within-run variation is small and mostly reading noise.
 
@@ -1232,10 +1230,11 @@ def weak_directions(train, fit, effects: Sequence[str], axis: int = 0,
     (:func:`run_stats` ``directions``), so its wobble informs neither the shared parameters nor the run's random
     effects; the run's level still informs them. The two conditions keep real signal: a wobble that is a real field both sensors read
     (Belsten's 0.6-1.7 uT, slow) is not white, and a design whose rows are independent draws (a shuffled or
-    subsampled record) varies by far more than a tenth of the RMS.
+    subsampled record) varies by far more than a tenth of the RMS. ``J``: the (3, n, p) Jacobian on ``train`` if
+    the caller has it.
     """
     names = list(fit.model.param_names)
-    J = _jacobian(fit, train)[axis]
+    J = (_jacobian(fit, train) if J is None else J)[axis]
     idx = np.array([names.index(e) for e in effects if e in names], int)
     rms = np.sqrt(np.mean(J[:, idx] ** 2, axis=0))
     varies = np.ptp(J[:, idx], axis=0) > 1e-12 * np.maximum(rms, 1e-300)          # the offset's column does not
@@ -1283,7 +1282,8 @@ def fit_sessions(train, fit, *, method: str = "laplace", effects: Sequence[str] 
         raise ValueError(f"method {method!r} is not known; it must be 'laplace' or 'nuts'.")
     drop = [e for e in dropped if e not in eff]
     withins = [uninformed_within(train, fit, drop, a) if within_uninformed else {} for a in range(3)]
-    weaks = [weak_directions(train, fit, eff, a, weak) if weak is not None else {} for a in range(3)]
+    jac = _jacobian(fit, train) if weak is not None else None
+    weaks = [weak_directions(train, fit, eff, a, weak, J=jac) if weak is not None else {} for a in range(3)]
     designs = [(w, {r: np.round(W, 12).tobytes() for r, W in v.items()}) for w, v in zip(withins, weaks)]
     post = None
     for a0 in [a for a in range(3) if designs[a] not in designs[:a]]:       # one fit per distinct design
