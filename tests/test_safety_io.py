@@ -574,6 +574,9 @@ def test_figure_worker_refuses_functions_of_main():
 def test_signal_handlers_are_left_alone_by_import_and_by_calls_from_python(tmp_path):
     script = textwrap.dedent("""
         import signal
+        # Python's own SIGINT handler, whatever this process inherited (a shell starts background jobs with SIGINT
+        # ignored, and Python then keeps it ignored instead of installing its handler)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), signal.set_wakeup_fd(-1))
         import bayesmag
         from bayesmag._src.app.cli import main
