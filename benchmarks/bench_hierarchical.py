@@ -307,6 +307,61 @@ def belsten_tau(args):
             sub = lp_of(st.select(np.arange(st.runs.size) != k), H.REML)
             f = jax.jit(lambda h, sub=sub: sub(h)[0])
             print(f"- without run {run}: {cond_max(f, big[0], big[1:]) - cond_max(f, small[0], small[1:]):+.2f}")
+    if len(found) == 1 and np.exp(found[0][0][0]) > SMALL_TAU:
+        one_mode_profile(train, fit, eff, a, found[0][0])
+
+
+#: ``belsten_tau``'s reference between-session sd for a one-mode posterior far above it (uT): a stable sensor's.
+SMALL_TAU = 0.03
+
+
+def one_mode_profile(train, fit, eff, a, mode):
+    """One mode at a large ``tau``: how much the data prefer it to ``SMALL_TAU``, which run makes it, and what
+    the left-out axis's reading does inside the training runs.
+
+    The log posterior maximised over ``(log sigma, atanh rho)`` at the mode's ``tau`` minus the same at
+    ``SMALL_TAU``, with all training runs and with each one dropped (stats without the within-run nuisance
+    columns, which belong to single runs), and per run the within-run sd of the DUT's reading and of the
+    reference on this axis, their lag-0 correlation and what the reading follows.
+    """
+    import jax
+    import jax.numpy as jnp
+    import scipy.optimize
+
+    st = H.run_stats(train, fit, eff)
+
+    def prof(stats, log_tau, start):
+        args_ = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n,
+                                                stats.effects))
+        f = jax.jit(jax.value_and_grad(lambda sr: -H._collapsed(jnp.r_[log_tau, sr], *args_, H.TAU_PRIOR_SCALE,
+                                                                   H.SIGMA_PRIOR_SCALE, H.REML)[0]))
+        res = scipy.optimize.minimize(lambda x: tuple(np.asarray(v, np.float64) for v in f(jnp.asarray(x))),
+                                      np.asarray(start), jac=True, method="BFGS")
+        return -float(res.fun), np.exp(res.x[0]), np.tanh(res.x[1])
+
+    print(f"\none mode, tau {np.exp(mode[0]):.3f} uT. Log posterior (maximised over sigma, rho) at it minus at tau "
+          f"{SMALL_TAU} uT; sigma / rho at each:\n")
+    print("| training runs | difference (nats) | sigma / rho at tau " f"{SMALL_TAU} | sigma / rho at the mode |")
+    print("|---|---|---|---|")
+    for k in [None] + list(range(st.runs.size)):
+        s = st if k is None else st.select(np.arange(st.runs.size) != k)
+        lo, hi = prof(s, np.log(SMALL_TAU), mode[1:]), prof(s, mode[0], mode[1:])
+        label = "all" if k is None else f"without run {st.runs[k]}"
+        print(f"| {label} | {hi[0] - lo[0]:+.1f} | {lo[1]:.4f} / {lo[2]:.3f} | {hi[1]:.4f} / {hi[2]:.3f} |")
+    print(f"\nwithin each training run, axis {'xyz'[a]}: sd of the DUT's reading and of the reference (uT), their "
+          "lag-0 correlation, and the input the reading follows most (|correlation|):\n")
+    print("| run | reading sd | reference sd | correlation | follows |")
+    print("|---|---|---|---|---|")
+    cols = {"B_x": 0, "B_y": 1, "B_z": 2}
+    for run in np.unique(train.run):
+        m = train.run == run
+        bm, br, temp = train.b_meas[m], train.b_ref[m], train.temperature[m]
+        x = bm[:, a]
+        others = {n: bm[:, j] for n, j in cols.items() if j != a} | {"temperature": temp}
+        cc = {n: abs(np.corrcoef(x, v)[0, 1]) if v.std() > 0 and x.std() > 0 else 0.0 for n, v in others.items()}
+        n_best = max(cc, key=cc.get)
+        corr = np.corrcoef(x, br[:, a])[0, 1] if x.std() > 0 and br[:, a].std() > 0 else float("nan")
+        print(f"| {run} | {x.std():.3f} | {br[:, a].std():.3f} | {corr:.3f} | {n_best} ({cc[n_best]:.3f}) |")
 
 
 def pooling(args):
