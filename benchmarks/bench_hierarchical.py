@@ -188,8 +188,8 @@ def belsten(args):
     sigma_in = bayesmag.estimate_input_noise(d) if hasattr(bayesmag, "estimate_input_noise") else None
     f = lambda v: " / ".join(f"{100 * x:.0f}" for x in v)   # noqa: E731
     print("| left-out run | in-domain rows | transfer | covered x / y / z (%) | covered or flagged x / y / z (%) | "
-          "mean in-domain 95 % width (uT) | effects |")
-    print("|---|---|---|---|---|---|---|")
+          "mean in-domain 95 % width (uT) | effects | job's misfit warning (rms transfer sd / loro's) |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in np.unique(d.run):
         train, test = d.subset(np.flatnonzero(d.run != r)), d.subset(np.flatnonzero(d.run == r))
         model = bayesmag.PhysicsModel.paper(t0=0.0)
@@ -205,7 +205,11 @@ def belsten(args):
         post = H.fit_sessions(train, fit, mode_search=args.mode_search, likelihood=args.likelihood,
                               within_uninformed=args.within_uninformed == "free", weak=args.weak,
                               **({} if args.likelihood == "gaussian" else {"df": args.df}))
-        for key, pr in (("loro", dataclasses.replace(base, transfer_sd=estimate_transfer(train, fit).sd)),
+        loro_sd = estimate_transfer(train, fit).sd
+        rms = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
+        warned = H.misfit_axes(rms, loro_sd, fit.s2)          # the job's rule (hierarchical_transfer)
+        said = ", ".join(f"{'xyz'[a]} {rms[a] / loro_sd[a]:.1f}x" for a in np.flatnonzero(warned)) or "none"
+        for key, pr in (("loro", dataclasses.replace(base, transfer_sd=loro_sd)),
                         ("hierarchical", dataclasses.replace(base, sessions=post))):
             p = pr.predict(test)
             lo, hi = p.interval(0.95)
@@ -213,7 +217,8 @@ def belsten(args):
             dom = p.in_domain
             w = (hi - lo)[dom].mean(0) if dom.any() else np.full(3, np.nan)
             print(f"| {r} | {int(dom.sum())} of {test.n} | {key} | {f(c.mean(0))} | {f((c | ~dom[:, None]).mean(0))} | "
-                  f"{' / '.join(f'{v:.3f}' for v in w)} | {', '.join(post.effects) if key != 'loro' else '-'} |",
+                  f"{' / '.join(f'{v:.3f}' for v in w)} | {', '.join(post.effects) if key != 'loro' else '-'} | "
+                  f"{said if key != 'loro' else '-'} |",
                   flush=True)
 
 

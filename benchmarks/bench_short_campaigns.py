@@ -46,7 +46,7 @@ def main():
         loro = estimate_transfer(d, fit).sd
         off = H.fit_sessions(d, fit, weak=None)
         sd_off = np.sqrt(np.mean(off.transfer_sd_for(fit, d) ** 2, axis=0))
-        warn_off = bool(((sd_off > H.MISFIT_RATIO * loro) & (sd_off**2 > np.asarray(fit.s2))).any())
+        warn_off = bool(H.misfit_axes(sd_off, loro, fit.s2).any())
         tr, _ = H.hierarchical_transfer(d, fit)
         misfit = "The hierarchical transfer sd is" in (tr.warning or "")      # not the few-runs warning
         eff = H.select_effects(d, fit)[0]

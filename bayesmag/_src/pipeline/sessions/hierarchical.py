@@ -1491,6 +1491,13 @@ FEW_RUNS = 6
 MISFIT_RATIO = 2.0
 
 
+def misfit_axes(sd, loro_sd, s2) -> np.ndarray:
+    """(3,) bool: the axes whose root-mean-square transfer sd ``sd`` exceeds :data:`MISFIT_RATIO` times
+    leave-one-run-out's ``loro_sd`` and the residual sd ``sqrt(s2)`` (the job warns on them)."""
+    sd = np.asarray(sd, float)
+    return (sd > MISFIT_RATIO * np.asarray(loro_sd, float)) & (sd**2 > np.asarray(s2, float))
+
+
 def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
                           effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float | str = 4.0,
                           uninformed: str | None = None):
@@ -1522,16 +1529,17 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
     if runs.size >= 3:
         loro = estimate_transfer(train, fit, level=level).sd
         summary["loro_sd"] = {ax: float(v) for ax, v in zip(AXES, loro)}
-        big = [a for a in range(3) if sd[a] > MISFIT_RATIO * loro[a] and sd[a] ** 2 > float(np.asarray(fit.s2)[a])]
+        big = list(np.flatnonzero(misfit_axes(sd, loro, fit.s2)))
         if big:
             warnings.append(
                 "The hierarchical transfer sd is " + ", ".join(f"{sd[a]:.3g} uT on {AXES[a]} ({sd[a] / max(loro[a], 1e-300):.1f}x "
                                                               f"leave-one-run-out's {loro[a]:.3g})" for a in big)
-                + ". Two known causes (docs/sessions.md, Limits): physics that every session shares but the model "
-                "lacks, read as session change (run `bayesmag discover` on the training data and put the terms it names "
-                "in [physics] extra_terms), and runs that leave field directions unswept beyond what the model sets "
-                "aside as reading noise (a second posterior mode). Compare with [uq] transfer = \"loro\" before "
-                "using these intervals.")
+                + ". Three known causes (docs/sessions.md, Limits), each read as session change: physics that every "
+                "session shares but the model lacks (run `bayesmag discover` on the training data and put the terms it "
+                "names in [physics] extra_terms); runs that leave field directions unswept beyond what the model sets "
+                "aside as reading noise (a second posterior mode); and one run whose level the model does not fit "
+                "together with the others' (such as the only heated run, when no other run sweeps that axis). Compare "
+                "with [uq] transfer = \"loro\" before using these intervals.")
     warning = " ".join(warnings) or None
     return (TransferEstimate(sd, f"hierarchical_{post.method}",
                              {"model": summary, "conditions": condition_table(post, fit, train)}, warning), post)
