@@ -253,11 +253,7 @@ def belsten_tau(args):
         print("(the grid integration below is written for one learned effect)")
         return
 
-    def lp_of(stats, reml):
-        args_ = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n,
-                                                stats.effects))
-        return lambda h: H._collapsed(h, *args_, H.TAU_PRIOR_SCALE, H.SIGMA_PRIOR_SCALE, reml)
-
+    lp_of = lambda stats, reml: _lp_of(stats, a, reml)    # noqa: E731
     lp = lp_of(st, H.REML)
 
     def fg(h):
@@ -303,17 +299,34 @@ def belsten_tau(args):
               "small-tau mode's, with one training run dropped:")
         big, small = sorted((h for h, _ in found), key=lambda h: h[0])[::-1]
 
-        def cond_max(f, t, start):
-            vg = jax.jit(jax.value_and_grad(lambda sr: -f(jnp.r_[t, sr])))
-            fn = lambda x: tuple(np.asarray(v, np.float64) for v in vg(jnp.asarray(x)))  # noqa: E731
-            return -float(scipy.optimize.minimize(fn, np.asarray(start), jac=True, method="BFGS").fun)
-
         for k, run in enumerate(st.runs):
             sub = lp_of(st.select(np.arange(st.runs.size) != k), H.REML)
-            f = jax.jit(lambda h, sub=sub: sub(h)[0])
-            print(f"- without run {run}: {cond_max(f, big[0], big[1:]) - cond_max(f, small[0], small[1:]):+.2f}")
+            f = lambda h, sub=sub: sub(h)[0]      # noqa: E731
+            print(f"- without run {run}: {_cond_max(f, big[0], big[1:])[0] - _cond_max(f, small[0], small[1:])[0]:+.2f}")
     if len(found) == 1 and np.exp(found[0][0][0]) > SMALL_TAU:
         one_mode_profile(train, fit, eff, a, found[0][0])
+
+
+def _lp_of(stats, a, reml):
+    """Axis ``a``'s collapsed log posterior of ``h`` on ``stats`` (the value, ``mu`` and its covariance)."""
+    import jax.numpy as jnp
+
+    args_ = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n,
+                                            stats.effects))
+    return lambda h: H._collapsed(h, *args_, H.TAU_PRIOR_SCALE, H.SIGMA_PRIOR_SCALE, reml)
+
+
+def _cond_max(f, log_tau, start):
+    """``f`` (log posterior of ``h``) maximised over ``(log sigma, atanh rho)`` at ``log_tau`` by BFGS from ``start``:
+    ``(value, sigma, rho)``."""
+    import jax
+    import jax.numpy as jnp
+    import scipy.optimize
+
+    vg = jax.jit(jax.value_and_grad(lambda sr: -f(jnp.r_[log_tau, sr])))
+    fn = lambda x: tuple(np.asarray(v, np.float64) for v in vg(jnp.asarray(x)))  # noqa: E731
+    res = scipy.optimize.minimize(fn, np.asarray(start), jac=True, method="BFGS")
+    return -float(res.fun), np.exp(res.x[0]), np.tanh(res.x[1])
 
 
 #: ``belsten_tau``'s reference between-session sd for a one-mode posterior far above it (uT): a stable sensor's.
@@ -329,20 +342,11 @@ def one_mode_profile(train, fit, eff, a, mode):
     columns, which belong to single runs), and per run the within-run sd of the DUT's reading and of the
     reference on this axis, their lag-0 correlation and what the reading follows.
     """
-    import jax
-    import jax.numpy as jnp
-    import scipy.optimize
-
     st = H.run_stats(train, fit, eff)
 
     def prof(stats, log_tau, start):
-        args_ = tuple(jnp.asarray(x) for x in (stats.m0[a], stats.m1[a], stats.m2[a], stats.first[a], stats.n,
-                                                stats.effects))
-        f = jax.jit(jax.value_and_grad(lambda sr: -H._collapsed(jnp.r_[log_tau, sr], *args_, H.TAU_PRIOR_SCALE,
-                                                                   H.SIGMA_PRIOR_SCALE, H.REML)[0]))
-        res = scipy.optimize.minimize(lambda x: tuple(np.asarray(v, np.float64) for v in f(jnp.asarray(x))),
-                                      np.asarray(start), jac=True, method="BFGS")
-        return -float(res.fun), np.exp(res.x[0]), np.tanh(res.x[1])
+        lp = _lp_of(stats, a, H.REML)
+        return _cond_max(lambda h: lp(h)[0], log_tau, start)
 
     print(f"\none mode, tau {np.exp(mode[0]):.3f} uT. Log posterior (maximised over sigma, rho) at it minus at tau "
           f"{SMALL_TAU} uT; sigma / rho at each:\n")
