@@ -27,6 +27,7 @@ class AbsField(Term, Entry):
 
     name: ClassVar[str] = "toy_abs_field"
     degree: ClassVar[None] = None                      # |B| is not a polynomial
+    temperature_centred: ClassVar[bool] = True         # no temperature at all: one program for every T0
     explanation: ClassVar[str] = "A toy: the reading responds to the magnitude of one field component."
 
     def param_names(self):

@@ -57,14 +57,16 @@ def test_fit_matches_closed_form_and_scipy(seed):
         np.testing.assert_allclose(fit.cov[a], s2 * np.linalg.inv(X.T @ X), rtol=1e-6)
 
 
-def test_nonlinear_thermal_lag_recovered():
-    """A model nonlinear in tau: LM recovers tau; its covariance matches scipy's J^T J inverse."""
+@pytest.mark.parametrize("t0", [0.0, 27.5])
+def test_nonlinear_thermal_lag_recovered(t0):
+    """A model nonlinear in tau: LM recovers tau and agrees with scipy; at T0 = 27.5 the fit runs on the
+    centred model (physics.centred), so this is also that path against scipy on the model as written."""
     n = 1200
     time = np.arange(n) * 1.0
     t_log = 20 + 20 * (time > 200) - 15 * (time > 700)
     r = np.random.default_rng(1)
     b = r.uniform(-30, 30, (n, 3))
-    model = PhysicsModel.paper(extra=(ThermalLag(tau0=20.0),))
+    model = PhysicsModel.paper(t0=t0, extra=(ThermalLag(tau0=20.0),))
     th_true = np.zeros((3, model.n_params))
     th_true[:, :8] = [[1, 0, 0, 0.01, 0, 0, 0.5, 0.05], [0, 1, 0, 0, 0.01, 0, -0.5, 0.08], [0, 0, 1, 0, 0, 0.01, 1, -0.06]]
     th_true[:, 8] = np.log(45.0)
@@ -80,6 +82,82 @@ def test_nonlinear_thermal_lag_recovered():
     sp = least_squares(lambda th: np.asarray(model.predict(jnp.asarray(th), inp)) - y[:, 0],
                        model.init_params(0), method="lm")
     np.testing.assert_allclose(fit.theta[0], sp.x, rtol=1e-5, atol=1e-7)
+
+
+def _every_centred_component(t0):
+    from bayesmag._src.core import catalogue as C
+    cal = (1.1, 0.02, -0.03, 1e-3, 2e-4, -1e-4, 0.4, 0.01)
+    return {"paper": PhysicsModel.paper(t0=t0),
+            "temperature_quadratic": PhysicsModel.paper(t0=t0, extra=(C.TemperatureQuadratic(scale=True, cubic=True,
+                                                                                          linear=True),)),
+            "thermal_axis_quadratic": PhysicsModel.paper(t0=t0, extra=(C.AxisQuadratic(thermal=True),)),
+            "hysteresis_calibrated": PhysicsModel.paper(t0=t0, extra=(C.Hysteresis(axis="x", threshold=5.0, cal=cal),)),
+            "two_node_lag": PhysicsModel.paper(t0=t0, extra=(C.ThermalLag(tau0=30.0, nodes=2),)),
+            "timing_offset": PhysicsModel.paper(t0=t0, extra=(C.TimingOffset(),)),
+            "offset_drift": PhysicsModel.paper(t0=t0, extra=(C.OffsetDrift(time_ref=100.0, steps=True),))}
+
+
+@pytest.mark.parametrize("name", list(_every_centred_component(0.0)))
+def test_centred_model_predicts_as_the_model(name):
+    """physics.centred: the model at T0 = 0 on T - T0 predicts as the model at T0 (to rounding; the paper model
+    bit for bit), and two T0s share one centred model (one compiled program)."""
+    from bayesmag._src.core.physics import centred
+    rng = np.random.default_rng(3)
+    n = 400
+    time = np.arange(n) * 2.0
+    data = CalibrationData(rng.uniform(-40, 40, (n, 3)), 15 + 30 * (time > 300) + rng.normal(0, 0.2, n), None,
+                           time=time, run=1 + (time > 500))
+    model = _every_centred_component(26.3)[name]
+    theta = np.asarray(model.init_params_all()) + 0.01 * rng.standard_normal((3, model.n_params))
+    inputs = inputs_from_data(data)
+    mc, ic = centred(model, inputs)
+    assert mc.t0 == 0.0 and mc == centred(_every_centred_component(31.0)[name], inputs)[0]
+    want = np.stack([np.asarray(model.predict(jnp.asarray(theta[a]), inputs)) for a in range(3)], 1)
+    got = np.stack([np.asarray(mc.predict(jnp.asarray(theta[a]), ic)) for a in range(3)], 1)
+    if name == "paper":
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+
+
+def test_a_new_t0_compiles_no_new_fit():
+    """Fits of same-shape data at another T0 (the default "mean" differs per recording) reuse the compiled LM."""
+    from bayesmag._src.core import fit as F
+    data, _, _ = _sim(n=300, seed=4)
+    fit_physics(data, PhysicsModel.paper(t0=21.0))
+    before = F._solve_jit._cache_size(), F._jac_jit._cache_size()
+    fit = fit_physics(data, PhysicsModel.paper(t0=24.7))
+    assert (F._solve_jit._cache_size(), F._jac_jit._cache_size()) == before
+    assert fit.model.t0 == 24.7                     # the fit, its parameters and reports stay at the T0 asked for
+    X = np.column_stack([data.b_meas, (data.temperature - 24.7)[:, None] * data.b_meas, np.ones(data.n),
+                         data.temperature - 24.7])
+    ols = np.linalg.lstsq(X, data.b_ref[:, 0], rcond=None)[0]
+    np.testing.assert_array_less(np.abs(fit.theta[0] - ols) / fit.std[0], AGREE_IN_SD)
+
+
+def test_a_component_that_does_not_declare_centring_keeps_its_t0():
+    """A term that reads absolute temperature (here a subclass of the paper's term that adds T itself, not
+    T - T0) does not declare ``temperature_centred``; the declaration is not inherited, so centred() leaves the
+    model as it is and the fit is that of the model as written (against closed-form least squares)."""
+    import dataclasses
+
+    from bayesmag._src.core.physics import ThermoAffine, centred
+
+    @dataclasses.dataclass(frozen=True)
+    class AbsoluteT(ThermoAffine):
+        def features(self, inputs):
+            return jnp.concatenate([super().features(inputs), inputs.t[..., None] ** 2], axis=-1)
+
+        def param_names(self):
+            return super().param_names() + ("T2",)
+
+    model = PhysicsModel((AbsoluteT(t0=22.0),))
+    data, _, _ = _sim(n=300, seed=5)
+    assert centred(model, inputs_from_data(data))[0] is model
+    fit = fit_physics(data, model)
+    tc = data.temperature - 22.0
+    X = np.column_stack([data.b_meas, tc[:, None] * data.b_meas, np.ones(data.n), tc, data.temperature**2])
+    ols = np.linalg.lstsq(X, data.b_ref[:, 1], rcond=None)[0]
+    np.testing.assert_array_less(np.abs(fit.theta[1] - ols) / fit.std[1], AGREE_IN_SD)
 
 
 def test_covariance_methods_on_ar1_noise():

@@ -207,6 +207,7 @@ class AxisQuadratic(Term, Entry):
     t0: float = 0.0
     thermal: bool = False
     name: ClassVar[str] = "axis_quadratic"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     explanation: ClassVar[str] = ("Bridge asymmetry and imperfect set/reset make an axis respond to the square of "
                                   "the field along an axis (even-order nonlinearity).")
 
@@ -241,6 +242,7 @@ class CrossAxisQuadratic(Term, Entry):
     t0: float = 0.0
     thermal: bool = False
     name: ClassVar[str] = "cross_axis_quadratic"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     explanation: ClassVar[str] = ("Nonlinear coupling between the bridges (cross-field effect of AMR films) makes "
                                   "one axis respond to the product of the fields along two axes.")
 
@@ -274,6 +276,7 @@ class CubicNonlinearity(Term, Entry):
     t0: float = 0.0
     thermal: bool = False
     name: ClassVar[str] = "cubic_nonlinearity"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     explanation: ClassVar[str] = ("The magnetoresistive response flattens (or steepens) as the film approaches "
                                   "saturation, an odd-order nonlinearity of the transfer curve.")
 
@@ -315,6 +318,7 @@ class TemperatureQuadratic(Term, Entry):
     cubic: bool = False
     linear: bool = False
     name: ClassVar[str] = "temperature_quadratic"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     degree: ClassVar[int] = 2           # T^2 and T^2 B_j: no input beyond the second power
     explanation: ClassVar[str] = ("The bridge offset (and sensitivity) drifts nonlinearly with temperature, beyond "
                                   "the linear Ko (and Ks) coefficients.")
@@ -386,6 +390,7 @@ class Hysteresis(Term, Entry):
     cal: tuple = ()
     across_runs: bool = False
     name: ClassVar[str] = "hysteresis"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     degree: ClassVar[None] = None
     explanation: ClassVar[str] = ("The permalloy film keeps a remanent magnetisation whose sign follows the last "
                                   "large field excursion (or the direction of travel), shifting the bridge offset.")
@@ -473,6 +478,7 @@ class OffsetDrift(Term, Entry):
     rate: bool = True
     steps: bool = False
     name: ClassVar[str] = "offset_drift"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     degree: ClassVar[None] = None
     explanation: ClassVar[str] = ("Ageing, stress relaxation and slow electronics drift move the offset over time "
                                   "and between sessions.")
@@ -513,6 +519,7 @@ class RunOffset(Term, Entry):
 
     runs: tuple = (0, 1)
     name: ClassVar[str] = "run_offset"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     degree: ClassVar[None] = None
     requires: ClassVar[tuple] = ("runs",)
     localised: ClassVar[str | None] = "run"
@@ -557,6 +564,7 @@ class RunStep(Term, Entry):
     run_id: int = 0
     at: float = 0.0
     name: ClassVar[str] = "run_step"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     degree: ClassVar[None] = None
     requires: ClassVar[tuple] = ("time",)
     frames: ClassVar[tuple] = ("sensor",)
@@ -638,6 +646,7 @@ class ThermalLag(_physics.ThermalLag, Entry):
     requires: ClassVar[tuple] = ("time", "temperature")
     scope: ClassVar[str] = "sensor"
     simulator_name: ClassVar[str] = "thermal_lag"
+    temperature_centred: ClassVar[bool] = True       # one or two unit-gain linear filters: physics.centred
     #: A lag shorter than this many samples is smoothing of the temperature log, not heat flow.
     MIN_SAMPLES: ClassVar[float] = 10.0
     #: Shortest lag searched (s), and the search's upper cap (s): half the longest heated run, at most TAU_MAX.
@@ -707,6 +716,7 @@ class TimingOffset(InputTransform, Entry):
 
     delta0: float = 0.0
     name: ClassVar[str] = "timing_offset"
+    temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     explanation: ClassVar[str] = ("The sensor and the reference are sampled by different clocks, so each sensor row "
                                   "is logged a fixed latency after the field it saw.")
 

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesmag._src.core.frames import frame_io
-from bayesmag._src.core.physics import AXES, Inputs, PhysicsModel
+from bayesmag._src.core.physics import AXES, Inputs, PhysicsModel, centred
 
 __all__ = ["LMSolution", "RESULTS", "levenberg_marquardt", "PhysicsFit", "fit_physics", "covariance",
            "identifiability", "lag1_autocorrelation", "unidentifiable", "RANK_RTOL"]
@@ -411,9 +411,9 @@ def fit_folds(data, model: PhysicsModel, keep: np.ndarray) -> tuple[np.ndarray, 
     """
     from bayesmag._src.core.physics import inputs_from_data
 
-    inputs = inputs_from_data(data)
-    keep = np.asarray(keep, bool)
     th0 = jnp.asarray(model.init_params_all(), dtype=jnp.float64)
+    model, inputs = centred(model, inputs_from_data(data))          # one program for every T0
+    keep = np.asarray(keep, bool)
     sol = _solve_folds_jit(model, th0, inputs, jnp.asarray(data.b_ref), jnp.asarray(keep, jnp.float64))
     theta = np.asarray(sol.theta)
     conv = np.asarray(sol.result) == RESULTS.index("converged")
@@ -439,6 +439,12 @@ def rank_deficient(J: np.ndarray, *, rtol: float = RANK_RTOL) -> np.ndarray:
     return zero | (sv.min(axis=-1) < rtol * sv.max(axis=-1))
 
 _jac_jit = jax.jit(lambda prob, th, inputs: prob.jacobian(th, inputs), static_argnums=0)
+
+
+def physics_jacobian(model: PhysicsModel, theta, inputs: Inputs) -> np.ndarray:
+    """(3, n, p) Jacobian of each axis's prediction at ``theta`` (3, p); one compiled program for every T0."""
+    model, inputs = centred(model, inputs)
+    return np.asarray(_jac_jit(_Problem(model), jnp.asarray(theta), inputs))
 
 
 def _refuse_unidentifiable(J: np.ndarray, names: tuple[str, ...]) -> None:
@@ -485,10 +491,11 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
     inputs = inputs_from_data(data)
     y = jnp.asarray(data.b_ref)
     th0 = jnp.asarray(model.init_params_all() if theta0 is None else theta0, dtype=jnp.float64)
-    prob = _Problem(model)
-    sol = _solve_jit(prob, th0, inputs, y)
+    model_c, inputs_c = centred(model, inputs)                          # one program for every T0
+    prob = _Problem(model_c)
+    sol = _solve_jit(prob, th0, inputs_c, y)
     theta = np.asarray(sol.theta)
-    J = np.asarray(_jac_jit(prob, jnp.asarray(theta), inputs))          # (3, n, p)
+    J = np.asarray(_jac_jit(prob, jnp.asarray(theta), inputs_c))          # (3, n, p)
     if check_rank:
         _refuse_unidentifiable(J, model.param_names)
     pred = np.asarray(model.predict_all(jnp.asarray(theta), inputs))

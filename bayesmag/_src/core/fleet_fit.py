@@ -35,7 +35,7 @@ import numpy as np
 
 from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.core.fit import RANK_RTOL, RESULTS, levenberg_marquardt
-from bayesmag._src.core.physics import Inputs, PhysicsModel
+from bayesmag._src.core.physics import Inputs, PhysicsModel, centred
 
 __all__ = ["FleetData", "FleetFit", "FleetUQ", "fit_fleet", "fleet_uncertainty", "fleet_input_noise",
            "fleet_predict", "robust_z"]
@@ -190,6 +190,12 @@ def _scaled_inverse(A):
     return jnp.linalg.inv(As) / jnp.outer(d, d)    # singular: the sensor is reported unidentifiable
 
 
+def _centred(model: PhysicsModel, f: "FleetData") -> tuple[PhysicsModel, np.ndarray]:
+    """:func:`~bayesmag._src.core.physics.centred` for the padded fleet: the model at T0 = 0 and T - T0."""
+    model_c, inputs = centred(model, Inputs(f.b_meas, f.temperature, f.time, f.run))
+    return model_c, np.asarray(inputs.t)
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _fit_jit(model: PhysicsModel, method: str, th0, b, t, time, run, y, w):
     p = model.n_params
@@ -244,9 +250,10 @@ def fit_fleet(fleet: FleetData, model: PhysicsModel | None = None, *, covariance
                          f"per axis.")
     th0 = np.broadcast_to(model.init_params_all().astype(np.float64), (fleet.n_sensors, 3, model.n_params))
     f = _pad_rows(fleet)
+    model_c, t_c = _centred(model, f)
     theta, cov, s2, rmse, rho, ratio, result, steps = _batched(
-        functools.partial(_fit_jit, model, covariance_method),
-        [th0, f.b_meas, f.temperature, f.time, f.run, f.b_ref, f.mask.astype(np.float64)], batch_size)
+        functools.partial(_fit_jit, model_c, covariance_method),
+        [th0, f.b_meas, t_c, f.time, f.run, f.b_ref, f.mask.astype(np.float64)], batch_size)
     return FleetFit(model, theta, cov, s2, rmse, rho, ratio, result, steps, n, covariance_method)
 
 
@@ -263,8 +270,9 @@ def fleet_predict(fit: FleetFit, fleet: FleetData, *, batch_size: int = 64) -> n
     (padded rows 0): :meth:`~bayesmag.PhysicsFit.predict` of each sensor, one compiled program for the fleet."""
     f = _pad_rows(fleet)
     n = fleet.mask.shape[1]
-    (pred,) = _batched(functools.partial(_predict_jit, fit.model),
-                       [fit.theta, f.b_meas, f.temperature, f.time, f.run], batch_size)
+    model_c, t_c = _centred(fit.model, f)
+    (pred,) = _batched(functools.partial(_predict_jit, model_c),
+                       [fit.theta, f.b_meas, t_c, f.time, f.run], batch_size)
     return np.where(fleet.mask[..., None], pred[:, :n], 0.0)
 
 
@@ -336,9 +344,10 @@ def fleet_uncertainty(fit: FleetFit, fleet: FleetData, sigma_in: np.ndarray, *, 
     z, wq = gauss_hermite_normal(nodes, np.eye(4))
     f = _pad_rows(fleet)
     n = fleet.mask.shape[1]
+    model_c, t_c = _centred(model, f)
     mean, alea, epi = (o[:, :n] for o in _batched(
-        functools.partial(_uq_jit, model, jnp.asarray(z), jnp.asarray(wq)),
-        [fit.theta, fit.cov, _sqrt_psd_batched(np.array(sigma_in)), f.b_meas, f.temperature, f.time, f.run],
+        functools.partial(_uq_jit, model_c, jnp.asarray(z), jnp.asarray(wq)),
+        [fit.theta, fit.cov, _sqrt_psd_batched(np.array(sigma_in)), f.b_meas, t_c, f.time, f.run],
         batch_size))
     m = fleet.mask[..., None]
     return FleetUQ(np.where(m, mean, 0.0), np.where(m, np.sqrt(np.clip(alea, 0, None)), 0.0),

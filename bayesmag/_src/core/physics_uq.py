@@ -44,7 +44,7 @@ import numpy as np
 import scipy.special
 from scipy.stats import qmc
 
-from bayesmag._src.core.physics import Inputs, PhysicsModel
+from bayesmag._src.core.physics import Inputs, PhysicsModel, centred
 
 __all__ = ["PhysicsUQ", "physics_uncertainty", "sobol_normal", "gauss_hermite_normal", "estimate_input_noise"]
 
@@ -247,6 +247,7 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
                                                     jax.device_put(np.asarray(fit.cov[a])),
                                                     shape=(max(n_params, 2),), method="svd"))
     out = np.zeros((4, n, 3))
+    model, inputs = centred(model, inputs)          # one program for every T0 (after resolve_method: same degree)
     chunks = range(0, n, chunk_size)
     if progress:
         from tqdm.auto import tqdm

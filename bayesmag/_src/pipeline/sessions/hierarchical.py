@@ -101,8 +101,8 @@ class RunStats(NamedTuple):
 
 def _jacobian(fit, data) -> np.ndarray:
     """(3, n, p) Jacobian of the physics prediction at the fit's parameters (the design matrix if linear)."""
-    from bayesmag._src.core.fit import _jac_jit, _Problem
-    return np.asarray(_jac_jit(_Problem(fit.model), jnp.asarray(fit.theta), inputs_from_data(data)))
+    from bayesmag._src.core.fit import physics_jacobian
+    return physics_jacobian(fit.model, fit.theta, inputs_from_data(data))
 
 
 def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.ndarray | None = None,
