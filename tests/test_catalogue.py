@@ -96,6 +96,23 @@ def test_temperature_quadratic_cubic_option(campaign):
     assert make_extra({"name": "temperature_quadratic", "cubic": True}, t0=24.0).cubic
 
 
+def test_temperature_quadratic_is_linear_in_its_parameters(campaign):
+    """Its field ``linear`` (first-order columns) hid ``Term.linear``: with the default ``linear=False`` the model
+    was taken as nonlinear (the analytic UQ refused, ``auto`` took PS-QMC). Now linear either way: ``auto`` is the
+    exact analytic method, and its mean is the plug-in prediction plus the closed-form input-noise bias of
+    ``Ko2 (T + e)^2``, ``Ko2 sd_T^2`` (the model is otherwise linear in T and B)."""
+    from bayesmag._src.core.physics_uq import physics_uncertainty, resolve_method
+    assert PhysicsModel.paper(extra=(C.TemperatureQuadratic(linear=True, scale=True),)).is_linear
+    model = bayesmag.PhysicsModel.paper(t0=24.0, extra=(C.TemperatureQuadratic(),))
+    assert model.is_linear and model.degree == 2 and resolve_method("auto", model) == "analytic"
+    fit = bayesmag.fit_physics(campaign, model)
+    inputs = bayesmag.inputs_from_data(campaign)
+    sd_t = 0.3
+    uq = physics_uncertainty(fit, inputs, sigma_in=np.diag([0.0, 0.0, 0.0, sd_t**2]))
+    ko2 = fit.theta[:, list(model.param_names).index("Ko2")]
+    np.testing.assert_allclose(uq.mean, fit.predict(inputs) + ko2 * sd_t**2, rtol=0, atol=1e-10)
+
+
 def test_thermal_slopes_and_calibrated_hysteresis(campaign):
     inputs = bayesmag.inputs_from_data(campaign)
     tc = campaign.temperature - 24.0

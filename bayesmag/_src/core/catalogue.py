@@ -328,6 +328,10 @@ class TemperatureQuadratic(Term, Entry):
                 + (("Ks2_x", "Ks2_y", "Ks2_z") if self.scale else ())
                 + ((("Ko1",) + (("Ks1_x", "Ks1_y", "Ks1_z") if self.scale else ())) if self.linear else ()))
 
+    def linear_in_params(self):
+        # its field ``linear`` (the first-order columns) hides Term.linear: linear in its parameters either way
+        return True
+
     def features(self, inputs):
         tc = inputs.t - self.t0
         tc2 = (tc * tc)[..., None]

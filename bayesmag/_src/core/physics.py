@@ -88,6 +88,10 @@ class Term(abc.ABC):
         """(..., k) design columns such that ``self(p, inputs) == features @ p`` (linear terms)."""
         raise NotImplementedError(f"term {self.name!r} is not linear in its parameters")
 
+    def linear_in_params(self) -> bool:
+        """The class's ``linear``; a term with a dataclass field of that name (which hides it) overrides this."""
+        return self.linear
+
     def __call__(self, params: jax.Array, inputs: Inputs) -> jax.Array:
         return self.features(inputs) @ params
 
@@ -262,7 +266,7 @@ class PhysicsModel:
     @property
     def is_linear(self) -> bool:
         """True if the prediction is linear in all parameters (exact linear algebra applies)."""
-        return not self.transforms and all(t.linear for t in self.terms)
+        return not self._nonlinear()
 
     @property
     def degree(self) -> int | None:
@@ -291,11 +295,14 @@ class PhysicsModel:
         """Calibrated field of one axis, (n,), for parameters ``theta`` (p,)."""
         return self.pointwise(theta, self.transform(theta, inputs))
 
+    def _nonlinear(self) -> tuple:
+        return self.transforms + tuple(t for t in self.terms if not t.linear_in_params())
+
     def features(self, inputs: Inputs) -> jax.Array:
         """(..., p) design matrix of a linear model: ``predict(theta) == features @ theta``."""
         if not self.is_linear:
             raise ValueError("features() needs a model linear in its parameters; this one has "
-                             f"nonlinear components {[c.name for c in self.components if not getattr(c, 'linear', False)]}.")
+                             f"nonlinear components {[c.name for c in self._nonlinear()]}.")
         return jnp.concatenate([t.features(inputs) for t in self.terms], axis=-1)
 
     def predict_all(self, theta3: jax.Array, inputs: Inputs) -> jax.Array:
