@@ -190,9 +190,11 @@ def belsten(args):
     print("| left-out run | in-domain rows | transfer | covered x / y / z (%) | covered or flagged x / y / z (%) | "
           "mean in-domain 95 % width (uT) | effects | job's misfit warning (rms transfer sd / loro's) |")
     print("|---|---|---|---|---|---|---|---|")
+    from bayesmag._src.core.catalogue import make_extra
+    extra = tuple(make_extra(name, t0=0.0) for name in args.extra)
     for r in np.unique(d.run):
         train, test = d.subset(np.flatnonzero(d.run != r)), d.subset(np.flatnonzero(d.run == r))
-        model = bayesmag.PhysicsModel.paper(t0=0.0)
+        model = bayesmag.PhysicsModel.paper(t0=0.0, extra=extra)
         fit = bayesmag.fit_physics(train, model)
         from bayesmag._src.app.job import _residual_variance
 
@@ -420,6 +422,8 @@ def main():
     ap.add_argument("--first-draw", type=int, default=0, help="generators: training draws first..first+draws-1")
     ap.add_argument("--mode-search", action="store_true", help="generators, belsten: fit_laplace(mode_search=True)")
     ap.add_argument("--run", type=int, default=3, help="belsten_tau: the left-out run")
+    ap.add_argument("--extra", nargs="*", default=[], help="belsten: catalogue terms added to the paper model "
+                                                           "(names, e.g. temperature_quadratic)")
     ap.add_argument("--within-uninformed", default="free", choices=["free", "shared"],
                     help="generators, belsten, belsten_tau: an uninformed candidate's within-run variation with its "
                          "own coefficient in the runs that do not inform it (free, the default) or the shared mu")
