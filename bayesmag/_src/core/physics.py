@@ -307,7 +307,7 @@ class PhysicsModel:
 
     def predict_all(self, theta3: jax.Array, inputs: Inputs) -> jax.Array:
         """(n, 3) calibrated field for per-axis parameters ``theta3`` (3, p); one compiled program per model
-        and shape (called eagerly, the vmapped terms were a dozen small programs each)."""
+        (its T0 aside: :func:`centred`) and shape (called eagerly, the vmapped terms were a dozen small programs)."""
         model, inputs = centred(self, inputs)
         return _predict_all(model, theta3, inputs)
 
