@@ -222,6 +222,11 @@ class Calibration:
         out = {k: np.full((n, 3), np.nan) for k in names}
         idx = np.flatnonzero(valid)
         base = self.predictor(method=method, n_params=n_params, n_qmc=n_qmc, seed=seed)
+        # a term whose features depend on earlier rows (hysteresis) is evaluated on the whole valid series once, so
+        # the chunks below continue its history instead of restarting it
+        from bayesmag._src.core.physics import inputs_from_data
+        from bayesmag._src.core.physics_uq import history_columns
+        hist = history_columns(self.model, inputs_from_data(data.subset(idx))) if self.model.has_history else None
         starts = range(0, idx.size, chunk_size)
         if progress:
             from tqdm.auto import tqdm
@@ -230,7 +235,9 @@ class Calibration:
             rows = idx[lo:lo + chunk_size]
             pr = dataclasses.replace(base, uq=dataclasses.replace(base.uq, chunk_size=min(4096, max(256, rows.size))),
                                      domain=None)
-            pred = pr.predict(data.subset(rows), new_session=new_session)
+            pred = pr.predict(data.subset(rows), new_session=new_session,
+                              history=None if hist is None else tuple(None if h is None else h[lo:lo + chunk_size]
+                                                                      for h in hist))
             lo_, hi_ = pred.interval(level)
             out["calibrated"][rows], out["total"][rows] = pred.mean, pred.total
             out["lower"][rows], out["upper"][rows] = lo_, hi_

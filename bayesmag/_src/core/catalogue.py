@@ -394,6 +394,7 @@ class Hysteresis(Term, Entry):
     cal: tuple = ()
     across_runs: bool = False
     name: ClassVar[str] = "hysteresis"
+    history: ClassVar[bool] = True        # the state is set by earlier rows: Term.history
     temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
     degree: ClassVar[None] = None
     explanation: ClassVar[str] = ("The permalloy film keeps a remanent magnetisation whose sign follows the last "

@@ -76,6 +76,10 @@ class Term(abc.ABC):
     #: to T (:func:`centred`). Read from the class's own body, not inherited: a subclass that changes how
     #: temperature enters must declare it again. Default False (always correct, compiled once per T0).
     temperature_centred: ClassVar[bool] = False
+    #: True: a row's features depend on earlier rows (a remanent state), so they exist only on the whole series.
+    #: The physics UQ then takes them from the unperturbed series (:meth:`PhysicsModel.history_columns`): the
+    #: input noise is not propagated through them. Such a term must be linear in its parameters.
+    history: ClassVar[bool] = False
 
     @abc.abstractmethod
     def param_names(self) -> tuple[str, ...]: ...
@@ -283,13 +287,27 @@ class PhysicsModel:
             inputs = tr(theta[s], inputs)
         return inputs
 
-    def pointwise(self, theta: jax.Array, inputs: Inputs) -> jax.Array:
-        """Sum of the additive terms on already-transformed inputs, any leading shape."""
+    def pointwise(self, theta: jax.Array, inputs: Inputs, fixed: tuple | None = None) -> jax.Array:
+        """Sum of the additive terms on already-transformed inputs, any leading shape; ``fixed``: as
+        :meth:`features`."""
         sl = self._slices()
         out = 0.0
-        for term, s in zip(self.terms, sl):
-            out = out + term(theta[s], inputs)
+        for k, (term, s) in enumerate(zip(self.terms, sl)):
+            if fixed is not None and fixed[k] is not None:
+                out = out + _broadcast_rows(fixed[k], inputs) @ theta[s]
+            else:
+                out = out + term(theta[s], inputs)
         return out
+
+    @property
+    def has_history(self) -> bool:
+        """True if a term's features depend on earlier rows (:attr:`Term.history`)."""
+        return any(t.history for t in self.terms)
+
+    def history_columns(self, inputs: Inputs) -> tuple:
+        """Per term: its ``(n, k)`` features on the whole series ``inputs`` if it is a history term, else None
+        (the ``fixed`` argument of :meth:`features` and :meth:`pointwise`)."""
+        return tuple(t.features(inputs) if t.history else None for t in self.terms)
 
     def predict(self, theta: jax.Array, inputs: Inputs) -> jax.Array:
         """Calibrated field of one axis, (n,), for parameters ``theta`` (p,)."""
@@ -298,12 +316,16 @@ class PhysicsModel:
     def _nonlinear(self) -> tuple:
         return self.transforms + tuple(t for t in self.terms if not t.linear_in_params())
 
-    def features(self, inputs: Inputs) -> jax.Array:
-        """(..., p) design matrix of a linear model: ``predict(theta) == features @ theta``."""
+    def features(self, inputs: Inputs, fixed: tuple | None = None) -> jax.Array:
+        """(..., p) design matrix of a linear model: ``predict(theta) == features @ theta``.
+
+        ``fixed``: per term, None or its ``(n, k)`` columns to use instead (:meth:`history_columns`; broadcast
+        over the extra axes of perturbed inputs ``(n, q)``), for rows cut from a series or perturbed by noise."""
         if not self.is_linear:
             raise ValueError("features() needs a model linear in its parameters; this one has "
                              f"nonlinear components {[c.name for c in self._nonlinear()]}.")
-        return jnp.concatenate([t.features(inputs) for t in self.terms], axis=-1)
+        return jnp.concatenate([t.features(inputs) if fixed is None or fixed[k] is None
+                                else _broadcast_rows(fixed[k], inputs) for k, t in enumerate(self.terms)], axis=-1)
 
     def predict_all(self, theta3: jax.Array, inputs: Inputs) -> jax.Array:
         """(n, 3) calibrated field for per-axis parameters ``theta3`` (3, p); one compiled program per model
@@ -317,6 +339,13 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
+
+
+def _broadcast_rows(cols, inputs: Inputs) -> jax.Array:
+    """``(n, k)`` columns broadcast to the leading shape of ``inputs`` (``(n,)`` or ``(n, q)``): ``(..., k)``."""
+    lead = inputs.t.shape
+    return jnp.broadcast_to(cols.reshape(cols.shape[:1] + (1,) * (len(lead) - 1) + cols.shape[1:]),
+                            lead + cols.shape[1:])
 
 
 def _has_t0(component) -> bool:

@@ -132,9 +132,10 @@ def _slice_inputs(inputs: Inputs, lo: int, hi: int) -> Inputs:
 class _Linear:
     model: PhysicsModel
 
-    def chunk(self, inputs, eps, w, theta_draws, theta_hat, cov_theta, exact_theta):
-        """One row-chunk, one axis. eps (q, 4), w (q,) quadrature weights or None (sample mean)."""
-        phi = self.model.features(_perturbed(inputs, eps))           # (n, q, p)
+    def chunk(self, inputs, eps, w, theta_draws, theta_hat, cov_theta, exact_theta, hist=None):
+        """One row-chunk, one axis. eps (q, 4), w (q,) quadrature weights or None (sample mean); ``hist``: the
+        chunk's rows of the history terms' columns (:meth:`PhysicsModel.history_columns`), or None."""
+        phi = self.model.features(_perturbed(inputs, eps), hist)     # (n, q, p)
         q = eps.shape[0]
         if w is None:
             m = phi.mean(axis=1)
@@ -144,7 +145,7 @@ class _Linear:
             m = jnp.einsum("q,nqa->na", w, phi)
             dphi = phi - m[:, None, :]
             C = jnp.einsum("nqa,nqb->nab", dphi * w[None, :, None], dphi)   # batched matmul, no (n,q,p,p)
-        phi0 = self.model.features(inputs)                            # (n, p) nominal
+        phi0 = self.model.features(inputs, hist)                      # (n, p) nominal
         var_jac = jnp.einsum("na,ab,nb->n", phi0, cov_theta, phi0)
         if exact_theta:
             mean = m @ theta_hat
@@ -170,8 +171,10 @@ class _General:
 
         def per_draw(th):
             tr = self.model.transform(th, inputs_full)
+            hist = self.model.history_columns(tr) if self.model.has_history else None
+            hist = None if hist is None else tuple(None if h is None else cut(h) for h in hist)
             tr = Inputs(*(cut(a) for a in tr))
-            y = self.model.pointwise(th, _perturbed(tr, eps))         # (n, q)
+            y = self.model.pointwise(th, _perturbed(tr, eps), hist)   # (n, q)
             return y.mean(axis=1), jnp.var(y, axis=1, ddof=1)
 
         mu, var = jax.lax.map(per_draw, theta_draws)                   # (Np, n)
@@ -182,6 +185,16 @@ class _General:
 
 _lin_jit = jax.jit(lambda k, *a: k.chunk(*a), static_argnums=(0, 7))
 _gen_jit = jax.jit(lambda k, inp, lo, size, *a: k.chunk(inp, lo, size, *a), static_argnums=(0, 3))
+
+
+def history_columns(model: PhysicsModel, inputs: Inputs) -> tuple | None:
+    """The history terms' columns (:meth:`PhysicsModel.history_columns`) on the whole series ``inputs``, as NumPy
+    arrays, for :func:`physics_uncertainty`'s ``history`` when the rows are predicted in pieces; None if the model
+    has none (or input transforms, whose series restart with each piece)."""
+    if not (model.is_linear and model.has_history):
+        return None
+    model, inputs = centred(model, inputs)
+    return tuple(None if h is None else np.asarray(h) for h in model.history_columns(inputs))
 
 
 #: The one default propagation method wherever bayesmag predicts (config ``[uq] method``, :class:`Predictor`,
@@ -201,7 +214,7 @@ def resolve_method(method: str, model) -> str:
 
 def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: str = DEFAULT_METHOD,
                         n_params: int = 500, n_qmc: int = 1000, seed: int = 0, chunk_size: int = 256,
-                        progress: bool = False, quad_nodes: int | None = None) -> PhysicsUQ:
+                        progress: bool = False, quad_nodes: int | None = None, history: tuple | None = None) -> PhysicsUQ:
     """Physics prediction and uncertainty for rows ``inputs`` (module docstring).
 
     Args:
@@ -214,6 +227,8 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
       n_params, n_qmc: Np and Nq. seed: seeds the parameter draws and the Sobol scrambling.
       chunk_size: rows per compiled chunk (bounds memory at chunk x Nq x p floats).
       quad_nodes: Gauss-Hermite nodes per input for ``"analytic"`` (default ``degree + 1``, exact).
+      history: the history terms' columns for these rows, computed on a longer series they were cut from
+        (:func:`history_columns`; default: computed on ``inputs``, whose first row then starts the history).
     """
     if method not in METHODS:
         raise ValueError(f"uq method {method!r} is not known; it must be one of {list(METHODS)}.")
@@ -248,6 +263,12 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
                                                     shape=(max(n_params, 2),), method="svd"))
     out = np.zeros((4, n, 3))
     model, inputs = centred(model, inputs)          # one program for every T0 (after resolve_method: same degree)
+    # a term whose features depend on earlier rows (hysteresis) exists only on the whole series: its columns are
+    # taken from the unperturbed series and cut per chunk (the input noise is not propagated through them)
+    hist = None
+    if model.is_linear and model.has_history:
+        hist = history if history is not None else tuple(None if h is None else np.asarray(h)
+                                                         for h in model.history_columns(inputs))
     chunks = range(0, n, chunk_size)
     if progress:
         from tqdm.auto import tqdm
@@ -258,7 +279,9 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
             th_hat, cov_th = jnp.asarray(fit.theta[a]), jnp.asarray(fit.cov[a])
             if model.is_linear:
                 res = _lin_jit(_Linear(model), _slice_inputs(inputs, lo, hi), eps, w, draws[a], th_hat, cov_th,
-                               method == "analytic")
+                               method == "analytic",
+                               None if hist is None else tuple(None if h is None else jax.device_put(h[lo:hi])
+                                                               for h in hist))
                 out[:, lo:hi, a] = np.stack([np.asarray(r) for r in res])
             else:
                 size = min(chunk_size, n)

@@ -212,15 +212,16 @@ class Predictor:
         """Likelihood family of the predictive distribution's network part ('gaussian' without one)."""
         return "gaussian" if self.network is None else self.network.spec.likelihood
 
-    def physics_part(self, data, *, progress: bool = False):
-        """Physics prediction and its PS-QMC (or analytic) uncertainty for every row of ``data``."""
+    def physics_part(self, data, *, progress: bool = False, history: tuple | None = None):
+        """Physics prediction and its PS-QMC (or analytic) uncertainty for every row of ``data`` (``history``: see
+        :func:`~bayesmag._src.core.physics_uq.physics_uncertainty`)."""
         from bayesmag._src.core.physics import inputs_from_data
         from bayesmag._src.core.physics_uq import physics_uncertainty
 
         o = self.uq
         return physics_uncertainty(self.fit, inputs_from_data(data), sigma_in=self.sigma_in, method=o.method,
                                    n_params=o.n_params, n_qmc=o.n_qmc, seed=o.seed, chunk_size=o.chunk_size,
-                                   progress=progress)
+                                   progress=progress, history=history)
 
     def network_part(self, data):
         """MC-DropConnect residual prediction for every row of ``data`` (None without a network)."""
@@ -237,9 +238,9 @@ class Predictor:
         return type(pieces[0])(**cat, shape={k: np.concatenate([p.shape[k] for p in pieces])
                                              for k in pieces[0].shape})
 
-    def components(self, data, *, progress: bool = False) -> Components:
+    def components(self, data, *, progress: bool = False, history: tuple | None = None) -> Components:
         """Physics UQ, the MC network output and the row-dependent transfer sd for every row of ``data``."""
-        return Components(self.physics_part(data, progress=progress), self.network_part(data),
+        return Components(self.physics_part(data, progress=progress, history=history), self.network_part(data),
                           self.transfer_part(data))
 
     def transfer_part(self, data):
@@ -264,13 +265,13 @@ class Predictor:
                        family=self.family, fixed_shape=None if spec is None else spec.fixed_shape, transfer_sd=transfer,
                        scale=self.scale, new_session=new_session)
 
-    def predict(self, data, *, new_session=True, progress: bool = False) -> Prediction:
+    def predict(self, data, *, new_session=True, progress: bool = False, history: tuple | None = None) -> Prediction:
         """The predictive distribution for every row of ``data`` (no reference needed).
 
         ``new_session`` (default True: a recording given to a saved calibration is a new session)
         adds the transfer part; False predicts rows of the training sessions.
         """
-        pred = self.compose(self.components(data, progress=progress), new_session=new_session)
+        pred = self.compose(self.components(data, progress=progress, history=history), new_session=new_session)
         if self.domain is None:
             return pred
         out = self.domain.outside(data, pred.mean)
