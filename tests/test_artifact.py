@@ -70,6 +70,25 @@ def test_a_hysteresis_calibration_runs_and_applies_in_chunks_as_one_piece(tmp_pa
         np.testing.assert_allclose(chunked[k], whole[k], rtol=1e-12, atol=0, err_msg=k)
 
 
+def test_a_thermal_lag_calibration_applies_in_chunks_as_one_piece(tmp_path):
+    """The input transforms see a series: applied in 700-row chunks, each chunk is predicted with the rows its
+    thermal lag remembers on both sides (45 tau; here tau about 70 s at 1 s steps), so the result is that of one
+    piece (to 1e-9 relative). Before, the lag restarted at each chunk as at a run start."""
+    from chamber_campaigns import campaign
+
+    data, _ = campaign("lag_first_order", seed=2, n=3000)
+    write_csv(data, tmp_path / "chamber.csv")
+    res, out = _run(tmp_path, data={"path": str(tmp_path / "chamber.csv")},
+                    physics={"t0": "mean", "extra_terms": [{"name": "thermal_lag", "tau0": 60.0}]})
+    cal = load(out)
+    tau = np.exp(cal.theta[:, list(cal.model.param_names).index("log_tau")])
+    assert np.all((tau > 30) & (tau < 150)), tau
+    kw = {"method": "psqmc", "n_params": UQ["n_params"], "n_qmc": UQ["n_qmc"], "seed": UQ["seed"]}
+    whole, chunked = cal.predict(data, chunk_size=100_000, **kw), cal.predict(data, chunk_size=700, **kw)
+    for k in ("calibrated", "total", "lower", "upper"):
+        np.testing.assert_allclose(chunked[k], whole[k], rtol=1e-9, atol=1e-12, err_msg=k)
+
+
 def test_apply_cli_without_reference_and_with_nan_rows(tmp_path, capsys):
     _, out = _run(tmp_path)
     d = bayesmag.simulate.simulate(300, design="campaign", seed=9, noise_sd=0.05)

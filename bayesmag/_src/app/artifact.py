@@ -227,6 +227,14 @@ class Calibration:
         from bayesmag._src.core.physics import inputs_from_data
         from bayesmag._src.core.physics_uq import history_columns
         hist = history_columns(self.model, inputs_from_data(data.subset(idx))) if self.model.has_history else None
+        # input transforms (thermal lag, timing offset) see a series: each chunk is predicted with the rows its
+        # transforms remember on both sides (as they would on the whole recording), then those rows are dropped
+        pad = 0
+        if self.model.transforms and idx.size > chunk_size:
+            steps = np.diff(np.asarray(data.time, np.float64)[idx])
+            steps = steps[np.isfinite(steps) & (steps > 0)]
+            need = self.model.memory_rows(self.theta, float(np.median(steps)) if steps.size else 1.0)
+            pad = chunk_size if need is None else min(int(need), 10 * chunk_size)
         starts = range(0, idx.size, chunk_size)
         if progress:
             from tqdm.auto import tqdm
@@ -235,16 +243,17 @@ class Calibration:
             rows = idx[lo:lo + chunk_size]
             pr = dataclasses.replace(base, uq=dataclasses.replace(base.uq, chunk_size=min(4096, max(256, rows.size))),
                                      domain=None)
-            pred = pr.predict(data.subset(rows), new_session=new_session,
-                              history=None if hist is None else tuple(None if h is None else h[lo:lo + chunk_size]
-                                                                      for h in hist))
+            a, b = max(0, lo - pad), min(idx.size, lo + rows.size + pad)     # the chunk with its context
+            pred = pr.predict(data.subset(idx[a:b]), new_session=new_session,
+                              history=None if hist is None else tuple(None if h is None else h[a:b] for h in hist))
+            keep = slice(lo - a, lo - a + rows.size)
             lo_, hi_ = pred.interval(level)
-            out["calibrated"][rows], out["total"][rows] = pred.mean, pred.total
-            out["lower"][rows], out["upper"][rows] = lo_, hi_
+            out["calibrated"][rows], out["total"][rows] = pred.mean[keep], pred.total[keep]
+            out["lower"][rows], out["upper"][rows] = lo_[keep], hi_[keep]
             for k, v in pred.parts.items():
                 if k == "residual_physics" and self.network is not None:
                     continue
-                out.setdefault(k, np.full((n, 3), np.nan))[rows] = v
+                out.setdefault(k, np.full((n, 3), np.nan))[rows] = np.broadcast_to(v, pred.mean.shape)[keep]
         out["residual_physics"][idx] = np.broadcast_to(self.residual_sd, (idx.size, 3))
         valid = valid & np.all([np.isfinite(out[k]).all(axis=1) for k in ("calibrated", "total", "lower", "upper")],
                                axis=0)                     # a NaN output is never valid

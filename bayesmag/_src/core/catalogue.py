@@ -747,6 +747,10 @@ class TimingOffset(InputTransform, Entry):
     def canonical(self):
         return TimingOffset()
 
+    def memory_rows(self, params, dt):
+        # interpolation between the neighbours of t + delta, clamped to the run's first and last rows
+        return int(np.ceil(abs(float(params[0])) / max(float(dt), 1e-12))) + 2
+
     def param_names(self):
         return ("delta",)
 

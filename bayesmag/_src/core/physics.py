@@ -115,6 +115,11 @@ class InputTransform(abc.ABC):
     @abc.abstractmethod
     def __call__(self, params: jax.Array, inputs: Inputs) -> Inputs: ...
 
+    def memory_rows(self, params: np.ndarray, dt: float) -> int | None:
+        """Rows before and after a row that its transformed value depends on (to double precision) at sampling
+        step ``dt`` (s); None: not known (a piece of a series is then predicted with a whole piece around it)."""
+        return None
+
 
 #: The one default reference temperature of every settings type (config ``[physics] t0``, :class:`~bayesmag.Calibrator`,
 #: :func:`~bayesmag.discover`): the training rows' mean temperature, which decorrelates S from Ks and O from Ko.
@@ -189,6 +194,11 @@ class ThermalLag(InputTransform):
 
     def init_params(self, axis):
         return np.array([np.log(self.tau0)])
+
+    def memory_rows(self, params, dt):
+        # the start's weight after k rows is exp(-k dt / tau) (times a polynomial in k for cascaded nodes):
+        # under 1e-17 after 45 tau
+        return int(np.ceil(45.0 * float(np.exp(params[0])) / max(float(dt), 1e-12)))
 
     def __call__(self, params, inputs):
         tau = jnp.exp(params[0])
@@ -308,6 +318,20 @@ class PhysicsModel:
         """Per term: its ``(n, k)`` features on the whole series ``inputs`` if it is a history term, else None
         (the ``fixed`` argument of :meth:`features` and :meth:`pointwise`)."""
         return tuple(t.features(inputs) if t.history else None for t in self.terms)
+
+    def memory_rows(self, theta3: np.ndarray, dt: float) -> int | None:
+        """Rows of context a piece of a series needs on each side for its input transforms to give what they give
+        on the whole series (:meth:`InputTransform.memory_rows`, the largest over transforms and axes); 0 without
+        transforms, None if a transform does not say."""
+        sl = self._slices()[len(self.terms):]
+        need = 0
+        for tr, s in zip(self.transforms, sl):
+            for a in range(np.shape(theta3)[0]):
+                k = tr.memory_rows(np.asarray(theta3)[a, s], dt)
+                if k is None:
+                    return None
+                need = max(need, int(k))
+        return need
 
     def predict(self, theta: jax.Array, inputs: Inputs) -> jax.Array:
         """Calibrated field of one axis, (n,), for parameters ``theta`` (p,)."""
