@@ -214,7 +214,8 @@ def resolve_method(method: str, model) -> str:
 
 def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: str = DEFAULT_METHOD,
                         n_params: int = 500, n_qmc: int = 1000, seed: int = 0, chunk_size: int = 256,
-                        progress: bool = False, quad_nodes: int | None = None, history: tuple | None = None) -> PhysicsUQ:
+                        progress: bool = False, quad_nodes: int | None = None,
+                        history: tuple | None = None) -> PhysicsUQ:
     """Physics prediction and uncertainty for rows ``inputs`` (module docstring).
 
     Args:
