@@ -266,10 +266,8 @@ def physics_uncertainty(fit, inputs: Inputs, *, sigma_in: np.ndarray, method: st
     model, inputs = centred(model, inputs)          # one program for every T0 (after resolve_method: same degree)
     # a term whose features depend on earlier rows (hysteresis) exists only on the whole series: its columns are
     # taken from the unperturbed series and cut per chunk (the input noise is not propagated through them)
-    hist = None
-    if model.is_linear and model.has_history:
-        hist = history if history is not None else tuple(None if h is None else np.asarray(h)
-                                                         for h in model.history_columns(inputs))
+    hist = history_columns(model, inputs) if history is None else history     # None without history terms
+    hist = hist if model.is_linear else None
     chunks = range(0, n, chunk_size)
     if progress:
         from tqdm.auto import tqdm
