@@ -191,3 +191,77 @@ def test_cli_default_local_cluster(cal_dir, archive, tmp_path, capsys):
     rc = main(["apply", "--model", str(cal_dir), "--data", str(archive / "csv" / "*.csv"), "--out",
                str(tmp_path / "o"), "--no-progress", "--workers", "2", "--blocksize-mb", "0.02"])
     assert rc == 0 and "2400 of 2400 rows" in capsys.readouterr().out
+
+
+def _job(tmp_path, data, extra):
+    """A calibration with one catalogue term ``extra`` fitted on ``data`` (saved by a `bayesmag run` job)."""
+    import bayesmag
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag._src.core.data import write_csv
+    write_csv(data, tmp_path / "train.csv")
+    raw = {"data": {"path": str(tmp_path / "train.csv")}, "split": {"kind": "time_blocks", "test_fraction": 0.2},
+           "uq": {"n_params": 40, "n_qmc": 64, "seed": 3, "method": "psqmc"},
+           "physics": {"t0": "mean", "extra_terms": [extra]}, "output": {"figures": False, "progress": False}}
+    bayesmag.run_job(config_from_dict(raw), tmp_path / "cal")
+    return tmp_path / "cal"
+
+
+@pytest.fixture(scope="module")
+def hysteresis_cal(tmp_path_factory):
+    import bayesmag
+    train = bayesmag.simulate.simulate(1200, design="campaign", seed=1, noise_sd=0.05)
+    return _job(tmp_path_factory.mktemp("hyst"), train, {"name": "hysteresis", "axis": "x", "threshold": 20.0})
+
+
+@pytest.mark.parametrize("case", ["hysteresis", "thermal_lag"])
+def test_rows_that_depend_on_neighbours_equal_the_whole_file(cluster, tmp_path, hysteresis_cal, case):
+    """A hysteresis state (set by earlier rows) and a thermal lag (remembering about 45 tau of rows on each side)
+    span partitions: each partition is predicted with the neighbouring partitions these need, so 100-row row
+    groups give the whole-file apply's numbers (to 1e-9). Before, every partition restarted both as at a run start
+    (the lag: up to 0.6 uT apart at the boundaries)."""
+    import bayesmag
+    from bayesmag._src.app.artifact import load
+    if case == "hysteresis":
+        new = bayesmag.simulate.simulate(2400, design="campaign", seed=5, noise_sd=0.05)
+        cal_dir = hysteresis_cal
+    else:
+        from chamber_campaigns import campaign
+        train, _ = campaign("lag_first_order", seed=2, n=3000)
+        new, _ = campaign("lag_first_order", seed=3, n=3000)
+        cal_dir = _job(tmp_path, train, {"name": "thermal_lag", "tau0": 60.0})
+    model = load(cal_dir).model
+    assert model.has_history if case == "hysteresis" else model.transforms
+    df = to_frame(new)
+    (tmp_path / "in").mkdir()
+    df.to_parquet(tmp_path / "in" / "a.parquet", row_group_size=100, index=False)
+    kw = {"method": "psqmc", "n_params": 40, "n_qmc": 64}
+    s = apply_dask(cal_dir, str(tmp_path / "in"), tmp_path / "out", scheduler=cluster, **kw)
+    assert s["n_partitions"] >= 24 and not [w for w in s["warnings"] if "hysteresis" in w]
+    ref, out = load(cal_dir).predict(new, **kw), pd.read_parquet(tmp_path / "out")
+    for k in ("calibrated", "total", "lower", "upper"):
+        got = out[[f"{ax}_{k}" for ax in "xyz"]].to_numpy(float)
+        np.testing.assert_allclose(got, ref[k], rtol=1e-9, atol=1e-12, err_msg=k)
+    np.testing.assert_array_equal(out["in_domain"], ref["in_domain"])
+
+
+def test_an_unset_hysteresis_state_is_a_warning(hysteresis_cal, tmp_path, monkeypatch):
+    """Where no earlier partition within reach sets the state (the field never crosses the threshold), the partition
+    is calibrated with the state of the partitions read, and the summary says so; a partition whose file start is
+    within reach needs no warning."""
+    import bayesmag
+    from bayesmag._src.app import apply_dask as A
+    from bayesmag._src.app.artifact import load
+    monkeypatch.setattr(A, "MAX_HISTORY_PIECES", 3)
+    d = bayesmag.simulate.simulate(600, design="campaign", seed=5, noise_sd=0.05)
+    df = to_frame(d)
+    df["bx_meas"] = 5.0 * np.sin(np.arange(600) / 20.0)          # never beyond the 20 uT threshold
+    df["run"] = 0                                                 # one run: no run start sets it either
+    df.to_parquet(tmp_path / "a.parquet", row_group_size=50, index=False)
+    pieces = A.list_pieces(str(tmp_path / "a.parquet"))
+    cal = load(hysteresis_cal)
+    opts = dict(columns=None, temperature_unit="C", field_unit="uT", level=0.95, method="auto", n_params=40,
+                n_qmc=64, chunk_size=50_000, columns_out=["calibrated", "total", "lower", "upper"])
+    far = A.calibrate_piece(pieces[10], 10, cal, opts, str(tmp_path), A._Pieces(pieces))
+    near = A.calibrate_piece(pieces[2], 2, cal, opts, str(tmp_path), A._Pieces(pieces))
+    assert "partition 10: the hysteresis state at its first row is not set by the 3 partitions" in far["warnings"][0]
+    assert near["warnings"][0] == ""

@@ -11,8 +11,10 @@ Partitions (``pieces``): one per Parquet row group, or one per ``blocksize`` byt
 (a line belongs to the block its first byte lies in), so memory per task is bounded by the
 partition, whatever the input size. Bad input is one line naming the file, the partition and the
 row. Rows are independent, except the domain's rate check (``|dB/dt|``, ``|dT/dt|``), which compares
-each row with its time neighbours: every partition is predicted with the file row just before and
-just after it (read, predicted, dropped), so a time-sorted file gets the whole-file apply's flags.
+each row with its time neighbours, the input transforms (thermal lag, timing offset), which remember
+rows on both sides, and a hysteresis state, set by earlier rows: every partition is predicted with the
+file rows before and after it that these need (read, predicted, dropped; :func:`_context`), so a
+time-sorted file gets the whole-file apply's numbers and flags.
 """
 
 from __future__ import annotations
@@ -191,6 +193,102 @@ def _halo(piece) -> tuple:
         return None, None
 
 
+#: Partitions read before one for a history term's state (:func:`_context`); beyond it, a warning.
+MAX_HISTORY_PIECES = 50
+#: Partitions read on each side for the input transforms' memory, as ``Calibration.predict``'s 10 chunks.
+MAX_MEMORY_PIECES = 10
+
+
+class _Pieces:
+    """Every partition of an apply, sent to the workers as one object (``Client.scatter`` sends a list or tuple
+    element by element)."""
+
+    def __init__(self, items):
+        self.items = tuple(items)
+
+    def __len__(self):
+        return len(self.items)
+
+    def __getitem__(self, j):
+        return self.items[j]
+
+
+def _same_file(pieces, index: int, step: int):
+    """Indices of the partitions of ``pieces[index]``'s file before (``step=-1``) or after it, nearest first."""
+    j = index + step
+    while 0 <= j < len(pieces) and pieces[j][1] == pieces[index][1]:
+        yield j
+        j += step
+
+
+def _context(piece, index: int, df, data, cal, opts: dict, pieces) -> tuple:
+    """``(before, after, warning)``: the file rows to predict partition ``index`` with, so it gets what the whole-file
+    apply gives (``Calibration.predict``), dropped again afterwards.
+
+    * always the row just before and after (the domain's rate check compares time neighbours: :func:`_halo`);
+    * with input transforms (thermal lag, timing offset) the rows they remember on each side
+      (``PhysicsModel.memory_rows`` at the partition's median time step; a whole partition if not known);
+    * with a history term (hysteresis) every earlier partition of the file back to one whose rows set the state
+      (``PhysicsModel.history_settled``), at most :data:`MAX_HISTORY_PIECES`; the warning says when that was not
+      enough (the state is then that of those partitions alone).
+    """
+    import pandas as pd
+    from bayesmag._src.core.frames import from_frame
+    from bayesmag._src.core.physics import inputs_from_data
+    model = cal.model
+    need = 1
+    if model.transforms and data.n:
+        steps = np.diff(np.asarray(data.time, np.float64))
+        steps = steps[np.isfinite(steps) & (steps > 0)]
+        k = model.memory_rows(cal.theta, float(np.median(steps)) if steps.size else 1.0)
+        need = None if k is None else max(int(k), 1)
+    if pieces is None or (need == 1 and not model.has_history):
+        return (*_halo(piece), None)
+
+    read: dict = {}
+
+    def frame(js):
+        for j in js:
+            if j not in read:
+                p = _read_piece(pieces[j], j)[0]
+                read[j] = p if len(p) and list(p.columns) == list(df.columns) else None
+        parts = [read[j] for j in sorted(js) if read[j] is not None]
+        return pd.concat(parts, ignore_index=True) if parts else None
+
+    def settled(before) -> bool:
+        d = from_frame(before, columns=opts["columns"], temperature_unit=opts["temperature_unit"],
+                       field_unit=opts["field_unit"], source="context")
+        ok = np.isfinite(np.column_stack([d.b_meas, d.temperature])).all(axis=1) & np.isfinite(d.time)
+        return model.history_settled(inputs_from_data(d.subset(np.flatnonzero(ok))))
+
+    after, nxt = [], None
+    for j in _same_file(pieces, index, +1):
+        after.append(j)
+        nxt = frame(after)
+        if need is None or (nxt is not None and len(nxt) >= need) or len(after) >= MAX_MEMORY_PIECES:
+            break
+    if nxt is not None and need is not None:
+        nxt = nxt.iloc[:need]
+    before, prev, note = [], None, None
+    for j in _same_file(pieces, index, -1):
+        before.append(j)
+        prev = frame(before)
+        enough = need is None or (prev is not None and len(prev) >= need) or len(before) >= MAX_MEMORY_PIECES
+        if not model.has_history:
+            if enough:
+                break
+        elif enough and prev is not None and settled(prev):
+            break
+        elif len(before) >= MAX_HISTORY_PIECES:
+            note = (f"partition {index}: the hysteresis state at its first row is not set by the "
+                    f"{MAX_HISTORY_PIECES} partitions before it; it is taken from those partitions alone "
+                    f"(larger partitions, or one file per run, avoid this)")
+            break
+    if prev is not None and need is not None and not model.has_history:
+        prev = prev.iloc[-need:]
+    return prev, nxt, note
+
+
 def _block_start(piece) -> int:
     """Byte position of the first line of a CSV block (the line after the one running over its start)."""
     _, path, start, _end, header = piece
@@ -207,9 +305,10 @@ def _row_msg(where: str, first, k: int, what: str) -> str:
     return f"{where}, {row}: {what}."
 
 
-def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str) -> "object":
+def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: list | None = None) -> "object":
     """Calibrate partition ``index`` (``piece``) and write ``part.<index>.parquet`` into ``out_dir``; return a one-row
-    summary DataFrame (rows in/out, valid, outside domain, reference sums, warnings)."""
+    summary DataFrame (rows in/out, valid, outside domain, reference sums, warnings). ``pieces``: every partition
+    (:func:`list_pieces`), for a model whose rows depend on neighbouring rows (:func:`_context`)."""
     import pandas as pd
     from bayesmag._src.core.frames import from_frame
 
@@ -231,8 +330,12 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str) -> "object
             warns = check_units(cal, data)
         except DataError as e:
             raise DataError(f"{where}: {' '.join(str(e).split())}") from None
-        prev, nxt = (h if h is not None and list(h.columns) == list(df.columns) else None for h in _halo(piece))
-        lo, full = int(prev is not None), data
+        prev, nxt, note = _context(piece, index, df, data, cal, opts, pieces)
+        if note:
+            warns.append(note)
+        prev, nxt = (h if h is not None and len(h) and list(h.columns) == list(df.columns) else None
+                     for h in (prev, nxt))
+        lo, full = (0 if prev is None else len(prev)), data
         if prev is not None or nxt is not None:
             try:
                 full = from_frame(pd.concat([h for h in (prev, df, nxt) if h is not None], ignore_index=True),
@@ -293,7 +396,7 @@ def _check_paths(model_dir, data, out) -> Path:
 
 
 def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers: int = 2, threads_per_worker: int = 1,
-               memory_limit: str = "900MB", blocksize: int = 16 * 2**20, level=None, method: str = "analytic",
+               memory_limit: str = "900MB", blocksize: int = 16 * 2**20, level=None, method: str = "auto",
                n_params: int = 100, n_qmc: int = 256, temperature_unit: str = "C", field_unit: str = "uT",
                columns: dict | None = None, chunk_size: int = 50_000, progress: bool = False) -> dict:
     """Calibrate every row of an archive (Parquet dataset folder, Parquet file, or glob of CSV files) on Dask.
@@ -353,7 +456,10 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                 # client has just released, and the scheduler can handle that release after the new scatter and
                 # forget the data (dask/distributed#8576): an intermittent lost-dependency failure
                 cal_f = client.scatter(cal, broadcast=True, hash=False)
-                stats = dd.from_map(calibrate_piece, pieces, range(len(pieces)), args=(cal_f, opts, str(tmp)),
+                # a model whose rows depend on neighbouring rows reads neighbouring partitions (_context)
+                ctx = (client.scatter(_Pieces(pieces), broadcast=True, hash=False)
+                       if cal.model.transforms or cal.model.has_history else None)
+                stats = dd.from_map(calibrate_piece, pieces, range(len(pieces)), args=(cal_f, opts, str(tmp), ctx),
                                     meta=meta, enforce_metadata=False, label="bayesmag-apply")
                 fut = client.compute(stats)
                 if progress:

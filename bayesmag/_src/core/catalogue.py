@@ -435,6 +435,24 @@ class Hysteresis(Term, Entry):
     def features(self, inputs):
         return _with_thermal(self, self.state(inputs)[:, None], inputs)
 
+    def history_settled(self, inputs: Inputs) -> bool:
+        """True if ``inputs`` alone set the state of its last row: its run starts within ``inputs`` (not with
+        ``across_runs``), or an event of that run lies in it (in ``direction`` mode at least ``lag`` rows after
+        the start of ``inputs``, whose change is then known)."""
+        f, run = np.asarray(self.drive(inputs), np.float64), np.asarray(inputs.run)
+        n = f.size
+        if n == 0:
+            return False
+        if not self.across_runs and (run[1:] != run[:-1]).any():
+            return True                           # the last row's run starts inside: its state starts at 0 there
+        if self.mode == "excursion":
+            event = np.abs(f) > self.threshold
+        else:
+            lag = int(self.lag)
+            same = (run[lag:] == run[:-lag]) | self.across_runs
+            event = np.abs(np.where(same, f[lag:] - f[:-lag], 0.0)) > self.min_step
+        return bool(event.any())
+
     simulator_name: ClassVar[str] = "hysteresis"
 
     @classmethod

@@ -96,6 +96,13 @@ class Term(abc.ABC):
         """The class's ``linear``; a term with a dataclass field of that name (which hides it) overrides this."""
         return self.linear
 
+    def history_settled(self, inputs: Inputs) -> bool:
+        """True if the features at the last row of the series ``inputs`` are what they are on any longer series
+        that ends with ``inputs`` (so a piece of a recording needs no earlier rows). Always True for a term without
+        :attr:`history`; a history term that does not override this is never settled (the whole recording is
+        needed)."""
+        return not self.history
+
     def __call__(self, params: jax.Array, inputs: Inputs) -> jax.Array:
         return self.features(inputs) @ params
 
@@ -318,6 +325,11 @@ class PhysicsModel:
         """Per term: its ``(n, k)`` features on the whole series ``inputs`` if it is a history term, else None
         (the ``fixed`` argument of :meth:`features` and :meth:`pointwise`)."""
         return tuple(t.features(inputs) if t.history else None for t in self.terms)
+
+    def history_settled(self, inputs: Inputs) -> bool:
+        """True if every history term's state at the last row of ``inputs`` no longer depends on earlier rows
+        (:meth:`Term.history_settled`)."""
+        return all(t.history_settled(inputs) for t in self.terms)
 
     def memory_rows(self, theta3: np.ndarray, dt: float) -> int | None:
         """Rows of context a piece of a series needs on each side for its input transforms to give what they give
