@@ -194,15 +194,20 @@ def test_cli_default_local_cluster(cal_dir, archive, tmp_path, capsys):
 
 
 def _job(tmp_path, data, extra):
-    """A calibration with one catalogue term ``extra`` fitted on ``data`` (saved by a `bayesmag run` job)."""
-    import bayesmag
-    from bayesmag._src.app.config import config_from_dict
-    from bayesmag._src.core.data import write_csv
-    write_csv(data, tmp_path / "train.csv")
-    raw = {"data": {"path": str(tmp_path / "train.csv")}, "split": {"kind": "time_blocks", "test_fraction": 0.2},
-           "uq": {"n_params": 40, "n_qmc": 64, "seed": 3, "method": "psqmc"},
-           "physics": {"t0": "mean", "extra_terms": [extra]}, "output": {"figures": False, "progress": False}}
-    bayesmag.run_job(config_from_dict(raw), tmp_path / "cal")
+    """A calibration with one catalogue term ``extra`` fitted on ``data``, saved as `bayesmag run` saves it."""
+    from bayesmag._src.app.artifact import save_calibration
+    from bayesmag._src.core.catalogue import make_extra
+    from bayesmag._src.core.domain import Domain
+    from bayesmag._src.core.fit import fit_physics
+    from bayesmag._src.core.physics import PhysicsModel
+    from bayesmag._src.core.physics_uq import estimate_input_noise
+    from bayesmag._src.core.predictor import Predictor, UQOptions
+    t0 = float(np.mean(data.temperature))
+    fit = fit_physics(data, PhysicsModel.paper(t0=t0, extra=(make_extra(extra, t0=t0),)))
+    pred = Predictor(fit=fit, sigma_in=estimate_input_noise(data), residual_sd=np.full(3, 0.01),
+                     transfer_sd=np.full(3, 0.02), domain=Domain.from_data(data), uq=UQOptions(method="psqmc"))
+    (tmp_path / "cal").mkdir()
+    save_calibration(tmp_path / "cal", pred, config={}, level=0.95)
     return tmp_path / "cal"
 
 

@@ -29,6 +29,9 @@ def test_defaults_and_round_trip():
     ({"data": {"source": "simulated"}, "uq": "x"}, r"\[uq\] must be a table"),
     ({"data": {"source": "simulated"}, "network": {"conformal_folds": 1}}, r"'network.conformal_folds' = 1 is not valid"),
     ({"data": {"source": "simulated"}, "network": {"conformal_folds": 10}}, r"folds x fraction < 1"),
+    ({"data": {"source": "simulated"}, "uq": {"transfer": "hierarchical"},
+      "physics": {"extra_terms": [{"name": "run_offset", "runs": [1, 2, 3]}]}},
+     r"'physics.extra_terms' holds 'run_offset'.*random effect.*uq.transfer = \"loro\""),
 ])
 def test_bad_configs_name_the_key(raw, match):
     with pytest.raises(ConfigError, match=match):

@@ -33,6 +33,18 @@ def check_units(cal, data) -> list[str]:
                        temperature_fix="Use --temperature-unit K")
 
 
+def new_session_notes(cal) -> list[str]:
+    """What a new recording does not get from the calibration: its terms bound to training runs (``run_offset``,
+    ``run_step``: :func:`~bayesmag._src.core.physics.new_session_runs`)."""
+    bound = [t.name for t in cal.model.terms if t.session_bound]
+    if not bound:
+        return []
+    it = "it" if len(bound) == 1 else "them"
+    return [f"the calibration's {', '.join(bound)} describe{'s' if len(bound) == 1 else ''} training runs "
+            f"{list(cal.model.bound_runs)} only: this recording is calibrated without {it} (as a run with no offset "
+            f"of its own and no step; run ids are not matched), and the spread between runs is in the transfer part."]
+
+
 def train_max_ut(cal) -> float:
     """The largest |field component| (uT) a calibration's training domain reaches."""
     return float(np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max())
@@ -97,7 +109,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False)
     _check_magnitudes(data)
-    warnings = check_units(cal, data)
+    warnings = check_units(cal, data) + new_session_notes(cal)
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
                        progress=progress, check_units=False)      # checked above, with the CLI's wording
     level = cal.level if level is None else level

@@ -325,9 +325,9 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
     n = data.n
     warns: list[str] = []
     if n:
-        from bayesmag._src.app.apply import check_units
+        from bayesmag._src.app.apply import check_units, new_session_notes
         try:
-            warns = check_units(cal, data)
+            warns = check_units(cal, data) + new_session_notes(cal)
         except DataError as e:
             raise DataError(f"{where}: {' '.join(str(e).split())}") from None
         prev, nxt, note = _context(piece, index, df, data, cal, opts, pieces)

@@ -431,6 +431,16 @@ def _check_semantics(cfg: Config) -> None:
     if tdf == "learned" and cfg.uq.transfer == "hierarchical_nuts" and cfg.uq.transfer_likelihood == "student_t":
         raise ConfigError("Config key 'uq.transfer_df' = \"learned\" is fitted on the Laplace path only: set "
                           "uq.transfer = \"hierarchical\" or give uq.transfer_df a number > 2.")
+    if cfg.uq.transfer.startswith("hierarchical"):
+        from bayesmag._src.core.catalogue import CATALOGUE
+        names = [e if isinstance(e, str) else e.get("name") if isinstance(e, dict) else None
+                 for e in cfg.physics.extra_terms]
+        bound = [n for n in names if n in CATALOGUE and getattr(CATALOGUE[n], "localised", None) == "run"]
+        if bound:
+            raise ConfigError(f"Config key 'physics.extra_terms' holds {bound[0]!r}, which fits offsets of particular "
+                              f"training runs as fixed parameters; uq.transfer = {cfg.uq.transfer!r} models every "
+                              f"run's offset as a random effect. Use one: drop {bound[0]!r}, or set "
+                              f"uq.transfer = \"loro\".")
     if cfg.uq.transfer_networks == "by_run_folds" and (cfg.uq.transfer == "off" or not cfg.network.enabled):
         raise ConfigError("Config key 'uq.transfer_networks' = \"by_run_folds\" adds the network's new-session error to "
                           "the hybrid transfer part: it needs network.enabled = true and uq.transfer other than \"off\" "

@@ -502,7 +502,7 @@ class OffsetDrift(Term, Entry):
     steps: bool = False
     name: ClassVar[str] = "offset_drift"
     temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
-    degree: ClassVar[None] = None
+    degree: ClassVar[int] = 0                        # reads only time and run ids: no power of a noisy input
     explanation: ClassVar[str] = ("Ageing, stress relaxation and slow electronics drift move the offset over time "
                                   "and between sessions.")
 
@@ -543,7 +543,7 @@ class RunOffset(Term, Entry):
     runs: tuple = (0, 1)
     name: ClassVar[str] = "run_offset"
     temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
-    degree: ClassVar[None] = None
+    degree: ClassVar[int] = 0                        # reads only run ids: no power of a noisy input
     requires: ClassVar[tuple] = ("runs",)
     localised: ClassVar[str | None] = "run"
     explanation: ClassVar[str] = ("Power cycling and set/reset pulses re-seat the bridge offset, so the offset steps "
@@ -557,8 +557,13 @@ class RunOffset(Term, Entry):
     def param_names(self):
         return tuple(f"o_{r}" for r in self.runs[1:])
 
+    session_bound: ClassVar[bool] = True       # its offsets belong to the training runs: Term.bound_runs
+
+    def bound_runs(self):
+        return tuple(int(r) for r in self.runs)
+
     def features(self, inputs):
-        return (inputs.run[:, None] == jnp.asarray(self.runs[1:])[None, :]).astype(inputs.t.dtype)
+        return (inputs.run[..., None] == jnp.asarray(self.runs[1:])).astype(inputs.t.dtype)
 
     @classmethod
     def grid(cls, ctx, c):
@@ -588,7 +593,7 @@ class RunStep(Term, Entry):
     at: float = 0.0
     name: ClassVar[str] = "run_step"
     temperature_centred: ClassVar[bool] = True       # T only as T - t0 (or not at all): physics.centred
-    degree: ClassVar[None] = None
+    degree: ClassVar[int] = 0                        # reads only run and time: no power of a noisy input
     requires: ClassVar[tuple] = ("time",)
     frames: ClassVar[tuple] = ("sensor",)
     located: ClassVar[str | None] = "at"
@@ -600,9 +605,14 @@ class RunStep(Term, Entry):
     def param_names(self):
         return ("step",)
 
+    session_bound: ClassVar[bool] = True       # a step inside one training run: Term.bound_runs
+
+    def bound_runs(self):
+        return (int(self.run_id),)
+
     def features(self, inputs):
         on = (inputs.run == int(self.run_id)) & (inputs.time >= self.at)
-        return on.astype(inputs.t.dtype)[:, None]
+        return on.astype(inputs.t.dtype)[..., None]
 
     @classmethod
     def grid(cls, ctx, c):

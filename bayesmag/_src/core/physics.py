@@ -96,6 +96,16 @@ class Term(abc.ABC):
         """The class's ``linear``; a term with a dataclass field of that name (which hides it) overrides this."""
         return self.linear
 
+    #: True: the term describes particular runs of the training recording (``run_offset``, ``run_step``), whose
+    #: parameters a new session does not share; :meth:`bound_runs` names them.
+    session_bound: ClassVar[bool] = False
+
+    def bound_runs(self) -> tuple:
+        """The run ids whose rows this term alone describes (:attr:`session_bound`; empty otherwise). A new
+        session's rows are predicted with their run ids moved past these (:func:`new_session_runs`), so the term
+        gives them what it gives rows of no listed run: the reference state (a run offset of 0)."""
+        return ()
+
     def history_settled(self, inputs: Inputs) -> bool:
         """True if the features at the last row of the series ``inputs`` are what they are on any longer series
         that ends with ``inputs`` (so a piece of a recording needs no earlier rows). Always True for a term without
@@ -326,6 +336,11 @@ class PhysicsModel:
         (the ``fixed`` argument of :meth:`features` and :meth:`pointwise`)."""
         return tuple(t.features(inputs) if t.history else None for t in self.terms)
 
+    @property
+    def bound_runs(self) -> tuple:
+        """Every run id a term is bound to (:meth:`Term.bound_runs`), sorted; empty for most models."""
+        return tuple(sorted({int(r) for t in self.terms for r in t.bound_runs()}))
+
     def history_settled(self, inputs: Inputs) -> bool:
         """True if every history term's state at the last row of ``inputs`` no longer depends on earlier rows
         (:meth:`Term.history_settled`)."""
@@ -375,6 +390,26 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
+
+
+def new_session_runs(model: PhysicsModel, run, new=True) -> np.ndarray:
+    """Run ids for predicting rows of a new session (``new``: True or an (n,) mask): moved past every id the
+    model's terms are bound to (:attr:`PhysicsModel.bound_runs`) and every id in ``run``, so a run offset or a
+    step fitted to a training run does not land on a new recording's run of the same number; runs stay distinct
+    (their starts, which reset a hysteresis state or a thermal lag, are kept). ``run`` itself without such terms.
+
+    Example:
+      >>> from bayesmag._src.core.catalogue import RunOffset
+      >>> m = PhysicsModel.paper(extra=(RunOffset(runs=(1, 2, 3)),))
+      >>> new_session_runs(m, np.array([1, 1, 2])).tolist()
+      [4, 4, 5]
+    """
+    run = np.asarray(run)
+    bound = model.bound_runs
+    if not bound or run.size == 0:
+        return run
+    shift = max(max(bound), int(run.max())) - int(run.min()) + 1
+    return np.where(np.broadcast_to(np.asarray(new, bool), run.shape), run + shift, run)
 
 
 def _broadcast_rows(cols, inputs: Inputs) -> jax.Array:

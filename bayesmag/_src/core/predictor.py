@@ -35,6 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from bayesmag._src.core.likelihoods import Gaussian, Likelihood, get_likelihood, moment_match
+from bayesmag._src.core.physics import new_session_runs
 
 __all__ = ["FUSIONS", "UQOptions", "Components", "Prediction", "Predictor", "TransferEstimate", "compose",
            "estimate_transfer", "network_inputs"]
@@ -271,6 +272,9 @@ class Predictor:
         ``new_session`` (default True: a recording given to a saved calibration is a new session)
         adds the transfer part; False predicts rows of the training sessions.
         """
+        if np.any(new_session) and self.fit.model.bound_runs:
+            # a run offset or step fitted to a training run is no part of a new session's model (new_session_runs)
+            data = dataclasses.replace(data, run=new_session_runs(self.fit.model, data.run, new_session))
         pred = self.compose(self.components(data, progress=progress, history=history), new_session=new_session)
         if self.domain is None:
             return pred
@@ -372,7 +376,10 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
         inflate = (r - 1) / scipy.stats.chi2.ppf(1 - TRANSFER_CONFIDENCE, r - 1)
         return TransferEstimate(np.sqrt(np.maximum((tau2 + s2) * inflate - s2, 0.0)), "leave_one_run_out", per_run)
     usable = len(need)
-    resid = train.b_ref - np.asarray(fit.predict(inputs_from_data(train)))
+    # residuals as a new session would see them: without the terms bound to training runs (a run offset would
+    # otherwise take the run-to-run change out of the residual means)
+    view = dataclasses.replace(train, run=new_session_runs(fit.model, train.run))
+    resid = train.b_ref - np.asarray(fit.predict(inputs_from_data(view)))
     means = np.array([resid[train.run == r].mean(axis=0) for r in runs])
     tau = means.max(axis=0) - means.min(axis=0)
     warning = (f"The training data hold {len(runs)} run(s) ({usable} usable for leave-one-run-out; at least "

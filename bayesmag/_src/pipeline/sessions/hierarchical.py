@@ -1554,6 +1554,12 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
     """
     from bayesmag._src.core.predictor import TransferEstimate, estimate_transfer
 
+    bound = [t.name for t in fit.model.terms if getattr(t, "localised", None) == "run"]     # run_offset
+    if bound:
+        raise ValueError(f"the hierarchical transfer models every run's offset as a random effect; the model's "
+                         f"{', '.join(bound)} fits offsets of particular runs as fixed parameters, which the random "
+                         f"effects would duplicate. Drop {bound[0]} from the physics extra terms, or use "
+                         f"transfer = \"loro\".")
     runs = np.unique(train.run)
     if runs.size < 2:
         return estimate_transfer(train, fit), None
