@@ -382,10 +382,14 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     resid = train.b_ref - np.asarray(fit.predict(inputs_from_data(view)))
     means = np.array([resid[train.run == r].mean(axis=0) for r in runs])
     tau = means.max(axis=0) - means.min(axis=0)
+    bound = ", ".join(t.name for t in fit.model.terms if t.session_bound)
     warning = (f"The training data hold {len(runs)} run(s) ({usable} usable for leave-one-run-out; at least "
                f"{min_runs} are needed), so the transfer (between-session) uncertainty cannot be estimated. The "
                f"intervals for new sessions are widened by the largest run-to-run change of the mean residual, "
                f"{' / '.join(f'{v:.3g}' for v in tau)} uT (x / y / z)"
                + (" -- zero with one run: they hold no between-session term at all" if len(runs) < 2 else "")
-               + ". Record at least 3 sessions to estimate it.")
+               + (". Record at least 3 sessions to estimate it." if not fit.model.bound_runs else
+                  f", without the model's terms bound to training runs ({bound}: a fold without a run has no value "
+                  f"for that run's parameters, and a new session is calibrated without them). Drop those terms to "
+                  f"estimate the transfer by leaving runs out."))
     return TransferEstimate(tau, "largest_offset_change", per_run, warning)
