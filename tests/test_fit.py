@@ -259,3 +259,23 @@ def test_bartlett_scores_equal_the_lag_sum(runs, L):
     np.testing.assert_allclose(bartlett_scores(u, run, L), want, rtol=0, atol=1e-12 * np.abs(want).max())
     back = np.where(np.arange(run.size) >= run.size - 2, 0, run)      # run 0 again at the end
     np.testing.assert_allclose(bartlett_scores(u, back, L), _bartlett_loop(u, back, L), rtol=1e-12)
+
+
+def test_a_thermal_lag_the_data_do_not_hold_is_refused():
+    """On a campaign without a lag the LM walks tau below one sampling step, where the filter is the identity to
+    within exp(-dt/tau) and log_tau's gradient vanishes (sd 1e8 on one axis): refused, naming the term and the axis,
+    as a rank-deficient Jacobian is. Before, the fit was returned and the physics UQ sampled log_tau from that sd:
+    on a new recording the Calibrator's y RMSE was 12.8 uT against 0.049 uT without the term."""
+    from bayesmag import DataError
+    from bayesmag.simulate import simulate
+    d = simulate(2400, design="campaign", seed=3, noise_sd=0.05)
+    model = PhysicsModel.paper(t0=float(np.mean(d.temperature)), extra=(ThermalLag(),))
+    with pytest.raises(DataError, match=r"thermal_lag on axis [xyz]: the fitted tau is .* shorter than one sampling "
+                                        r"step \(0\.25 s"):
+        fit_physics(d, model)
+    fit = fit_physics(d, model, check_rank=False)                 # the check is the one check_rank switches off
+    assert np.all(np.exp(fit.theta[:, -1]) < 0.25)
+    lag = ThermalLag()                                            # the rule itself, on both sides of each bound
+    assert lag.unsupported(np.log([0.2]), np.array([0.1]), 0.25) and not lag.unsupported(np.log([0.3]), [0.1], 0.25)
+    assert "not determined" in lag.unsupported(np.log([30.0]), np.array([2.4]), 1.0)
+    assert lag.unsupported(np.log([30.0]), np.array([2.2]), 1.0) is None

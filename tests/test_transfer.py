@@ -242,7 +242,8 @@ def test_run_offsets_are_not_carried_to_a_new_session(method):
     at >= 90 % per axis (8 sessions with offsets sd 0.3 uT; reading noise 0.02 uT)."""
     from bayesmag._src.core.catalogue import RunOffset
     train = _session(3, 6, rows=200)
-    model = bayesmag.PhysicsModel.paper(t0=float(np.mean(train.temperature)), extra=(RunOffset(runs=(1, 2, 3, 4, 5, 6)),))
+    model = bayesmag.PhysicsModel.paper(t0=float(np.mean(train.temperature)),
+                                        extra=(RunOffset(runs=(1, 2, 3, 4, 5, 6)),))
     fit = bayesmag.fit_physics(train, model)
     tr = estimate_transfer(train, fit)
     assert tr.method == "largest_offset_change"

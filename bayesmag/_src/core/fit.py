@@ -462,6 +462,28 @@ def _refuse_unidentifiable(J: np.ndarray, names: tuple[str, ...]) -> None:
                         "field axis, or drop the terms (e.g. [physics] temperature_terms = false).")
 
 
+def _refuse_unsupported(model: PhysicsModel, theta: np.ndarray, cov: np.ndarray, time) -> None:
+    """Refuse input transforms whose fitted parameters describe no effect of the data
+    (:meth:`~bayesmag._src.core.physics.InputTransform.unsupported`: a thermal lag shorter than one sample)."""
+    from bayesmag._src.core.data import DataError
+    steps = np.diff(np.asarray(time, np.float64))
+    steps = steps[np.isfinite(steps) & (steps > 0)]
+    if not steps.size:
+        return
+    dt = float(np.median(steps))
+    sl = model._slices()[len(model.terms):]
+    msgs = []
+    for tr, s in zip(model.transforms, sl):
+        for a, ax in enumerate(AXES):
+            why = tr.unsupported(np.asarray(theta[a, s]), np.sqrt(np.maximum(np.diag(cov[a])[s], 0.0)), dt)
+            if why:
+                msgs.append(f"{tr.name} on axis {ax}: {why}")
+    if msgs:
+        raise DataError("The model holds an effect these data do not: " + "; ".join(msgs) + ". Its parameters "
+                        "and their uncertainty would be meaningless. Drop it from [physics] extra_terms "
+                        "(`bayesmag discover` tests whether the data hold it).")
+
+
 def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: str = "white",
                 theta0: np.ndarray | None = None, check_rank: bool = True, columns: dict | None = None,
                 field_unit: str | None = None, temperature_unit: str = "C") -> PhysicsFit:
@@ -506,6 +528,8 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
         covs.append(0.5 * (c + c.T))     # exactly symmetric (what is saved and what the loader checks)
         infos.append(info)
         diags.append(identifiability(c, model.param_names))
+    if check_rank and model.transforms:
+        _refuse_unsupported(model, theta, np.stack(covs), data.time)
     return PhysicsFit(
         model=model, theta=theta, cov=np.stack(covs), s2=np.array([i["s2"] for i in infos]), n=data.n,
         rmse_in_sample=np.sqrt(np.mean(resid**2, axis=0)),

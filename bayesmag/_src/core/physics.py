@@ -137,6 +137,12 @@ class InputTransform(abc.ABC):
         step ``dt`` (s); None: not known (a piece of a series is then predicted with a whole piece around it)."""
         return None
 
+    def unsupported(self, params: np.ndarray, sd: np.ndarray, dt: float) -> str | None:
+        """Why fitted ``params`` (standard errors ``sd``) describe no effect the data hold, so that their
+        uncertainty is meaningless, or None (default). ``dt``: the median sampling step (s). A fit with
+        ``check_rank`` refuses such a transform, as it refuses a rank-deficient Jacobian."""
+        return None
+
 
 #: The one default reference temperature of every settings type (config ``[physics] t0``, :class:`~bayesmag.Calibrator`,
 #: :func:`~bayesmag.discover`): the training rows' mean temperature, which decorrelates S from Ks and O from Ko.
@@ -216,6 +222,19 @@ class ThermalLag(InputTransform):
         # the start's weight after k rows is exp(-k dt / tau) (times a polynomial in k for cascaded nodes):
         # under 1e-17 after 45 tau
         return int(np.ceil(45.0 * float(np.exp(params[0])) / max(float(dt), 1e-12)))
+
+    def unsupported(self, params, sd, dt):
+        # tau below one step: the filter is the identity to within exp(-dt/tau), log_tau's gradient vanishes
+        # (a fit on data without a lag walks there; log_tau sd 5e7 seen), and sampling it gives absurd lags
+        tau, s = float(np.exp(params[0])), float(sd[0])
+        if tau < dt:
+            return (f"the fitted tau is {tau:.3g} s, shorter than one sampling step ({dt:.3g} s; log_tau sd "
+                    f"{s:.2g}), i.e. no lag")
+        if not s <= np.log(10.0):
+            # an axis whose output barely depends on temperature leaves tau free: its draws would span decades
+            return (f"tau = {tau:.3g} s is not determined (log_tau sd {s:.2g}: a factor {np.exp(min(s, 700.0)):.3g} "
+                    f"at one sd)")
+        return None
 
     def __call__(self, params, inputs):
         tau = jnp.exp(params[0])
