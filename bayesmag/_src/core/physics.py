@@ -232,8 +232,8 @@ class ThermalLag(InputTransform):
                     f"{s:.2g}), i.e. no lag")
         if not s <= np.log(10.0):
             # an axis whose output barely depends on temperature leaves tau free: its draws would span decades
-            return (f"tau = {tau:.3g} s is not determined (log_tau sd {s:.2g}: a factor {np.exp(min(s, 700.0)):.3g} "
-                    f"at one sd)")
+            factor = f"{np.exp(s):.3g}" if s < 46 else "over 1e20"
+            return f"tau = {tau:.3g} s is not determined (log_tau sd {s:.2g}: a factor {factor} at one sd)"
         return None
 
     def __call__(self, params, inputs):
