@@ -190,7 +190,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
             figs.submit(draw, *args, **kwargs)
 
     try:
-        run = calibrate(train, settings, test=test, progress=progress,
+        run = calibrate(train, settings, test=test, progress=progress, series=(data, split.train, split.test),
                         on_physics=physics_figures if cfg.output.figures else None)
     except NetworkSizeError as e:
         raise config_error(e, "network", cfg.network.table()) from None

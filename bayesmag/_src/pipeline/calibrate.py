@@ -61,7 +61,7 @@ class CalibrationRun:
 
 def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None, *,
               test: CalibrationData | None = None, progress: bool = False,
-              on_physics: Callable[[PhysicsStage], None] | None = None) -> CalibrationRun:
+              on_physics: Callable[[PhysicsStage], None] | None = None, series=None) -> CalibrationRun:
     """Calibrate on the rows ``data`` (with a reference) and, when given, predict the ``test`` rows.
 
     Args:
@@ -70,6 +70,11 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
         PS-QMC uncertainty, T0 the training mean).
       test: held-out rows to predict (their predictions are in the stages and :attr:`CalibrationRun.prediction`).
       progress: progress bars.
+      series: ``(recording, train_index, test_index)`` when ``data`` and ``test`` were cut from one recording (a
+        split): a model whose rows depend on their neighbours (thermal lag, timing offset, hysteresis) is fitted
+        on the training rows within it and predicts the test rows within it, not each part as a recording of its
+        own (the lag would run across every held-out block as if the temperature had stopped there, and each
+        test block would restart it as at a run start).
       on_physics: called with the :class:`PhysicsStage` as soon as it is done, before the hybrid stage (whose
         networks may still be training): e.g. the command line draws the physics figures meanwhile. What it
         does cannot change the result.
@@ -108,11 +113,12 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
 
     def after_fit(fit):
         if s.network is not None and s.uq.transfer_networks == "none":
-            training.append(start_training(s.network, fit, data, progress=progress))
+            training.append(start_training(s.network, fit, data, progress=progress,
+                                           series=None if series is None else series[:2]))
 
     try:
         ps = stages.run_physics_stage(s.uq, data, test, model, domain, timings, covariance=s.physics.covariance,
-                                      progress=progress, after_fit=after_fit)
+                                      progress=progress, after_fit=after_fit, series=series)
         if on_physics is not None:
             on_physics(ps)
         predictor, hs, nuts = ps.predictor, None, None
@@ -121,7 +127,7 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
                                          conformal=s.conformal,
                                          new_session=ps.new_session if test is not None else False, progress=progress,
                                          transfer_networks=s.uq.transfer_networks, uq_settings=s.uq,
-                                         pretrained=training[0] if training else None)
+                                         pretrained=training[0] if training else None, series=series)
             predictor = hs.predictors[hs.primary]
     finally:                        # an error or interrupt meanwhile: stop the training (a no-op once it finished)
         for t in training:

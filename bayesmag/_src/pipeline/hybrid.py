@@ -241,9 +241,11 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                      test: CalibrationData | None, timings: dict[str, float], *, level: float = 0.95,
                      conformal: ConformalPlan | None = None, new_session=False,
                      progress: bool = False, transfer_networks: str = "none", uq_settings=None,
-                     pretrained=None) -> HybridStage:
+                     pretrained=None, series=None) -> HybridStage:
     """Train the residual networks and predict the test rows; ``uq`` is ``physics``'s part on them
-    (``test`` and ``uq`` None: train only, ``predictions`` and ``alternates`` empty).
+    (``test`` and ``uq`` None: train only, ``predictions`` and ``alternates`` empty). ``series``: as
+    :func:`~bayesmag._src.pipeline.stages.run_physics_stage`'s (the row-dependent transfer of a model whose
+    rows depend on their neighbours is then taken within the recording).
 
     ``settings``: a :class:`NetworkSettings`; ``level``: the intervals' level (conformal scores);
     ``conformal``: the cross-conformal plan, needed with ``interval_calibration = "conformal"``
@@ -301,7 +303,7 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
 
     fit = physics.fit
     x_train = network_inputs(train)
-    r_train = train.b_ref - fit.predict(inputs_from_data(train))
+    r_train = fit.residuals(train, None if series is None else series[:2])
     other = "paper" if net_cfg.fusion == "moment_match" else "moment_match"
     networks, predictors, preds, alts, training, network_transfer = {}, {}, {}, {}, {}, {}
     nan_messages: list[str] = []
@@ -346,11 +348,19 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             if n_folds:
                 t = time.perf_counter()
                 ratios = []
+                # a model whose rows depend on their neighbours predicts the calibration blocks within the
+                # training series (as the residuals the networks learned were computed), not each on its own
+                whole = None
+                if pr.fit.model.transforms or pr.fit.model.has_history:
+                    whole = (pr.physics_part(train) if series is None else
+                             PhysicsUQ(*(np.asarray(a)[series[1]] for a in pr.physics_part(series[0]))))
                 for k, nk in enumerate(nets):
                     pk = dataclasses.replace(pr, network=nk)
-                    val = train.subset(np.flatnonzero(folds == k))
-                    ratios.append(conformal_ratios(val.b_ref, pk.compose(pk.components(val), new_session=False),
-                                                   level))
+                    rows = np.flatnonzero(folds == k)
+                    val = train.subset(rows)
+                    comp = (pk.components(val) if whole is None else
+                            Components(PhysicsUQ(*(np.asarray(a)[rows] for a in whole)), pk.network_part(val), None))
+                    ratios.append(conformal_ratios(val.b_ref, pk.compose(comp, new_session=False), level))
                 timings["hybrid_inference"] += time.perf_counter() - t
                 # only ever widen: a factor < 1 would trust the calibration blocks over the network's own sd
                 # the K fold networks predict together (deep ensemble), with the scale their held-out folds gave
@@ -375,7 +385,9 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             networks[name], predictors[name] = net, pr
             if test is not None:
                 t = time.perf_counter()
-                comp = Components(uq, pr.network_part(test), pr.transfer_part(test))
+                in_series = series is not None and (pr.fit.model.transforms or pr.fit.model.has_history)
+                tp = pr.transfer_part(series[0] if in_series else test)
+                comp = Components(uq, pr.network_part(test), tp[series[2]] if in_series and tp is not None else tp)
                 preds[name] = pr.compose(comp, new_session=new_session)
                 timings["hybrid_inference"] += time.perf_counter() - t
                 alts[name] = pr.compose(comp, fusion=other, new_session=new_session)

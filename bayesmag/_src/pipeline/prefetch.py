@@ -18,7 +18,6 @@ from typing import Callable
 
 from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.core.network import NetworkSpec, ResidualNetwork, start_residual_network
-from bayesmag._src.core.physics import inputs_from_data
 from bayesmag._src.core.predictor import network_inputs
 from bayesmag._src.pipeline.hybrid import check_network_config, recalibrated
 from bayesmag._src.pipeline.settings import NetworkSettings
@@ -89,7 +88,8 @@ class Training:
         self._thread.join()
 
 
-def start_training(settings: NetworkSettings, fit, train: CalibrationData, *, progress: bool = False) -> Training | None:
+def start_training(settings: NetworkSettings, fit, train: CalibrationData, *, progress: bool = False,
+                   series=None) -> Training | None:
     """Start the plain hybrid stage's networks (one per likelihood) on a background thread, or None where the
     stage trains other networks too (cross-conformal or by-run folds) or where the settings or data would fail
     (the hybrid stage then reports it as before)."""
@@ -98,7 +98,7 @@ def start_training(settings: NetworkSettings, fit, train: CalibrationData, *, pr
     try:
         specs = check_network_config(settings)
         x = network_inputs(train)
-        r = train.b_ref - fit.predict(inputs_from_data(train))
+        r = fit.residuals(train, series)          # series: (recording, train rows), as the hybrid stage
         starts = []
         for spec in specs:
             starts.append((spec, start_residual_network(x, r, spec, validation_fraction=settings.validation_fraction,

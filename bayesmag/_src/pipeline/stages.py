@@ -32,18 +32,22 @@ class CalibrationError(RuntimeError):
     """A calibration could not finish; the message says why and what to change."""
 
 
-def residual_variance(uq: UQSettings, fit: PhysicsFit, train: CalibrationData, sigma_in: np.ndarray) -> np.ndarray:
+def residual_variance(uq: UQSettings, fit: PhysicsFit, train: CalibrationData, sigma_in: np.ndarray,
+                      series=None) -> np.ndarray:
     """Per-axis residual variance beyond the propagated input noise, from the training rows only.
 
     ``max(s^2 - mean_train(aleatoric^2), 0)``: a fixed property of the calibration (stored in the
-    artifact), so applying it later gives the same intervals as the run itself.
+    artifact), so applying it later gives the same intervals as the run itself. ``series``: ``(recording,
+    train_index)``, for a model whose rows depend on their neighbours (:func:`needs_series`).
     """
     exact = fit.model.is_linear and fit.model.degree is not None
-    u = physics_uncertainty(fit, inputs_from_data(train), sigma_in=sigma_in,
+    whole = series is not None and needs_series(fit.model)
+    u = physics_uncertainty(fit, inputs_from_data(series[0] if whole else train), sigma_in=sigma_in,
                             method="analytic" if exact else uq.method,
                             n_params=min(uq.n_params, 50), n_qmc=min(uq.n_qmc, 256), seed=uq.seed,
                             chunk_size=uq.chunk_size)
-    return np.maximum(fit.s2 - np.mean(u.aleatoric**2, axis=0), 0.0)
+    alea = np.asarray(u.aleatoric)[series[1]] if whole else u.aleatoric
+    return np.maximum(fit.s2 - np.mean(alea**2, axis=0), 0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,10 +67,32 @@ class PhysicsStage:
     new_session: np.ndarray | None        # (n_test,) test rows from runs the fit did not see (they get the transfer part)
 
 
+def needs_series(model: PhysicsModel) -> bool:
+    """True if a row's prediction depends on its neighbours (input transforms, history terms): rows cut from a
+    recording are then predicted within it (:func:`series_rows`)."""
+    return bool(model.transforms) or model.has_history
+
+
+def series_rows(parts, idx):
+    """Rows ``idx`` of per-row results computed on a whole series (a :class:`PhysicsUQ`, an (n, 3) array or None)."""
+    if parts is None:
+        return None
+    if isinstance(parts, PhysicsUQ):
+        return PhysicsUQ(*(np.asarray(a)[idx] for a in parts))
+    return np.asarray(parts)[idx]
+
+
 def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: CalibrationData | None,
                       model: PhysicsModel, domain, timings: dict[str, float], *, covariance: str = "white",
-                      progress: bool = False, after_fit=None) -> PhysicsStage:
+                      progress: bool = False, after_fit=None, series=None) -> PhysicsStage:
     """Fit ``model`` on ``train`` and (when given) predict ``test`` through a :class:`Predictor`.
+
+    ``series``: ``(recording, train_index, test_index)``, the recording ``train`` and ``test`` were cut from
+    and their rows in it. A model whose rows depend on their neighbours (:func:`needs_series`: a thermal lag, a
+    timing offset, hysteresis) is fitted on the training rows within the whole recording
+    (:func:`~bayesmag._src.core.fit.fit_physics` ``keep``) and predicts the test rows within it: alone, the lag
+    would run across every held-out block as if the temperature had stopped, and each test block would restart
+    it as at a run start.
 
     Adds ``timings["physics_fit"]``, ``["physics_uq"]`` and ``["transfer"]`` (s). ``after_fit(fit)``: called
     once the fit converged, before the uncertainty parts (the hybrid stage starts its training there).
@@ -76,7 +102,13 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
         ValueError: an invalid ``sigma_in`` matrix.
     """
     t = time.perf_counter()
-    fit = fit_physics(train, model, covariance_method=covariance)
+    whole = series is not None and needs_series(model)
+    if whole:
+        keep = np.zeros(series[0].n, bool)
+        keep[series[1]] = True
+        fit = fit_physics(series[0], model, covariance_method=covariance, keep=keep)
+    else:
+        fit = fit_physics(train, model, covariance_method=covariance)
     timings["physics_fit"] = time.perf_counter() - t
     if not fit.converged:
         raise CalibrationError(f"The Levenberg-Marquardt fit did not converge: {dict(zip(AXES, fit.result))}. "
@@ -89,10 +121,15 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
     # The paper's physics total sqrt(alea^2 + epi^2) leaves out the scatter the fit could not explain
     # (reference noise, model discrepancy): its 95% intervals cover 39-46% on the paper split. The residual
     # term is the fit's residual variance beyond what the propagated input noise already accounts for.
-    resid_var = residual_variance(uq_settings, fit, train, sigma_in) if uq_settings.residual_term else np.zeros(3)
+    resid_var = (residual_variance(uq_settings, fit, train, sigma_in, series=series[:2] if whole else None)
+                 if uq_settings.residual_term else np.zeros(3))
     predictor = Predictor(fit=fit, sigma_in=sigma_in, residual_sd=np.sqrt(resid_var), domain=domain,
                           uq=uq_settings.options())
-    uq = predictor.physics_part(test, progress=progress) if test is not None else None
+    in_series = test is not None and whole
+    if in_series:
+        uq = series_rows(predictor.physics_part(series[0], progress=progress), series[2])
+    else:
+        uq = predictor.physics_part(test, progress=progress) if test is not None else None
     timings["physics_uq"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -113,7 +150,8 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
     if test is None:
         return PhysicsStage(fit, sigma_in, sigma_src, np.sqrt(resid_var), predictor, None, None, None, tr, None)
     new = ~np.isin(test.run, train.run)
-    comp = Components(uq, None, predictor.transfer_part(test))
+    comp = Components(uq, None, series_rows(predictor.transfer_part(series[0]), series[2]) if in_series
+                      else predictor.transfer_part(test))
     paper = dataclasses.replace(predictor, residual_sd=np.zeros(3), transfer_sd=None)
     return PhysicsStage(fit, sigma_in, sigma_src, np.sqrt(resid_var), predictor, uq,
                         predictor.compose(comp, new_session=new), paper.compose(comp), tr, new)
