@@ -211,7 +211,8 @@ class Calibrator:
         if cfg.nuts.enabled:
             from bayesmag._src.app.nuts_stage import check_nuts_config
             settings = cfg.settings(nuts_priors=check_nuts_config(cfg, model.param_names))
-        self.run_ = calibrate(train, settings, test=test)
+        self.run_ = calibrate(train, settings, test=test,
+                              series=None if split is None else (rows, split.train, split.test))
         self.physics_fit_ = self.run_.fit
         self.metrics_ = None
         if split is not None:
