@@ -307,7 +307,8 @@ def _weighted_quantile(v: np.ndarray, w: np.ndarray, q: float) -> float:
     return float(v[order][min(np.searchsorted(cum, q - 1e-12), v.size - 1)])
 
 
-def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs: int = 3) -> TransferEstimate:
+def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs: int = 3,
+                      series=None) -> TransferEstimate:
     r"""Between-session (transfer) sd from the training runs: leave-one-run-out, conformal over runs.
 
     For every training run ``r``: refit without ``r`` and predict run ``r``'s
@@ -326,6 +327,9 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     bounding :math:`q` alone took that part as exact (``benchmarks/bench_transfer.py``). With fewer
     than ``min_runs`` usable runs it cannot be estimated: the sd is widened to the largest change of
     the per-run mean residual of the pooled ``fit`` between two runs (0 for one run), with a warning.
+    ``series``: ``(recording, train_index)`` for a model whose rows depend on their neighbours (input
+    transforms, history terms): the folds are fitted and predicted within the recording (held-out rows stay in
+    the series, weight 0), as the job's fit was.
     """
     import scipy.stats
 
@@ -338,7 +342,15 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     z = scipy.stats.norm.ppf(0.5 + level / 2)
     if len(runs) >= min_runs:
         held_all = np.stack([train.run == r for r in runs])
-        if fit_fn is None:          # every fold in one compiled, vmapped fit (fit.fit_folds)
+        whole = series is not None and fit_fn is None and bool(fit.model.transforms or fit.model.has_history)
+        if whole:                   # the folds within the recording: its other rows stay in the series
+            from bayesmag._src.core.fit import fit_folds
+            recording, index = series
+            keep = np.zeros((len(runs), recording.n), bool)
+            keep[:, index] = ~held_all
+            thetas, oks = fit_folds(recording, fit.model, keep)
+            rec_inputs = inputs_from_data(recording)
+        elif fit_fn is None:        # every fold in one compiled, vmapped fit (fit.fit_folds)
             from bayesmag._src.core.fit import fit_folds
             thetas, oks = fit_folds(train, fit.model, ~held_all)
         for k, r in enumerate(runs):
@@ -352,7 +364,8 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
             if fit_fn is None:
                 if not oks[k]:      # an unidentifiable fold (e.g. no temperature variation) is skipped
                     continue
-                pred = fit.model.predict_all(thetas[k], inputs_from_data(rows))
+                pred = (np.asarray(fit.model.predict_all(thetas[k], rec_inputs))[index[held][inside]] if whole
+                        else fit.model.predict_all(thetas[k], inputs_from_data(rows)))
             else:
                 try:
                     f = fit_fn(other)
@@ -379,7 +392,11 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     # residuals as a new session would see them: without the terms bound to training runs (a run offset would
     # otherwise take the run-to-run change out of the residual means)
     view = dataclasses.replace(train, run=new_session_runs(fit.model, train.run))
-    resid = train.b_ref - np.asarray(fit.predict(inputs_from_data(view)))
+    if series is not None and (fit.model.transforms or fit.model.has_history):
+        rec = dataclasses.replace(series[0], run=new_session_runs(fit.model, series[0].run))
+        resid = fit.residuals(view, (rec, series[1]))
+    else:
+        resid = train.b_ref - np.asarray(fit.predict(inputs_from_data(view)))
     means = np.array([resid[train.run == r].mean(axis=0) for r in runs])
     tau = means.max(axis=0) - means.min(axis=0)
     bound = ", ".join(t.name for t in fit.model.terms if t.session_bound)

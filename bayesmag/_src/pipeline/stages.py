@@ -135,7 +135,7 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
     t = time.perf_counter()
     sessions = None
     if uq_settings.transfer == "loro":
-        tr = estimate_transfer(train, fit)       # leave-one-run-out folds in one compiled fit
+        tr = estimate_transfer(train, fit, series=series[:2] if whole else None)    # folds: one compiled fit
     elif uq_settings.transfer.startswith("hierarchical"):
         from bayesmag._src.pipeline.sessions import hierarchical_transfer
         tr, sessions = hierarchical_transfer(train, fit, method="nuts" if uq_settings.transfer.endswith("nuts") else
