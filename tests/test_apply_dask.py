@@ -270,3 +270,26 @@ def test_an_unset_hysteresis_state_is_a_warning(hysteresis_cal, tmp_path, monkey
     near = A.calibrate_piece(pieces[2], 2, cal, opts, str(tmp_path), A._Pieces(pieces))
     assert "partition 10: the hysteresis state at its first row is not set by the 3 partitions" in far["warnings"][0]
     assert near["warnings"][0] == ""
+
+
+def test_a_hierarchical_calibration_keeps_its_row_wise_transfer_column(cluster, tmp_path):
+    """The hierarchical session model's transfer sd depends on the row: the archive apply writes it as the
+    in-process apply does (before, its columns were chosen from the saved constant transfer sd, which such a
+    calibration has not, and x/y/z_transfer were missing); values as Calibration.predict's (1e-12)."""
+    import bayesmag
+    from bayesmag._src.app.artifact import load
+    from bayesmag._src.app.config import config_from_dict
+    raw = {"data": {"source": "simulated", "simulate": {"design": "campaign", "n": 1200, "seed": 1, "noise_sd": 0.05}},
+           "split": {"kind": "time_blocks", "test_fraction": 0.2}, "uq": {"method": "analytic", "transfer": "hierarchical"},
+           "output": {"figures": False, "progress": False}}
+    bayesmag.run_job(config_from_dict(raw), tmp_path / "cal")
+    cal = load(tmp_path / "cal")
+    assert cal.sessions is not None and cal.transfer_sd is None
+    new = bayesmag.simulate.simulate(900, design="campaign", seed=6, noise_sd=0.05)
+    (tmp_path / "in").mkdir()
+    to_frame(new).to_parquet(tmp_path / "in" / "a.parquet", row_group_size=200, index=False)
+    apply_dask(tmp_path / "cal", str(tmp_path / "in"), tmp_path / "out", scheduler=cluster)
+    out, ref = pd.read_parquet(tmp_path / "out"), cal.predict(new)
+    got = out[[f"{ax}_transfer" for ax in "xyz"]].to_numpy(float)
+    assert np.ptp(ref["transfer"], axis=0).max() > 0                 # row-dependent
+    np.testing.assert_allclose(got, ref["transfer"], rtol=1e-12, atol=1e-15)

@@ -426,7 +426,10 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     names = ["calibrated", "aleatoric_physics", "epistemic_physics", "residual_physics", "total", "lower", "upper"]
     if cal.network is not None:
         names += ["aleatoric_nn", "epistemic_nn"]
-    if cal.transfer_sd is not None:
+    # as Calibration.predict's parts: a saved transfer sd, the hierarchical session model's row-wise one, or the
+    # networks' own (before, a hierarchical calibration lost its transfer column here, unlike the in-process apply)
+    if (cal.transfer_sd is not None or cal.sessions is not None
+            or (cal.network is not None and cal.network_transfer_sd is not None)):
         names.append("transfer")
     opts = dict(columns=columns, temperature_unit=temperature_unit, field_unit=field_unit, level=level, method=method,
                 n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
