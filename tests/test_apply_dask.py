@@ -280,7 +280,8 @@ def test_a_hierarchical_calibration_keeps_its_row_wise_transfer_column(cluster, 
     from bayesmag._src.app.artifact import load
     from bayesmag._src.app.config import config_from_dict
     raw = {"data": {"source": "simulated", "simulate": {"design": "campaign", "n": 1200, "seed": 1, "noise_sd": 0.05}},
-           "split": {"kind": "time_blocks", "test_fraction": 0.2}, "uq": {"method": "analytic", "transfer": "hierarchical"},
+           "split": {"kind": "time_blocks", "test_fraction": 0.2},
+           "uq": {"method": "analytic", "transfer": "hierarchical"},
            "output": {"figures": False, "progress": False}}
     bayesmag.run_job(config_from_dict(raw), tmp_path / "cal")
     cal = load(tmp_path / "cal")
