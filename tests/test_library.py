@@ -273,3 +273,12 @@ def test_network_package_keeps_every_name_of_the_old_module():
     assert all(hasattr(network, n) for n in network.__all__)
     assert network.NetworkSpec is spec.NetworkSpec and network.fit_residual_network is train.fit_residual_network
     assert network.mc_predict is infer.mc_predict and network.recalibrate is recalibration.recalibrate
+
+
+def test_calibrate_refuses_a_series_that_does_not_hold_the_rows():
+    """``series = (recording, train_index, test_index)`` must give the rows passed: swapped indices are refused."""
+    import numpy as np
+    d = bayesmag.simulate.simulate(600, design="campaign", seed=0)
+    tr, te = np.arange(0, 500), np.arange(500, 600)
+    with pytest.raises(ValueError, match="series = "):
+        bayesmag.calibrate(d.subset(tr), test=d.subset(te), series=(d, te, tr))

@@ -106,6 +106,13 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
     if s.physics.temperature_terms and np.ptp(data.temperature) < 1e-6:
         raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
                         "Set temperature_terms = false or use a split that keeps temperature variation.")
+    if series is not None:
+        recording, tr, te = series
+        tr, te = np.asarray(tr), np.asarray(te)
+        if (len(tr) != data.n or (test is not None and len(te) != test.n)
+                or not np.array_equal(recording.b_meas[tr], data.b_meas, equal_nan=True)):
+            raise ValueError("series = (recording, train_index, test_index) must give the training rows "
+                             "(recording.subset(train_index) is data) and the test rows; it does not.")
     timings: dict[str, float] = {}
     model = s.physics.model(data)
     domain = Domain.from_data(data)
