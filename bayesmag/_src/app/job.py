@@ -184,7 +184,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
         physics_columns = {"reference": test.b_ref, "predicted": ps.uq.mean, "lower": lo, "upper": hi,
                            "total": ps.prediction.total}      # the columns they show, as job_metrics makes them
         tasks = plots.physics_figure_tasks(test, physics_columns, {
-            "train": train, "train_residual": train.b_ref - ps.fit.predict(inputs_from_data(train)),
+            "train": train, "train_residual": ps.fit.residuals(train, (data, split.train)),
             "pit": M.pit(ps.prediction.dist, test.b_ref), "level": cfg.uq.level})
         for draw, args, kwargs in plots.by_cost(tasks):     # the most expensive first
             figs.submit(draw, *args, **kwargs)
@@ -260,7 +260,7 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
     phys_scores = M.score_per_axis(y, ps.prediction.dist, level, mean=ps.prediction.mean)
     paper_scores = M.score_per_axis(y, ps.paper_prediction.dist, level, mean=ps.paper_prediction.mean)
     lo, hi = ps.prediction.interval(level)
-    resid_train = train.b_ref - fit.predict(inputs_from_data(train))
+    resid_train = fit.residuals(train, (data, split.train))      # within the recording for a thermal lag
     metrics = {
         "raw": {"rmse": _per_axis(M.rmse(y, test.b_meas)), "mae": _per_axis(M.mae(y, test.b_meas))},
         "physics": phys_scores,
