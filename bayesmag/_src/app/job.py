@@ -22,7 +22,7 @@ from bayesmag._src.app.config import Config, ConfigError, config_error, to_toml
 from bayesmag._src.core.data import AXES, CalibrationData, DataError, make_split, validate
 from bayesmag._src.app.inputs import load_data
 from bayesmag._src.core.fit import PhysicsFit
-from bayesmag._src.core.physics import PhysicsModel, inputs_from_data
+from bayesmag._src.core.physics import PhysicsModel
 from bayesmag._src.app.outdir import staging_dir
 from bayesmag._src.core.predictor import UQOptions
 from bayesmag._src.core import metrics as M
