@@ -250,14 +250,15 @@ def accuracy_loss(ex: Export, rows: CalibrationData, full: np.ndarray, *, which:
 
 
 def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | None = None,
-                 held_out: CalibrationData | None = None, uncertainty: dict | None = None) -> Export:
+                 held_out: CalibrationData | None = None, uncertainty: dict | None = None, series=None) -> Export:
     """Coefficients of every target from a :class:`~bayesmag.Calibration`; least-squares targets need ``train``.
 
     PX4 and ArduPilot are fitted on ``train``; the accuracy lost is measured on ``held_out`` (the
     run's test rows; the training rows, said so, when there are none). Without ``train`` (the rows
     cannot be reloaded), the fits use a grid over the training domain and no accuracy is measured.
     ``uncertainty``: :func:`~bayesmag._src.app.report.expanded_uncertainties` of the run, for the
-    U constants of ``json`` and ``c-header``.
+    U constants of ``json`` and ``c-header``. ``series``: ``(recording, train_index, test_index)`` they were
+    cut from: a full model whose rows depend on their neighbours (a thermal lag) is evaluated within it.
     """
     from bayesmag._src.core.physics import inputs_from_data
     import jax.numpy as jnp
@@ -281,7 +282,16 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
         mesh = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 4)
         rows = CalibrationData(mesh[:, :3], mesh[:, 3], None, source="domain grid")
         source = "a 9x9x9x9 grid over the training domain (training rows unavailable)"
-    phys = np.asarray(cal.model.predict_all(jnp.asarray(cal.theta), inputs_from_data(rows)))
+    model = cal.model
+    whole = series is not None and (bool(model.transforms) or model.has_history)
+
+    def full_physics(part, k):        # the full physics model on rows ``part`` (series index ``k``)
+        if whole:
+            return np.asarray(model.predict_all(jnp.asarray(cal.theta), inputs_from_data(series[0])))[series[k]]
+        return np.asarray(model.predict_all(jnp.asarray(cal.theta), inputs_from_data(part)))
+
+    phys = full_physics(rows, 1) if rows is train else np.asarray(
+        model.predict_all(jnp.asarray(cal.theta), inputs_from_data(rows)))
     px4 = px4_params(rows.b_meas, rows.temperature, phys, tref=t_ref, tmin=t_range[0], tmax=t_range[1])
     ap = ardupilot_params(rows.b_meas, phys)
     k = len(cal.model.terms[0].param_names())
@@ -292,10 +302,13 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
                 source, names, cov, uncertainty, cal.domain, tuple(warnings))
     _check_finite(ex)
     if train is not None:
-        scored, which = ((held_out, "held-out (test) rows") if held_out is not None and held_out.n > 0
-                         else (train, "training rows (the run has no held-out rows)"))
-        full = (cal.predict(scored)["calibrated"] if cal.network is not None else
-                np.asarray(cal.model.predict_all(jnp.asarray(cal.theta), inputs_from_data(scored))))
+        scored, which, k = ((held_out, "held-out (test) rows", 2) if held_out is not None and held_out.n > 0
+                            else (train, "training rows (the run has no held-out rows)", 1))
+        if cal.network is not None:
+            full = (cal.predict(series[0], new_session=False)["calibrated"][series[k]] if whole
+                    else cal.predict(scored)["calibrated"])
+        else:
+            full = full_physics(scored, k)
         ex = dataclasses.replace(ex, accuracy=accuracy_loss(ex, scored, full, which=which))
     return ex
 
@@ -621,20 +634,27 @@ def render(fmt: str, ex: Export) -> str:
 
 def split_rows(cal) -> tuple[CalibrationData, CalibrationData]:
     """The run's training and held-out (test) rows, reloaded through its saved config (data source and split)."""
+    if "sensor_id" in cal.config:                  # a sensor folder of `bayesmag fleet`
+        from bayesmag._src.app.fleet import sensor_split_rows
+        return sensor_split_rows(cal.config)
+    data, train, test = split_recording(cal)
+    return data.subset(train), data.subset(test)
+
+
+def split_recording(cal) -> tuple[CalibrationData, np.ndarray, np.ndarray]:
+    """``(recording, train_index, test_index)`` of a ``bayesmag run`` folder's calibration, reloaded through its
+    saved config (data source and split)."""
     from bayesmag._src.app.config import config_from_dict
     from bayesmag._src.core.data import make_split
     from bayesmag._src.app.inputs import load_data
 
-    if "sensor_id" in cal.config:                  # a sensor folder of `bayesmag fleet`
-        from bayesmag._src.app.fleet import sensor_split_rows
-        return sensor_split_rows(cal.config)
     raw = {k: v for k, v in cal.config.items() if v is not None}
     cfg = config_from_dict(_drop_none(raw))
     data = load_data(cfg)
     s = cfg.split
     split = make_split(data, kind=s.kind, test_fraction=s.test_fraction, seed=s.seed, test_runs=s.test_runs,
                        n_blocks=s.n_blocks)
-    return data.subset(split.train), data.subset(split.test)
+    return data, split.train, split.test
 
 
 def training_rows(cal) -> CalibrationData:
@@ -747,14 +767,18 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     out = Path(out) if out else Path(run_dir) / f"calibration{FORMATS[fmt]}"
     data_path = ((cal.config or {}).get("data") or {}).get("path") if isinstance(cal.config, dict) else None
     check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # before the slow part
-    train = test = None
+    train = test = series = None
     if measure:
         try:
-            train, test = split_rows(cal)
+            if "sensor_id" in cal.config:
+                train, test = split_rows(cal)
+            else:
+                series = split_recording(cal)
+                train, test = series[0].subset(series[1]), series[0].subset(series[2])
         except Exception as e:  # noqa: BLE001 -- the export is still useful without the accuracy table
             import warnings
             warnings.warn(f"the run's rows could not be reloaded ({e}); accuracy loss not measured.", stacklevel=2)
-    ex = build_export(cal, train, t_ref=t_ref, held_out=test, uncertainty=run_uncertainty(run_dir))
+    ex = build_export(cal, train, t_ref=t_ref, held_out=test, uncertainty=run_uncertainty(run_dir), series=series)
     ex = dataclasses.replace(ex, certificate=run_certificate(run_dir))
     text = render(fmt, ex)
     check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # changed meanwhile?
