@@ -141,7 +141,8 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
         tr, sessions = hierarchical_transfer(train, fit, method="nuts" if uq_settings.transfer.endswith("nuts") else
                                              "laplace", level=uq_settings.level, seed=uq_settings.seed,
                                              likelihood=uq_settings.transfer_likelihood, df=uq_settings.transfer_df,
-                                             uninformed=uq_settings.transfer_uninformed)
+                                             uninformed=uq_settings.transfer_uninformed,
+                                             series=series[:2] if whole else None)
     else:
         tr = TransferEstimate(np.zeros(3), "off", {})
     predictor = dataclasses.replace(predictor, transfer_sd=None if sessions is not None else tr.sd,

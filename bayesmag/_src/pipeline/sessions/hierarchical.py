@@ -47,6 +47,7 @@ predictive is then the mixture over the dofs (:func:`_mixture_variance`).
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import functools
 import math
@@ -99,10 +100,35 @@ class RunStats(NamedTuple):
                              n=self.n[k], runs=self.runs[k])
 
 
+#: ``(rows, recording, index)`` while :func:`hierarchical_transfer` runs with a ``series``: the training rows
+#: ``rows`` (that object) are ``recording``'s rows ``index``, and a model whose rows depend on their neighbours (a
+#: thermal lag) is evaluated on them within the recording (:func:`_jacobian`, :func:`_predict`).
+_SERIES: contextvars.ContextVar = contextvars.ContextVar("bayesmag_session_series", default=None)
+
+
+def _in_series(fit, data):
+    """``(recording, index)`` when ``data`` is the training rows of a :data:`_SERIES` and the model needs it."""
+    ctx = _SERIES.get()
+    if ctx is not None and ctx[0] is data and (fit.model.transforms or fit.model.has_history):
+        return ctx[1], ctx[2]
+    return None
+
+
 def _jacobian(fit, data) -> np.ndarray:
     """(3, n, p) Jacobian of the physics prediction at the fit's parameters (the design matrix if linear)."""
     from bayesmag._src.core.fit import physics_jacobian
+    series = _in_series(fit, data)
+    if series is not None:
+        return physics_jacobian(fit.model, fit.theta, inputs_from_data(series[0]))[:, series[1]]
     return physics_jacobian(fit.model, fit.theta, inputs_from_data(data))
+
+
+def _predict(fit, data) -> np.ndarray:
+    """(n, 3) physics prediction of ``data``'s rows (within the recording under :data:`_SERIES`)."""
+    series = _in_series(fit, data)
+    if series is not None:
+        return np.asarray(fit.predict(inputs_from_data(series[0])))[series[1]]
+    return np.asarray(fit.predict(inputs_from_data(data)))
 
 
 def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.ndarray | None = None,
@@ -128,7 +154,7 @@ def run_stats(data, fit, effects: Sequence[str] = DEFAULT_EFFECTS, scale: np.nda
     if missing:
         raise ValueError(f"random effects {missing} are not parameters of the model {names}.")
     J = _jacobian(fit, data)                                               # (3, n, p)
-    pred = np.asarray(fit.predict(inputs_from_data(data)))
+    pred = _predict(fit, data)
     y = np.asarray(data.b_ref) - pred + np.einsum("anp,ap->na", J, np.asarray(fit.theta))
     extra = []
     rms = np.sqrt(np.mean(J**2, axis=1))                                   # (3, p)
@@ -1543,7 +1569,7 @@ def misfit_axes(sd, loro_sd, s2) -> np.ndarray:
 
 def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
                           effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float | str = 4.0,
-                          uninformed: str | None = None):
+                          uninformed: str | None = None, series=None):
     """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
 
     The estimate's ``sd`` is the root-mean-square row-dependent transfer sd over the training rows (a
@@ -1551,7 +1577,18 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
     :func:`~bayesmag._src.core.predictor.estimate_transfer` (its warning) and no session model. With 3 or more it
     also reports leave-one-run-out's sd (``loro_sd``) and warns on an axis whose sd exceeds :data:`MISFIT_RATIO`
     times that and the axis's residual sd (unmodelled physics read as session change: run ``bayesmag discover``).
+    ``series``: ``(recording, train_index)``: a model whose rows depend on their neighbours (a thermal lag) is
+    linearised on the training rows within the recording, as it was fitted (:data:`_SERIES`).
     """
+    token = _SERIES.set(None if series is None else (train, series[0], np.asarray(series[1])))
+    try:
+        return _hierarchical_transfer(train, fit, method=method, level=level, seed=seed, effects=effects,
+                                      likelihood=likelihood, df=df, uninformed=uninformed, series=series)
+    finally:
+        _SERIES.reset(token)
+
+
+def _hierarchical_transfer(train, fit, *, method, level, seed, effects, likelihood, df, uninformed, series):
     from bayesmag._src.core.predictor import TransferEstimate, estimate_transfer
 
     bound = [t.name for t in fit.model.terms if getattr(t, "localised", None) == "run"]     # run_offset
@@ -1562,7 +1599,7 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
                          f"transfer = \"loro\".")
     runs = np.unique(train.run)
     if runs.size < 2:
-        return estimate_transfer(train, fit), None
+        return estimate_transfer(train, fit, series=series), None
     post = fit_sessions(train, fit, method=method, effects=effects, level=level, seed=seed, likelihood=likelihood,
                         df=df, uninformed=uninformed)
     sd = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
@@ -1576,7 +1613,7 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
     summary = {**post.as_dict(), "dropped_effects_informing_runs": dropped,
                "weak_directions_per_run": {str(r): int(W.shape[1]) for r, W in weak.items()}}
     if runs.size >= 3:
-        loro = estimate_transfer(train, fit, level=level).sd
+        loro = estimate_transfer(train, fit, level=level, series=series).sd
         summary["loro_sd"] = {ax: float(v) for ax, v in zip(AXES, loro)}
         big = list(np.flatnonzero(misfit_axes(sd, loro, fit.s2)))
         if big:
