@@ -562,6 +562,10 @@ class RunOffset(Term, Entry):
     def bound_runs(self):
         return tuple(int(r) for r in self.runs)
 
+    def restricted(self, runs):
+        kept = tuple(r for r in self.runs if int(r) in runs)
+        return dataclasses.replace(self, runs=kept) if len(kept) >= 2 else None
+
     def features(self, inputs):
         return (inputs.run[..., None] == jnp.asarray(self.runs[1:])).astype(inputs.t.dtype)
 
@@ -609,6 +613,9 @@ class RunStep(Term, Entry):
 
     def bound_runs(self):
         return (int(self.run_id),)
+
+    def restricted(self, runs):
+        return self if int(self.run_id) in runs else None
 
     def features(self, inputs):
         on = (inputs.run == int(self.run_id)) & (inputs.time >= self.at)

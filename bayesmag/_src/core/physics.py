@@ -106,6 +106,11 @@ class Term(abc.ABC):
         gives them what it gives rows of no listed run: the reference state (a run offset of 0)."""
         return ()
 
+    def restricted(self, runs) -> "Term | None":
+        """This term for a model fitted on the runs ``runs`` only (leave-one-run-out): a term bound to runs
+        (:attr:`session_bound`) keeps those of its runs that are there, or is dropped (None); others are kept."""
+        return self
+
     def history_settled(self, inputs: Inputs) -> bool:
         """True if the features at the last row of the series ``inputs`` are what they are on any longer series
         that ends with ``inputs`` (so a piece of a recording needs no earlier rows). Always True for a term without
@@ -409,6 +414,16 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
+
+
+def restricted(model: PhysicsModel, runs) -> PhysicsModel:
+    """``model`` for a fit on the runs ``runs`` only (:meth:`Term.restricted`): a run offset keeps the offsets of
+    those runs, a step in a run not among them is dropped. ``model`` itself without terms bound to runs."""
+    if not model.bound_runs:
+        return model
+    runs = {int(r) for r in runs}
+    terms = tuple(t for t in (c.restricted(runs) for c in model.terms) if t is not None)
+    return dataclasses.replace(model, terms=terms)
 
 
 def new_session_runs(model: PhysicsModel, run, new=True) -> np.ndarray:

@@ -337,6 +337,14 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     from bayesmag._src.core.physics import inputs_from_data
 
     runs = [int(r) for r in np.unique(train.run)]
+    if fit_fn is None and fit.model.bound_runs:
+        # a run offset (or step) of the left-out run has no value in its fold: each fold refits the model without
+        # it (physics.restricted) and predicts the run as a new session, with no offset of its own
+        from bayesmag._src.core.fit import fit_physics
+        from bayesmag._src.core.physics import restricted
+
+        def fit_fn(other):
+            return fit_physics(other, restricted(fit.model, np.unique(other.run)))    # a fold it refuses: skipped
     per_run, need, weight = {}, [], []
     s2 = np.asarray(fit.s2, np.float64)
     z = scipy.stats.norm.ppf(0.5 + level / 2)
@@ -405,8 +413,6 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
                f"intervals for new sessions are widened by the largest run-to-run change of the mean residual, "
                f"{' / '.join(f'{v:.3g}' for v in tau)} uT (x / y / z)"
                + (" -- zero with one run: they hold no between-session term at all" if len(runs) < 2 else "")
-               + (". Record at least 3 sessions to estimate it." if not fit.model.bound_runs else
-                  f", without the model's terms bound to training runs ({bound}: a fold without a run has no value "
-                  f"for that run's parameters, and a new session is calibrated without them). Drop those terms to "
-                  f"estimate the transfer by leaving runs out."))
+               + (f", taken without the model's {bound} (a new session is calibrated without them)" if bound else "")
+               + ". Record at least 3 sessions to estimate it.")
     return TransferEstimate(tau, "largest_offset_change", per_run, warning)
