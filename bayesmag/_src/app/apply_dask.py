@@ -234,13 +234,11 @@ def _context(piece, index: int, df, data, cal, opts: dict, pieces) -> tuple:
     """
     import pandas as pd
     from bayesmag._src.core.frames import from_frame
-    from bayesmag._src.core.physics import inputs_from_data
+    from bayesmag._src.core.physics import inputs_from_data, median_step
     model = cal.model
     need = 1
     if model.transforms and data.n:
-        steps = np.diff(np.asarray(data.time, np.float64))
-        steps = steps[np.isfinite(steps) & (steps > 0)]
-        k = model.memory_rows(cal.theta, float(np.median(steps)) if steps.size else 1.0)
+        k = model.memory_rows(cal.theta, median_step(data.time) or 1.0)
         need = None if k is None else max(int(k), 1)
     if pieces is None or (need == 1 and not model.has_history):
         return (*_halo(piece), None)
@@ -461,7 +459,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                 cal_f = client.scatter(cal, broadcast=True, hash=False)
                 # a model whose rows depend on neighbouring rows reads neighbouring partitions (_context)
                 ctx = (client.scatter(_Pieces(pieces), broadcast=True, hash=False)
-                       if cal.model.transforms or cal.model.has_history else None)
+                       if cal.model.needs_series else None)
                 stats = dd.from_map(calibrate_piece, pieces, range(len(pieces)), args=(cal_f, opts, str(tmp), ctx),
                                     meta=meta, enforce_metadata=False, label="bayesmag-apply")
                 fut = client.compute(stats)

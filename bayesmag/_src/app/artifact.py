@@ -231,9 +231,8 @@ class Calibration:
         # transforms remember on both sides (as they would on the whole recording), then those rows are dropped
         pad = 0
         if self.model.transforms and idx.size > chunk_size:
-            steps = np.diff(np.asarray(data.time, np.float64)[idx])
-            steps = steps[np.isfinite(steps) & (steps > 0)]
-            need = self.model.memory_rows(self.theta, float(np.median(steps)) if steps.size else 1.0)
+            from bayesmag._src.core.physics import median_step
+            need = self.model.memory_rows(self.theta, median_step(np.asarray(data.time)[idx]) or 1.0)
             pad = chunk_size if need is None else min(int(need), 10 * chunk_size)
         starts = range(0, idx.size, chunk_size)
         if progress:

@@ -283,7 +283,7 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
         rows = CalibrationData(mesh[:, :3], mesh[:, 3], None, source="domain grid")
         source = "a 9x9x9x9 grid over the training domain (training rows unavailable)"
     model = cal.model
-    whole = series is not None and (bool(model.transforms) or model.has_history)
+    whole = series is not None and model.needs_series
 
     def full_physics(part, k):        # the full physics model on rows ``part`` (series index ``k``)
         if whole:

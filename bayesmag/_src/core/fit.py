@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesmag._src.core.frames import frame_io
-from bayesmag._src.core.physics import AXES, Inputs, PhysicsModel, centred
+from bayesmag._src.core.physics import AXES, Inputs, PhysicsModel, centred, median_step
 
 __all__ = ["LMSolution", "RESULTS", "levenberg_marquardt", "PhysicsFit", "fit_physics", "covariance",
            "identifiability", "lag1_autocorrelation", "unidentifiable", "RANK_RTOL"]
@@ -329,7 +329,7 @@ class PhysicsFit:
         ``recording``'s rows ``index``: a model whose rows depend on their neighbours (input transforms,
         history terms) then predicts them within the recording, as :func:`fit_physics` with ``keep`` fitted."""
         from bayesmag._src.core.physics import inputs_from_data
-        if series is not None and (self.model.transforms or self.model.has_history):
+        if series is not None and self.model.needs_series:
             recording, index = series
             return np.asarray(rows.b_ref) - self.predict(inputs_from_data(recording))[index]
         return np.asarray(rows.b_ref) - self.predict(inputs_from_data(rows))
@@ -476,11 +476,9 @@ def _refuse_unsupported(model: PhysicsModel, theta: np.ndarray, cov: np.ndarray,
     """Refuse input transforms whose fitted parameters describe no effect of the data
     (:meth:`~bayesmag._src.core.physics.InputTransform.unsupported`: a thermal lag shorter than one sample)."""
     from bayesmag._src.core.data import DataError
-    steps = np.diff(np.asarray(time, np.float64))
-    steps = steps[np.isfinite(steps) & (steps > 0)]
-    if not steps.size:
+    dt = median_step(time)
+    if dt is None:
         return
-    dt = float(np.median(steps))
     sl = model._slices()[len(model.terms):]
     msgs = []
     for tr, s in zip(model.transforms, sl):

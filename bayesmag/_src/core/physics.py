@@ -361,6 +361,12 @@ class PhysicsModel:
         return tuple(t.features(inputs) if t.history else None for t in self.terms)
 
     @property
+    def needs_series(self) -> bool:
+        """True if a row's prediction depends on its neighbours (input transforms, history terms): rows cut from a
+        recording are then fitted and predicted within it (``calibrate(series=)``, ``fit_physics(keep=)``)."""
+        return bool(self.transforms) or self.has_history
+
+    @property
     def bound_runs(self) -> tuple:
         """Every run id a term is bound to (:meth:`Term.bound_runs`), sorted; empty for most models."""
         return tuple(sorted({int(r) for t in self.terms for r in t.bound_runs()}))
@@ -414,6 +420,13 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
+
+
+def median_step(time) -> float | None:
+    """The median positive sampling step (s) of ``time``; None without one."""
+    steps = np.diff(np.asarray(time, np.float64))
+    steps = steps[np.isfinite(steps) & (steps > 0)]
+    return float(np.median(steps)) if steps.size else None
 
 
 def restricted(model: PhysicsModel, runs) -> PhysicsModel:

@@ -62,6 +62,10 @@ class PhysicsUQ(NamedTuple):
     def total(self) -> np.ndarray:
         return np.sqrt(self.aleatoric**2 + self.epistemic**2)
 
+    def rows(self, idx) -> "PhysicsUQ":
+        """Rows ``idx`` of every part (of a result computed on a whole series)."""
+        return PhysicsUQ(*(np.asarray(a)[idx] for a in self))
+
 
 def sobol_normal(n: int, cov: np.ndarray, *, seed: int) -> np.ndarray:
     """(n, d) scrambled-Sobol points mapped to N(0, cov) by the inverse normal CDF.

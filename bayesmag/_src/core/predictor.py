@@ -350,7 +350,7 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     z = scipy.stats.norm.ppf(0.5 + level / 2)
     if len(runs) >= min_runs:
         held_all = np.stack([train.run == r for r in runs])
-        whole = series is not None and fit_fn is None and bool(fit.model.transforms or fit.model.has_history)
+        whole = series is not None and fit_fn is None and fit.model.needs_series
         if whole:                   # the folds within the recording: its other rows stay in the series
             from bayesmag._src.core.fit import fit_folds
             recording, index = series
@@ -400,11 +400,9 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     # residuals as a new session would see them: without the terms bound to training runs (a run offset would
     # otherwise take the run-to-run change out of the residual means)
     view = dataclasses.replace(train, run=new_session_runs(fit.model, train.run))
-    if series is not None and (fit.model.transforms or fit.model.has_history):
-        rec = dataclasses.replace(series[0], run=new_session_runs(fit.model, series[0].run))
-        resid = fit.residuals(view, (rec, series[1]))
-    else:
-        resid = train.b_ref - np.asarray(fit.predict(inputs_from_data(view)))
+    rec = None if series is None else (dataclasses.replace(series[0], run=new_session_runs(fit.model, series[0].run)),
+                                       series[1])
+    resid = fit.residuals(view, rec)            # within the recording where the model needs it
     means = np.array([resid[train.run == r].mean(axis=0) for r in runs])
     tau = means.max(axis=0) - means.min(axis=0)
     bound = ", ".join(t.name for t in fit.model.terms if t.session_bound)

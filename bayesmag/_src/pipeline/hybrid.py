@@ -351,15 +351,15 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                 # a model whose rows depend on their neighbours predicts the calibration blocks within the
                 # training series (as the residuals the networks learned were computed), not each on its own
                 whole = None
-                if pr.fit.model.transforms or pr.fit.model.has_history:
+                if pr.fit.model.needs_series:
                     whole = (pr.physics_part(train) if series is None else
-                             PhysicsUQ(*(np.asarray(a)[series[1]] for a in pr.physics_part(series[0]))))
+                             pr.physics_part(series[0]).rows(series[1]))
                 for k, nk in enumerate(nets):
                     pk = dataclasses.replace(pr, network=nk)
                     rows = np.flatnonzero(folds == k)
                     val = train.subset(rows)
                     comp = (pk.components(val) if whole is None else
-                            Components(PhysicsUQ(*(np.asarray(a)[rows] for a in whole)), pk.network_part(val), None))
+                            Components(whole.rows(rows), pk.network_part(val), None))
                     ratios.append(conformal_ratios(val.b_ref, pk.compose(comp, new_session=False), level))
                 timings["hybrid_inference"] += time.perf_counter() - t
                 # only ever widen: a factor < 1 would trust the calibration blocks over the network's own sd
@@ -385,7 +385,7 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             networks[name], predictors[name] = net, pr
             if test is not None:
                 t = time.perf_counter()
-                in_series = series is not None and (pr.fit.model.transforms or pr.fit.model.has_history)
+                in_series = series is not None and pr.fit.model.needs_series
                 tp = pr.transfer_part(series[0] if in_series else test)
                 comp = Components(uq, pr.network_part(test), tp[series[2]] if in_series and tp is not None else tp)
                 preds[name] = pr.compose(comp, new_session=new_session)

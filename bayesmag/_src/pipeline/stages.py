@@ -38,10 +38,10 @@ def residual_variance(uq: UQSettings, fit: PhysicsFit, train: CalibrationData, s
 
     ``max(s^2 - mean_train(aleatoric^2), 0)``: a fixed property of the calibration (stored in the
     artifact), so applying it later gives the same intervals as the run itself. ``series``: ``(recording,
-    train_index)``, for a model whose rows depend on their neighbours (:func:`needs_series`).
+    train_index)``, for a model whose rows depend on their neighbours (``PhysicsModel.needs_series``).
     """
     exact = fit.model.is_linear and fit.model.degree is not None
-    whole = series is not None and needs_series(fit.model)
+    whole = series is not None and fit.model.needs_series
     u = physics_uncertainty(fit, inputs_from_data(series[0] if whole else train), sigma_in=sigma_in,
                             method="analytic" if exact else uq.method,
                             n_params=min(uq.n_params, 50), n_qmc=min(uq.n_qmc, 256), seed=uq.seed,
@@ -67,18 +67,12 @@ class PhysicsStage:
     new_session: np.ndarray | None        # (n_test,) test rows from runs the fit did not see (they get the transfer part)
 
 
-def needs_series(model: PhysicsModel) -> bool:
-    """True if a row's prediction depends on its neighbours (input transforms, history terms): rows cut from a
-    recording are then predicted within it (:func:`series_rows`)."""
-    return bool(model.transforms) or model.has_history
-
-
 def series_rows(parts, idx):
     """Rows ``idx`` of per-row results computed on a whole series (a :class:`PhysicsUQ`, an (n, 3) array or None)."""
     if parts is None:
         return None
     if isinstance(parts, PhysicsUQ):
-        return PhysicsUQ(*(np.asarray(a)[idx] for a in parts))
+        return parts.rows(idx)
     return np.asarray(parts)[idx]
 
 
@@ -88,7 +82,7 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
     """Fit ``model`` on ``train`` and (when given) predict ``test`` through a :class:`Predictor`.
 
     ``series``: ``(recording, train_index, test_index)``, the recording ``train`` and ``test`` were cut from
-    and their rows in it. A model whose rows depend on their neighbours (:func:`needs_series`: a thermal lag, a
+    and their rows in it. A model whose rows depend on their neighbours (``PhysicsModel.needs_series``: a thermal lag, a
     timing offset, hysteresis) is fitted on the training rows within the whole recording
     (:func:`~bayesmag._src.core.fit.fit_physics` ``keep``) and predicts the test rows within it: alone, the lag
     would run across every held-out block as if the temperature had stopped, and each test block would restart
@@ -102,7 +96,7 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
         ValueError: an invalid ``sigma_in`` matrix.
     """
     t = time.perf_counter()
-    whole = series is not None and needs_series(model)
+    whole = series is not None and model.needs_series
     if whole:
         keep = np.zeros(series[0].n, bool)
         keep[series[1]] = True

@@ -109,7 +109,7 @@ _SERIES: contextvars.ContextVar = contextvars.ContextVar("bayesmag_session_serie
 def _in_series(fit, data):
     """``(recording, index)`` when ``data`` is the training rows of a :data:`_SERIES` and the model needs it."""
     ctx = _SERIES.get()
-    if ctx is not None and ctx[0] is data and (fit.model.transforms or fit.model.has_history):
+    if ctx is not None and ctx[0] is data and fit.model.needs_series:
         return ctx[1], ctx[2]
     return None
 
