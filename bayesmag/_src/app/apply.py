@@ -36,7 +36,7 @@ def check_units(cal, data) -> list[str]:
 def new_session_notes(cal) -> list[str]:
     """What a new recording does not get from the calibration: its terms bound to training runs (``run_offset``,
     ``run_step``: :func:`~bayesmag._src.core.physics.new_session_runs`)."""
-    bound = [t.name for t in cal.model.terms if t.session_bound]
+    bound = [t.name for t in cal.model.terms if t.bound_runs()]
     if not bound:
         return []
     it = "it" if len(bound) == 1 else "them"

@@ -557,8 +557,6 @@ class RunOffset(Term, Entry):
     def param_names(self):
         return tuple(f"o_{r}" for r in self.runs[1:])
 
-    session_bound: ClassVar[bool] = True       # its offsets belong to the training runs: Term.bound_runs
-
     def bound_runs(self):
         return tuple(int(r) for r in self.runs)
 
@@ -608,8 +606,6 @@ class RunStep(Term, Entry):
 
     def param_names(self):
         return ("step",)
-
-    session_bound: ClassVar[bool] = True       # a step inside one training run: Term.bound_runs
 
     def bound_runs(self):
         return (int(self.run_id),)

@@ -96,19 +96,16 @@ class Term(abc.ABC):
         """The class's ``linear``; a term with a dataclass field of that name (which hides it) overrides this."""
         return self.linear
 
-    #: True: the term describes particular runs of the training recording (``run_offset``, ``run_step``), whose
-    #: parameters a new session does not share; :meth:`bound_runs` names them.
-    session_bound: ClassVar[bool] = False
-
     def bound_runs(self) -> tuple:
-        """The run ids whose rows this term alone describes (:attr:`session_bound`; empty otherwise). A new
-        session's rows are predicted with their run ids moved past these (:func:`new_session_runs`), so the term
-        gives them what it gives rows of no listed run: the reference state (a run offset of 0)."""
+        """The run ids of the training recording whose rows this term alone describes (``run_offset``, ``run_step``:
+        parameters a new session does not share; empty for every other term). A new session's rows are predicted
+        with their run ids moved past these (:func:`new_session_runs`), so the term gives them what it gives rows
+        of no listed run: the reference state (a run offset of 0)."""
         return ()
 
     def restricted(self, runs) -> "Term | None":
         """This term for a model fitted on the runs ``runs`` only (leave-one-run-out): a term bound to runs
-        (:attr:`session_bound`) keeps those of its runs that are there, or is dropped (None); others are kept."""
+        (:meth:`bound_runs`) keeps those of its runs that are there, or is dropped (None); others are kept."""
         return self
 
     def history_settled(self, inputs: Inputs) -> bool:

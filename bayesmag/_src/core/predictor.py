@@ -405,7 +405,7 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     resid = fit.residuals(view, rec)            # within the recording where the model needs it
     means = np.array([resid[train.run == r].mean(axis=0) for r in runs])
     tau = means.max(axis=0) - means.min(axis=0)
-    bound = ", ".join(t.name for t in fit.model.terms if t.session_bound)
+    bound = ", ".join(t.name for t in fit.model.terms if t.bound_runs())
     warning = (f"The training data hold {len(runs)} run(s) ({usable} usable for leave-one-run-out; at least "
                f"{min_runs} are needed), so the transfer (between-session) uncertainty cannot be estimated. The "
                f"intervals for new sessions are widened by the largest run-to-run change of the mean residual, "
