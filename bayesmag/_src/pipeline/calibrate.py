@@ -142,6 +142,7 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
                 t.cancel()
     if s.nuts is not None:
         t = time.perf_counter()
-        nuts = stages.run_nuts_stage(s.nuts, ps.fit, data, progress=progress)
+        nuts = stages.run_nuts_stage(s.nuts, ps.fit, data, progress=progress,
+                                     series=None if series is None else series[:2])
         timings["nuts"] = time.perf_counter() - t
     return CalibrationRun(s, ps, predictor, domain, hs, nuts, timings)

@@ -369,13 +369,14 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             nt = None
             if run_nets:
                 t = time.perf_counter()
-                nt = _network_transfer(pr, train, run_fold, run_nets, level)
+                nt = _network_transfer(pr, train, run_fold, run_nets, level, r_train)
                 timings["hybrid_inference"] += time.perf_counter() - t
                 hsm = None
                 if (pr.sessions is not None and uq_settings is not None
                         and str(uq_settings.transfer).startswith("hierarchical")):
                     t = time.perf_counter()
-                    hsm = hybrid_session_model(train, fit, nt, uq_settings)
+                    hsm = hybrid_session_model(train, fit, nt, uq_settings,
+                                               series=None if series is None else series[:2])
                     timings["hybrid_transfer"] = timings.get("hybrid_transfer", 0.0) + time.perf_counter() - t
                 if hsm is not None:     # tau_n is inside the out-of-fold residuals: not added again
                     nt = dataclasses.replace(nt, session_model=hsm[0])
@@ -401,7 +402,8 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             if nt is not None:
                 training[name]["transfer_network"] = nt.as_dict()
                 if test is not None:
-                    training[name]["transfer_network"]["new_session"] = _new_session_budget(pr, preds[name], train)
+                    training[name]["transfer_network"]["new_session"] = _new_session_budget(
+                        pr, preds[name], train, None if series is None else series[:2])
                 network_transfer[name] = nt
             if net.variance_scale is not None:
                 for a, ax in enumerate(AXES):
@@ -416,9 +418,10 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
 
 
 def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarray, run_nets: list,
-                      level: float) -> NetworkTransfer:
+                      level: float, resid: np.ndarray) -> NetworkTransfer:
     """The network part of the transfer sd (:mod:`~bayesmag._src.pipeline.network_transfer`) of the calibrated
-    hybrid predictor ``pr``, from its by-run fold networks ``run_nets`` (network ``k`` never saw ``run_fold == k``)."""
+    hybrid predictor ``pr``, from its by-run fold networks ``run_nets`` (network ``k`` never saw ``run_fold == k``);
+    ``resid``: the physics residuals of ``train`` the networks learned (within the recording where needed)."""
     nn_oof = np.zeros(train.b_ref.shape)
     for k, nk in enumerate(run_nets):          # K <= network.conformal_folds MC predictions
         rows = np.flatnonzero(run_fold == k)
@@ -426,14 +429,13 @@ def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarra
     nn_full = pr.network_part(train).mean
     inside = fold_domain_mask(train, run_fold)          # extrapolation is the domain check's, not transfer
     sd = network_transfer_sd(nn_oof[inside], nn_full[inside], train.run[inside], level) if inside.any() else np.zeros(3)
-    resid = train.b_ref - np.asarray(pr.fit.predict(inputs_from_data(train)))
     rmse = lambda e: np.sqrt(np.mean(e[inside] ** 2, axis=0)) if inside.any() else np.full(3, np.nan)  # noqa: E731
     fold_runs = tuple(tuple(np.unique(train.run[run_fold == k]).tolist()) for k in range(len(run_nets)))
     return NetworkTransfer(sd, len(run_nets), fold_runs, rmse(resid - nn_oof), rmse(resid - nn_full), int(inside.sum()),
                            {"nn_oof": nn_oof, "nn_full": nn_full, "resid": resid, "run": train.run, "inside": inside})
 
 
-def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData) -> dict:
+def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData, series=None) -> dict:
     """The hybrid's new-session budget for the certificate (``app/report.py``): the within-session parts of
     ``pred`` (mean sd over its rows, the test rows), the interval scale, the transfer sd the hybrid adds to a new
     session (root mean square over the training rows) and, with a session model, at the training domain's corners."""
@@ -442,7 +444,7 @@ def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData)
                                                                      else [])
     out = {"parts": {k: ax(np.mean(np.asarray(pred.parts[k], np.float64), axis=0)) for k in names},
            "interval_scale": ax(np.ones(3) if pr.scale is None else pr.scale),
-           "transfer_sd": ax(np.sqrt(np.mean(new_session_transfer_rows(pr, train) ** 2, axis=0))),
+           "transfer_sd": ax(np.sqrt(np.mean(new_session_transfer_rows(pr, train, series) ** 2, axis=0))),
            "family": pred.family}
     if pr.sessions is not None:
         from bayesmag._src.pipeline.sessions.hierarchical import condition_table

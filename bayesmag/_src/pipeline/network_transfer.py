@@ -135,6 +135,16 @@ def network_transfer_sd(nn_oof: np.ndarray, nn_full: np.ndarray, run: np.ndarray
 MIN_ROWS_PER_RUN = 2
 
 
+def _kept_rows(train, nt: NetworkTransfer):
+    """Indices of the training rows the hybrid session model is fitted on (:func:`hybrid_residual_rows`), or None."""
+    keep = np.asarray(nt.rows["inside"], bool).copy()
+    runs, counts = np.unique(train.run[keep], return_counts=True)
+    keep &= np.isin(train.run, runs[counts >= MIN_ROWS_PER_RUN])
+    if np.unique(train.run[keep]).size < max(2, np.unique(train.run).size):
+        return None     # a session left out (e.g. the only run that varies temperature): its information would be lost
+    return np.flatnonzero(keep)
+
+
 def hybrid_residual_rows(train, nt: NetworkTransfer):
     r"""The training rows the hybrid session model is fitted on: those inside the other folds' domain, of runs with
     at least :data:`MIN_ROWS_PER_RUN` of them, with reference :math:`B_{ref} - \mu_{\text{fold}}` (so that the
@@ -147,40 +157,52 @@ def hybrid_residual_rows(train, nt: NetworkTransfer):
     not the error a new session inside the domain sees (and the domain check flags such rows of a new session).
     The AR(1) model then takes the kept rows of a run as consecutive (a run's gaps are not modelled).
     """
-    keep = np.asarray(nt.rows["inside"], bool).copy()
-    runs, counts = np.unique(train.run[keep], return_counts=True)
-    keep &= np.isin(train.run, runs[counts >= MIN_ROWS_PER_RUN])
-    if np.unique(train.run[keep]).size < max(2, np.unique(train.run).size):
-        return None     # a session left out (e.g. the only run that varies temperature): its information would be lost
-    rows = np.flatnonzero(keep)
+    rows = _kept_rows(train, nt)
+    if rows is None:
+        return None
     sub = train.subset(rows)
     return dataclasses.replace(sub, b_ref=np.asarray(sub.b_ref, np.float64) - nt.rows["nn_oof"][rows])
 
 
-def hybrid_session_model(train, fit, nt: NetworkTransfer, uq):
-    """``(TransferEstimate, SessionPosterior)`` of the hierarchical session model fitted on the out-of-fold hybrid
+def hybrid_session_model(train, fit, nt: NetworkTransfer, uq, series=None):
+    r"""``(TransferEstimate, SessionPosterior)`` of the hierarchical session model fitted on the out-of-fold hybrid
     residuals (:func:`hybrid_residual_rows`) with the physics stage's options (``uq``: a
     :class:`~bayesmag._src.pipeline.settings.UQSettings`, ``transfer`` hierarchical), around the pooled LM ``fit``;
     None when a training run has too few rows inside the other folds' domain (:func:`hybrid_residual_rows`; then the
-    physics session model and :math:`\\tau_n` are used, as without this model).
+    physics session model and :math:`\tau_n` are used, as without this model).
+
+    ``series = (recording, train_index)``: a model whose rows depend on their neighbours (a thermal lag) is
+    linearised and its folds refitted within the recording, whose reference at the kept rows is the same
+    :math:`B_{ref} - \mu_{\text{fold}}` (its other rows have weight 0).
     """
     from bayesmag._src.pipeline.sessions import hierarchical_transfer
 
-    rows = hybrid_residual_rows(train, nt)
-    if rows is None:
+    kept = _kept_rows(train, nt)
+    if kept is None:
         return None
+    rows = hybrid_residual_rows(train, nt)
+    within = None
+    if series is not None and fit.model.needs_series:
+        recording, index = series[0], np.asarray(series[1])[kept]
+        b_ref = np.array(recording.b_ref, np.float64)
+        b_ref[index] = rows.b_ref
+        within = (dataclasses.replace(recording, b_ref=b_ref), index)
     tr, post = hierarchical_transfer(rows, fit, method="nuts" if uq.transfer.endswith("nuts") else "laplace",
                                      level=uq.level, seed=uq.seed, likelihood=uq.transfer_likelihood,
-                                     df=uq.transfer_df, uninformed=uq.transfer_uninformed)
+                                     df=uq.transfer_df, uninformed=uq.transfer_uninformed, series=within)
     return (tr, post) if post is not None else None
 
 
-def new_session_transfer_rows(pr, data) -> np.ndarray:
+def new_session_transfer_rows(pr, data, series=None) -> np.ndarray:
     """(n, 3) transfer sd a :class:`~bayesmag._src.core.predictor.Predictor` adds to a new session's rows of ``data``
-    (its row-wise session model or constant, with the network part in quadrature, as ``Predictor.compose``)."""
+    (its row-wise session model or constant, with the network part in quadrature, as ``Predictor.compose``).
+    ``series = (recording, index)``: ``data``'s rows taken within the recording (a model that needs its series)."""
     n = data.n
-    t = pr.transfer_part(data) if pr.sessions is not None else \
-        np.broadcast_to(np.zeros(3) if pr.transfer_sd is None else np.asarray(pr.transfer_sd, np.float64), (n, 3))
+    if series is not None and pr.sessions is not None and pr.fit.model.needs_series:
+        t = np.asarray(pr.transfer_part(series[0]), np.float64)[np.asarray(series[1])]
+    else:
+        t = pr.transfer_part(data) if pr.sessions is not None else \
+            np.broadcast_to(np.zeros(3) if pr.transfer_sd is None else np.asarray(pr.transfer_sd, np.float64), (n, 3))
     if pr.network_transfer_sd is not None and pr.network is not None:
         t = np.sqrt(np.asarray(t, np.float64) ** 2 + np.asarray(pr.network_transfer_sd, np.float64) ** 2)
     return np.asarray(t, np.float64)

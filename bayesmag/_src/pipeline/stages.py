@@ -152,8 +152,12 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
                         predictor.compose(comp, new_session=new), paper.compose(comp), tr, new)
 
 
-def run_nuts_stage(settings: NutsSettings, fit: PhysicsFit, train: CalibrationData, *, progress: bool = False):
-    """The NUTS cross-check of ``fit`` on ``train`` (:func:`~bayesmag.run_nuts`); a :class:`~bayesmag.NutsResult`."""
+def run_nuts_stage(settings: NutsSettings, fit: PhysicsFit, train: CalibrationData, *, progress: bool = False,
+                   series=None):
+    """The NUTS cross-check of ``fit`` on ``train`` (:func:`~bayesmag.run_nuts`); a :class:`~bayesmag.NutsResult`.
+
+    ``series = (recording, train_index)``: a model that needs its series (``fit.model.needs_series``) is
+    evaluated on the whole recording, as it was fitted."""
     from bayesmag._src.pipeline.nuts import run_nuts
 
     import warnings
@@ -168,7 +172,7 @@ def run_nuts_stage(settings: NutsSettings, fit: PhysicsFit, train: CalibrationDa
         warnings.simplefilter("always")
         res = run_nuts(train, fit, chains=n.chains, warmup=n.warmup, draws=n.draws, target_accept=n.target_accept,
                        chain_method=n.chain_method, likelihood=n.likelihood, priors=n.priors, seed=n.seed,
-                       progress=progress)
+                       progress=progress, series=series if fit.model.needs_series else None)
     found = list(res.warnings)
     for w in caught:             # library deprecation notices are for developers, not a calibration's user
         if not issubclass(w.category, (UserWarning, RuntimeWarning)):

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesmag._src.core.physics import AXES, PhysicsModel
-from bayesmag._src.pipeline.nuts.model import obs_dist
+from bayesmag._src.pipeline.nuts.model import mean_of, obs_dist
 from bayesmag._src.pipeline.nuts.sampler import NutsDraws
 
 __all__ = ["build_idata", "summary_frame", "JOINT_STATS", "arviz"]
@@ -26,16 +26,13 @@ def arviz():
 
 @functools.lru_cache(maxsize=16)
 def _pointwise_fns(physics: PhysicsModel, family: str):
-    def mu_of(theta, inputs):
-        return physics.predict(theta, inputs)
-
     def loglik(theta, sigma, shape, problem):
-        mu = jax.vmap(mu_of, in_axes=(0, None))(theta, problem.inputs)
+        mu = jax.vmap(lambda th: mean_of(physics, th, problem))(theta)
         sh = {k: v[:, None] for k, v in shape.items()}
         return obs_dist(family, mu, sigma[:, None], sh).log_prob(problem.y[None, :])
 
     def predictive(key, theta, sigma, shape, problem):
-        mu = jax.vmap(mu_of, in_axes=(0, None))(theta, problem.inputs)
+        mu = jax.vmap(lambda th: mean_of(physics, th, problem))(theta)
         sh = {k: v[:, None] for k, v in shape.items()}
         return obs_dist(family, mu, sigma[:, None], sh).sample(key)
 
@@ -132,8 +129,8 @@ def build_idata(draws: NutsDraws, problems, axes, names, physics, likelihood, po
     const = xr.Dataset({
         "lm_theta": (("axis", "parameter"), np.asarray(lm_theta)),
         "lm_cov": (("axis", "parameter", "parameter_bis"), np.asarray(lm_cov)),
-        "b_meas": (("row", "component"), np.asarray(problems[0].inputs.b)),
-        "temperature": (("row",), np.asarray(problems[0].inputs.t)),
+        "b_meas": (("row", "component"), np.asarray(problems[0].inputs.b)[np.asarray(problems[0].rows)]),
+        "temperature": (("row",), np.asarray(problems[0].inputs.t)[np.asarray(problems[0].rows)]),
     }, coords={"axis": coords["axis"], "parameter": coords["parameter"], "parameter_bis": coords["parameter"],
                "row": rows, "component": list(AXES)})
     idata = az.InferenceData(posterior=posterior, sample_stats=stats, log_likelihood=loglik,

@@ -17,7 +17,7 @@ from bayesmag._src.core.physics import AXES, Inputs, PhysicsModel, inputs_from_d
 from bayesmag._src.pipeline.nuts.constants import PARAMETRISATIONS
 from bayesmag._src.pipeline.nuts.priors import NutsPriors, parse_priors
 
-__all__ = ["NutsProblem", "nuts_model", "build_problem", "obs_dist", "constrain", "learned_shape", "chol_root",
+__all__ = ["NutsProblem", "nuts_model", "mean_of", "build_problem", "obs_dist", "constrain", "learned_shape", "chol_root",
            "white_cov"]
 
 
@@ -27,10 +27,14 @@ class NutsProblem(NamedTuple):
     ``root`` is a square root of the LM covariance used for whitening (``root @ root.T``);
     ``scale_hat``/``scale_step`` whiten the noise scale; ``shape`` holds the family's shape
     fields (``{"df": ...}`` for Student-t), fixed or, when learned, the initial value.
+    ``inputs`` is the series the model is evaluated on and ``rows`` the (n,) indices of the
+    observed rows ``y`` in it: the training rows themselves, or, for a model whose rows depend on
+    their neighbours (a thermal lag), the whole recording with the training rows picked out.
     """
 
     inputs: Inputs
     y: jax.Array            # (n,)
+    rows: jax.Array         # (n,) int: the rows of ``inputs`` that ``y`` observes
     theta_hat: jax.Array    # (p,)
     root: jax.Array         # (p, p)
     prior_loc: jax.Array    # (p,)
@@ -59,6 +63,11 @@ def learned_shape(family: str, learn: Sequence[str] | bool) -> tuple[str, ...]:
         raise ValueError(f"likelihood {family!r} has no prior for shape field(s) {bad}; "
                          f"learnable: {[f for f, p in cls.shape_params.items() if p.prior is not None]}.")
     return tuple(learn)
+
+
+def mean_of(physics: PhysicsModel, theta, problem: NutsProblem):
+    """The model's prediction at the observed rows: evaluated on the series, then ``problem.rows`` taken."""
+    return physics.predict(theta, problem.inputs)[problem.rows]
 
 
 def constrain(problem: NutsProblem, params: dict, learned: Sequence[str] = ()) -> dict:
@@ -104,7 +113,7 @@ def nuts_model(problem: NutsProblem, *, physics: PhysicsModel, family: str = "ga
     for f in learned:
         shape[f] = numpyro.deterministic(f, c[f])
         numpyro.factor(f + "_prior", params_of[f].prior().log_prob(shape[f]) + c["log_" + f])
-    mu = physics.predict(theta, problem.inputs)
+    mu = mean_of(physics, theta, problem)
     numpyro.sample("b_ref", obs_dist(family, mu, sigma, shape), obs=None if predictive else problem.y)
 
 
@@ -121,19 +130,33 @@ def chol_root(cov: np.ndarray) -> np.ndarray:
         return d[:, None] * (V * np.sqrt(np.clip(w, 1e-12 * w.max(), None)))
 
 
-def white_cov(data, fit: PhysicsFit, axis: int) -> np.ndarray:
+def _series(data, series):
+    """The inputs the model runs on and the rows of ``data`` in them (``series = (recording, index)``)."""
+    if series is None:
+        return inputs_from_data(data), np.arange(data.n)
+    recording, index = series
+    return inputs_from_data(recording), np.asarray(index, dtype=np.int64)
+
+
+def white_cov(data, fit: PhysicsFit, axis: int, series=None) -> np.ndarray:
+    """The white LM covariance of ``axis`` on ``data`` (the fit's own when it is white)."""
     if fit.covariance_method == "white":
         return np.asarray(fit.cov[axis])
-    inputs = inputs_from_data(data)
+    inputs, rows = _series(data, series)
     th = jnp.asarray(fit.theta[axis])
-    J = np.asarray(jax.jacfwd(fit.model.predict)(th, inputs))
-    r = np.asarray(data.b_ref[:, axis]) - np.asarray(fit.model.predict(th, inputs))
+    J = np.asarray(jax.jacfwd(fit.model.predict)(th, inputs))[rows]
+    r = np.asarray(data.b_ref[:, axis]) - np.asarray(fit.model.predict(th, inputs))[rows]
     return covariance(J, r, method="white")[0]
 
 
 def build_problem(data, fit: PhysicsFit, axis: int | str, *, likelihood: str = "gaussian",
-                  priors: NutsPriors | Mapping | None = None, parametrisation: str = "whitened") -> NutsProblem:
+                  priors: NutsPriors | Mapping | None = None, parametrisation: str = "whitened",
+                  series=None) -> NutsProblem:
     """The :class:`NutsProblem` of output ``axis`` of ``fit`` on ``data`` (the rows it was fitted on).
+
+    ``series = (recording, index)``: ``data`` is ``recording.subset(index)`` and the model is evaluated on
+    the whole recording (as ``fit_physics(keep=)`` fitted it), so an input transform runs through the
+    held-out blocks instead of across them.
 
     Raises:
       ValueError: unknown likelihood/parametrisation, or an LM standard error that is not
@@ -147,7 +170,7 @@ def build_problem(data, fit: PhysicsFit, axis: int | str, *, likelihood: str = "
     if not isinstance(priors, NutsPriors):
         priors = parse_priors(priors, fit.param_names, likelihood=likelihood)
     names = fit.param_names
-    cov = white_cov(data, fit, a)
+    cov = white_cov(data, fit, a, series)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     theta_hat = np.asarray(fit.theta[a], dtype=np.float64)
     for j, name in enumerate(names):
@@ -163,9 +186,9 @@ def build_problem(data, fit: PhysicsFit, axis: int | str, *, likelihood: str = "
             if mean is not None:
                 loc[j] = mean
     root = chol_root(cov) if parametrisation == "whitened" else np.diag(sd)
-    inputs = inputs_from_data(data)
+    inputs, rows = _series(data, series)
     y = np.asarray(data.b_ref[:, a], dtype=np.float64)
-    r = y - np.asarray(fit.model.predict(jnp.asarray(theta_hat), inputs))
+    r = y - np.asarray(fit.model.predict(jnp.asarray(theta_hat), inputs))[rows]
     n, p = y.size, theta_hat.size
     sd_r = float(np.sqrt(r @ r / max(n - p, 1)))
     shape0 = {f: v for f, (v, _) in priors.shape().items()}
@@ -176,7 +199,7 @@ def build_problem(data, fit: PhysicsFit, axis: int | str, *, likelihood: str = "
     scale_hat = max(scale_hat, 1e-12 * (np.std(y) + 1e-300))
     sig = priors.sigma[a] if priors.sigma[a] is not None else float(np.std(y))
     f = lambda v: jnp.asarray(v, dtype=jnp.float64)  # noqa: E731
-    return NutsProblem(inputs=inputs, y=f(y), theta_hat=f(theta_hat), root=f(root), prior_loc=f(loc), prior_sd=f(psd),
+    return NutsProblem(inputs=inputs, y=f(y), rows=jnp.asarray(rows), theta_hat=f(theta_hat), root=f(root), prior_loc=f(loc), prior_sd=f(psd),
                        scale_hat=f(scale_hat), scale_step=f(step), sigma_prior=f(sig),
                        shape={k: f(v) for k, v in shape0.items()})
 

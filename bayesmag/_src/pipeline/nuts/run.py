@@ -26,7 +26,8 @@ def run_nuts(data, fit: PhysicsFit, *, chains: int = 4, warmup: int = 1000, draw
              target_accept: float = 0.8, chain_method: str = "vectorized", likelihood: str = "gaussian",
              priors: Mapping | NutsPriors | None = None, seed: int = 0, axes: Sequence[str] = AXES,
              progress: bool = False, pointwise_draws: int = 1000, predictive_draws: int = 200,
-             parametrisation: str = "whitened", dense_mass: bool = False, max_tree_depth: int = 10) -> NutsResult:
+             parametrisation: str = "whitened", dense_mass: bool = False, max_tree_depth: int = 10,
+             series=None) -> NutsResult:
     r"""Sample the physics posterior of ``fit`` with NUTS and cross-check it against the LM fit.
 
     Args:
@@ -46,6 +47,11 @@ def run_nuts(data, fit: PhysicsFit, *, chains: int = 4, warmup: int = 1000, draw
         of 3000 rows would take ~300 MB.
       parametrisation: ``"whitened"`` (default, module docstring) or ``"scaled"``.
       dense_mass: adapt a dense mass matrix (useful with ``"scaled"``).
+      series: optional ``(recording, index)`` with ``data = recording.subset(index)``, as the fit was made
+        with ``fit_physics(recording, keep=)``: the model is evaluated on the whole recording and the
+        likelihood takes the rows ``index``, so an input transform (a thermal lag) or a history term runs
+        through held-out blocks rather than across them. Needed only for such models
+        (``fit.model.needs_series``).
     Returns:
       :class:`NutsResult`; warnings found are also issued as :class:`NutsWarning`.
 
@@ -63,6 +69,14 @@ def run_nuts(data, fit: PhysicsFit, *, chains: int = 4, warmup: int = 1000, draw
     if not fit.converged:
         raise ValueError(f"run_nuts: the LM fit did not converge ({dict(zip(AXES, fit.result))}); NUTS is whitened "
                          f"with its covariance, so fix the fit first.")
+    if series is not None:
+        recording, index = series
+        index = np.asarray(index)
+        if index.shape != (data.n,) or not np.array_equal(np.asarray(recording.b_meas)[index],
+                                                           np.asarray(data.b_meas), equal_nan=True):
+            raise ValueError("run_nuts: series = (recording, index) must give the training rows "
+                             "(recording.subset(index) is data); it does not.")
+        series = (recording, index)
     axes = tuple(axes)
     for ax in axes:
         if ax not in AXES:
@@ -71,8 +85,8 @@ def run_nuts(data, fit: PhysicsFit, *, chains: int = 4, warmup: int = 1000, draw
         raise ValueError("run_nuts: pointwise_draws and predictive_draws must be >= 1.")
     pri = priors if isinstance(priors, NutsPriors) else parse_priors(priors, fit.param_names, likelihood=likelihood)
     learned = tuple(f for f, (_, learn) in pri.shape().items() if learn)
-    problems = [build_problem(data, fit, ax, likelihood=likelihood, priors=pri, parametrisation=parametrisation)
-                for ax in axes]
+    problems = [build_problem(data, fit, ax, likelihood=likelihood, priors=pri, parametrisation=parametrisation,
+                              series=series) for ax in axes]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", NutsWarning)
         dr = sample_nuts(problems, fit.model, likelihood=likelihood, learned=learned, chains=chains, warmup=warmup,
@@ -84,7 +98,7 @@ def run_nuts(data, fit: PhysicsFit, *, chains: int = 4, warmup: int = 1000, draw
     t_post = time.perf_counter()
     a_idx = [AXES.index(a) for a in axes]
     lm_cov = np.stack([np.asarray(pr.root) @ np.asarray(pr.root).T if parametrisation == "whitened"
-                       else white_cov(data, fit, a) for pr, a in zip(problems, a_idx)])
+                       else white_cov(data, fit, a, series) for pr, a in zip(problems, a_idx)])
     lm_theta = np.asarray(fit.theta)[a_idx]
     settings = {"chains": chains, "warmup": warmup, "draws": draws, "target_accept": target_accept,
                 "chain_method": chain_method, "likelihood": likelihood, "seed": seed, "axes": list(axes),
