@@ -315,7 +315,7 @@ def test_the_hybrid_session_model_of_a_thermal_lag_is_fitted_within_the_recordin
     recording (the held-out blocks stay in the series), as the physics stage's session model does. With zero fold
     corrections it is exactly that model (1e-9), whose transfer sd on sessions that differ by nothing is under
     0.1 uT (``test_artifact``: 0.013-0.015); on the cut-up rows, as before, the lag restarts at every gap and the
-    sd reads 0.08 / 0.56 / 0.07 uT (declared: over 0.2 on some axis)."""
+    sd reads 0.08 / 0.56 / 0.07 uT."""
     from types import SimpleNamespace
 
     from bayesmag._src.core.catalogue import make_extra
@@ -335,8 +335,6 @@ def test_the_hybrid_session_model_of_a_thermal_lag_is_fitted_within_the_recordin
     nt = SimpleNamespace(rows={"inside": np.ones(train.n, bool), "nn_oof": np.zeros((train.n, 3))})
     uq = UQSettings(transfer="hierarchical")
     within = hybrid_session_model(train, fit, nt, uq, series=(d, idx))
-    cut = hybrid_session_model(train, fit, nt, uq)
     _, physics = hierarchical_transfer(train, fit, level=uq.level, seed=uq.seed, series=(d, idx))
     np.testing.assert_allclose(within[1].w_mean, physics.w_mean, rtol=1e-9, atol=1e-12)
     assert np.all(within[0].sd < 0.1), within[0].sd
-    assert np.max(cut[0].sd) > 0.2, cut[0].sd

