@@ -366,6 +366,12 @@ class TemperatureQuadratic(Term, Entry):
         return "T"
 
 
+#: Excursion thresholds discovery tries, as fractions of an axis' reach. A threshold between two of the field's
+#: excursion peaks other than the true one flips the modelled state at the wrong excursions; with 0.3 / 0.5 / 0.7
+#: 4 of 20 simulated hysteresis campaigns (threshold 15-30 uT) were missed (``benchmarks/bench_discovery.py``).
+HYSTERESIS_FRACTIONS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
+
+
 @dataclasses.dataclass(frozen=True)
 class Hysteresis(Term, Entry):
     r"""Offset :math:`h\,s(t)` with :math:`s \in \{-1, 0, +1\}` set by the history of measured field ``axis``.
@@ -457,13 +463,15 @@ class Hysteresis(Term, Entry):
 
     @classmethod
     def grid(cls, ctx, c):
+        """Excursion thresholds at :data:`HYSTERESIS_FRACTIONS` of the axis' reach (raw and calibrated), and the
+        direction mode; reset at each run or held across runs."""
         out = []
         for k, ax in enumerate(_AXES):
             m = float(ctx.reach[k])
             if m <= 0:
                 continue
             for across in (False, True):
-                for frac in (0.3, 0.5, 0.7):
+                for frac in HYSTERESIS_FRACTIONS:
                     out.append(Setting(cls(axis=ax, mode="excursion", threshold=round(frac * m, 4),
                                            across_runs=across)))
                 out.append(Setting(cls(axis=ax, mode="direction", min_step=round(6.0 * float(ctx.step_noise[k]), 4),
@@ -472,7 +480,7 @@ class Hysteresis(Term, Entry):
                 # excursions of the calibrated field: a fixed field threshold even where the
                 # channel's gain changes with temperature
                 coef = tuple(round(float(v), 10) for v in ctx.cal[k])
-                for frac in (0.3, 0.5, 0.7):
+                for frac in HYSTERESIS_FRACTIONS:
                     out.append(Setting(cls(axis=ax, mode="excursion", threshold=round(frac * float(ctx.ref_reach[k]), 4),
                                            t0=ctx.t0, cal=coef)))
         return out

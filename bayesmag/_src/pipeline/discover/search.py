@@ -310,7 +310,8 @@ def refine_threshold(designs, current, ext, folds3, rounds: int = 2, k: int = 33
     refined by in-sample SSE: 33 values across +-40 % of the grid's value (the grid's spacing),
     then 33 across +-1 spacing of that round around the best (0.16 % spacing at the end).
 
-    The grid tries thresholds 0.3, 0.5 and 0.7 of the field's reach; a threshold a little off
+    The grid tries thresholds of :data:`~bayesmag._src.core.catalogue.HYSTERESIS_FRACTIONS` of the field's reach
+    (0.3, 0.5 and 0.7 when this was written); a threshold a little off
     flips the modelled state at the wrong excursion, which leaves a constant residual from that
     flip to the run's end: a step inside the run that forward selection would otherwise add
     (independent hysteresis seed 9: grid threshold 21.92 uT, refined 22.1 uT, and the run_step
