@@ -73,11 +73,12 @@ def test_one_pool_thread_is_still_a_choice():
     assert out.stdout.split() == ["False", str(SPLITS)]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CORES != 2 or not SPLITS, reason="the hang is checked on 2-core machines with a jaxlib that "
                                                       "splits LAPACK batches")
 def test_without_the_guard_the_same_program_hangs():
     """BAYESMAG_CPU_THREADS=default (JAX as it is): the same program hangs on this 2-core machine, so the tests above
-    can fail."""
+    can fail. Slow (it waits out its 20 s timeout by design): it checks the machine, not bayesmag; run with -m slow."""
     with pytest.raises(subprocess.TimeoutExpired):
         _run("default", timeout=20)
 
