@@ -586,3 +586,55 @@ def test_signal_handlers_are_left_alone_by_import_and_by_calls_from_python(tmp_p
     """)
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120, env=_env(), cwd=tmp_path)
     assert r.stdout.decode().split() == ["True", "True", "True"], r.stderr.decode()[-2000:]
+
+
+def test_apply_never_replaces_a_run_file_the_training_recording_or_a_read_only_file(tmp_path, capsys, model):
+    """``apply --out`` follows export's rules: a file of another run folder, the calibration's training recording and
+    a read-only file are never replaced (not even with --force); a user's file only with --force; its own output
+    freely. Before, each of these was overwritten with exit status 0."""
+    other, _ = _copy(model, tmp_path)
+    new = _recording(tmp_path / "new.csv", seed=3)
+    training = model.parent / "rec.csv"
+    before = {p: p.read_bytes() for p in (other / "calibration.json", other / "metrics.json", training)}
+
+    def apply(out, *extra):
+        return main(["apply", "--model", str(model), "--data", str(new), "--out", str(out), "--no-progress", *extra])
+
+    for force in ([], ["--force"]):
+        for target in (other / "calibration.json", other / "metrics.json"):
+            assert apply(target, *force) == 2 and "run folder" in _err(capsys)
+        assert apply(training, *force) == 2 and ("trained on" if force else "--force") in _err(capsys)
+    assert {p: p.read_bytes() for p in before} == before
+    mine = tmp_path / "notes.txt"
+    mine.write_text("mine\n")
+    assert apply(mine) == 2 and "--force" in _err(capsys) and mine.read_text() == "mine\n"
+    assert apply(mine, "--force") == 0 and mine.read_text().startswith("time,run,x_")
+    out = tmp_path / "calibrated.csv"
+    assert apply(out) == 0 and apply(out) == 0                     # its own output: replaced freely
+    locked = tmp_path / "locked.csv"
+    locked.write_text("protected\n")
+    locked.chmod(0o444)
+    assert apply(locked, "--force") == 2 and "read-only" in _err(capsys)
+    assert _export(model, "px4", locked, "--force") == 2 and "read-only" in _err(capsys)
+    assert locked.read_text() == "protected\n"
+
+
+def test_a_named_datasets_file_is_protected_as_the_training_recording(tmp_path, monkeypatch):
+    """A run on a named dataset (``[data] source``) has no ``data.path``: its file, found through BAYESMAG_DATA_DIR,
+    is protected all the same (``export --force`` once replaced the Belsten recording with a PX4 parameter file)."""
+    from bayesmag._src.app.apply import check_apply_paths
+    from bayesmag._src.app.export import ExportError, check_export_out
+    from bayesmag._src.app.inputs import recording_paths
+    from bayesmag._src.core.data import DataError
+    f = tmp_path / "data" / "belsten2023" / "full_data.csv"
+    f.parent.mkdir(parents=True)
+    f.write_text("stand-in\n")
+    monkeypatch.setenv("BAYESMAG_DATA_DIR", str(tmp_path / "data"))
+    paths = recording_paths({"source": "belsten2023"})
+    assert [p.resolve() for p in paths] == [f.resolve()]
+    assert recording_paths({"source": "simulated"}) == [] and recording_paths(None) == []
+    with pytest.raises(ExportError, match="training recording"):
+        check_export_out(tmp_path, f, inputs=paths, force=True, suffix=".params")
+    with pytest.raises(DataError, match="trained on"):
+        check_apply_paths(tmp_path / "model", tmp_path / "new.csv", f, force=True, protected=paths)
+    assert f.read_text() == "stand-in\n"

@@ -60,14 +60,40 @@ def check_apply_options(level, n_params: int, n_qmc: int) -> None:
                             f"{100 if flag == '--n-params' else 256}.")
 
 
-def check_apply_paths(model_dir, data_path, out_path) -> Path:
-    """Refuse an ``--out`` that would overwrite the recording, a file of the calibration, or a folder."""
+APPLY_HEADER_END = ",in_domain_reason,in_domain,valid"
+
+
+def is_apply_output(path) -> bool:
+    """True if ``path`` is a CSV that ``bayesmag apply`` wrote (its header: ``time,run,...,in_domain,valid``)."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        with open(path, "rb") as f:
+            head = f.readline(65536).decode("utf-8", "replace").strip()
+    except OSError:
+        return False
+    return head.startswith("time,run,x_") and head.endswith(APPLY_HEADER_END)
+
+
+def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, protected=()) -> Path:
+    """Refuse an ``--out`` that would overwrite the recording, a file of the calibration, or a folder.
+
+    Never (even with ``force``): a folder, a symbolic link, the input recording, one of ``protected`` (the
+    calibration's training recording), a read-only file, a file of a bayesmag run folder (other than an earlier
+    apply output). Without ``force``: an existing file that ``bayesmag apply`` did not write
+    (:func:`is_apply_output`).
+    """
+    from bayesmag._src.app.outdir import read_only, run_file_owner
+
     out, data, model = Path(out_path), Path(data_path), Path(model_dir)
+    fix = "Give a new output file name."
     if out.is_dir():
         raise DataError(f"--out {out} is a folder; give the path of the output CSV file, e.g. {out / 'calibrated.csv'}.")
+    if out.is_symlink():
+        raise DataError(f"--out {out} is a symbolic link; bayesmag does not write through links. {fix}")
     if out.exists() and data.exists() and out.resolve() == data.resolve():
-        raise DataError(f"--out {out} is the input recording --data {data}; it would be overwritten. "
-                        f"Give another output file name.")
+        raise DataError(f"--out {out} is the input recording --data {data}; it would be overwritten. {fix}")
     try:
         out.resolve().relative_to(model.resolve())
         inside = True
@@ -76,6 +102,21 @@ def check_apply_paths(model_dir, data_path, out_path) -> Path:
     if inside:
         raise DataError(f"--out {out} lies inside the calibration folder --model {model}; writing there could "
                         f"overwrite the calibration. Give an output file outside it.")
+    if out.exists():
+        for p in protected:
+            if p is not None and Path(p).exists() and out.resolve() == Path(p).resolve():
+                raise DataError(f"--out {out} is the recording the calibration was trained on ({p}); it is never "
+                                f"overwritten. {fix}")
+        if read_only(out):
+            raise DataError(f"--out {out} is read-only (no write permission); bayesmag never replaces a protected "
+                            f"file. {fix}")
+        owner = None if is_apply_output(out) else run_file_owner(out)
+        if owner is not None:
+            raise DataError(f"--out {out} is a file of the bayesmag run folder {owner}; replacing it would break that "
+                            f"run, so it is never overwritten. {fix}")
+        if not force and not is_apply_output(out):
+            raise DataError(f"--out {out} exists and is not a file `bayesmag apply` wrote; bayesmag does not replace "
+                            f"it. {fix} Or add --force to replace it.")
     parent = out.parent
     if not parent.is_dir():
         raise DataError(f"--out {out}: the folder {parent} does not exist; create it or give another path.")
@@ -94,17 +135,23 @@ def _check_magnitudes(data) -> None:
 
 def apply_calibration(model_dir, data_path, out_path, *, level=None, method="auto", n_params=100, n_qmc=256,
                       temperature_unit="C", field_unit=None, columns=None, chunk_size=100_000,
-                      progress=False) -> dict:
+                      progress=False, force: bool = False) -> dict:
     """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``.
 
     ``columns`` maps canonical names to the file's columns; ``field_unit`` and ``temperature_unit``
-    are converted at load. The output never replaces the recording or a file of the calibration, and
-    is written to a temporary sibling first, then renamed into place.
+    are converted at load. The output never replaces the recording, the calibration's training recording, a
+    file of a run folder or a read-only file, nor (without ``force``) a file ``apply`` did not write
+    (:func:`check_apply_paths`); it is written to a temporary sibling first, then renamed into place.
     """
+    from bayesmag._src.app.inputs import recording_paths
+
     t0 = time.perf_counter()
     check_apply_options(level, n_params, n_qmc)
-    out_path = check_apply_paths(model_dir, data_path, out_path)
+    check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
     cal = load(model_dir)
+    out_path = check_apply_paths(model_dir, data_path, out_path, force=force,
+                                 protected=recording_paths((cal.config or {}).get("data")
+                                                           if isinstance(cal.config, dict) else None))
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False)

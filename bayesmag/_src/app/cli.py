@@ -172,7 +172,7 @@ def _cmd_apply(args) -> int:
     summary = apply_calibration(args.model, args.data, args.out, level=args.level, method=args.uq,
                                 n_params=args.n_params, n_qmc=args.n_qmc, temperature_unit=args.temperature_unit,
                                 field_unit=args.field_unit, columns=_parse_columns(args.columns),
-                                progress=_progress(args))
+                                progress=_progress(args), force=args.force)
     print(f"bayesmag: calibrated {summary['n_valid']} of {summary['n_rows']} rows -> {args.out} "
           f"({summary['seconds']:.2f} s)")
     return _report_apply(summary)
@@ -325,6 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--columns", metavar="NAME=COL,...",
                    help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")
+    a.add_argument("--force", action="store_true",
+                   help="replace an existing --out file that `bayesmag apply` did not write (never a recording, a "
+                        "read-only file or a file of a run folder)")
     dk = a.add_argument_group("archives on Dask (--data a folder of Parquet or CSV files, or a glob such as "
                               "'logs/*.csv'; one file too with --scheduler; --out is then a folder of Parquet parts; "
                               "pip install 'bayesmag[dask]'; docs/fleet.md)")

@@ -718,7 +718,7 @@ def check_export_out(run_dir: str | Path, out: str | Path, *, inputs=(), force: 
     one of ``inputs`` (the run's training recording). Without ``force``: no existing file that
     ``bayesmag export`` did not write (:func:`is_export`).
     """
-    from bayesmag._src.app.outdir import MARKER, marker_problem, marker_status
+    from bayesmag._src.app.outdir import MARKER, read_only, run_file_owner
 
     out, run_dir = Path(out), Path(run_dir)
     k, stem = 2, out.name.split(".")[0] or "calibration"
@@ -736,10 +736,10 @@ def check_export_out(run_dir: str | Path, out: str | Path, *, inputs=(), force: 
         if _same(out, p):
             raise ExportError(f"--out {out} is the run's training recording {p}; it would be overwritten. {fix}")
     parent = out.parent if str(out.parent) else Path(".")
-    mark = marker_status(parent)
-    listed = set(mark.get("files", [])) if mark is not None and marker_problem(mark) is None else set()
-    is_cal = out.name in ("calibration.json", "calibration.npz") and (parent / "calibration.json").exists()
-    if out.exists() and not is_export(out) and (out.name in listed or is_cal or _same(parent, run_dir)):
+    if read_only(out):
+        raise ExportError(f"--out {out} is read-only (no write permission); bayesmag never replaces a protected "
+                          f"file. {fix}")
+    if out.exists() and not is_export(out) and (run_file_owner(out) is not None or _same(parent, run_dir)):
         raise ExportError(f"--out {out} is a file of the bayesmag run folder {parent} (the calibration or its "
                           f"results); replacing it would break the run, so it is never overwritten. {fix}")
     if out.exists() and not is_export(out) and not force:
@@ -765,8 +765,9 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
         raise ExportError(f"export format {fmt!r} is not known; it must be one of {list(FORMATS)}.")
     cal = load(run_dir)
     out = Path(out) if out else Path(run_dir) / f"calibration{FORMATS[fmt]}"
-    data_path = ((cal.config or {}).get("data") or {}).get("path") if isinstance(cal.config, dict) else None
-    check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # before the slow part
+    from bayesmag._src.app.inputs import recording_paths
+    recordings = recording_paths((cal.config or {}).get("data") if isinstance(cal.config, dict) else None)
+    check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # before the slow part
     train = test = series = None
     if measure:
         try:
@@ -781,7 +782,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     ex = build_export(cal, train, t_ref=t_ref, held_out=test, uncertainty=run_uncertainty(run_dir), series=series)
     ex = dataclasses.replace(ex, certificate=run_certificate(run_dir))
     text = render(fmt, ex)
-    check_export_out(run_dir, out, inputs=[data_path], force=force, suffix=FORMATS[fmt])  # changed meanwhile?
+    check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # changed meanwhile?
     recover(out.parent, files_only=True)        # partial files of killed exports (never a live pid's)
     atomic_write_text(out, text)
     register(_marker_owner(Path(run_dir)), out)

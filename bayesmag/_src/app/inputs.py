@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from bayesmag._src.app.config import Config, ConfigError
 from bayesmag._src.core.data import CalibrationData, load_csv
-from bayesmag._src.core.datasets import load_dataset
+from bayesmag._src.core.datasets import find_dataset, load_dataset
 
-__all__ = ["load_data"]
+__all__ = ["load_data", "recording_paths"]
 
 
 def load_data(cfg: Config) -> CalibrationData:
@@ -22,3 +22,20 @@ def load_data(cfg: Config) -> CalibrationData:
         except (ValueError, TypeError) as e:
             raise ConfigError(f"[data.simulate] {e}") from None
     return load_dataset(d.source)
+
+
+def recording_paths(data) -> list:
+    """The files on this machine that a job's ``[data]`` table (a dict, as saved in a calibration) read: its
+    ``path``, or the file of its named dataset (``source``) where it is found. A command's ``--out`` never
+    replaces them (``apply``, ``export``)."""
+    from pathlib import Path
+    d = data if isinstance(data, dict) else {}
+    if d.get("path"):
+        return [Path(d["path"])]
+    src = d.get("source")
+    if src and src != "simulated":
+        try:
+            return [find_dataset(src)]
+        except Exception:  # noqa: BLE001 -- not on this machine: nothing to protect here
+            return []
+    return []

@@ -69,6 +69,30 @@ def marker_status(folder: str | Path) -> dict | None:
     return doc if isinstance(doc, dict) else {"complete": False, "damaged": True}
 
 
+def run_file_owner(path: str | Path) -> Path | None:
+    """The bayesmag folder ``path`` is a file of, or None: its folder's marker lists it, the folder holds a
+    calibration (``calibration.json``), or it is the marker itself. Such a file is never replaced by a
+    command's ``--out`` (``apply``, ``export``): replacing it breaks that run."""
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.name.startswith(MARKER):
+        return parent
+    mark = marker_status(parent)
+    listed = set(mark.get("files", [])) if mark is not None and marker_problem(mark) is None else set()
+    if path.name in listed or (parent / "calibration.json").exists():
+        return parent
+    return None
+
+
+def read_only(path: str | Path) -> bool:
+    """True for an existing file with no write permission bit set (``chmod a-w``): a file its owner protected, which
+    bayesmag never replaces, even for a user (such as root) whom the permission would not stop."""
+    try:
+        return Path(path).is_file() and not (Path(path).stat().st_mode & 0o222)
+    except OSError:
+        return False
+
+
 def marker_problem(mark: dict | None) -> str | None:
     """Why a marker does not prove the folder is bayesmag's (None when it does).
 
