@@ -161,7 +161,10 @@ class Calibrator:
                 X = X.assign(**{f"{a}_ref": ref[:, i] for i, a in enumerate(("bx", "by", "bz"))})
             else:
                 X = CalibrationData(X.b_meas, X.temperature, ref, X.time, X.run, source=X.source)
-        rows = as_calibration_data(X, columns=self.columns if is_frame(X) else None, field_unit=self.field_unit,
+        columns = self.columns if is_frame(X) else None
+        if columns and y is not None:       # y is the reference: a mapping of reference columns must not replace it
+            columns = {k: v for k, v in dict(columns).items() if k not in ("bx_ref", "by_ref", "bz_ref")}
+        rows = as_calibration_data(X, columns=columns, field_unit=self.field_unit,
                                    temperature_unit=self.temperature_unit, require_reference=need_reference,
                                    duplicate_times=self.duplicate_times, what="the data given to Calibrator")
         return rows, index
