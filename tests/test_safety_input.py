@@ -553,7 +553,11 @@ def test_calibration_predict_checks_units_and_returns_a_frame(frame, tmp_path):
         cal.predict(_scaled(df, kelvin=True))
     with pytest.raises(DataError, match="looks like nT"):
         cal.predict(_scaled(df, 1000.0))
+    with pytest.raises(DataError, match="gauss"):          # before: calibrated as uT with a warning only
+        cal.predict(_scaled(df, 1e-2))
     good = cal.predict(df)
+    np.testing.assert_allclose(cal.predict(_scaled(df, 1e-2), field_unit="G")["x_calibrated"], good["x_calibrated"],
+                               rtol=1e-9)
     conv = cal.predict(_scaled(df, 1000.0, kelvin=True), field_unit="nT", temperature_unit="K")
     import pandas as pd
     assert isinstance(good, pd.DataFrame) and list(good.index) == list(df.index)

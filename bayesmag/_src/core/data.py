@@ -245,8 +245,8 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
     """Refuse a field that is not in microtesla; return warnings for a suspicious one.
 
     With ``train_max_ut`` (the largest |B| a calibration was trained on, ``apply``): a 99th
-    percentile |component| above 50x that is nT (refused); below 1/50 of it a warning (mT or
-    gauss?). Without it (``run``, ``discover``): the 99th percentile must lie in
+    percentile |component| above 50x that is nT, below 1/50 of it mT or gauss (both refused; a genuinely
+    weak field, e.g. a shielded recording, is declared with ``field_unit="uT"``). Without it (``run``, ``discover``): the 99th percentile must lie in
     :data:`_PLAUSIBLE_P99_UT`; above is nT, below is mT or gauss (both refused). Measured and
     reference columns are checked alike (the reference against the training range too). A field that is
     zero in every row is refused as such. A unit the user declared at load (``data.field_unit``, e.g.
@@ -273,14 +273,13 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
             if p99 > 50 * train_max_ut:
                 raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile) but the calibration was "
                                 f"trained on |B| up to {train_max_ut:.3g} uT: the file looks like nT (x1000). {fix}.")
-            if train_max_ut > 10 and p99 < train_max_ut / 50 and label.startswith("reference"):
-                raise DataError(f"The {label}{where} is at most {p99:.3g} (99th percentile) while the calibration "
-                                f"was trained on |B| up to {train_max_ut:.3g} uT: the reference looks like mT "
-                                f"(/1000) or gauss (/100); its RMSE would be meaningless. Convert it to uT, or "
-                                f"{declare} if it really is.")
             if train_max_ut > 10 and p99 < train_max_ut / 50:
-                warn.append(f"The {label} is at most {p99:.3g} while training reached {train_max_ut:.3g} uT: "
-                            f"is the file in gauss or mT? bayesmag expects uT.")
+                what = ("its RMSE would be meaningless" if label.startswith("reference") else
+                        "every calibrated value would be wrong")
+                raise DataError(f"The {label}{where} is at most {p99:.3g} (99th percentile) while the calibration "
+                                f"was trained on |B| up to {train_max_ut:.3g} uT: the file looks like mT "
+                                f"(/1000) or gauss (/100); {what}. Convert it to uT, or {declare} if it really is "
+                                f"(e.g. a magnetically shielded recording).")
             continue
         lo, hi = _PLAUSIBLE_P99_UT
         if p99 > hi:
