@@ -674,6 +674,16 @@ def run_uncertainty(run_dir: str | Path) -> dict | None:
         return None
 
 
+def _recording_changed(cal, cert: dict | None) -> str | None:
+    """The run's recording file if its sha256 is no longer the one its certificate recorded, else None (also when
+    nothing was recorded or the file is gone: then reloading fails or is a named dataset verified at load)."""
+    path = ((cal.config or {}).get("data") or {}).get("path") if isinstance(cal.config, dict) else None
+    if not path or not cert or not cert.get("data_sha256") or not Path(path).is_file():
+        return None
+    from bayesmag._src.core.datasets import sha256_of
+    return None if sha256_of(Path(path)) == cert["data_sha256"] else str(path)
+
+
 def run_certificate(run_dir: str | Path) -> dict | None:
     """The run's certificate identity (``metrics.json: certificate``), or None."""
     try:
@@ -769,18 +779,27 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     recordings = recording_paths((cal.config or {}).get("data") if isinstance(cal.config, dict) else None)
     check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # before the slow part
     train = test = series = None
-    if measure:
+    cert = run_certificate(run_dir)
+    changed = _recording_changed(cal, cert)
+    if measure and changed:
+        import warnings
+        warnings.warn(f"the run's recording {changed} has changed since the run (its sha256 differs from the one the "
+                      f"run recorded); the accuracy loss is not measured on it.", stacklevel=2)
+    elif measure:
         try:
             if "sensor_id" in cal.config:
                 train, test = split_rows(cal)
             else:
                 series = split_recording(cal)
                 train, test = series[0].subset(series[1]), series[0].subset(series[2])
+            if ((cal.config.get("split") or {}).get("kind") == "none"
+                    and not ("sensor_id" in cal.config)):   # no split: the "test" rows are the training rows
+                test, series = None, None
         except Exception as e:  # noqa: BLE001 -- the export is still useful without the accuracy table
             import warnings
             warnings.warn(f"the run's rows could not be reloaded ({e}); accuracy loss not measured.", stacklevel=2)
     ex = build_export(cal, train, t_ref=t_ref, held_out=test, uncertainty=run_uncertainty(run_dir), series=series)
-    ex = dataclasses.replace(ex, certificate=run_certificate(run_dir))
+    ex = dataclasses.replace(ex, certificate=cert)
     text = render(fmt, ex)
     check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # changed meanwhile?
     recover(out.parent, files_only=True)        # partial files of killed exports (never a live pid's)
