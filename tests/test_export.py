@@ -282,8 +282,18 @@ def test_c_header_float_variant_domain_check_and_test_vector(run_dir, tmp_path):
     c_probes = "\n".join(f"{{ double b[3] = {{{p[0]:.17g}, {p[1]:.17g}, {p[2]:.17g}}}, r[3] = {{{q[0]:.17g}, "
                           f'{q[1]:.17g}, {q[2]:.17g}}}; printf("%d\\n", bayesmag_in_domain(b, {p[3]:.17g}, r, '
                           f"{q[3]:.17g})); }}" for p, q in probes)
+    # apply's own verdict (no rates) on points of the measured box's corners region, where the calibrated output
+    # leaves the training reference's range although every measured component is inside its own (the header
+    # checked only the measured ranges before)
+    box = lo + np.random.default_rng(9).uniform(-0.02, 1.02, (60, 4)) * (hi - lo)
+    box_rows = CalibrationData(box[:, :3], box[:, 3], None)
+    apply_codes = [sum(REASON_CODES[k] for k in (["field_range"] if o[:3].any() else [])
+                       + (["temperature"] if o[3] else [])) for o in d.outside(box_rows, _physics(cal, box_rows))[:, :4]]
+    c_box = "\n".join(f"{{ double b[3] = {{{p[0]:.17g}, {p[1]:.17g}, {p[2]:.17g}}}; "
+                       f'printf("%d\\n", bayesmag_in_domain(b, {p[3]:.17g}, NULL, 0.0)); }}' for p in box)
     (tmp_path / "main.c").write_text('#include <stdio.h>\n#include "cal.h"\nint main(void) {\n'
-                                     f'{c_rows}\n{c_probes}\nprintf("%d\\n", bayesmag_self_test());\nreturn 0; }}\n')
+                                     f'{c_rows}\n{c_probes}\nprintf("%d\\n", bayesmag_self_test());\n{c_box}\n'
+                                     'return 0; }\n')
     # -Wdouble-promotion: the float variant does no double arithmetic (what a Cortex-M4F needs)
     subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", "-Wfloat-conversion",
                     "-o", str(tmp_path / "m"), str(tmp_path / "main.c")], check=True, cwd=tmp_path)
@@ -295,6 +305,10 @@ def test_c_header_float_variant_domain_check_and_test_vector(run_dir, tmp_path):
     assert err_f < E.TEST_TOL_F and err_f > 0                               # float: rounding only, well below 1e-3 uT
     assert [int(v) for v in lines[30:36]] == want
     assert lines[36] == "0"                                                # the header's own self-test passes
+    assert [int(v) for v in lines[37:97]] == apply_codes
+    out_only = [o[:3].any() and not d.outside(CalibrationData(p[None, :3], p[None, 3], None))[0, :3].any()
+                for p, o in zip(box, d.outside(box_rows, _physics(cal, box_rows)))]
+    assert any(out_only), "no probe has its calibrated output alone outside the range: the check is not exercised"
     # the test vector in the header is the model's output (computed here independently)
     vec_in = np.array(eval(header.split("BAYESMAG_TEST_IN[BAYESMAG_N_TEST][4] = ")[1].split(";")[0]
                            .replace("{", "[").replace("}", "]")))

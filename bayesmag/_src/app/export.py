@@ -416,6 +416,8 @@ def _json_doc(ex: Export) -> dict:
                            "b": ex.b.tolist()},
         "domain": {"temperature": list(ex.t_range),
                    **({"field_low": list(d.low[:3]), "field_high": list(d.high[:3]),
+                       "calibrated_low": None if d.out_low is None else list(d.out_low),
+                       "calibrated_high": None if d.out_high is None else list(d.out_high),
                        "rate_high": dict(zip(("dbx_dt", "dby_dt", "dbz_dt", "dT_dt"), d.rate_high))
                        if d.rate_high is not None else None} if d is not None else {})},
         "dropped_components": list(ex.dropped),
@@ -469,12 +471,17 @@ def c_domain_code(ex: Export) -> list[str]:
     """C lines of the domain check: constants and ``bayesmag_in_domain`` (bit codes as ``apply``'s reason column)."""
     d = ex.domain
     lines = ["/* Training domain (with the job's margin). bayesmag_in_domain returns 0 inside, else the sum of",
-             " * 1 (field out of range), 2 (temperature), 4 (field rate), 8 (temperature rate): the codes of the",
+             " * 1 (field out of range: measured, or calibrated output outside the training reference's range),",
+             " * 2 (temperature), 4 (field rate), 8 (temperature rate): the codes of the",
              " * in_domain_reason column of `bayesmag apply`. Pass db_dt = NULL to skip the rate checks; rates are",
              " * |d/dt| of the measured inputs in uT/s and C/s (e.g. the larger difference quotient to the two time",
              " * neighbours). Outside the domain the output is extrapolation and U does not hold. */",
              f"static const double BAYESMAG_B_MIN[3] = {_c_arr(d.low[:3])};",
              f"static const double BAYESMAG_B_MAX[3] = {_c_arr(d.high[:3])};"]
+    has_out = d.out_low is not None
+    if has_out:
+        lines += [f"static const double BAYESMAG_OUT_MIN[3] = {_c_arr(d.out_low)};",
+                  f"static const double BAYESMAG_OUT_MAX[3] = {_c_arr(d.out_high)};"]
     has_rates = d.rate_high is not None
     if has_rates:
         lines += [f"static const double BAYESMAG_DB_DT_MAX[3] = {_c_arr(d.rate_high[:3])};",
@@ -486,6 +493,11 @@ def c_domain_code(ex: Export) -> list[str]:
               "    for (int i = 0; i < 3; ++i)",
               "        if (!(b[i] >= BAYESMAG_B_MIN[i] && b[i] <= BAYESMAG_B_MAX[i])) code |= 1;",
               "    if (!(t >= BAYESMAG_TMIN && t <= BAYESMAG_TMAX)) code |= 2;"]
+    if has_out:
+        lines += ["    double c[3];",
+                  "    bayesmag_calibrate(b, t, c);",
+                  "    for (int i = 0; i < 3; ++i)",
+                  "        if (!(c[i] >= BAYESMAG_OUT_MIN[i] && c[i] <= BAYESMAG_OUT_MAX[i])) code |= 1;"]
     if has_rates:
         lines += ["    if (db_dt != NULL) {",
                   "        for (int i = 0; i < 3; ++i)",
@@ -546,7 +558,6 @@ def _c_header(ex: Export, notes: list[str], sign: str = SIGNATURE) -> str:
               f"static const double BAYESMAG_TREF = {_c_num(ex.t_ref, '.17g')};",
               f"static const double BAYESMAG_A[3][3] = {_c_arr(ex.A)};",
               f"static const double BAYESMAG_B[3] = {_c_arr(ex.b)};", ""]
-    lines += c_domain_code(ex) + [""]
     lines += ["static inline void bayesmag_calibrate(const double b[3], double t, double out[3])",
               "{",
               "    const double tc = t - BAYESMAG_T0;",
@@ -564,8 +575,9 @@ def _c_header(ex: Export, notes: list[str], sign: str = SIGNATURE) -> str:
               "        for (int j = 0; j < 3; ++j) acc += (BAYESMAG_S_F[i][j] + BAYESMAG_KS_F[i][j] * tc) * b[j];",
               "        out[i] = acc;",
               "    }",
-              "}", "",
-              "/* Test vector: inputs (Bx, By, Bz in uT, T in C) inside the domain and the expected output (uT). */",
+              "}", ""]
+    lines += c_domain_code(ex) + [""]
+    lines += ["/* Test vector: inputs (Bx, By, Bz in uT, T in C) inside the domain and the expected output (uT). */",
               f"#define BAYESMAG_N_TEST {len(x_in)}",
               f"static const double BAYESMAG_TEST_IN[BAYESMAG_N_TEST][4] = {_c_arr(x_in)};",
               f"static const double BAYESMAG_TEST_OUT[BAYESMAG_N_TEST][3] = {_c_arr(y_out)};",
