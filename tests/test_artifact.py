@@ -373,3 +373,21 @@ def test_a_thermal_lag_job_is_fitted_and_scored_within_the_recording(tmp_path):
     ex = E.build_export(cal, series[0].subset(series[1]), held_out=series[0].subset(series[2]), series=series)
     full = ex.accuracy["full_model_vs_reference"]
     assert all(abs(full[ax] / m["rmse"][ax] - 1) < 0.05 for ax in "xyz"), (full, m["rmse"])
+
+
+def test_a_recording_whose_time_step_is_not_trainings_is_warned_about(tmp_path):
+    """The rate limits are per second: a new recording with time in ms, or without a time column (rows 1 s apart),
+    flagged different rows silently (186 / 8 / 0 of 600 rows for s / none / ms on a 4 Hz recording). The domain now
+    keeps training's median step (saved with the calibration) and apply warns beyond 3x either way."""
+    import dataclasses as dc
+
+    from bayesmag._src.core.data import CalibrationData
+    res, out = _run(tmp_path)
+    cal = load(out)
+    d = res["data"]
+    step = np.median(np.diff(d.time)[d.run[1:] == d.run[:-1]])
+    assert cal.domain.step == pytest.approx(step) and cal.domain.step == res["domain"].step
+    assert cal.domain.step_note(d) is None
+    assert "time step" in cal.domain.step_note(dc.replace(d, time=d.time * 1000.0))
+    bare = CalibrationData(d.b_meas, d.temperature, None)                      # no time column: row index
+    assert (cal.domain.step_note(bare) is None) == (1 / 3 <= 1.0 / step <= 3)

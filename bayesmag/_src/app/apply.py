@@ -157,6 +157,9 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
                       require_reference=False)
     _check_magnitudes(data)
     warnings = check_units(cal, data) + new_session_notes(cal)
+    note = cal.domain.step_note(data)
+    if note:
+        warnings.append(note)
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
                        progress=progress, check_units=False)      # checked above, with the CLI's wording
     level = cal.level if level is None else level

@@ -459,6 +459,7 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
     out_hi = None if dom.get("out_high") is None else _field("domain.out_high", dom["out_high"], where, shape=(3,))
     margin = float(_field("domain.margin", dom.get("margin", 0.05), where, shape=()))
     rate_hi = None if dom.get("rate_high") is None else _field("domain.rate_high", dom["rate_high"], where, shape=(4,), kind="domain")
+    step = None if dom.get("step") is None else float(_field("domain.step", dom["step"], where, shape=(), kind="domain"))
     extra = {k: _field(k, arrays[k], where, shape=(3,)) for k in ("transfer_sd", "interval_scale", "network_transfer_sd")
              if k in arrays}
     if any((v < 0).any() for v in extra.values()):
@@ -486,7 +487,7 @@ def validate_artifact(doc: dict, arrays: dict, *, where: str = "calibration") ->
                        domain=Domain(tuple(low.tolist()), tuple(high.tolist()), margin,
                                      None if out_lo is None else tuple(out_lo.tolist()),
                                      None if out_hi is None else tuple(out_hi.tolist()),
-                                     None if rate_hi is None else tuple(rate_hi.tolist())),
+                                     None if rate_hi is None else tuple(rate_hi.tolist()), step),
                        likelihood=likelihood, level=float(level), config=doc.get("config", {}), network=network,
                        package_version=doc.get("package_version", ""), s2=s2, sessions=sessions, **extra)
 

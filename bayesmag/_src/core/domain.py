@@ -78,6 +78,7 @@ class Domain:
     out_low: tuple[float, float, float] | None = None
     out_high: tuple[float, float, float] | None = None
     rate_high: tuple[float, float, float, float] | None = None
+    step: float | None = None      # the training rows' median sampling step within runs (s), the rates' time unit
 
     @classmethod
     def from_data(cls, data, *, margin: float = 0.05, rates: bool = True) -> "Domain":
@@ -85,11 +86,26 @@ class Domain:
         olo = ohi = None
         if data.b_ref is not None:
             olo, ohi = _box(data.b_ref, margin, 0.5)
-        rh = None
+        rh = step = None
         if rates:
             rmax = _rates(data).max(axis=0)
             rh = tuple(float(v) for v in rmax * (1 + margin) + np.asarray(RATE_FLOOR))
-        return cls(lo, hi, margin, olo, ohi, rh)
+            step = sampling_step(data)
+        return cls(lo, hi, margin, olo, ohi, rh, step)
+
+    def step_note(self, data, ratio: float = 3.0) -> str | None:
+        """A warning when ``data``'s median sampling step differs from training's by more than ``ratio`` (either
+        way): the rate limits are per second, so a time column in other units (ms) or absent (rows counted as 1 s
+        apart) misreads them; None otherwise, or without rate limits or a step."""
+        if self.rate_high is None or not self.step:
+            return None
+        new = sampling_step(data)
+        if not new or 1 / ratio <= new / self.step <= ratio:
+            return None
+        return (f"The recording's median time step is {new:.4g} s, {new / self.step:.3g}x the training's "
+                f"({self.step:.4g} s). The rate checks (in_domain_reason field_rate / temperature_rate) compare "
+                f"|dB/dt| and |dT/dt| per second, so a time column in other units (ms?) or missing (rows are then "
+                f"1 s apart) flags the wrong rows. Check that the time column is in seconds.")
 
     def outside(self, data, calibrated: np.ndarray | None = None) -> np.ndarray:
         """(n, 4) boolean, or (n, 8) with rate limits: input j of row i lies outside the training range.
@@ -146,3 +162,13 @@ class Domain:
 
 
 _rates = rates
+
+
+def sampling_step(data) -> float | None:
+    """The median positive time step between consecutive rows of the same run (s); None without one."""
+    t, run = np.asarray(data.time, np.float64), np.asarray(data.run)
+    if t.size < 2:
+        return None
+    d = np.diff(t)[run[1:] == run[:-1]]
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if d.size else None
