@@ -266,6 +266,10 @@ def test_one_t0_recommendation(belsten):
     fit = bayesmag.fit_physics(belsten)
     note = next(n for n in fit.design_notes if "only in run(s) [6]" in n)
     assert '[physics] t0 = "mean"' in note and not re.search(r"t0 = \d", note)
+    # with t0 already the training mean, the note does not tell the user to set it (it did)
+    centred = bayesmag.fit_physics(belsten, bayesmag.PhysicsModel.paper(t0=float(np.mean(belsten.temperature))))
+    note = next(n for n in centred.design_notes if "only in run(s) [6]" in n)
+    assert "t0 =" not in note and note.endswith("Separating Ks_j needs temperature varied while field axis j is swept.")
 
 
 # --------------------------------------------------------------------------- field metrics (item 12)

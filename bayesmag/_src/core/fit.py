@@ -370,13 +370,17 @@ def _design_notes(data, model: PhysicsModel) -> tuple[str, ...]:
         held = b.std(axis=0) < 0.02 * (np.abs(data.b_meas).max(axis=0) + 1e-12) + 0.5
         if held.all():
             mean = b.mean(axis=0)
+            tm = float(data.temperature.mean())
+            centred = abs(float(getattr(model, "t0", 0.0)) - tm) < 0.05 * max(float(np.ptp(data.temperature)), 1e-9)
+            separate = "eparating Ks_j needs temperature varied while field axis j is swept."
+            advice = (f" S{separate}" if centred else      # t0 is already the mean: no advice to set it
+                      f" Set [physics] t0 = \"mean\" (the training mean temperature, {tm:.1f} C here): it removes the "
+                      f"S-Ks and O-Ko correlations; s{separate}")
             notes.append(
                 f"Temperature varies only in run(s) {varying.tolist()}, and there the measured field is held near "
                 f"({mean[0]:.1f}, {mean[1]:.1f}, {mean[2]:.1f}) uT. The data then identify only the total thermal "
                 f"slope Ks_x*{mean[0]:.1f} + Ks_y*{mean[1]:.1f} + Ks_z*{mean[2]:.1f} + Ko per axis; the individual "
-                f"Ks and Ko, and S with O at the reference temperature, are near-collinear. Set [physics] t0 = \"mean\" "
-                f"(the training mean temperature, {data.temperature.mean():.1f} C here): it removes the S-Ks and "
-                f"O-Ko correlations; separating Ks_j needs temperature varied while field axis j is swept."
+                f"Ks and Ko, and S with O at the reference temperature, are near-collinear.{advice}"
             )
         elif held.any():
             ax = [AXES[i] for i in np.flatnonzero(held)]
