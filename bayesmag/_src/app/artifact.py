@@ -334,7 +334,19 @@ def load(path: str | Path) -> Calibration:
     if mark is not None and not mark.get("complete"):
         raise ArtifactError(f"{path} was not finished (its .bayesmag-run marker says incomplete); re-run "
                             f"`bayesmag run` to write a full calibration.")
+    field_run_error(path, ArtifactError)
     return read_calibration(path)
+
+
+def field_run_error(path, error) -> None:
+    """Raise ``error`` for a field-calibration run folder (``field_params.json``, no vector calibration): re-running
+    does not give it a ``calibration.json`` (the message said so), so say what it is and what to use instead."""
+    path = Path(path)
+    if (path / "field_params.json").exists() and not (path / "calibration.json").exists():
+        raise error(f"{path} is a field-calibration run (calibration against |B| or a scalar reference, "
+                    f"field_params.json): `bayesmag apply`, `export` and `report` take a calibration against a vector "
+                    f"reference. The run folder already holds its exports (calibration.export.json with the full "
+                    f"model, calibration.h, .params, .parm, .magcal.json) and its report.md; docs/field.md.")
 
 
 def _check_version(v, j: Path, writer) -> None:

@@ -911,7 +911,10 @@ def write_report(run_dir: str | Path, *, require_marker: bool = True) -> Path:
     """
     from bayesmag._src.app.outdir import MARKER, OutputError, atomic_write_text, marker_problem, marker_status, register
 
+    from bayesmag._src.app.artifact import field_run_error
+
     run_dir = Path(run_dir)
+    field_run_error(run_dir, OutputError)
     out, out_html = run_dir / "report.md", run_dir / "report.html"
     if require_marker:
         mark = marker_status(run_dir) if run_dir.is_dir() else None
