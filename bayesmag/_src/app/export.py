@@ -244,7 +244,11 @@ def accuracy_loss(ex: Export, rows: CalibrationData, full: np.ndarray, *, which:
            "full_model_vs_reference": _rmse(full, rows.b_ref) if rows.has_reference else None, "formats": {}}
     for fmt in FORMATS:
         pred = exported_prediction(fmt, ex, rows.b_meas, rows.temperature)
+        mag = np.linalg.norm(np.asarray(pred, np.float64), axis=1) - np.linalg.norm(np.asarray(full, np.float64), axis=1)
         out["formats"][fmt] = {"vs_full_model": _rmse(pred, full),
+                               # |B| alone: what a magnitude (field) calibration sees; its components carry a frame
+                               # rotation (the gauge) that no magnitude fit determines
+                               "magnitude_vs_full_model": float(np.sqrt(np.mean(mag[np.isfinite(mag)] ** 2))),
                                "vs_reference": _rmse(pred, rows.b_ref) if rows.has_reference else None}
     return out
 
@@ -366,12 +370,13 @@ def limitations(fmt: str, ex: Export) -> list[str]:
     lines.append(f"{fmt} cannot hold: " + ("; ".join(parts) if parts else "nothing of this model (exact)") + ".")
     acc = ex.accuracy
     if acc is None:
-        lines.append("Accuracy loss not measured: the run's rows could not be reloaded.")
+        lines.append("Accuracy loss not measured: the run's rows could not be reloaded, or changed since the run.")
     else:
         f = acc["formats"][fmt]
         fmt3 = lambda d: ", ".join(f"{a} {d[a]:.4g}" for a in AXES)  # noqa: E731
         lines.append(f"On the {acc['n_rows']} {acc.get('rows', 'training rows')}, RMSE (uT) vs the full model: "
                      f"{fmt3(f['vs_full_model'])}"
+                     + (f" (|B|: {f['magnitude_vs_full_model']:.4g})" if "magnitude_vs_full_model" in f else "")
                      + (f"; vs the reference: {fmt3(f['vs_reference'])} (full model: "
                         f"{fmt3(acc['full_model_vs_reference'])})" if f["vs_reference"] else "") + ".")
     return lines

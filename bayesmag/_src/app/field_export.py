@@ -26,6 +26,8 @@ class _Box:
     low: np.ndarray
     high: np.ndarray
     rate_high: None = None        # rates are not checked for a field calibration's export
+    out_low: None = None          # nor the calibrated output's range (there is no vector reference)
+    out_high: None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,13 +47,20 @@ class FieldCalibration:
         return cls(PhysicsModel.paper(t0=fit.model.t0, temperature=True), theta, _Box(x.min(0), x.max(0)))
 
 
-def field_export_texts(fit: FieldFit, train: CalibrationData, formats=tuple(FORMATS)) -> dict[str, str]:
-    """``{format: file text}`` for a field calibration (no reference: the accuracy table is against the model)."""
+def field_export_texts(fit: FieldFit, train: CalibrationData, formats=tuple(FORMATS),
+                       held_out: CalibrationData | None = None) -> dict[str, str]:
+    """``{format: file text}`` for a field calibration (no vector reference: the accuracy table is against the full
+    model, on ``held_out`` (the run's held-out rows) where given, else on the training rows, said so). The component
+    figures include the gauge rotation a magnitude fit does not determine; the |B| figure does not."""
     cal = FieldCalibration.from_fit(fit, train)
-    rows = CalibrationData(train.b_meas, train.temperature, None, train.time, train.run, source="training rows")
-    ex = build_export(cal, rows)
+    strip = lambda d, what: CalibrationData(d.b_meas, d.temperature, None, d.time, d.run, source=what)  # noqa: E731
+    rows = strip(train, "training rows")
+    test = strip(held_out, "held-out rows") if held_out is not None and held_out.n > 0 else None
+    ex = build_export(cal, rows, held_out=test)
     note = (f"Field calibration ({fit.model.measurement.name} measurement model); gauge: "
-            f"{gauge_text(fit.model.measurement)}.")
+            f"{gauge_text(fit.model.measurement)}. The RMSE of each form against the full model is per component in "
+            f"that frame (a symmetric PX4/ArduPilot matrix cannot hold its rotation, which no magnitude fit "
+            f"determines); the |B| figure is what a magnitude calibration is judged by.")
     out = {}
     for fmt in formats:
         text = render(fmt, ex)
