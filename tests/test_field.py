@@ -355,3 +355,28 @@ def test_refit_from_a_total_weight_fit_keeps_its_weight():
     g = fit_field(d.b_meas, d.temperature, c.f_ref, Scalar(0.01), keep=keep, start=f, diagnostics=False)
     assert f.weighting == g.weighting == "total" and g.kappa2 == f.kappa2 > 0
     assert np.allclose(g.cov, g.cov.T) and np.linalg.eigvalsh(g.cov)[0] > 0
+
+
+@pytest.mark.parametrize("case, match", [
+    ("nan_u", r"fit_field: u has 2 row\(s\) with non-finite values \(NaN or inf\) at row\(s\) 4, 9 \(counting from 1\)"),
+    ("nan_target", r"fit_field: target has 1 row\(s\) with non-finite values \(NaN or inf\) at row\(s\) 6 "),
+    ("12_rows", r"fit_field: 12 rows but the field model has 18 parameters: a fit needs more rows than parameters"),
+    ("12_vector_rows", r"fit_field: 8 rows \(24 residuals\) but the field model has 24 parameters"),
+])
+def test_fit_field_refuses_nan_rows_and_too_few_rows(case, match):
+    """From Python: NaN rows are a DataError naming them (they were a LinAlgError from the covariance), and rows
+    that do not exceed the parameters are refused (12 rows for 18 parameters reported s = 2e-14 uT). No fit runs."""
+    from bayesmag._src.core.data import DataError
+    c = simulate_field("dance", n=40, seed=0, temperature=(15.0, 35.0))
+    u, t, f = c.data.b_meas.copy(), c.data.temperature.copy(), c.f_ref.copy()
+    meas = Scalar()
+    if case == "nan_u":
+        u[[3, 8], 1] = np.nan
+    elif case == "nan_target":
+        f[5] = np.inf
+    elif case == "12_rows":
+        u, t, f = u[:12], t[:12], f[:12]
+    else:
+        u, t, f, meas = u[:8], t[:8], c.data.b_ref[:8], Vector()
+    with pytest.raises(DataError, match=match):
+        fit_field(u, t, f, meas)

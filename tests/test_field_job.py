@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -238,3 +239,130 @@ def test_field_nuts_config_errors_name_the_key(tmp_path, over, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         bayesmag.run_job(cfg, tmp_path / "o")
     assert not (tmp_path / "o").exists()
+
+
+# --------------------------------------------------------------------------- the recording's checks (units, values, rows)
+
+
+def _edit_csv(src, dst, edit):
+    """Copy the CSV ``src`` to ``dst`` with ``edit(header, rows)`` applied to its rows (lists of strings)."""
+    import csv
+    rows = list(csv.reader(open(src)))
+    edit(rows[0], rows[1:])
+    with open(dst, "w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+
+
+def _scale_columns(names, k):
+    def edit(head, rows):
+        for r in rows:
+            for n in names:
+                r[head.index(n)] = repr(float(r[head.index(n)]) * k)
+    return edit
+
+
+FIELD_COLUMNS = ("bx_meas", "by_meas", "bz_meas", "F_ovh")
+
+
+@pytest.mark.parametrize("unit, k", [("G", 0.01), ("nT", 1000.0)])
+def test_scalar_column_is_converted_with_the_declared_field_unit(tmp_path, unit, k):
+    """``[data] field_unit`` converts the scalar column as it converts the readings (it was read as uT: a gauss
+    recording fitted S diagonal 0.0094 instead of 0.94). Load only: no fit."""
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag._src.app.field_job import load_field_data
+    _scalar_csv(tmp_path / "a.csv", n=100)
+    _edit_csv(tmp_path / "a.csv", tmp_path / "b.csv", _scale_columns(FIELD_COLUMNS, k))
+    ref, f_uT, _ = load_field_data(_scalar_cfg(tmp_path / "a.csv"))
+    raw = _scalar_cfg(tmp_path / "b.csv").to_dict()
+    raw["data"]["field_unit"] = unit
+    data, f_ref, _ = load_field_data(config_from_dict(raw))
+    assert np.allclose(data.b_meas, ref.b_meas, rtol=1e-12) and np.allclose(f_ref, f_uT, rtol=1e-12)
+
+
+def _nan_rows(head, rows):
+    for i in (3, 8):
+        rows[i][head.index("by_meas")] = "nan"
+
+
+def _swap_rows(head, rows):
+    rows[4][:], rows[5][:] = rows[5][:], rows[4][:]
+
+
+@pytest.mark.parametrize("edit, match, vector_same", [
+    (_scale_columns(FIELD_COLUMNS + ("bx_ref", "by_ref", "bz_ref"), 1000.0),
+     r"The measured field \(bx_meas, by_meas, bz_meas\) in \S+ reaches .* looks like nT \(x1000\)", True),
+    (_scale_columns(("F_ovh",), 1000.0), r"The scalar reference column 'F_ovh' in \S+ reaches .* looks like nT", False),
+    (_nan_rows, r"Column 'by_meas' in \S+ has 2 non-finite value\(s\) \(NaN or inf\) at data row\(s\) 4, 9\.", True),
+    (_swap_rows, r"Column 'time' in \S+ is not sorted within run 0: data row 6 \(time 0\.4\) comes after data row 5 "
+                 r"\(time 0\.5\)\. Sort the file by run, then time\.", False),
+], ids=["undeclared_nT", "scalar_column_nT", "nan_readings", "unsorted_time"])
+def test_field_run_checks_the_recording_like_the_vector_job(tmp_path, capsys, monkeypatch, edit, match, vector_same):
+    """A field run validates the recording before any fitting (it skipped the vector job's checks: undeclared nT
+    ran and reported an RMSE of 1e4 uT, NaN readings crashed with a LinAlgError, shuffled rows turned the time-block
+    split into a random one): one line on stderr, exit 2, no output folder; where the vector job refuses the same
+    file, the line is the vector job's."""
+    from bayesmag._src.app.cli import main
+    from bayesmag._src.pipeline import field_stage
+
+    def no_fit(*a, **k):
+        raise AssertionError("fitted before the recording was checked")
+    monkeypatch.setattr(field_stage, "fit_field", no_fit)
+    _scalar_csv(tmp_path / "a.csv", n=100, ref_columns=True)
+    _edit_csv(tmp_path / "a.csv", tmp_path / "b.csv", edit)
+    (tmp_path / "f.toml").write_text(f'name = "f"\n[data]\npath = "{tmp_path / "b.csv"}"\n[measurement]\n'
+                                     f'kind = "scalar"\nscalar_column = "F_ovh"\n[output]\nfigures = false\n')
+    rc = main(["run", str(tmp_path / "f.toml"), "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and not (tmp_path / "o").exists()
+    assert re.search(match, err[0]), err[0]
+    if vector_same:
+        (tmp_path / "v.toml").write_text(f'name = "v"\n[data]\npath = "{tmp_path / "b.csv"}"\n[output]\nfigures = false\n')
+        assert main(["run", str(tmp_path / "v.toml"), "--out", str(tmp_path / "ov"), "--no-progress"]) == 2
+        assert capsys.readouterr().err.strip().splitlines() == err
+
+
+@pytest.mark.parametrize("n, over, error, match", [
+    (12, {}, "DataError", r"has 12 rows but the field model has 18 parameters: a fit needs more rows than parameters"),
+    (25, {}, "DataError", r"conformal interval scale needs at least 20 held-out fold rows.* the 21 training rows give "
+                          r"15 in 5 folds\. Set measurement\.interval_calibration = \"none\""),
+    (25, {"temperature_terms": False}, "DataError", r"than the 9 parameters; the 21 training rows give 15"),
+    (20, {"interval_calibration": "none"}, "ConfigError",
+     r"\[split\] leaves 16 training rows of 20 .* but the field model has 18 parameters"),
+])
+def test_too_few_rows_are_refused_before_fitting(tmp_path, monkeypatch, n, over, error, match):
+    """Rows that do not exceed the parameters (12 rows for 18 ran and reported s = 2e-14 uT) or too few for the
+    conformal scale's folds (25 rows crashed in conformal_quantile after the fit): refused before any fitting."""
+    from bayesmag._src.core.data import DataError
+    from bayesmag._src.pipeline import field_stage
+
+    def no_fit(*a, **k):
+        raise AssertionError("fitted before the row count was checked")
+    monkeypatch.setattr(field_stage, "fit_field", no_fit)
+    _scalar_csv(tmp_path / "a.csv", n=n)
+    with pytest.raises({"DataError": DataError, "ConfigError": ConfigError}[error], match=match) as e:
+        bayesmag.run_job(_scalar_cfg(tmp_path / "a.csv", **over), tmp_path / "o")
+    assert "\n" not in str(e.value) and not (tmp_path / "o").exists()
+
+
+def test_report_when_no_held_out_row_is_in_the_training_domain(tmp_path, capsys):
+    """A held-out run recorded 20 C warmer than every training row: no held-out row lies inside the training
+    domain, so its coverage there is undefined (None). The report and the summary say n/a (they crashed with
+    TypeError: unsupported format string passed to NoneType.__format__)."""
+    from bayesmag._src.app.cli import main
+
+    def warm_run_2(head, rows):
+        for r in rows[240:]:
+            r[head.index("run")] = "2"
+            r[head.index("temperature")] = repr(float(r[head.index("temperature")]) + 20.0)
+    _scalar_csv(tmp_path / "a.csv", n=300)
+    _edit_csv(tmp_path / "a.csv", tmp_path / "b.csv", warm_run_2)
+    (tmp_path / "c.toml").write_text(
+        f'name = "x"\n[data]\npath = "{tmp_path / "b.csv"}"\n[measurement]\nkind = "scalar"\nscalar_column = "F_ovh"\n'
+        'exports = []\ninterval_calibration = "none"\ncompare_vector = false\n[split]\nkind = "by_run"\n'
+        'test_runs = [2]\n[output]\nfigures = false\n')
+    rc = main(["run", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o"), "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "60 held-out rows outside the training domain; inside it coverage n/a" in out
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())["field"]["scores"]
+    assert m["n_in_domain"] == 0 and m["coverage_in_domain"] is None
+    assert "Inside it (0 rows) the intervals cover n/a" in (tmp_path / "o" / "report.md").read_text()

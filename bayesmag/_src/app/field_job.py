@@ -57,7 +57,7 @@ def print_summary(m: dict) -> int:
           f"CRPS {s['crps']:.4g} uT")
     if s.get("n_outside_domain"):
         print(f"  {s['n_outside_domain']} held-out rows outside the training domain; inside it coverage "
-              f"{s['coverage_in_domain']:.1%}, covered or flagged {s['covered_or_flagged']:.1%}")
+              f"{_pct(s.get('coverage_in_domain'))}, covered or flagged {s['covered_or_flagged']:.1%}")
     if f.get("heading"):
         h = f["heading"]
         print(f"  heading error RMSE {h['rmse_deg']:.3g} deg on {h['n']} level rows, coverage {h['coverage']:.1%}")
@@ -72,27 +72,95 @@ def print_summary(m: dict) -> int:
     return 0
 
 
+def _pct(v) -> str:
+    """A fraction as a percentage; ``None`` (no row to measure it on) as "n/a"."""
+    return "n/a" if v is None else f"{v:.1%}"
+
+
 def load_field_data(cfg: Config):
-    """``(data, f_ref, campaign)``: a simulated field campaign, or the recording the config names."""
+    """``(data, f_ref, campaign)``: a simulated field campaign, or the recording the config names, validated as the
+    vector job validates its recording (:func:`validate_field_data`); a scalar column is converted from
+    ``[data] field_unit`` to uT exactly as the readings are."""
     if cfg.data.source == "field_simulated":
         from bayesmag._src.core.field_sim import field_campaign_from_config
         try:
             c = field_campaign_from_config(dict(cfg.measurement.simulate))
         except (TypeError, ValueError) as e:
             raise ConfigError(f"[measurement.simulate]: {e}") from None
+        validate_field_data(c.data, c.f_ref)
         return c.data, c.f_ref, c
     d, mc = cfg.data, cfg.measurement
     if d.path is None:
         from bayesmag._src.app.inputs import load_data
-        return load_data(cfg), None, None
-    from bayesmag._src.core.data import load_column, load_csv
+        data = load_data(cfg)
+        validate_field_data(data, None)
+        return data, None, None
+    from bayesmag._src.core.data import FIELD_UNITS, load_column, load_csv
     # a field recording needs no reference vector: a scalar column, or one constant field, is the reference
     data = load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit, field_unit=d.field_unit,
                     require_reference=False)
     f_ref = None
     if mc.scalar_column:
         f_ref = load_column(d.path, mc.scalar_column, key="[measurement] scalar_column", positive=True)
+        f_ref = f_ref * FIELD_UNITS[d.field_unit or "uT"]      # the readings' unit: converted as load_csv does
+    validate_field_data(data, f_ref, scalar_column=mc.scalar_column)
     return data, f_ref, None
+
+
+def validate_field_data(data, f_ref=None, *, scalar_column: str = "") -> None:
+    """The vector job's checks of a recording (:func:`~bayesmag._src.core.data.validate`: finite, plausible values,
+    the field in uT unless ``[data] field_unit`` declared it, Celsius, no repeated timestamp within a run), the
+    scalar reference column's unit checked like the readings, and rows in time order within each run: the
+    time-block split and the folds of the conformal scale take contiguous rows as contiguous time (unsorted rows
+    made them a random split). Raises :class:`DataError` (one line, naming the rows and the fix)."""
+    from bayesmag._src.core.data import _check_time, validate
+    extra = () if f_ref is None else ((f"scalar reference column '{scalar_column or 'f_ref'}'",
+                                       np.asarray(f_ref, np.float64).reshape(-1, 1)),)
+    validate(data, n_params=0, need_reference=False, need_temperature_variation=False, origin=data.source,
+             extra_fields=extra)
+    _check_time(data, f" in {data.source}" if data.source else "", duplicates=False, order=True)
+
+
+def field_n_params(measurement, temperature_terms, temperature) -> int:
+    """The number of parameters :func:`~bayesmag.field.fit_field` will fit (``temperature_terms`` resolved as it
+    resolves ``"auto"``: on when ``temperature`` spans >= 1 C)."""
+    from bayesmag._src.core.field import FieldModel
+    tt = bool(np.ptp(temperature) >= 1.0) if temperature_terms == "auto" else bool(temperature_terms)
+    return FieldModel(measurement, t0=0.0, temperature=tt).n_params
+
+
+def check_field_rows(cfg: Config, meas, data, train, split, dropped: int, plan) -> None:
+    """Before any fitting: more rows than parameters in the recording (:class:`DataError`) and in the training
+    rows the split leaves (:class:`ConfigError`, as the vector job), and with ``plan`` (the conformal scale's
+    ``(fraction, folds)``) at least :data:`CONFORMAL_MIN_ROWS` held-out fold rows, each refit keeping more rows than
+    parameters (:class:`DataError` naming ``measurement.interval_calibration = "none"``)."""
+    mc = cfg.measurement
+    n_params = field_n_params(meas, mc.temperature_terms, train.temperature if train.n else data.temperature)
+    after = f" (after dropping {dropped} below [measurement] min_magnitude = {mc.min_magnitude} uT)" if dropped else ""
+    if data.n * meas.per_row <= n_params:
+        raise DataError(f"The recording {data.source} has {data.n} rows{after} but the field model has {n_params} "
+                        f"parameters: a fit needs more rows than parameters (many more for a useful calibration). "
+                        f"Record more rows.")
+    if train.n * meas.per_row <= n_params:
+        raise ConfigError(f"[split] leaves {train.n} training rows of {data.n} ({split.description}), but the field "
+                          f"model has {n_params} parameters: a fit needs more rows than parameters. Lower "
+                          f"split.test_fraction or give more data.")
+    if plan is None:
+        return
+    from bayesmag._src.pipeline.conformal import conformal_folds
+    fold = conformal_folds(train.run, fraction=plan[0], folds=plan[1], seed=cfg.split.seed)
+    sizes = [int(np.sum(fold == k)) for k in range(plan[1])]
+    sizes = [s for s in sizes if 0 < s < train.n]           # the folds magnitude_interval_scale refits
+    n_held = sum(sizes)
+    if n_held < CONFORMAL_MIN_ROWS or (train.n - max(sizes, default=0)) * meas.per_row <= n_params:
+        raise DataError(f"The conformal interval scale needs at least {CONFORMAL_MIN_ROWS} held-out fold rows, each "
+                        f"fold refitted on more rows than the {n_params} parameters; the {train.n} training rows "
+                        f"give {n_held} in {len(sizes)} folds. Set measurement.interval_calibration = \"none\" "
+                        f"(the Laplace intervals as they are) or record more rows.")
+
+
+#: the fewest held-out rows the split-conformal quantile is taken from (pipeline/conformal.py)
+CONFORMAL_MIN_ROWS = 20
 
 
 def _fmt(v: float) -> str:
@@ -122,7 +190,9 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
         L += [f"{sc['n_outside_domain']} held-out rows lie outside the training domain ("
               + ", ".join(f"{k}: {v}" for k, v in dm.get("by_reason", {}).items())
               + f"; in_domain = false in predictions.csv). Inside it ({sc['n_in_domain']} rows) the intervals cover "
-              f"{sc['coverage_in_domain']:.3f}; covered or flagged: {sc['covered_or_flagged']:.3f}.", ""]
+              + (f"{sc['coverage_in_domain']:.3f}" if sc.get("coverage_in_domain") is not None else
+                 "n/a (no held-out row lies inside it)")
+              + f"; covered or flagged: {sc['covered_or_flagged']:.3f}.", ""]
     else:
         L += ["Every held-out row lies inside the training domain (measured inputs, temperature, magnitude).", ""]
     ic = f["scores"].get("interval_calibration")
@@ -238,6 +308,9 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     except ValueError as e:
         raise ConfigError(f"[split]: {e}") from None
     train, test = data.subset(split.train), data.subset(split.test)
+    plan = (None if mc.interval_calibration == "none" else
+            conformal_plan(cfg.split.test_fraction, cfg.split.n_blocks, cfg.split.kind, mc.conformal_folds))
+    check_field_rows(cfg, meas, data, train, split, dropped, plan)
     timings["load"] = time.perf_counter() - t
     heading = None
     if campaign is not None and mc.heading_check:
@@ -249,8 +322,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                          f_ref_test=None if f_ref is None else f_ref[split.test], t0=cfg.physics.t0,
                          temperature_terms=mc.temperature_terms, covariance=mc.covariance, level=cfg.uq.level,
                          heading=heading, compare_vector=mc.compare_vector, seed=cfg.split.seed,
-                         conformal=None if mc.interval_calibration == "none" else
-                         conformal_plan(cfg.split.test_fraction, cfg.split.n_blocks, cfg.split.kind, mc.conformal_folds))
+                         conformal=plan)
     timings.update(fs.timings)
     if not fs.fit.converged:
         from bayesmag._src.pipeline.stages import CalibrationError as JobError
@@ -293,7 +365,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
         _write_predictions(tmp / "predictions.csv", test, split.test, fs.target_test, fs.prediction, cfg.uq.level,
                            fs.domain)
-        for fmt, text in field_export_texts(fs.fit, train, mc.exports).items():
+        for fmt, text in field_export_texts(fs.fit, train, mc.exports, held_out=test).items():
             from bayesmag._src.app.formats import FORMATS
             (tmp / f"calibration{FORMATS[fmt]}").write_text(text)
         if nuts is not None:

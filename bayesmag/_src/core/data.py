@@ -241,7 +241,8 @@ def check_values(data: CalibrationData, *, origin: str = "", allow_nonfinite: bo
 
 
 def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
-                     fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT") -> list[str]:
+                     fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT",
+                     extra_fields: Sequence[tuple[str, np.ndarray]] = ()) -> list[str]:
     """Refuse a field that is not in microtesla; return warnings for a suspicious one.
 
     With ``train_max_ut`` (the largest |B| a calibration was trained on, ``apply``): a 99th
@@ -251,11 +252,14 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
     reference columns are checked alike (the reference against the training range too). A field that is
     zero in every row is refused as such. A unit the user declared at load (``data.field_unit``, e.g.
     ``--field-unit uT`` for a genuine low-field session) is trusted: only the all-zero check runs.
+    ``extra_fields``: more ``(label, (n, k) array)`` groups in the same unit, checked alike (a field
+    calibration's scalar reference column).
     """
     where = f" in {origin}" if origin else ""
     groups = [("measured field (bx_meas, by_meas, bz_meas)", data.b_meas)]
     if data.b_ref is not None:
         groups.append(("reference field (bx_ref, by_ref, bz_ref)", data.b_ref))
+    groups += list(extra_fields)
     warn = []
     for label, b in groups:
         ok = np.isfinite(b).all(axis=1)
@@ -296,7 +300,8 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
 
 def check_units(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
                 fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT",
-                temperature_fix: str = "Set [data] temperature_unit = \"K\" (or subtract 273.15)") -> list[str]:
+                temperature_fix: str = "Set [data] temperature_unit = \"K\" (or subtract 273.15)",
+                extra_fields: Sequence[tuple[str, np.ndarray]] = ()) -> list[str]:
     """The one unit check of every entry point (``run``, ``apply``, ``discover`` and the library's
     ``fit_physics``, ``Calibration.predict``, ``Calibrator``, ``discover``).
 
@@ -306,7 +311,8 @@ def check_units(data: CalibrationData, *, train_max_ut: float | None = None, ori
     ``fix``/``declare``/``temperature_fix`` word the remedy for the caller (a CLI flag or an argument).
     """
     where = f" in {origin}" if origin else ""
-    warn = check_field_unit(data, train_max_ut=train_max_ut, origin=origin, fix=fix, declare=declare)
+    warn = check_field_unit(data, train_max_ut=train_max_ut, origin=origin, fix=fix, declare=declare,
+                            extra_fields=extra_fields)
     t = data.temperature[np.isfinite(data.temperature)]
     if t.size:
         med = float(np.median(t))
@@ -385,20 +391,23 @@ def validate(
     need_temperature_variation: bool = True,
     allow_duplicate_times: bool = False,
     origin: str = "",
+    extra_fields: Sequence[tuple[str, np.ndarray]] = (),
 ) -> None:
     """Check a recording before fitting; raise :class:`DataError` naming what is wrong.
 
     Checks: non-finite or absurdly large values (row and column), missing reference, field
     units (:func:`check_field_unit`), enough rows for ``n_params`` parameters, temperature in
     kelvin, constant temperature (temperature terms not identifiable), duplicated timestamps
-    within a run (after sorting by time).
+    within a run (after sorting by time). ``extra_fields``: more field groups in the readings' unit
+    (:func:`check_field_unit`).
     Row numbers in messages count data rows from 1 (the header is not counted).
     """
     where = f" in {origin}" if origin else ""
     check_values(data, origin=origin)
     if need_reference and data.b_ref is None:
         raise DataError(f"The recording{where} has no reference columns {_REF}; a calibration needs them.")
-    check_units(data, origin=origin, declare="[data] field_unit = \"uT\" (or --field-unit uT)")
+    check_units(data, origin=origin, declare="[data] field_unit = \"uT\" (or --field-unit uT)",
+                extra_fields=extra_fields)
     if data.n < n_params + 1:
         raise DataError(
             f"The recording{where} has {data.n} rows but the physics model has {n_params} parameters per axis; "

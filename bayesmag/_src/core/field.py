@@ -446,6 +446,24 @@ def gauge_text(meas: MeasurementModel) -> str:
     return txt
 
 
+def _check_fit_inputs(u, t, target, keep) -> None:
+    """Shapes that agree and finite values in every row (rows outside ``keep`` too: they are carried with weight 0,
+    and 0 x NaN is NaN). Raises :class:`~bayesmag._src.core.data.DataError` naming the input and the rows."""
+    from bayesmag._src.core.data import DataError, _bad_rows
+    n = len(u)
+    if u.ndim != 2 or u.shape[1] != 3:
+        raise DataError(f"fit_field: u must have shape (n, 3); got {u.shape}.")
+    for name, a in (("t", t), ("target", target), ("keep", keep)):
+        if a.shape[0] != n:
+            raise DataError(f"fit_field: {name} has {a.shape[0]} rows but u has {n}.")
+    for name, a in (("u", u), ("t", t), ("target", target)):
+        bad = ~np.isfinite(a.reshape(n, -1)).all(axis=1)
+        if bad.any():
+            raise DataError(f"fit_field: {name} has {int(bad.sum())} row(s) with non-finite values (NaN or inf) at "
+                            f"{_bad_rows(bad).replace('data row', 'row')} (counting from 1); remove or repair those "
+                            f"rows before fitting.")
+
+
 def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = "mean",
               temperature_terms: bool | str = "auto", covariance: str = "white", run=None,
               prior: FieldPrior = FieldPrior(), keep=None, start: "FieldFit | None" = None,
@@ -483,10 +501,17 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     t = np.asarray(t, np.float64).reshape(-1)
     target = np.asarray(target, np.float64)
     kp = np.ones(len(u), bool) if keep is None else np.asarray(keep, bool).reshape(-1)
+    _check_fit_inputs(u, t, target, kp)
     if temperature_terms == "auto":
         temperature_terms = bool(np.ptp(t[kp]) >= 1.0)
     t0v = float(np.mean(t[kp])) if t0 == "mean" else float(t0)
     model = FieldModel(measurement, t0=t0v, temperature=bool(temperature_terms))
+    n_kept = int(kp.sum())
+    if n_kept * measurement.per_row <= model.n_params:
+        from bayesmag._src.core.data import DataError
+        res = f" ({n_kept * measurement.per_row} residuals)" if measurement.per_row > 1 else ""
+        raise DataError(f"fit_field: {n_kept} rows{res} but the field model has {model.n_params} parameters: a fit "
+                        f"needs more rows than parameters (many more for a useful calibration).")
     theta0 = _init(model, u[kp], t[kp], target[kp]) if start is None else np.asarray(start.theta, np.float64)
     mu, sd = model.prior(prior, u[kp])
     ms, uj, tj, yj = _static(model), jnp.asarray(u), jnp.asarray(t - t0v), jnp.asarray(target)
