@@ -39,6 +39,12 @@ def test_field_export_reproduces_the_fit_at_tref(tmp_path):
     u = res["stage"].train.b_meas[:50]
     t = np.full(50, doc["temperature_C"])
     assert np.allclose(apply_magcal(np.array(doc["A"]), np.array(doc["b"]), u), fit.calibrate(u, t), atol=1e-8)
+    # the accuracy table is on the run's held-out rows (it said "the run has no held-out rows"), with each form's |B|
+    # error beside its per-component one (which carries the gauge rotation a magnitude fit does not determine)
+    acc = json.loads((tmp_path / "f" / "calibration.export.json").read_text())["accuracy"]
+    assert acc["rows"] == "held-out (test) rows" and acc["n_rows"] == res["stage"].test.n > 0
+    px4 = acc["formats"]["px4"]
+    assert px4["magnitude_vs_full_model"] < max(px4["vs_full_model"].values())
 
 
 @pytest.mark.parametrize("over, key", [("measurement.kind=\"magnitude\"", "measurement.kind"),
