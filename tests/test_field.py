@@ -380,3 +380,24 @@ def test_fit_field_refuses_nan_rows_and_too_few_rows(case, match):
         u, t, f, meas = u[:8], t[:8], c.data.b_ref[:8], Vector()
     with pytest.raises(DataError, match=match):
         fit_field(u, t, f, meas)
+
+
+def test_level_turns_without_tilt_are_refused_as_planar():
+    """Level turns with no tilt: the readings span a plane, and a magnitude fit shrank the field to a constant
+    (gains 0.03 / 0.03 / 0.001, heading error 24 deg, magnitude 'RMSE' 8e-5 uT, coverage 100 %) without a word.
+    ``fit_field`` now refuses it (``PLANAR_RATIO``): the readings' spread along their thinnest direction, net of
+    temperature-driven change, is 1.0-1.1x the noise for flat turns (constant or ramped temperature), and 1.8x with
+    0.25 deg of tilt, which fits well (heading 0.12 deg in simulation)."""
+    from bayesmag._src.core.data import DataError
+    from bayesmag._src.core.field import PLANAR_ASPECT, PLANAR_RATIO, planar_spread
+    from bayesmag._src.core.field_sim import field_campaign_from_config
+    for temps in ([20.0, 20.0], [15.0, 40.0]):
+        flat = field_campaign_from_config({"kind": "level_turns", "n": 1500, "tilt_deg": 0.0, "seed": 1,
+                                           "temperature": temps}).data
+        ratio, _, _, aspect = planar_spread(flat.b_meas, flat.temperature, flat.run)
+        assert ratio < PLANAR_RATIO and aspect > PLANAR_ASPECT
+        with pytest.raises(DataError, match="span a plane"):
+            fit_field(flat.b_meas, flat.temperature, np.full(flat.n, 50.0), Constant(50.0))
+        tilted = field_campaign_from_config({"kind": "level_turns", "n": 1500, "tilt_deg": 0.25, "seed": 1,
+                                             "temperature": temps}).data
+        assert planar_spread(tilted.b_meas, tilted.temperature, tilted.run)[0] > 1.5

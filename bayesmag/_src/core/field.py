@@ -464,6 +464,43 @@ def _check_fit_inputs(u, t, target, keep) -> None:
                             f"rows before fitting.")
 
 
+#: a magnitude recording whose readings' spread along their thinnest direction (temperature-driven change removed)
+#: is under this many times the reading noise spans a plane: level turns without tilt (ratio 1.0) fitted gains of
+#: 0.03 / 0.03 / 0.001 with a 24 deg heading error and 100 % "coverage"; 0.25 deg of tilt gives 1.8 and fits well
+PLANAR_RATIO = 1.3
+
+
+#: ... and the plane is at least this many times wider than that spread (sd along the widest direction / thinnest
+#: raw sd): a recording that barely moves, or a few scattered rows, is no plane (flat turns: 360x; Belsten: 1.8x)
+PLANAR_ASPECT = 100.0
+
+
+def planar_spread(u, t, run=None) -> tuple[float, float, float, float]:
+    """``(ratio, sd, noise, aspect)`` of the readings ``u`` along their thinnest direction (smallest eigenvector of their
+    covariance): the sd after removing a per-run level, a linear temperature trend and the gains' temperature drift
+    (temperature, centred within each run, times each reading), the noise as the sd of
+    first differences within runs over sqrt(2), their ratio (1 when that direction holds noise only), and the
+    aspect: the widest direction's sd over the thinnest one's."""
+    u = np.asarray(u, np.float64)
+    run = np.zeros(len(u), int) if run is None else np.asarray(run).reshape(-1)
+    w, V = np.linalg.eigh(np.cov(u.T))
+    p = u @ V[:, 0]
+    runs = np.unique(run)
+    t = np.asarray(t, np.float64)
+    tc = t.copy()
+    for r in runs:                   # within each run: a run held at one temperature has none of this change
+        tc[run == r] -= t[run == r].mean()
+    # temperature-driven change: a level trend and the gains' drift (tc times each reading), not a field direction
+    X = np.column_stack([(run == r).astype(float) for r in runs] + [tc] + [tc * (u[:, j] - u[:, j].mean())
+                                                                         for j in range(3)])
+    resid = p - X @ np.linalg.lstsq(X, p, rcond=None)[0]
+    d = np.diff(p)[run[1:] == run[:-1]]
+    noise = float(np.std(d) / np.sqrt(2)) if d.size > 1 else 0.0
+    sd = float(np.std(resid))
+    aspect = float(np.sqrt(max(w[-1], 0.0) / max(w[0], 1e-300)))
+    return (sd / noise if noise > 0 else np.inf), sd, noise, aspect
+
+
 def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = "mean",
               temperature_terms: bool | str = "auto", covariance: str = "white", run=None,
               prior: FieldPrior = FieldPrior(), keep=None, start: "FieldFit | None" = None,
@@ -502,6 +539,16 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     target = np.asarray(target, np.float64)
     kp = np.ones(len(u), bool) if keep is None else np.asarray(keep, bool).reshape(-1)
     _check_fit_inputs(u, t, target, kp)
+    if diagnostics and measurement.per_row == 1 and kp.sum() > 3:
+        ratio, sd, noise, aspect = planar_spread(u[kp], t[kp], None if run is None else np.asarray(run).reshape(-1)[kp])
+        if ratio < PLANAR_RATIO and aspect > PLANAR_ASPECT:
+            from bayesmag._src.core.data import DataError
+            raise DataError(f"The readings span a plane: along their thinnest direction they vary by {sd:.3g} uT (sd), "
+                            f"{ratio:.2f}x the reading noise ({noise:.3g} uT). A magnitude (or scalar) reference then "
+                            f"cannot fix the gain and offset across that plane: the fit can shrink the field to a "
+                            f"constant and still match |B| (level turns without any tilt). Record with some tilt "
+                            f"(0.5 deg is enough in simulation) or a 3-D dance, or calibrate against a vector "
+                            f"reference; docs/field.md.")
     if temperature_terms == "auto":
         temperature_terms = bool(np.ptp(t[kp]) >= 1.0)
     t0v = float(np.mean(t[kp])) if t0 == "mean" else float(t0)
