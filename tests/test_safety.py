@@ -454,6 +454,27 @@ def test_duplicate_timestamps_found_when_not_adjacent():
     validate(CalibrationData(d.b_meas, d.temperature, d.b_ref, d.time[::-1].copy(), d.run))  # unsorted, distinct: fine
 
 
+def test_unsorted_rows_are_refused_where_the_job_takes_them_in_time_order():
+    """``bayesmag run`` accepted rows out of time order whatever the job: a time-block split then took scattered rows
+    as a block (a random split in disguise), a thermal lag ran backwards. Now refused where something needs the
+    order (the time-block split, a series model, an autocorrelation-aware covariance, the session model's AR(1));
+    a random split of a plain model still accepts them."""
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag._src.app.job import build_model, time_order_reasons
+    from bayesmag._src.core.data import check_time_order
+    d = _recording(60)
+    shuffled = CalibrationData(d.b_meas, d.temperature, d.b_ref, d.time[::-1].copy(), d.run)
+    raw = lambda **k: config_from_dict({"data": {"source": "simulated"}, **k})  # noqa: E731
+    for cfg in (raw(split={"kind": "time_blocks"}), raw(physics={"covariance": "ar1"}),
+                raw(uq={"transfer": "hierarchical"}), raw(physics={"extra_terms": [{"name": "thermal_lag"}]})):
+        reasons = time_order_reasons(cfg, build_model(cfg, d))
+        with pytest.raises(DataError, match=r"not sorted within run .*Needed in time order by: the"):
+            check_time_order(shuffled, reasons)
+        check_time_order(d, reasons)                                       # sorted: fine
+    plain = raw(split={"kind": "random"})
+    check_time_order(shuffled, time_order_reasons(plain, build_model(plain, d)))
+
+
 # --------------------------------------------------------------------------- 10. unidentifiable fits
 
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.app.config import Config, ConfigError, config_error, to_toml
-from bayesmag._src.core.data import AXES, CalibrationData, DataError, make_split, validate
+from bayesmag._src.core.data import AXES, CalibrationData, DataError, check_time_order, make_split, validate
 from bayesmag._src.app.inputs import load_data
 from bayesmag._src.core.fit import PhysicsFit
 from bayesmag._src.core.physics import PhysicsModel
@@ -45,6 +45,16 @@ def build_model(cfg: Config, train: CalibrationData) -> PhysicsModel:
                                covariance=p.covariance).model(train)
     except (ValueError, TypeError) as e:
         raise ConfigError(f"[physics] extra_terms: {e}") from None
+
+
+def time_order_reasons(cfg: Config, model: PhysicsModel) -> list[str]:
+    """What in this job takes the rows in time order (so unsorted rows are refused): the time-block split, a model
+    whose rows depend on their neighbours, an autocorrelation-aware covariance, the session model's AR(1) noise."""
+    return [cfg.split.kind == "time_blocks" and "the time-block split",
+            model.needs_series and "the model's " + ", ".join(
+                [c.name for c in model.transforms] + [t.name for t in model.terms if t.history]),
+            cfg.physics.covariance != "white" and f"the {cfg.physics.covariance} covariance",
+            str(cfg.uq.transfer).startswith("hierarchical") and "the session model's AR(1) noise"]
 
 
 def resolve_sigma_in(cfg: Config, train: CalibrationData) -> tuple[np.ndarray, str]:
@@ -156,6 +166,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
     validate(data, n_params=model.n_params, origin=data.source,
              need_temperature_variation=cfg.physics.temperature_terms,
              allow_duplicate_times=False)
+    check_time_order(data, time_order_reasons(cfg, model), origin=data.source)
     if train.n < model.n_params + 1:
         raise ConfigError(f"[split] leaves {train.n} training rows of {data.n} ({split.description}), but the physics "
                           f"model has {model.n_params} parameters per axis: at least {model.n_params + 1} training rows "

@@ -422,6 +422,19 @@ def validate(
         _check_time(data, where, duplicates=True, order=False)
 
 
+def check_time_order(data: CalibrationData, reasons, *, origin: str = "") -> None:
+    """Rows in time order within each run, where something takes them so (``reasons``: what, e.g. "the time-block
+    split"); nothing to check without a reason. Raises :class:`DataError` naming the first row out of order."""
+    reasons = [r for r in reasons if r]
+    if not reasons:
+        return
+    where = f" in {origin}" if origin else ""
+    try:
+        _check_time(data, where, duplicates=False, order=True)
+    except DataError as e:
+        raise DataError(f"{e} (Needed in time order by: {'; '.join(reasons)}.)") from None
+
+
 def validate_for_discover(data: CalibrationData, *, origin: str = "") -> None:
     """The checks ``discover`` needs before it starts: finite, plausible values in uT and Celsius, rows sorted
     by time within each run. Raises :class:`DataError` naming the row and column."""
