@@ -127,3 +127,17 @@ def test_belsten_loader(belsten):
     validate(d)   # spread timestamps: no duplicates, all finite, Celsius
     np.testing.assert_allclose(np.sqrt(np.mean((d.b_ref - d.b_meas) ** 2, axis=0)), [3.3614, 2.1746, 1.5968],
                                atol=5e-5)   # the paper's Table 5 "raw" row
+
+
+def test_a_header_without_rows_is_one_error_and_no_numpy_warning(tmp_path):
+    """A CSV with a header and no rows: one DataError (numpy's "input contained no data" warning was printed first)."""
+    import warnings
+
+    from bayesmag._src.core.data import DataError, load_csv
+    p = tmp_path / "empty.csv"
+    p.write_text("time,run,bx_meas,by_meas,bz_meas,temperature\n")
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        with pytest.raises(DataError, match="header but no data rows"):
+            load_csv(p, require_reference=False)
+    assert not w, [str(x.message) for x in w]

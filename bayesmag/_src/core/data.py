@@ -526,7 +526,10 @@ def _read_table(path: Path, wanted: set[str] | None = None) -> tuple[list[str], 
     if not header:
         raise DataError(f"{path} is empty; expected a header row and data rows.")
     try:
-        arr = np.loadtxt(path, delimiter=delim, skiprows=1, ndmin=2, dtype=np.float64, encoding="utf-8-sig")
+        import warnings
+        with warnings.catch_warnings():     # a header without rows: our own one-line error below, not numpy's warning
+            warnings.filterwarnings("ignore", message="loadtxt: input contained no data")
+            arr = np.loadtxt(path, delimiter=delim, skiprows=1, ndmin=2, dtype=np.float64, encoding="utf-8-sig")
         if arr.shape[0] > 0 and arr.shape[1] == len(header):
             return header, arr
     except (ValueError, UnicodeDecodeError):
