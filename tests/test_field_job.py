@@ -49,6 +49,8 @@ def test_field_export_reproduces_the_fit_at_tref(tmp_path):
 
 @pytest.mark.parametrize("over, key", [("measurement.kind=\"magnitude\"", "measurement.kind"),
                                        ("measurement.field=-3.0", "measurement.field"),
+                                       ("measurement.field=50000.0", "measurement.field"),    # nT typed as uT
+                                       ("measurement.field=0.5", "measurement.field"),        # gauss typed as uT
                                        ("measurement.exports=[\"pdf\"]", "measurement.exports")])
 def test_bad_measurement_keys_are_named(over, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

@@ -363,6 +363,12 @@ def _check_measurement(m: MeasurementConfig) -> None:
         raise ConfigError(f"Config key 'measurement.field' = {m.field!r} must be a magnitude in uT or \"free\".")
     if not isinstance(m.field, str) and not 0 < m.field < 1e6:
         raise ConfigError(f"Config key 'measurement.field' = {m.field!r} must be a positive magnitude in uT.")
+    if not isinstance(m.field, str):
+        try:                          # the same plausibility check as the library's (nT or gauss typed as uT)
+            from bayesmag._src.core.measurement import measurement_from_spec
+            measurement_from_spec("constant", m.field)
+        except ValueError as e:
+            raise ConfigError(f"Config key 'measurement.field': {e}") from None
     if isinstance(m.temperature_terms, str) and m.temperature_terms != "auto":
         raise ConfigError(f"Config key 'measurement.temperature_terms' = {m.temperature_terms!r} must be true, "
                           "false or \"auto\".")

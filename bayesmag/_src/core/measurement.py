@@ -171,6 +171,11 @@ def measurement_from_spec(kind: str, field: float | str | None = None, reference
         f = float(field)
         if not (f > 0 and f < 1e6):
             raise ValueError(f"constant field {field!r} must be a positive magnitude in uT, or \"free\".")
+        lo, hi = 1.0, 2000.0          # the readings' plausible range (core.data._PLAUSIBLE_P99_UT)
+        if not lo <= f <= hi:
+            unit = "nT (x1000)" if f > hi else "mT (/1000) or gauss (/100)"
+            raise ValueError(f"constant field {field!r} is not a magnitude in uT (the Earth's field is 25-65 uT, a "
+                             f"calibration coil a few hundred): it looks like {unit}. Give it in uT.")
         return Constant(f)
     if kind == "scalar":
         if not 0 <= float(reference_sd) < 1e3:
