@@ -326,6 +326,9 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
         from bayesmag._src.app.apply import check_units, new_session_notes
         try:
             warns = check_units(cal, data) + new_session_notes(cal)
+            step = cal.domain.step_note(data) if data.n > 1 else None     # as the in-process apply
+            if step:
+                warns.append(step)
         except DataError as e:
             raise DataError(f"{where}: {' '.join(str(e).split())}") from None
         prev, nxt, note = _context(piece, index, df, data, cal, opts, pieces)
