@@ -539,16 +539,6 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     target = np.asarray(target, np.float64)
     kp = np.ones(len(u), bool) if keep is None else np.asarray(keep, bool).reshape(-1)
     _check_fit_inputs(u, t, target, kp)
-    if diagnostics and measurement.per_row == 1 and kp.sum() > 3:
-        ratio, sd, noise, aspect = planar_spread(u[kp], t[kp], None if run is None else np.asarray(run).reshape(-1)[kp])
-        if ratio < PLANAR_RATIO and aspect > PLANAR_ASPECT:
-            from bayesmag._src.core.data import DataError
-            raise DataError(f"The readings span a plane: along their thinnest direction they vary by {sd:.3g} uT (sd), "
-                            f"{ratio:.2f}x the reading noise ({noise:.3g} uT). A magnitude (or scalar) reference then "
-                            f"cannot fix the gain and offset across that plane: the fit can shrink the field to a "
-                            f"constant and still match |B| (level turns without any tilt). Record with some tilt "
-                            f"(0.5 deg is enough in simulation) or a 3-D dance, or calibrate against a vector "
-                            f"reference; docs/field.md.")
     if temperature_terms == "auto":
         temperature_terms = bool(np.ptp(t[kp]) >= 1.0)
     t0v = float(np.mean(t[kp])) if t0 == "mean" else float(t0)
@@ -559,6 +549,16 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
         res = f" ({n_kept * measurement.per_row} residuals)" if measurement.per_row > 1 else ""
         raise DataError(f"fit_field: {n_kept} rows{res} but the field model has {model.n_params} parameters: a fit "
                         f"needs more rows than parameters (many more for a useful calibration).")
+    if diagnostics and measurement.per_row == 1 and kp.sum() > 3:
+        ratio, sd, noise, aspect = planar_spread(u[kp], t[kp], None if run is None else np.asarray(run).reshape(-1)[kp])
+        if ratio < PLANAR_RATIO and aspect > PLANAR_ASPECT:
+            from bayesmag._src.core.data import DataError
+            raise DataError(f"The readings span a plane: along their thinnest direction they vary by {sd:.3g} uT (sd), "
+                            f"{ratio:.2f}x the reading noise ({noise:.3g} uT). A magnitude (or scalar) reference then "
+                            f"cannot fix the gain and offset across that plane: the fit can shrink the field to a "
+                            f"constant and still match |B| (level turns without any tilt). Record with some tilt "
+                            f"(0.5 deg is enough in simulation) or a 3-D dance, or calibrate against a vector "
+                            f"reference; docs/field.md.")
     theta0 = _init(model, u[kp], t[kp], target[kp]) if start is None else np.asarray(start.theta, np.float64)
     mu, sd = model.prior(prior, u[kp])
     ms, uj, tj, yj = _static(model), jnp.asarray(u), jnp.asarray(t - t0v), jnp.asarray(target)
