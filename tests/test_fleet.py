@@ -136,6 +136,12 @@ def test_fewer_than_40_sensors_skips_outliers_not_limits(small_fleet, tmp_path, 
     s = run_fleet(_cfg(tmp_path, figures=False, sensor_folders=False), tmp_path / "o", progress=False)
     assert not s["outlier_test"]["computed"] and "41" in s["outlier_test"]["reason"]
     assert s["outliers"] == [] and sorted(s["flagged"]) == sorted(small_fleet[0]["ground_truth"]["defective"])
+    # the report and the table say "not tested", not "no" (the test was not run)
+    report = (tmp_path / "o" / "fleet_report.md").read_text()
+    assert "| not tested |" in report and "| no |" not in report
+    import csv
+    rows = list(csv.DictReader(open(tmp_path / "o" / "fleet_table.csv")))
+    assert {r["outlier"] for r in rows} == {""}
 
 
 @pytest.mark.parametrize("raw, key", [

@@ -171,3 +171,30 @@ def test_unknown_likelihood_fails_before_any_work(tmp_path):
     with pytest.raises(ConfigError, match=r"unknown likelihood\(s\) \['cauchy'\]"):
         bayesmag.run_job(_cfg(network={"enabled": True, "likelihoods": ["cauchy"]},
                               data={"source": "nosuch"}), tmp_path / "o")   # the data error would come later
+
+
+def test_an_input_noise_estimate_above_the_residuals_is_warned_about(tmp_path):
+    """``sigma_in = "auto"`` takes second differences of the readings for noise. A field whose direction random-walks
+    0.02 rad per sample (4 Hz, noise 0.05 uT) read 0.17-0.37 uT: intervals 1.0-1.4 uT wide around a 0.05 uT RMSE and
+    100 % coverage, without a word. The propagated noise cannot exceed the residuals that hold it: over 2x the
+    residual sd is now a warning (the paper and quickstart configs stay under it)."""
+    from bayesmag._src.app.job import NOISE_EXCESS, input_noise_warning
+    rng = np.random.default_rng(0)
+    n = 1500
+    ph = np.cumsum(rng.normal(0, 0.02, (n, 2)), axis=0) + [1.0, 0.5]
+    b_true = 50 * np.stack([np.sin(ph[:, 0]) * np.cos(ph[:, 1]), np.sin(ph[:, 0]) * np.sin(ph[:, 1]),
+                            np.cos(ph[:, 0])], 1)
+    temp = 25 + 10 * np.sin(np.arange(n) / 200)
+    b_meas = b_true * 1.02 + 0.3 + rng.normal(0, 0.05, (n, 3))
+    rec = tmp_path / "walk.csv"
+    bayesmag.write_csv(CalibrationData(b_meas, temp, b_true, np.arange(n) * 0.25), rec)
+    raw = {"data": {"path": str(rec)}, "split": {"kind": "time_blocks", "test_fraction": 0.2},
+           "uq": {"method": "analytic"}, "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}}
+    m = bayesmag.run_job(config_from_dict(raw), tmp_path / "run")["metrics"]
+    assert any("input noise estimated from the readings" in w for w in m["warnings"]), m["warnings"]
+    alea = np.array(list(m["uq"]["mean_aleatoric"].values()))
+    assert np.all(alea > NOISE_EXCESS * 0.05)                       # the estimate is far above the true 0.05 uT
+    declared = {**raw, "uq": {"method": "analytic", "sigma_in": [0.05, 0.05, 0.05, 0.01]}}
+    m2 = bayesmag.run_job(config_from_dict(declared), tmp_path / "run2")["metrics"]
+    assert not any("input noise" in w for w in m2["warnings"]) and min(m2["physics"]["coverage"].values()) < 1.0
+    assert input_noise_warning("config: standard deviations", np.ones((3, 3)), None) is None

@@ -594,3 +594,15 @@ def test_low_field_from_the_library_with_a_declared_unit(frame):
     with pytest.raises(DataError, match="field_unit='uT'"):
         bayesmag.fit_physics(small)
     assert math.isfinite(float(bayesmag.fit_physics(small, field_unit="uT").theta[0, 0]))
+
+
+def test_one_field_column_out_of_range_is_named_not_called_nt(frame):
+    """One column 2000 uT off while the other two are plausible: the message said "looks like nT ... divide by 1000"
+    (wrong advice for a corrupt column or a broken unit); it now names the column and both readings."""
+    bad = frame.copy()
+    bad["bx_meas"] = bad["bx_meas"] + 2000.0
+    with pytest.raises(DataError, match=r"bx_meas reaches .* either that one column is corrupt") as e:
+        bayesmag.fit_physics(bad)
+    assert "by_meas" in str(e.value) and "bz_meas" in str(e.value)
+    with pytest.raises(DataError, match="looks like nT"):                 # all three scaled: still the unit
+        bayesmag.fit_physics(_scaled(frame, 1000.0))

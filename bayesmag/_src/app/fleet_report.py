@@ -31,7 +31,7 @@ def write_fleet_outputs(folder: Path, cfg, summary: dict, *, stages, sigma_in, i
         w.writerow(["id", "verdict", "fails_limits", "outlier", "max_abs_robust_z"] + lim + feat_names)
         for i, s in enumerate(summary["sensors"]):
             zr = s["max_abs_robust_z"]
-            w.writerow([s["id"], s["verdict"], ";".join(s["fails_limits"]), int(s["outlier"]),
+            w.writerow([s["id"], s["verdict"], ";".join(s["fails_limits"]), "" if zr is None else int(s["outlier"]),
                         "" if zr is None else f"{zr:.4g}"] + [f"{s['limits_quantities'][k]:.6g}" for k in lim]
                        + [f"{v:.8g}" for v in feats[i]])
     if cfg.figures:
@@ -121,7 +121,7 @@ def write_fleet_report(folder: Path, summary: dict) -> Path:
         for x in flagged:
             top = ", ".join(f"{q['quantity']} {q['z']:+.1f}" for q in x["outlying_quantities"]) or "-"
             kind = f" (planted: {gt['defective'][x['id']]})" if gt and x["id"] in gt["defective"] else ""
-            lines.append(f"| {x['id']}{kind} | {', '.join(x['fails_limits']) or '-'} | {'yes' if x['outlier'] else 'no'}"
+            lines.append(f"| {x['id']}{kind} | {', '.join(x['fails_limits']) or '-'} | {'not tested' if x.get('max_abs_robust_z') is None else 'yes' if x['outlier'] else 'no'}"
                          f" | {top} |")
     else:
         lines.append("None.")

@@ -286,6 +286,17 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
                                 f"(e.g. a magnetically shielded recording).")
             continue
         lo, hi = _PLAUSIBLE_P99_UT
+        if p99 > hi and b.shape[1] == 3:
+            per = np.percentile(np.abs(b[ok]), 99, axis=0)
+            names = [c.strip() for c in label[label.index("(") + 1:label.index(")")].split(",")] if "(" in label \
+                else ["x", "y", "z"]
+            if int((per > hi).sum()) == 1 and (per[per <= hi] >= lo).all():     # one column alone out of range
+                k = int(np.argmax(per))
+                rest = " and ".join(f"{n} {v:.3g}" for n, v in zip(names, per) if v <= hi)
+                raise DataError(f"In the {label}{where}, {names[k]} reaches {per[k]:.4g} (99th percentile of |value|) "
+                                f"while {rest} look like microtesla: either that one column is corrupt, offset or "
+                                f"mapped to the wrong column (check it), or the whole file is in nT with the field "
+                                f"held along that axis ({fix} (divide by 1000), or declare {declare.replace('uT', 'nT')}).")
         if p99 > hi:
             raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile of |component|), but bayesmag "
                             f"expects microtesla and a calibration field is at most a few hundred uT: the file looks "
