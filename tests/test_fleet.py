@@ -139,6 +139,7 @@ def test_fewer_than_40_sensors_skips_outliers_not_limits(small_fleet, tmp_path, 
     # the report and the table say "not tested", not "no" (the test was not run)
     report = (tmp_path / "o" / "fleet_report.md").read_text()
     assert "| not tested |" in report and "| no |" not in report
+    assert "| max_offset_ut | uT |" in report and "| O[x] | uT |" in report and "| Ks_x[x] | 1/C |" in report
     import csv
     rows = list(csv.DictReader(open(tmp_path / "o" / "fleet_table.csv")))
     assert {r["outlier"] for r in rows} == {""}

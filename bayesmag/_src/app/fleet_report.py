@@ -83,12 +83,26 @@ def _figures(folder: Path, cfg, summary: dict, z, flagged) -> None:
         plt.close(fig)
 
 
+#: units of the limit quantities and of the parameters (at t0, per output axis; T in C, field in uT)
+_LIMIT_UNITS = {"max_offset_ut": "uT", "max_gain_error": "1", "max_cross_axis": "1", "max_rmse_ut": "uT",
+                "min_coverage": "fraction", "max_offset_tempco": "uT/C"}
+_PARAM_UNITS = {"S": "1", "Ks": "1/C", "O": "uT", "Ko": "uT/C", "log_rmse": "ln uT"}
+
+
+def _unit(name: str) -> str:
+    """The unit of a limit quantity or a parameter column name such as ``Ks_y[x]``; '' where unknown."""
+    if name in _LIMIT_UNITS:
+        return _LIMIT_UNITS[name]
+    base = name.split("[")[0]
+    return _PARAM_UNITS.get(base, _PARAM_UNITS.get(base.split("_")[0], ""))
+
+
 def write_fleet_report(folder: Path, summary: dict) -> Path:
     """``fleet_report.md`` from ``fleet.json``'s content."""
     folder = Path(folder)
     s = summary
     lines = [f"# Fleet report: {s['name']}", "",
-             f"{s['n_sensors']} sensors; **{s['n_pass']} pass, {s['n_fail']} flagged** (a limit failed or an outlier "
+             f"{s['n_sensors']} sensor{'s' if s['n_sensors'] != 1 else ''}; **{s['n_pass']} pass, {s['n_fail']} flagged** (a limit failed or an outlier "
              f"against the fleet). Parameters at t0 = {s['t0']:g} C; intervals at level {s['level']:g}.", ""]
     net = s.get("network") or {}
     if net.get("enabled"):
@@ -106,14 +120,16 @@ def write_fleet_report(folder: Path, summary: dict) -> Path:
         lines += ["", f"Ground truth (simulated): {len(gt['defective'])} planted defective unit(s); flagged "
                       f"{len(gt['planted_flagged'])}, missed {gt['planted_missed'] or 'none'}, other units flagged "
                       f"{gt['false_flags'] or 'none'} -> {'exact' if gt['exact'] else 'NOT exact'}."]
-    lines += ["", "## Limits", "", "| quantity | limit | fleet median | p95 | worst | sensors failing |", "|---|---|---|---|---|---|"]
+    lines += ["", "## Limits", "", "| quantity | unit | limit | fleet median | p05 | p95 | worst | sensors failing |",
+              "|---|---|---|---|---|---|---|---|"]
     for k, lim in s["limits"].items():
         d = s["distribution"].get(f"limit:{k}")
         if d is None:
             continue
         n_fail = sum(k in x["fails_limits"] for x in s["sensors"])
         worst = d["min"] if k.startswith("min") else d["max"]
-        lines.append(f"| {k} | {lim:g} | {d['median']:.4g} | {d['p95']:.4g} | {worst:.4g} | {n_fail} |")
+        lines.append(f"| {k} | {_unit(k)} | {lim:g} | {d['median']:.4g} | {d['p05']:.4g} | {d['p95']:.4g} | "
+                     f"{worst:.4g} | {n_fail} |")
     lines += ["", "## Flagged sensors", ""]
     flagged = [x for x in s["sensors"] if x["verdict"] == "fail"]
     if flagged:
@@ -126,11 +142,11 @@ def write_fleet_report(folder: Path, summary: dict) -> Path:
     else:
         lines.append("None.")
     lines += ["", "## Parameter distribution over the fleet", "",
-              "| quantity | median | robust sd | p05 | p95 | min | max |", "|---|---|---|---|---|---|---|"]
+              "| quantity | unit | median | robust sd | p05 | p95 | min | max |", "|---|---|---|---|---|---|---|---|"]
     for k, d in s["distribution"].items():
         if k.startswith("limit:"):
             continue
-        lines.append(f"| {k} | {d['median']:.5g} | {d['robust_sd']:.3g} | {d['p05']:.5g} | {d['p95']:.5g} | "
+        lines.append(f"| {k} | {_unit(k)} | {d['median']:.5g} | {d['robust_sd']:.3g} | {d['p05']:.5g} | {d['p95']:.5g} | "
                      f"{d['min']:.5g} | {d['max']:.5g} |")
     figs = [f for f in ("fleet_limits.png", "fleet_outliers.png") if (folder / f).exists()]
     if figs:
