@@ -76,6 +76,15 @@ def is_apply_output(path) -> bool:
     return head.startswith("time,run,x_") and head.endswith(APPLY_HEADER_END)
 
 
+def refuse_training_recording(out, protected) -> None:
+    """:class:`DataError` when ``out`` is one of ``protected`` (the calibration's training recording)."""
+    from bayesmag._src.app.outdir import same_file
+    for p in protected:
+        if same_file(out, p):
+            raise DataError(f"--out {out} is the recording the calibration was trained on ({p}); it is never "
+                            f"overwritten. Give a new output file name.")
+
+
 def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, protected=()) -> Path:
     """Refuse an ``--out`` that would overwrite the recording, a file of the calibration, or a folder.
 
@@ -103,18 +112,16 @@ def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, pr
         raise DataError(f"--out {out} lies inside the calibration folder --model {model}; writing there could "
                         f"overwrite the calibration. Give an output file outside it.")
     if out.exists():
-        for p in protected:
-            if p is not None and Path(p).exists() and out.resolve() == Path(p).resolve():
-                raise DataError(f"--out {out} is the recording the calibration was trained on ({p}); it is never "
-                                f"overwritten. {fix}")
+        refuse_training_recording(out, protected)
         if read_only(out):
             raise DataError(f"--out {out} is read-only (no write permission); bayesmag never replaces a protected "
                             f"file. {fix}")
-        owner = None if is_apply_output(out) else run_file_owner(out)
+        ours = is_apply_output(out)
+        owner = None if ours else run_file_owner(out)
         if owner is not None:
             raise DataError(f"--out {out} is a file of the bayesmag run folder {owner}; replacing it would break that "
                             f"run, so it is never overwritten. {fix}")
-        if not force and not is_apply_output(out):
+        if not force and not ours:
             raise DataError(f"--out {out} exists and is not a file `bayesmag apply` wrote; bayesmag does not replace "
                             f"it. {fix} Or add --force to replace it.")
     parent = out.parent
@@ -147,11 +154,10 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
 
     t0 = time.perf_counter()
     check_apply_options(level, n_params, n_qmc)
-    check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
+    out_path = check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
     cal = load(model_dir)
-    out_path = check_apply_paths(model_dir, data_path, out_path, force=force,
-                                 protected=recording_paths((cal.config or {}).get("data")
-                                                           if isinstance(cal.config, dict) else None))
+    refuse_training_recording(out_path, recording_paths((cal.config or {}).get("data")
+                                                        if isinstance(cal.config, dict) else None))
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False)

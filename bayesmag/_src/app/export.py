@@ -730,10 +730,8 @@ def is_export(path: str | Path) -> bool:
 
 
 def _same(a: Path, b) -> bool:
-    try:
-        return b is not None and Path(b).exists() and a.resolve() == Path(b).resolve()
-    except OSError:
-        return False
+    from bayesmag._src.app.outdir import same_file
+    return same_file(a, b)
 
 
 def check_export_out(run_dir: str | Path, out: str | Path, *, inputs=(), force: bool = False,

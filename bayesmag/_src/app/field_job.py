@@ -113,12 +113,12 @@ def validate_field_data(data, f_ref=None, *, scalar_column: str = "") -> None:
     scalar reference column's unit checked like the readings, and rows in time order within each run: the
     time-block split and the folds of the conformal scale take contiguous rows as contiguous time (unsorted rows
     made them a random split). Raises :class:`DataError` (one line, naming the rows and the fix)."""
-    from bayesmag._src.core.data import _check_time, validate
+    from bayesmag._src.core.data import check_time_order, validate
     extra = () if f_ref is None else ((f"scalar reference column '{scalar_column or 'f_ref'}'",
                                        np.asarray(f_ref, np.float64).reshape(-1, 1)),)
     validate(data, n_params=0, need_reference=False, need_temperature_variation=False, origin=data.source,
              extra_fields=extra)
-    _check_time(data, f" in {data.source}" if data.source else "", duplicates=False, order=True)
+    check_time_order(data, ["the time-block split and the conformal folds"], origin=data.source)
 
 
 def field_n_params(measurement, temperature_terms, temperature) -> int:

@@ -84,6 +84,14 @@ def run_file_owner(path: str | Path) -> Path | None:
     return None
 
 
+def same_file(a, b) -> bool:
+    """True when ``b`` exists and is the file ``a`` (after resolving links)."""
+    try:
+        return b is not None and Path(b).exists() and Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return False
+
+
 def read_only(path: str | Path) -> bool:
     """True for an existing file with no write permission bit set (``chmod a-w``): a file its owner protected, which
     bayesmag never replaces, even for a user (such as root) whom the permission would not stop."""

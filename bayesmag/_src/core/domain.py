@@ -166,9 +166,5 @@ _rates = rates
 
 def sampling_step(data) -> float | None:
     """The median positive time step between consecutive rows of the same run (s); None without one."""
-    t, run = np.asarray(data.time, np.float64), np.asarray(data.run)
-    if t.size < 2:
-        return None
-    d = np.diff(t)[run[1:] == run[:-1]]
-    d = d[np.isfinite(d) & (d > 0)]
-    return float(np.median(d)) if d.size else None
+    from bayesmag._src.core.physics import median_step
+    return median_step(data.time, data.run)

@@ -419,9 +419,13 @@ class PhysicsModel:
         }
 
 
-def median_step(time) -> float | None:
-    """The median positive sampling step (s) of ``time``; None without one."""
+def median_step(time, run=None) -> float | None:
+    """The median positive sampling step (s) of ``time`` (with ``run``: between rows of the same run); None without
+    one."""
     steps = np.diff(np.asarray(time, np.float64))
+    if run is not None:
+        run = np.asarray(run).reshape(-1)
+        steps = steps[run[1:] == run[:-1]]
     steps = steps[np.isfinite(steps) & (steps > 0)]
     return float(np.median(steps)) if steps.size else None
 

@@ -157,11 +157,15 @@ def hybrid_residual_rows(train, nt: NetworkTransfer):
     not the error a new session inside the domain sees (and the domain check flags such rows of a new session).
     The AR(1) model then takes the kept rows of a run as consecutive (a run's gaps are not modelled).
     """
-    rows = _kept_rows(train, nt)
-    if rows is None:
+    return _residual_rows(train, nt, _kept_rows(train, nt))
+
+
+def _residual_rows(train, nt: NetworkTransfer, kept):
+    """``train``'s rows ``kept`` with reference B_ref - mu_fold (None for None)."""
+    if kept is None:
         return None
-    sub = train.subset(rows)
-    return dataclasses.replace(sub, b_ref=np.asarray(sub.b_ref, np.float64) - nt.rows["nn_oof"][rows])
+    sub = train.subset(kept)
+    return dataclasses.replace(sub, b_ref=np.asarray(sub.b_ref, np.float64) - nt.rows["nn_oof"][kept])
 
 
 def hybrid_session_model(train, fit, nt: NetworkTransfer, uq, series=None):
@@ -180,7 +184,7 @@ def hybrid_session_model(train, fit, nt: NetworkTransfer, uq, series=None):
     kept = _kept_rows(train, nt)
     if kept is None:
         return None
-    rows = hybrid_residual_rows(train, nt)
+    rows = _residual_rows(train, nt, kept)
     within = None
     if series is not None and fit.model.needs_series:
         recording, index = series[0], np.asarray(series[1])[kept]
