@@ -14,8 +14,10 @@ Example:
 from bayesmag._src.core.field import (INVARIANT_NAMES, FieldFit, FieldModel, FieldPrior, direction_coverage,
                                       field_target, fit_field, gauge_form, gaussian_scores, heading,
                                       heading_with_uncertainty, invariants)
+from bayesmag._src.core.field_calibration import FieldCalibration
 from bayesmag._src.core.measurement import MEASUREMENTS, Constant, MeasurementModel, Scalar, Vector, measurement_from_spec
 
 __all__ = ["MeasurementModel", "Vector", "Scalar", "Constant", "MEASUREMENTS", "measurement_from_spec",
            "FieldModel", "FieldPrior", "FieldFit", "fit_field", "field_target", "invariants", "INVARIANT_NAMES",
-           "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty", "gaussian_scores"]
+           "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty", "gaussian_scores",
+           "FieldCalibration"]

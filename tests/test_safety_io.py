@@ -640,16 +640,20 @@ def test_a_named_datasets_file_is_protected_as_the_training_recording(tmp_path, 
     assert f.read_text() == "stand-in\n"
 
 
-def test_a_field_run_given_to_apply_export_or_report_says_what_it_is(tmp_path, capsys):
-    """A field-calibration run folder has field_params.json and no calibration.json: apply and export said
-    "incomplete ... Re-run `bayesmag run`" (a rerun never adds one) and report "has no params.json"."""
+def test_a_field_run_given_to_export_or_report_says_what_it_is(tmp_path, capsys):
+    """A field-calibration run folder has field_params.json and no calibration.json: export said "incomplete ...
+    Re-run `bayesmag run`" (a rerun never adds one) and report "has no params.json". ``apply`` calibrates with it
+    (tests/test_field_apply.py); a damaged field_params.json is named there."""
     run = tmp_path / "field_run"
     run.mkdir()
     (run / "field_params.json").write_text("{}")
     rec = _recording(tmp_path / "rec.csv")
-    for argv in (["apply", "--model", str(run), "--data", str(rec), "--out", str(tmp_path / "o.csv"), "--no-progress"],
-                 ["export", str(run), "--format", "px4", "--out", str(tmp_path / "o.params")],
+    for argv in (["export", str(run), "--format", "px4", "--out", str(tmp_path / "o.params")],
                  ["report", str(run)]):
         assert main(argv) == 2, argv
         err = _err(capsys)
         assert "field-calibration run" in err and "Re-run" not in err, err
+    assert main(["apply", "--model", str(run), "--data", str(rec), "--out", str(tmp_path / "o.csv"),
+                 "--no-progress"]) == 2
+    err = _err(capsys)
+    assert "field_params.json lacks" in err and not (tmp_path / "o.csv").exists(), err

@@ -8,6 +8,7 @@ import pytest
 
 from bayesmag import ConfigError, load_config
 from bayesmag._src.app.study import run_study
+from bayesmag._src.pipeline.hybrid import still_improving
 
 CFG = Path(__file__).resolve().parents[1] / "configs/paper_simulation.toml"
 
@@ -31,12 +32,22 @@ def test_small_study(tmp_path):
     assert res["records"]["6000"]["network"]["batch_size"] == 256
     for f in ("simulation_study.md", "significance.md", "rmse_vs_size.png", "metrics.json"):
         assert (tmp_path / "s" / f).exists()
+    # 40 epochs: a network still improving at the last one is named in the table (it was not flagged)
+    md = (tmp_path / "s/simulation_study.md").read_text()
+    for size, r in res["records"].items():
+        short = [ax for ax, i in r["network"]["epochs_run"].items() if still_improving(i, 40)]
+        assert r["network"]["still_improving"] == short
+        assert (f"size {int(size):,}: the network of axis" in md) == bool(short)
 
 
-def test_study_needs_simulated_data(tmp_path):
-    cfg = load_config(CFG, ['data.source="belsten2023"'])
-    with pytest.raises(ConfigError, match="simulated"):
-        run_study(cfg, tmp_path / "s", progress=False)
-    cfg = load_config(CFG, ["study.sizes=[5000]", 'study.per_size={"5000" = {batch = 3}}'])
-    with pytest.raises(ConfigError, match=r"study.per_size.5000.*batch"):
-        run_study(cfg, tmp_path / "s", progress=False)
+@pytest.mark.parametrize("epochs_run, best_epoch, nan_epoch, max_epochs, flagged", [
+    (40, 39, -1, 40, True),      # best at the last epoch
+    (40, 36, -1, 40, True),      # in the last tenth (4 of 40)
+    (40, 35, -1, 40, False),     # just before it
+    (25, 24, -1, 40, False),     # early stopping ended it before max_epochs
+    (40, 39, 40, 40, False),     # a NaN stop has its own warning
+    (10, 8, -1, 10, True),       # the last 2 epochs at least
+])
+def test_still_improving_at_max_epochs(epochs_run, best_epoch, nan_epoch, max_epochs, flagged):
+    info = {"epochs_run": epochs_run, "best_epoch": best_epoch, "nan_epoch": nan_epoch}
+    assert still_improving(info, max_epochs) is flagged

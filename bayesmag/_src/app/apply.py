@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import os
 import time
-from pathlib import Path
 
 import numpy as np
 
+from bayesmag._src.app.apply_io import (APPLY_HEADER_END, check_apply_options, check_apply_paths,  # noqa: F401
+                                        check_units_against, is_apply_output, refuse_training_recording,
+                                        write_apply_csv, _check_magnitudes)
 from bayesmag._src.app.artifact import load
-from bayesmag._src.core.data import AXES, DataError, check_values
-from bayesmag._src.core.data import check_units as _check_units
-from bayesmag._src.core.domain import REASON_CODES
+from bayesmag._src.core.data import AXES, DataError
 
 __all__ = ["apply_calibration", "check_units", "check_apply_paths"]
 
@@ -25,12 +24,7 @@ def check_units(cal, data) -> list[str]:
     The check is :func:`~bayesmag._src.core.data.check_units`, shared with ``run``, ``discover`` and the library;
     measured and reference columns are both checked against the training range.
     """
-    finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
-    if not finite.any():
-        raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature: no row can be "
-                        "calibrated. Check the column mapping (--columns) and the file.")
-    return _check_units(data.subset(finite), train_max_ut=train_max_ut(cal), fix="Use --field-unit nT",
-                       temperature_fix="Use --temperature-unit K")
+    return check_units_against(data, train_max_ut(cal))
 
 
 def new_session_notes(cal) -> list[str]:
@@ -50,96 +44,6 @@ def train_max_ut(cal) -> float:
     return float(np.maximum(np.abs(np.asarray(cal.domain.low[:3])), np.abs(np.asarray(cal.domain.high[:3]))).max())
 
 
-def check_apply_options(level, n_params: int, n_qmc: int) -> None:
-    """``--level`` in (0, 1) (or None: the run's), ``--n-params`` and ``--n-qmc`` at least 2; else :class:`DataError`."""
-    if level is not None and not (isinstance(level, (int, float)) and 0 < level < 1):
-        raise DataError(f"--level {level} must be a number in (0, 1), e.g. --level 0.95 for 95 % intervals.")
-    for flag, v in (("--n-params", n_params), ("--n-qmc", n_qmc)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
-            raise DataError(f"{flag} {v} must be an integer of at least 2 (the PS-QMC draws), e.g. {flag} "
-                            f"{100 if flag == '--n-params' else 256}.")
-
-
-APPLY_HEADER_END = ",in_domain_reason,in_domain,valid"
-
-
-def is_apply_output(path) -> bool:
-    """True if ``path`` is a CSV that ``bayesmag apply`` wrote (its header: ``time,run,...,in_domain,valid``)."""
-    path = Path(path)
-    if path.is_symlink() or not path.is_file():
-        return False
-    try:
-        with open(path, "rb") as f:
-            head = f.readline(65536).decode("utf-8", "replace").strip()
-    except OSError:
-        return False
-    return head.startswith("time,run,x_") and head.endswith(APPLY_HEADER_END)
-
-
-def refuse_training_recording(out, protected) -> None:
-    """:class:`DataError` when ``out`` is one of ``protected`` (the calibration's training recording)."""
-    from bayesmag._src.app.outdir import same_file
-    for p in protected:
-        if same_file(out, p):
-            raise DataError(f"--out {out} is the recording the calibration was trained on ({p}); it is never "
-                            f"overwritten. Give a new output file name.")
-
-
-def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, protected=()) -> Path:
-    """Refuse an ``--out`` that would overwrite the recording, a file of the calibration, or a folder.
-
-    Never (even with ``force``): a folder, a symbolic link, the input recording, one of ``protected`` (the
-    calibration's training recording), a read-only file, a file of a bayesmag run folder (other than an earlier
-    apply output). Without ``force``: an existing file that ``bayesmag apply`` did not write
-    (:func:`is_apply_output`).
-    """
-    from bayesmag._src.app.outdir import read_only, run_file_owner
-
-    out, data, model = Path(out_path), Path(data_path), Path(model_dir)
-    fix = "Give a new output file name."
-    if out.is_dir():
-        raise DataError(f"--out {out} is a folder; give the path of the output CSV file, e.g. {out / 'calibrated.csv'}.")
-    if out.is_symlink():
-        raise DataError(f"--out {out} is a symbolic link; bayesmag does not write through links. {fix}")
-    if out.exists() and data.exists() and out.resolve() == data.resolve():
-        raise DataError(f"--out {out} is the input recording --data {data}; it would be overwritten. {fix}")
-    try:
-        out.resolve().relative_to(model.resolve())
-        inside = True
-    except ValueError:
-        inside = False
-    if inside:
-        raise DataError(f"--out {out} lies inside the calibration folder --model {model}; writing there could "
-                        f"overwrite the calibration. Give an output file outside it.")
-    if out.exists():
-        refuse_training_recording(out, protected)
-        if read_only(out):
-            raise DataError(f"--out {out} is read-only (no write permission); bayesmag never replaces a protected "
-                            f"file. {fix}")
-        ours = is_apply_output(out)
-        owner = None if ours else run_file_owner(out)
-        if owner is not None:
-            raise DataError(f"--out {out} is a file of the bayesmag run folder {owner}; replacing it would break that "
-                            f"run, so it is never overwritten. {fix}")
-        if not force and not ours:
-            raise DataError(f"--out {out} exists and is not a file `bayesmag apply` wrote; bayesmag does not replace "
-                            f"it. {fix} Or add --force to replace it.")
-    parent = out.parent
-    if not parent.is_dir():
-        raise DataError(f"--out {out}: the folder {parent} does not exist; create it or give another path.")
-    from bayesmag._src.app.outdir import partial_name, recover
-    recover(parent, files_only=True)        # partial output files of killed processes (never a live pid's)
-    probe = partial_name(out)
-    probe.touch()                           # unwritable, read-only or over-long: OSError now, not after the work
-    probe.unlink()
-    return out
-
-
-def _check_magnitudes(data) -> None:
-    """Absurd magnitudes (|B| > 1 T, |T| > 1e4 C) are corrupt data, refused naming the row (NaN rows stay allowed)."""
-    check_values(data, origin=data.source, allow_nonfinite=True)
-
-
 def apply_calibration(model_dir, data_path, out_path, *, level=None, method="auto", n_params=100, n_qmc=256,
                       temperature_unit="C", field_unit=None, columns=None, chunk_size=100_000,
                       progress=False, force: bool = False) -> dict:
@@ -152,6 +56,11 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     """
     from bayesmag._src.app.inputs import recording_paths
 
+    from bayesmag._src.app.artifact import is_field_run
+    if is_field_run(model_dir):
+        from bayesmag._src.app.field_apply import apply_field_calibration
+        return apply_field_calibration(model_dir, data_path, out_path, level=level, temperature_unit=temperature_unit,
+                                       field_unit=field_unit, columns=columns, force=force)
     t0 = time.perf_counter()
     check_apply_options(level, n_params, n_qmc)
     out_path = check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
@@ -182,25 +91,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
         warnings.append(f"{n_out} of {data.n} rows lie outside the calibration's training domain (in_domain=false): "
                         f"their values are extrapolation and their intervals may be far too narrow.")
     cols = [c for c in OUTPUT_COLUMNS if c in pred]
-    header = ["time", "run"] + [f"{a}_{c}" for a in AXES for c in cols] + ["in_domain_reason", "in_domain", "valid"]
-    mats = [data.time[:, None], data.run[:, None].astype(np.float64)]
-    for a in range(3):
-        mats += [pred[c][:, a:a + 1] for c in cols]
-    # the reason as a bit code (the file stays all-numeric): sum of REASON_CODES, 0 inside or invalid
-    code = np.array([sum(REASON_CODES[k] for k in w.split(";") if k in REASON_CODES) for w in pred["in_domain_reason"]])
-    mats += [code[:, None].astype(np.float64), pred["in_domain"][:, None].astype(np.float64),
-             pred["valid"][:, None].astype(np.float64)]
-    mat = np.concatenate(mats, axis=1)
-    fmt = ["%.6f", "%d"] + ["%.8g"] * (mat.shape[1] - 5) + ["%d", "%d", "%d"]
-    tmp = out_path.with_name(f".{out_path.name}.partial-{os.getpid()}")
-    try:
-        with open(tmp, "w") as f:
-            f.write(",".join(header) + "\n")
-            for lo in range(0, data.n, 200_000):
-                np.savetxt(f, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
-        tmp.replace(out_path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_apply_csv(out_path, data, [(f"{a}_{c}", pred[c][:, i]) for i, a in enumerate(AXES) for c in cols], pred)
     summary = {"n_rows": data.n, "n_valid": int(pred["valid"].sum()), "n_outside_domain": n_out,
                "outside_domain_by_reason": {k: int(np.sum(pred["in_domain_reason"][pred["valid"]] == k))
                                             for k in sorted(set(pred["in_domain_reason"][pred["valid"]])) if k},

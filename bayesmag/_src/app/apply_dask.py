@@ -417,6 +417,10 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     from bayesmag._src.app.artifact import load
     from bayesmag._src.app.outdir import reserve, staging_dir
 
+    from bayesmag._src.app.artifact import is_field_run
+    if is_field_run(model_dir):
+        raise DataError(f"{model_dir} is a field-calibration run: `bayesmag apply` calibrates one CSV or Parquet file "
+                        f"with it (--data FILE, no --scheduler); applying it to an archive on Dask is not built yet.")
     t0 = time.perf_counter()
     out = _check_paths(model_dir, data, out)
     cal = load(model_dir)

@@ -319,6 +319,14 @@ def load(path: str | Path) -> Calibration:
     Every field is checked (:func:`validate_artifact`); a damaged, tampered or unfinished
     calibration raises :class:`ArtifactError` naming the file and field, never a wrong result.
     """
+    path = check_run_folder(path)
+    field_run_error(path, ArtifactError)
+    return read_calibration(path)
+
+
+def check_run_folder(path: str | Path, holds: str = "calibration.json") -> Path:
+    """``path`` as a finished run folder: a folder, not a staging one, its marker (if any) complete; else
+    :class:`ArtifactError` saying what to give instead."""
     from bayesmag._src.app.outdir import is_staging_name, marker_status
 
     path = Path(path)
@@ -326,7 +334,7 @@ def load(path: str | Path) -> Calibration:
         old = sorted(path.parent.glob(f".{path.name}.old-*")) if not path.exists() else []
         hint = (f" An interrupted run left the earlier result in {old[0]}; the next bayesmag run into "
                 f"{path.parent} restores it (or rename it yourself)." if old else "")
-        raise ArtifactError(f"{path} is not a folder; give the run folder that holds calibration.json.{hint}")
+        raise ArtifactError(f"{path} is not a folder; give the run folder that holds {holds}.{hint}")
     if is_staging_name(path.name):
         raise ArtifactError(f"{path} is a temporary folder of an unfinished or interrupted bayesmag run, not a "
                             f"calibration; give the run folder itself (re-run `bayesmag run` if it is missing).")
@@ -334,19 +342,45 @@ def load(path: str | Path) -> Calibration:
     if mark is not None and not mark.get("complete"):
         raise ArtifactError(f"{path} was not finished (its .bayesmag-run marker says incomplete); re-run "
                             f"`bayesmag run` to write a full calibration.")
-    field_run_error(path, ArtifactError)
-    return read_calibration(path)
+    return path
+
+
+def is_field_run(path) -> bool:
+    """True for a field-calibration run folder (``field_params.json``, no vector ``calibration.json``)."""
+    path = Path(path)
+    return (path / "field_params.json").exists() and not (path / "calibration.json").exists()
+
+
+def load_field(path: str | Path):
+    """The :class:`~bayesmag._src.core.field_calibration.FieldCalibration` a field-calibration run wrote into
+    folder ``path`` (``field_params.json``); :class:`ArtifactError` naming the file and what is wrong."""
+    from bayesmag._src.core.field_calibration import FieldCalibration
+
+    path = check_run_folder(path, "field_params.json")
+    j = path / "field_params.json"
+    if not j.exists():
+        raise ArtifactError(f"{path} holds no field_params.json: it is not a field-calibration run"
+                            + (" (it holds calibration.json: load it with bayesmag.load)."
+                               if (path / "calibration.json").exists() else "."))
+    try:
+        doc = json.loads(j.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ArtifactError(f"{j} is not valid JSON ({e}); the file is damaged.") from None
+    try:
+        return FieldCalibration.from_json(doc)
+    except ValueError as e:
+        raise ArtifactError(f"{j}: {e}") from None
 
 
 def field_run_error(path, error) -> None:
     """Raise ``error`` for a field-calibration run folder (``field_params.json``, no vector calibration): re-running
     does not give it a ``calibration.json`` (the message said so), so say what it is and what to use instead."""
-    path = Path(path)
-    if (path / "field_params.json").exists() and not (path / "calibration.json").exists():
+    if is_field_run(path):
         raise error(f"{path} is a field-calibration run (calibration against |B| or a scalar reference, "
-                    f"field_params.json): `bayesmag apply`, `export` and `report` take a calibration against a vector "
+                    f"field_params.json): `bayesmag export` and `report` take a calibration against a vector "
                     f"reference. The run folder already holds its exports (calibration.export.json with the full "
-                    f"model, calibration.h, .params, .parm, .magcal.json) and its report.md; docs/field.md.")
+                    f"model, calibration.h, .params, .parm, .magcal.json) and its report.md; `bayesmag apply` "
+                    f"calibrates a new recording with it; docs/field.md.")
 
 
 def _check_version(v, j: Path, writer) -> None:

@@ -199,6 +199,11 @@ def _report_apply(summary: dict) -> int:
         m = summary["metrics"]
         print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
               + f"   {summary['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
+    if summary.get("magnitude_metrics"):
+        m = summary["magnitude_metrics"]
+        print(f"  reference magnitude from {m['reference']}: |B| RMSE {m['rmse']:.4g} uT, mean error "
+              f"{m['mean_error']:+.3g} uT, {summary['level']:.0%} coverage {m['coverage']:.1%}"
+              + ("" if m["coverage_in_domain"] is None else f" ({m['coverage_in_domain']:.1%} in domain)"))
     return 0
 
 
@@ -310,7 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_run)
 
     a = sub.add_parser("apply", help="apply a saved calibration to a recording (reference columns optional)")
-    a.add_argument("--model", required=True, help="run folder written by `bayesmag run`")
+    a.add_argument("--model", required=True, help="run folder written by `bayesmag run` (a vector or a field "
+                                                    "calibration; a field run gives the calibrated field and its "
+                                                    "magnitude interval)")
     a.add_argument("--data", required=True, help="canonical CSV (time,run,bx_meas,by_meas,bz_meas,temperature[,*_ref])")
     a.add_argument("--out", required=True, help="output CSV")
     a.add_argument("--level", type=float, default=None, help="central interval level (default: the run's)")

@@ -25,7 +25,8 @@ _RATE_NAMES = ("dbx_dt", "dby_dt", "dbz_dt", "dT_dt")
 #: Reason of every column of :meth:`Domain.outside`.
 REASONS = ("field_range",) * 3 + ("temperature",) + ("field_rate",) * 3 + ("temperature_rate",)
 #: Bit of every reason in the numeric ``in_domain_reason`` column of ``bayesmag apply`` output.
-REASON_CODES = {"field_range": 1, "temperature": 2, "field_rate": 4, "temperature_rate": 8}
+REASON_CODES = {"field_range": 1, "temperature": 2, "field_rate": 4, "temperature_rate": 8,
+                "magnitude": 16}      # magnitude: a field calibration's predicted |B| outside training's
 #: Floor of the margin on the rate limits: 0.5 uT/s for the field, 0.05 C/s for temperature.
 RATE_FLOOR = (0.5, 0.5, 0.5, 0.05)
 

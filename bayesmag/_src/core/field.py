@@ -407,7 +407,8 @@ class FieldFit:
             "temperature_terms": self.model.temperature,
             "gauge": gauge_text(self.model.measurement),
             "param_names": list(self.param_names), "theta": self.theta.tolist(), "std": self.std.tolist(),
-            "prior_sd": self.prior_sd.tolist(),
+            "prior_sd": self.prior_sd.tolist(), "prior_mean": self.prior_mean.tolist(),
+            "cov": np.asarray(self.cov).tolist(),
             "s2": self.s2, "rho1": self.rho1, "inflation": self.inflation, "n": self.n,
             "converged": self.converged, "n_steps": self.n_steps, "covariance": self.covariance_method,
             "reference_sd": self.model.measurement.reference_sd, "weighting": self.weighting, "kappa2": self.kappa2,
@@ -417,6 +418,53 @@ class FieldFit:
                                                        inv["identified"], inv["why"])},
             "direction_coverage": self.coverage, "notes": list(self.notes),
         }
+
+    @classmethod
+    def from_json(cls, doc: dict) -> "FieldFit":
+        """The fit :meth:`to_json` wrote (``field_params.json``), every array's shape checked against the model.
+
+        Raises ``ValueError`` naming the key (a file written before ``cov`` was saved says to re-run).
+
+        Example:
+          >>> from bayesmag.simulate import simulate_field
+          >>> c = simulate_field("dance", n=400, seed=0)
+          >>> fit = fit_field(c.data.b_meas, c.data.temperature, c.f_ref, Scalar())
+          >>> bool(np.allclose(FieldFit.from_json(fit.to_json()).calibrate(c.data.b_meas[:3], c.data.temperature[:3]),
+          ...                  fit.calibrate(c.data.b_meas[:3], c.data.temperature[:3])))
+          True
+        """
+        from bayesmag._src.core.measurement import measurement_from_spec
+        if not isinstance(doc, dict):
+            raise ValueError("a field calibration must be a JSON object (field_params.json)")
+        missing = [k for k in ("measurement", "t0", "temperature_terms", "theta", "cov", "s2") if k not in doc]
+        if missing:
+            hint = (" (saved before bayesmag stored the covariance: re-run `bayesmag run` on the field config)"
+                    if missing == ["cov"] else "")
+            raise ValueError(f"field_params.json lacks {missing}{hint}")
+        m = doc["measurement"]
+        try:
+            meas = measurement_from_spec(m["name"], m.get("field"), m.get("reference_sd", 0.0) or 0.0)
+            model = FieldModel(meas, t0=float(doc["t0"]), temperature=bool(doc["temperature_terms"]))
+            theta = np.asarray(doc["theta"], np.float64)
+            cov = np.asarray(doc["cov"], np.float64)
+            p = model.n_params
+            prior_mean = np.asarray(doc.get("prior_mean", np.zeros(p)), np.float64)
+            prior_sd = np.asarray(doc.get("prior_sd", np.ones(p)), np.float64)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"field_params.json: measurement/t0/theta/cov are not readable ({e})") from None
+        for key, a, shape in (("theta", theta, (p,)), ("cov", cov, (p, p)), ("prior_mean", prior_mean, (p,)),
+                              ("prior_sd", prior_sd, (p,))):
+            if a.shape != shape or not np.isfinite(a).all():
+                raise ValueError(f"field_params.json: '{key}' must be {shape} finite numbers for the "
+                                 f"{m['name']} model's {p} parameters, got shape {a.shape}")
+        s2 = float(doc["s2"])
+        if not (math.isfinite(s2) and s2 >= 0):
+            raise ValueError(f"field_params.json: 's2' = {doc['s2']!r} must be a noise variance >= 0")
+        return cls(model, theta, cov, prior_mean, prior_sd, s2, float(doc.get("rho1", 0.0)),
+                   float(doc.get("inflation", 1.0)), int(doc.get("n", 0)), bool(doc.get("converged", True)),
+                   int(doc.get("n_steps", 0)), str(doc.get("covariance", "white")),
+                   dict(doc.get("direction_coverage") or {}), tuple(doc.get("notes", ())),
+                   float(doc.get("kappa2", 0.0)), str(doc.get("weighting", "gain")))
 
 
 @functools.partial(jax.jit, static_argnums=(0,))

@@ -122,7 +122,7 @@ def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: 
                    ref_sd: float = 0.01, temperature: tuple[float, float] = (20.0, 20.0),
                    temperatures: tuple[float, float] = (15.0, 40.0), t0: float = 25.0, vehicle: bool = True,
                    tilt_deg: float = 3.0, n_orient: int = 12, field_variation: float = 0.0,
-                   sample_rate: float = 10.0) -> FieldCampaign:
+                   sample_rate: float = 10.0, sensor_seed: int | None = None) -> FieldCampaign:
     """One simulated field campaign (all draws from ``seed``).
 
     Args:
@@ -134,15 +134,19 @@ def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: 
       tilt_deg: tilt amplitude of level turns. n_orient: attitudes of ``few_orientations``.
       field_variation: relative amplitude of a slow change of the field magnitude along the path
         (a scalar reference sees it; a ``constant`` model does not).
+      sensor_seed: draw the sensor and vehicle (S, Ks, O, Ko, hard and soft iron) from this seed and the motion
+        and noise from ``seed``: campaigns with one ``sensor_seed`` and different ``seed`` are new recordings of
+        one sensor (None: everything from ``seed``, as before).
     """
     rng = np.random.default_rng(seed)
-    S_s = np.eye(3) + np.diag(rng.normal(0, 0.03, 3)) + rng.normal(0, 0.01, (3, 3)) * (1 - np.eye(3))
-    Ks_s = rng.normal(0, 2e-4, (3, 3))
-    O_s = rng.normal(0, 2.0, 3)
-    Ko_s = rng.normal(0, 0.02, 3)
+    srng = rng if sensor_seed is None else np.random.default_rng(sensor_seed)
+    S_s = np.eye(3) + np.diag(srng.normal(0, 0.03, 3)) + srng.normal(0, 0.01, (3, 3)) * (1 - np.eye(3))
+    Ks_s = srng.normal(0, 2e-4, (3, 3))
+    O_s = srng.normal(0, 2.0, 3)
+    Ko_s = srng.normal(0, 0.02, 3)
     if vehicle:
-        h = rng.normal(0, 10.0, 3)
-        A = rng.normal(0, 0.03, (3, 3))
+        h = srng.normal(0, 10.0, 3)
+        A = srng.normal(0, 0.03, (3, 3))
         Sv = np.eye(3) + 0.5 * (A + A.T)
     else:
         h, Sv = np.zeros(3), np.eye(3)
@@ -169,10 +173,12 @@ def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: 
                        e_ned, C, B, tilt < 5.0)
     time = np.arange(n) / sample_rate
     run = seg.astype(np.int64)
-    data = CalibrationData(u, t, B, time, run, source=f"simulated field campaign: {kind}, seed {seed}")
+    data = CalibrationData(u, t, B, time, run, source=f"simulated field campaign: {kind}, seed {seed}"
+                           + ("" if sensor_seed is None else f", sensor {sensor_seed}"))
     settings = dict(kind=kind, n=n, seed=seed, field=field, inclination=inclination, declination=declination,
                     noise_sd=noise_sd, ref_sd=ref_sd, temperature=list(temperature), temperatures=list(temperatures),
-                    t0=t0, vehicle=vehicle, tilt_deg=tilt_deg, n_orient=n_orient, field_variation=field_variation)
+                    t0=t0, vehicle=vehicle, tilt_deg=tilt_deg, n_orient=n_orient, field_variation=field_variation,
+                    sensor_seed=sensor_seed)
     return FieldCampaign(kind, data, f_ref, truth, settings)
 
 

@@ -221,6 +221,25 @@ def comparison_markdown(hybrid_metrics: dict[str, dict], *, fusion: str, level: 
     return "\n".join(lines) + "\n"
 
 
+def still_improving(info: dict, max_epochs: int) -> bool:
+    """True when training stopped at ``max_epochs`` with its best validation loss in the last tenth of the epochs
+    (at least the last 2): the loss was still falling, so more epochs would likely have given a better network."""
+    return info["nan_epoch"] < 0 and info["epochs_run"] >= max_epochs and \
+        info["best_epoch"] >= max_epochs - max(2, int(round(0.1 * max_epochs)))
+
+
+def _warn_max_epochs(name: str, net: ResidualNetwork, max_epochs: int) -> list[str]:
+    """One message for the axes whose network was still improving when ``max_epochs`` stopped it."""
+    axes = [ax for ax, info in net.info_dict().items() if still_improving(info, max_epochs)]
+    if not axes:
+        return []
+    msg = (f"Residual network '{name}', axis {', '.join(axes)}: training stopped at network.max_epochs = {max_epochs} "
+           f"with the validation loss still falling (best epoch in the last tenth); the network is likely "
+           f"under-trained. Raise network.max_epochs (early stopping, network.patience, still ends it).")
+    warnings.warn(msg, RuntimeWarning, stacklevel=3)
+    return [msg]
+
+
 def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
     msgs = []
     for ax, info in net.info_dict().items():
@@ -340,6 +359,7 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
             timings["network_train"] += train_s
             for k, nk in enumerate(nets):
                 nan_messages += _warn_nan(name if k == 0 else f"{name}, conformal fold {k}", nk)
+            nan_messages += _warn_max_epochs(name, net, net_cfg.max_epochs)
             for k, nk in enumerate(run_nets):
                 nan_messages += _warn_nan(f"{name}, transfer run fold {k}", nk)
 

@@ -1,0 +1,120 @@
+"""Apply a field calibration (``bayesmag run`` with ``[measurement] kind = "scalar"`` or ``"constant"``) to a new
+recording: the calibrated field in the gauge frame, its magnitude with an interval, the training-domain flags."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bayesmag._src.core.data import AXES, DataError
+
+__all__ = ["apply_field_calibration", "FIELD_OUTPUT_COLUMNS"]
+
+#: The per-row columns of a field apply's CSV, after ``time,run`` (the domain columns follow).
+FIELD_OUTPUT_COLUMNS = tuple(f"{a}_calibrated" for a in AXES) + (
+    "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_total", "magnitude_lower", "magnitude_upper")
+
+
+def _reference_magnitude(data, data_path, scalar_column, field_unit):
+    """The recording's reference magnitude (uT) and where it came from: the vector reference's |B_ref|, else the
+    calibration's scalar column when the file has it, else ``(None, None)``."""
+    if data.b_ref is not None and np.isfinite(data.b_ref).any():
+        return np.linalg.norm(data.b_ref, axis=1), "|B_ref| of bx_ref, by_ref, bz_ref"
+    if not scalar_column or Path(data_path).suffix.lower() in (".parquet", ".pq"):
+        return None, None
+    with open(data_path, encoding="utf-8", errors="replace") as f:
+        header = [h.strip() for h in f.readline().split(",")]
+    if scalar_column not in header:
+        return None, None
+    from bayesmag._src.core.data import FIELD_UNITS, load_column
+    f = load_column(data_path, scalar_column, key=f"the calibration's scalar column '{scalar_column}'", positive=True)
+    return f * FIELD_UNITS[field_unit or "uT"], f"the scalar column '{scalar_column}'"
+
+
+def apply_field_calibration(model_dir, data_path, out_path, *, level=None, temperature_unit="C", field_unit=None,
+                            columns=None, force: bool = False) -> dict:
+    """Calibrate every row of ``data_path`` with the field calibration in ``model_dir``; write ``out_path``.
+
+    Output columns (after ``time,run``): :data:`FIELD_OUTPUT_COLUMNS`, then ``in_domain_reason`` (bits: 1 a reading
+    outside training's range, 2 temperature, 16 the predicted magnitude outside the training reference
+    magnitudes), ``in_domain``, ``valid``. The calibrated field is in the calibration's gauge frame (docs/field.md);
+    the interval is the magnitude's: Laplace predictive sd times the run's conformal scale. With a reference in the
+    recording (``bx_ref, by_ref, bz_ref``, or the run's scalar column) the summary has the magnitude RMSE and
+    coverage. The same path checks as the vector apply (:func:`~bayesmag._src.app.apply_io.check_apply_paths`).
+    """
+    from bayesmag._src.app.apply_io import (check_apply_options, check_apply_paths, check_units_against,
+                                            refuse_training_recording, write_apply_csv, _check_magnitudes)
+    from bayesmag._src.app.artifact import load_field
+    from bayesmag._src.app.inputs import recording_paths
+    from bayesmag._src.core.frames import load_table
+
+    t0 = time.perf_counter()
+    check_apply_options(level, 2, 2)
+    out_path = check_apply_paths(model_dir, data_path, out_path, force=force)
+    cal = load_field(model_dir)
+    doc_cfg = Path(model_dir) / "config.resolved.toml"
+    if doc_cfg.exists():
+        import tomllib
+        try:
+            data_cfg = tomllib.loads(doc_cfg.read_text()).get("data")
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+            data_cfg = None
+        refuse_training_recording(out_path, recording_paths(data_cfg))
+    data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                      require_reference=False)
+    _check_magnitudes(data)
+    r = cal.ranges
+    train_max = max(abs(v) for k in ("bx_meas", "by_meas", "bz_meas") for v in r[k])
+    warnings = check_units_against(data, train_max)
+    pred = cal.predict(data.b_meas, data.temperature, level=level)
+    level = pred["level"]
+    if not pred["valid"].any():
+        raise DataError(f"No row of {data_path} could be calibrated ({data.n} rows, every one with a non-finite "
+                        f"reading or temperature); nothing was written. Check the file's values and column mapping.")
+    bad = np.flatnonzero(~pred["valid"])
+    if bad.size:
+        shown = ", ".join(str(int(i) + 1) for i in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
+        warnings.append(f"{bad.size} row(s) have a non-finite reading or temperature and were not calibrated "
+                        f"(marked valid=false): data row(s) {shown}.")
+    ok = pred["valid"]
+    n_out = int((~pred["in_domain"] & ok).sum())
+    if n_out:
+        warnings.append(f"{n_out} of {data.n} rows lie outside the field calibration's training domain "
+                        f"(in_domain=false): their values are extrapolation and their intervals may be far too narrow.")
+    meas = cal.fit.model.measurement
+    if getattr(meas, "scale_gauge", False):
+        warnings.append("the calibration fitted the field magnitude itself (field = \"free\"): the calibrated field "
+                        "and its magnitude are relative (trace(S) = 3), not in uT.")
+    cols = [(f"{a}_calibrated", pred["calibrated"][:, i]) for i, a in enumerate(AXES)]
+    cols += [(c, pred[c]) for c in FIELD_OUTPUT_COLUMNS[3:]]
+    write_apply_csv(out_path, data, cols, pred)
+    reasons = pred["in_domain_reason"][ok]
+    summary = {"n_rows": data.n, "n_valid": int(ok.sum()), "n_outside_domain": n_out,
+               "outside_domain_by_reason": {k: int(np.sum(reasons == k)) for k in sorted(set(reasons)) if k},
+               "kind": "field", "measurement": meas.name, "interval_scale": cal.interval_scale,
+               "transfer_sd": None, "warnings": warnings, "level": level, "seconds": None}
+    ref, origin = _reference_magnitude(data, data_path, _scalar_column(model_dir), field_unit)
+    if ref is not None:
+        m = ok & np.isfinite(ref)
+        err = ref[m] - pred["magnitude"][m]
+        inside = (ref[m] >= pred["magnitude_lower"][m]) & (ref[m] <= pred["magnitude_upper"][m])
+        dom = pred["in_domain"][m]
+        summary["magnitude_metrics"] = {
+            "reference": origin, "n": int(m.sum()), "rmse": float(np.sqrt(np.mean(err ** 2))),
+            "mean_error": float(np.mean(err)), "coverage": float(inside.mean()),
+            "coverage_in_domain": float(inside[dom].mean()) if dom.any() else None,
+            "covered_or_flagged": float(np.mean(inside | ~dom))}
+    summary["seconds"] = time.perf_counter() - t0
+    return summary
+
+
+def _scalar_column(model_dir) -> str | None:
+    """The scalar column the field run read its reference from (``field_params.json`` ``predictive``), or None."""
+    import json
+    try:
+        doc = json.loads((Path(model_dir) / "field_params.json").read_text())
+        return (doc.get("predictive") or {}).get("scalar_column") or None
+    except (OSError, ValueError, AttributeError):
+        return None

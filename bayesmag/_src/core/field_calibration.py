@@ -1,0 +1,120 @@
+r"""A saved field calibration applied to new readings: calibrated field, magnitude interval, training domain.
+
+A field calibration (against a scalar reference or the Earth's field) determines the calibrated vector up to the
+gauge rotation (:mod:`~bayesmag._src.core.field`), so what it can promise a new recording is the *magnitude*:
+the Laplace predictive sd of :math:`\lVert B\rVert` (parameters plus reading noise) times the run's cross-conformal
+scale c (:func:`~bayesmag._src.pipeline.field_stage.magnitude_interval_scale`), and the training domain it was
+scored in (the ranges of :func:`~bayesmag._src.pipeline.field_stage.field_domain_check`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.stats
+
+from bayesmag._src.core.field import FieldFit
+
+__all__ = ["FieldCalibration", "FIELD_FORMAT", "FIELD_FORMAT_VERSION", "DOMAIN_KEYS"]
+
+FIELD_FORMAT = "bayesmag-field-calibration"
+FIELD_FORMAT_VERSION = 1
+#: The training ranges a field calibration keeps (already widened by the domain margin), in this order.
+DOMAIN_KEYS = ("bx_meas", "by_meas", "bz_meas", "temperature", "magnitude")
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldCalibration:
+    """A field fit with what its run measured: the conformal scale of its magnitude sd, level, training ranges.
+
+    ``ranges`` maps each of :data:`DOMAIN_KEYS` to ``(low, high)`` (uT, C), already widened by the run's margin.
+
+    Example:
+      >>> from bayesmag.simulate import simulate_field
+      >>> from bayesmag.field import Scalar, fit_field
+      >>> c = simulate_field("dance", n=400, seed=0)
+      >>> fit = fit_field(c.data.b_meas, c.data.temperature, c.f_ref, Scalar())
+      >>> cal = FieldCalibration(fit, 1.0, 0.95, {k: (-1e3, 1e3) for k in DOMAIN_KEYS})
+      >>> p = cal.predict(c.data.b_meas, c.data.temperature)
+      >>> bool(np.mean(np.abs(p["magnitude"] - c.f_ref) <= p["magnitude_upper"] - p["magnitude"]) > 0.9)
+      True
+    """
+
+    fit: FieldFit
+    interval_scale: float = 1.0
+    level: float = 0.95
+    ranges: dict = dataclasses.field(default_factory=dict)
+
+    def predict(self, u, t, *, level: float | None = None, chunk_size: int = 200_000) -> dict:
+        """Calibrated field (n, 3) in the gauge frame, its magnitude with sd and interval, and the domain flags.
+
+        Rows with a non-finite reading or temperature get NaN and ``valid`` False. ``in_domain_reason`` joins
+        ``field_range`` (a reading outside training's), ``temperature`` and ``magnitude`` (the predicted magnitude
+        outside the training reference magnitudes) with ``;``; '' inside (or invalid).
+        """
+        u = np.asarray(u, np.float64).reshape(-1, 3)
+        t = np.asarray(t, np.float64).reshape(-1)
+        if t.shape[0] != u.shape[0]:
+            raise ValueError(f"readings ({u.shape[0]} rows) and temperatures ({t.shape[0]}) differ in length")
+        level = self.level if level is None else float(level)
+        if not 0 < level < 1:
+            raise ValueError(f"level {level} must be in (0, 1)")
+        n = u.shape[0]
+        valid = np.isfinite(u).all(axis=1) & np.isfinite(t)
+        out = {k: np.full((n, 3) if k == "calibrated" else n, np.nan) for k in
+               ("calibrated", "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_total",
+                "magnitude_lower", "magnitude_upper")}
+        z = float(scipy.stats.norm.ppf(0.5 + level / 2))
+        rows = np.flatnonzero(valid)
+        for lo in range(0, rows.size, chunk_size):
+            r = rows[lo:lo + chunk_size]
+            pm = self.fit.predict_magnitude(u[r], t[r])
+            total = self.interval_scale * pm["total"]
+            out["calibrated"][r] = self.fit.calibrate(u[r], t[r])
+            out["magnitude"][r] = pm["mean"]
+            out["magnitude_epistemic"][r] = pm["epistemic"]
+            out["magnitude_noise"][r] = pm["noise"]
+            out["magnitude_total"][r] = total
+            out["magnitude_lower"][r] = pm["mean"] - z * total
+            out["magnitude_upper"][r] = pm["mean"] + z * total
+        reason = np.full(n, "", dtype=object)
+        if self.ranges:
+            x = np.column_stack([u, t, out["magnitude"]])
+            hits = {"field_range": np.zeros(n, bool), "temperature": np.zeros(n, bool), "magnitude": np.zeros(n, bool)}
+            for j, key in enumerate(DOMAIN_KEYS):
+                a, b = self.ranges[key]
+                bad = valid & ((x[:, j] < a) | (x[:, j] > b))
+                hits["field_range" if j < 3 else key] |= bad
+            for k, h in hits.items():
+                reason[h] = np.where(reason[h] == "", k, reason[h] + ";" + k)
+        out.update(valid=valid, in_domain=valid & (reason == ""), in_domain_reason=reason, level=level)
+        return out
+
+    def to_json(self) -> dict:
+        """``field_params.json``: the fit's :meth:`~bayesmag._src.core.field.FieldFit.to_json` plus ``predictive``."""
+        return {"format": FIELD_FORMAT, "format_version": FIELD_FORMAT_VERSION, **self.fit.to_json(),
+                "predictive": {"interval_scale": self.interval_scale, "level": self.level,
+                               "domain_ranges": {k: [float(v) for v in self.ranges[k]] for k in self.ranges}}}
+
+    @classmethod
+    def from_json(cls, doc: dict) -> "FieldCalibration":
+        """Read :meth:`to_json`'s document back; ``ValueError`` naming the key for anything missing or malformed."""
+        fit = FieldFit.from_json(doc)
+        v = doc.get("format_version")
+        if doc.get("format") != FIELD_FORMAT or "predictive" not in doc:
+            raise ValueError("field_params.json has no 'predictive' section (written before bayesmag could apply a "
+                             "field calibration): re-run `bayesmag run` on the field config")
+        if isinstance(v, bool) or not isinstance(v, int) or v > FIELD_FORMAT_VERSION:
+            raise ValueError(f"field_params.json has format_version {v!r}; this bayesmag reads "
+                             f"{FIELD_FORMAT_VERSION} (a newer file: upgrade bayesmag)")
+        p = doc["predictive"]
+        try:
+            scale, level = float(p["interval_scale"]), float(p["level"])
+            ranges = {k: (float(p["domain_ranges"][k][0]), float(p["domain_ranges"][k][1])) for k in DOMAIN_KEYS}
+        except (KeyError, TypeError, ValueError, IndexError) as e:
+            raise ValueError(f"field_params.json: 'predictive' must hold interval_scale, level and domain_ranges "
+                             f"{list(DOMAIN_KEYS)} ({e!r})") from None
+        if not (np.isfinite(scale) and scale > 0 and 0 < level < 1):
+            raise ValueError(f"field_params.json: interval_scale {scale} must be > 0 and level {level} in (0, 1)")
+        return cls(fit, scale, level, ranges)
