@@ -52,11 +52,29 @@ def _release_compiled_programs():
     process running the whole suite compiled enough programs to pass the kernel's limit of memory
     mappings (``vm.max_map_count``, 65530), after which the next compilation crashed with SIGSEGV
     (inside ``backend_compile_and_load``). Clearing the caches between modules keeps the count
-    bounded; the modules only recompile what they use.
+    bounded; the modules only recompile what they use. Where the count can be read (Linux: ``/proc/self/maps``), the
+    caches are dropped only once it passes :data:`MAP_LIMIT` (a third of the kernel's limit; one module adds a few
+    thousand at most), so the modules after one reuse its compiled programs (the LM fit, the PS-QMC, ...) instead of
+    compiling them again.
     """
     yield
     import gc
 
     import jax
-    jax.clear_caches()
-    gc.collect()
+    n = _mappings()
+    if n is None or n > MAP_LIMIT:
+        jax.clear_caches()
+        gc.collect()
+
+
+#: Memory mappings of the process above which the compiled programs are dropped after a module (kernel limit 65530).
+MAP_LIMIT = 20000
+
+
+def _mappings():
+    """The number of memory mappings of this process, or None where /proc/self/maps cannot be read."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return None

@@ -132,9 +132,20 @@ def test_rows_with_a_non_finite_reading_are_marked_invalid(field_run):
 @pytest.mark.parametrize("edit, match", [
     (lambda d: {k: v for k, v in d.items() if k != "cov"}, r"lacks \['cov'\].*re-run"),
     (lambda d: {k: v for k, v in d.items() if k != "predictive"}, r"no 'predictive' section.*re-run"),
-    (lambda d: {**d, "theta": d["theta"][:-1]}, r"'theta' must be \(18,\)"),
+    (lambda d: {**d, "theta": d["theta"][:-1]}, r"'theta' must have shape \(18,\)"),
     (lambda d: {**d, "format_version": 99}, r"format_version 99.*upgrade"),
     (lambda d: {**d, "predictive": {**d["predictive"], "interval_scale": -1}}, r"interval_scale -1"),
+    # hand edits an outside smoke pass made, each of which ran to wrong numbers with exit status 0
+    (lambda d: {**d, "t0": float("nan")}, r"'t0' = nan must be a finite"),
+    (lambda d: {**d, "theta": [float("nan")] + d["theta"][1:]}, r"'theta' holds NaN or inf at index \[0\]"),
+    (lambda d: {**d, "cov": [[-abs(d["cov"][0][0])] + d["cov"][0][1:]] + d["cov"][1:]}, r"positive semi-definite"),
+    (lambda d: {**d, "cov": [[d["cov"][0][0], d["cov"][0][1] + 1e-3] + d["cov"][0][2:]] + d["cov"][1:]},
+     r"not a symmetric"),
+    (lambda d: {**d, "s2": 0.0}, r"'s2' = 0.0 must be a positive noise variance"),
+    (lambda d: {**d, "predictive": {**d["predictive"], "interval_scale": 1e6}}, r"interval_scale 1000000.0 must be"),
+    (lambda d: {**d, "theta": d["theta"][:12] + [1e9] + d["theta"][13:]}, r"offsets O = .* are not a sensor's"),
+    (lambda d: {**d, "predictive": {**d["predictive"], "domain_ranges": {
+        **d["predictive"]["domain_ranges"], "temperature": [50.0, 10.0]}}}, r"domain_ranges \['temperature'\]"),
 ])
 def test_a_damaged_or_old_field_calibration_is_named(field_run, tmp_path, capsys, edit, match):
     import shutil
@@ -179,3 +190,91 @@ def test_a_free_field_calibration_says_its_magnitudes_are_relative(tmp_path):
     bayesmag.run_job(cfg, tmp_path / "run")
     s = apply_calibration(tmp_path / "run", rec, tmp_path / "o.csv")
     assert any("relative" in w for w in s["warnings"]) and "magnitude_metrics" not in s
+    ref = _write(tmp_path / "ref.csv", c, range(900), scalar=False, ref=True)      # a reference in uT: not scored
+    s = apply_calibration(tmp_path / "run", ref, tmp_path / "o2.csv")
+    assert "magnitude_metrics" not in s and any("relative" in n for n in s["notes"]), s["notes"]
+
+
+def test_readings_must_be_rows_of_three(field_run):
+    """A (3, n) array was reshaped into rows silently (magnitudes of 17-86 uT from a 50 uT field)."""
+    cal = bayesmag.load_field(field_run["run"])
+    u, t = field_run["c"].data.b_meas[:5], field_run["c"].data.temperature[:5]
+    with pytest.raises(ValueError, match=r"\(n, 3\).*shape \(3, 5\).*transposed"):
+        cal.predict(u.T, t)
+    with pytest.raises(ValueError, match="one value per reading"):
+        cal.predict(u, t[:4])
+
+
+def test_the_training_recording_is_protected_from_another_folder(field_run, tmp_path, monkeypatch, capsys):
+    """The run was given a relative [data] path; apply from another folder resolved it there and replaced the
+    training recording (vector and field apply, and export). The run's marker now records where it started."""
+    import shutil
+    work = tmp_path / "work"
+    work.mkdir()
+    shutil.copy(field_run["train"], work / "train.csv")
+    shutil.copy(field_run["new"], work / "new.csv")
+    monkeypatch.chdir(work)
+    cfg = _cfg("train.csv")
+    bayesmag.run_job(cfg, work / "run")
+    before = (work / "train.csv").read_bytes()
+    monkeypatch.chdir(tmp_path)
+    assert main(["apply", "--model", "work/run", "--data", "work/new.csv", "--out", "work/train.csv", "--force",
+                 "--no-progress"]) == 2
+    assert "trained on" in capsys.readouterr().err
+    assert (work / "train.csv").read_bytes() == before
+
+
+def test_the_reference_column_is_scored_where_it_can_be_and_said_where_not(field_run, tmp_path, capsys):
+    """The scalar column in nT, with empty or zero cells, semicolon-separated, or absent: the rows are calibrated
+    (one output, exit status 0) and the score is given on the usable rows or skipped with a note saying why. Before:
+    an nT column scored as 'RMSE 5e4 uT, coverage 0 %'; a NaN cell failed after the output was written; a
+    semicolon file was not scored."""
+    lines = field_run["new"].read_text().splitlines()
+    head = lines[0].split(",")
+    j = head.index("F_ovh")
+
+    def variant(name, edit, sep=","):
+        rows = [r.split(",") for r in lines[1:]]
+        for i, r in enumerate(rows):
+            edit(i, r)
+        (tmp_path / name).write_text("\n".join(sep.join(r) for r in [head] + rows) + "\n")
+        return tmp_path / name
+
+    def run(path):
+        out = tmp_path / (path.stem + ".out.csv")
+        rc = main(["apply", "--model", str(field_run["run"]), "--data", str(path), "--out", str(out), "--no-progress"])
+        text = capsys.readouterr()
+        assert rc == 0 and out.exists(), text.err
+        return text.out
+
+    def n_t(i, r):
+        r[j] = repr(float(r[j]) * 1000)
+
+    def holes(i, r):
+        if i in (5, 9):
+            r[j] = "" if i == 5 else "0"
+    out = run(variant("nT.csv", n_t))
+    assert "not scored" in out and "looks like nT" in out and "RMSE" not in out, out
+    out = run(variant("holes.csv", holes))
+    assert "2 row(s) of column 'F_ovh' hold no positive finite magnitude" in out and "(598 rows)" in out, out
+    out = run(variant("semi.csv", lambda i, r: None, sep=";"))
+    assert "reference magnitude from the scalar column 'F_ovh' (600 rows)" in out, out
+    no_f = tmp_path / "noF.csv"
+    no_f.write_text("\n".join(",".join(c for k, c in enumerate(line.split(",")) if k != j) for line in lines) + "\n")
+    out = run(no_f)
+    assert "not scored: the recording has neither bx_ref" in out and "RMSE" not in out, out
+    assert "gauge frame" in out
+
+
+def test_vector_only_options_and_a_missing_field_params_file_are_named(field_run, tmp_path, capsys):
+    import shutil
+    s = bayesmag._src.app.apply.apply_calibration(field_run["run"], field_run["new"], tmp_path / "o.csv",
+                                                  method="psqmc", n_qmc=10)
+    assert any("--uq, --n-qmc" in w and "ignored" in w for w in s["warnings"]), s["warnings"]
+    run = tmp_path / "run"
+    shutil.copytree(field_run["run"], run)
+    (run / "field_params.json").unlink()
+    assert main(["apply", "--model", str(run), "--data", str(field_run["new"]), "--out", str(tmp_path / "p.csv"),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "field_params.json is missing from this field-calibration run" in err, err

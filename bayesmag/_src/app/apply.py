@@ -60,13 +60,14 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     if is_field_run(model_dir):
         from bayesmag._src.app.field_apply import apply_field_calibration
         return apply_field_calibration(model_dir, data_path, out_path, level=level, temperature_unit=temperature_unit,
-                                       field_unit=field_unit, columns=columns, force=force)
+                                       field_unit=field_unit, columns=columns, force=force, method=method,
+                                       n_params=n_params, n_qmc=n_qmc)
     t0 = time.perf_counter()
     check_apply_options(level, n_params, n_qmc)
     out_path = check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
     cal = load(model_dir)
     refuse_training_recording(out_path, recording_paths((cal.config or {}).get("data")
-                                                        if isinstance(cal.config, dict) else None))
+                                                        if isinstance(cal.config, dict) else None, model_dir))
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False)

@@ -346,9 +346,14 @@ def check_run_folder(path: str | Path, holds: str = "calibration.json") -> Path:
 
 
 def is_field_run(path) -> bool:
-    """True for a field-calibration run folder (``field_params.json``, no vector ``calibration.json``)."""
+    """True for a field-calibration run folder: ``field_params.json`` (or its marker lists one), no vector
+    ``calibration.json``."""
+    from bayesmag._src.app.outdir import marker_status
     path = Path(path)
-    return (path / "field_params.json").exists() and not (path / "calibration.json").exists()
+    if (path / "calibration.json").exists():
+        return False
+    listed = (marker_status(path) or {}).get("files") if path.is_dir() else None
+    return (path / "field_params.json").exists() or (isinstance(listed, list) and "field_params.json" in listed)
 
 
 def load_field(path: str | Path):
@@ -358,6 +363,9 @@ def load_field(path: str | Path):
 
     path = check_run_folder(path, "field_params.json")
     j = path / "field_params.json"
+    if not j.exists() and is_field_run(path):
+        raise ArtifactError(f"{j} is missing from this field-calibration run (its .bayesmag-run marker lists it): the "
+                            f"folder was changed after the run. Re-run `bayesmag run` on the field config.")
     if not j.exists():
         raise ArtifactError(f"{path} holds no field_params.json: it is not a field-calibration run"
                             + (" (it holds calibration.json: load it with bayesmag.load)."
@@ -369,7 +377,7 @@ def load_field(path: str | Path):
     try:
         return FieldCalibration.from_json(doc)
     except ValueError as e:
-        raise ArtifactError(f"{j}: {e}") from None
+        raise ArtifactError(f"{j}: {str(e).removeprefix('field_params.json: ')}") from None
 
 
 def field_run_error(path, error) -> None:

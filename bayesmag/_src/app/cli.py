@@ -199,11 +199,15 @@ def _report_apply(summary: dict) -> int:
         m = summary["metrics"]
         print("  reference columns found: RMSE (uT) " + "  ".join(f"{a}: {m['rmse'][a]:.4g}" for a in "xyz")
               + f"   {summary['level']:.0%} coverage " + "  ".join(f"{a}: {m['coverage'][a]:.1%}" for a in "xyz"))
+    for n in summary.get("notes", []):
+        print(f"  note: {n}")
     if summary.get("magnitude_metrics"):
         m = summary["magnitude_metrics"]
-        print(f"  reference magnitude from {m['reference']}: |B| RMSE {m['rmse']:.4g} uT, mean error "
-              f"{m['mean_error']:+.3g} uT, {summary['level']:.0%} coverage {m['coverage']:.1%}"
-              + ("" if m["coverage_in_domain"] is None else f" ({m['coverage_in_domain']:.1%} in domain)"))
+        print(f"  reference magnitude from {m['reference']} ({m['n']} rows): |B| RMSE {m['rmse']:.4g} uT"
+              + ("" if m["rmse_in_domain"] is None else f" ({m['rmse_in_domain']:.4g} in domain)")
+              + f", mean error (reference - calibrated) {m['mean_error']:+.3g} uT, {summary['level']:.0%} coverage "
+              f"{m['coverage']:.1%}" + ("" if m["coverage_in_domain"] is None else f" ({m['coverage_in_domain']:.1%} "
+                                        "in domain)"))
     return 0
 
 

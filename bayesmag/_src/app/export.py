@@ -791,7 +791,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     cal = load(run_dir)
     out = Path(out) if out else Path(run_dir) / f"calibration{FORMATS[fmt]}"
     from bayesmag._src.app.inputs import recording_paths
-    recordings = recording_paths((cal.config or {}).get("data") if isinstance(cal.config, dict) else None)
+    recordings = recording_paths((cal.config or {}).get("data") if isinstance(cal.config, dict) else None, run_dir)
     check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # before the slow part
     train = test = series = None
     cert = run_certificate(run_dir)

@@ -17,24 +17,62 @@ FIELD_OUTPUT_COLUMNS = tuple(f"{a}_calibrated" for a in AXES) + (
     "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_total", "magnitude_lower", "magnitude_upper")
 
 
-def _reference_magnitude(data, data_path, scalar_column, field_unit):
-    """The recording's reference magnitude (uT) and where it came from: the vector reference's |B_ref|, else the
-    calibration's scalar column when the file has it, else ``(None, None)``."""
+def _shown(rows) -> str:
+    return ", ".join(str(int(i) + 1) for i in rows[:10]) + (f" and {rows.size - 10} more" if rows.size > 10 else "")
+
+
+def _reference_magnitude(data, data_path, scalar_column, field_unit) -> tuple:
+    """``(magnitude (n,) uT with NaN where unusable, where it came from, notes)``: the vector reference's |B_ref|,
+    else the calibration's scalar column (CSV or Parquet) in the readings' unit; ``(None, None, notes)`` when the
+    recording has neither, the notes saying why nothing is scored."""
     if data.b_ref is not None and np.isfinite(data.b_ref).any():
-        return np.linalg.norm(data.b_ref, axis=1), "|B_ref| of bx_ref, by_ref, bz_ref"
-    if not scalar_column or Path(data_path).suffix.lower() in (".parquet", ".pq"):
-        return None, None
-    with open(data_path, encoding="utf-8", errors="replace") as f:
-        header = [h.strip() for h in f.readline().split(",")]
-    if scalar_column not in header:
-        return None, None
+        return np.linalg.norm(data.b_ref, axis=1), "|B_ref| of bx_ref, by_ref, bz_ref", []
+    if not scalar_column:
+        return None, None, []
     from bayesmag._src.core.data import FIELD_UNITS, load_column
-    f = load_column(data_path, scalar_column, key=f"the calibration's scalar column '{scalar_column}'", positive=True)
-    return f * FIELD_UNITS[field_unit or "uT"], f"the scalar column '{scalar_column}'"
+    missing = (f"not scored: the recording has neither bx_ref, by_ref, bz_ref nor the calibration's scalar column "
+               f"'{scalar_column}'.")
+    try:
+        if Path(data_path).suffix.lower() in (".parquet", ".pq"):
+            import pandas as pd
+            try:
+                f = pd.read_parquet(data_path, columns=[scalar_column])[scalar_column].to_numpy(np.float64)
+            except (KeyError, ValueError):
+                return None, None, [missing]
+        else:
+            f = load_column(data_path, scalar_column, key="the calibration's scalar column", allow_nonfinite=True)
+    except DataError as e:
+        return None, None, [missing if "has no column" in str(e) else f"not scored: {e}"]
+    if f.shape[0] != data.n:
+        return None, None, [f"not scored: column '{scalar_column}' has {f.shape[0]} rows where the readings have "
+                            f"{data.n}."]
+    f = f * FIELD_UNITS[field_unit or "uT"]
+    notes = []
+    bad = np.flatnonzero(~(np.isfinite(f) & (f > 0)))
+    if bad.size:
+        notes.append(f"{bad.size} row(s) of column '{scalar_column}' hold no positive finite magnitude and are not "
+                     f"scored: data row(s) {_shown(bad)}.")
+        f[bad] = np.nan
+    return f, f"the scalar column '{scalar_column}'", notes
+
+
+def _unit_mismatch(ref, magnitude, origin) -> str | None:
+    """A note when the reference magnitude and the calibrated one differ by a unit's factor (nT vs uT: 1000)."""
+    ok = np.isfinite(ref) & np.isfinite(magnitude)
+    if not ok.any():
+        return None
+    r = float(np.median(ref[ok]) / max(np.median(magnitude[ok]), 1e-300))
+    if 0.05 <= r <= 20:
+        return None
+    unit = "nT (x1000)" if r > 20 else "mT or gauss"
+    return (f"not scored: {origin} has median {np.median(ref[ok]):.4g} where the calibrated |B| has median "
+            f"{np.median(magnitude[ok]):.4g} uT ({r:.3g}x): it looks like {unit}. Give the reference in the readings' "
+            f"unit (--field-unit converts both).")
 
 
 def apply_field_calibration(model_dir, data_path, out_path, *, level=None, temperature_unit="C", field_unit=None,
-                            columns=None, force: bool = False) -> dict:
+                            columns=None, force: bool = False, method: str = "auto", n_params: int = 100,
+                            n_qmc: int = 256) -> dict:
     """Calibrate every row of ``data_path`` with the field calibration in ``model_dir``; write ``out_path``.
 
     Output columns (after ``time,run``): :data:`FIELD_OUTPUT_COLUMNS`, then ``in_domain_reason`` (bits: 1 a reading
@@ -42,7 +80,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     magnitudes), ``in_domain``, ``valid``. The calibrated field is in the calibration's gauge frame (docs/field.md);
     the interval is the magnitude's: Laplace predictive sd times the run's conformal scale. With a reference in the
     recording (``bx_ref, by_ref, bz_ref``, or the run's scalar column) the summary has the magnitude RMSE and
-    coverage. The same path checks as the vector apply (:func:`~bayesmag._src.app.apply_io.check_apply_paths`).
+    coverage (rows without a usable reference, or a reference in another unit, are not scored, and a note says so).
+    ``method``, ``n_params`` and ``n_qmc`` (the vector apply's) are ignored, with a warning when set. The same path checks as the vector apply (:func:`~bayesmag._src.app.apply_io.check_apply_paths`).
     """
     from bayesmag._src.app.apply_io import (check_apply_options, check_apply_paths, check_units_against,
                                             refuse_training_recording, write_apply_csv, _check_magnitudes)
@@ -61,7 +100,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
             data_cfg = tomllib.loads(doc_cfg.read_text()).get("data")
         except (tomllib.TOMLDecodeError, UnicodeDecodeError):
             data_cfg = None
-        refuse_training_recording(out_path, recording_paths(data_cfg))
+        refuse_training_recording(out_path, recording_paths(data_cfg, model_dir))
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False)
     _check_magnitudes(data)
@@ -84,9 +123,41 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
         warnings.append(f"{n_out} of {data.n} rows lie outside the field calibration's training domain "
                         f"(in_domain=false): their values are extrapolation and their intervals may be far too narrow.")
     meas = cal.fit.model.measurement
-    if getattr(meas, "scale_gauge", False):
+    relative = bool(getattr(meas, "scale_gauge", False))
+    if relative:
         warnings.append("the calibration fitted the field magnitude itself (field = \"free\"): the calibrated field "
                         "and its magnitude are relative (trace(S) = 3), not in uT.")
+    ignored = [flag for flag, v, default in (("--uq", method, "auto"), ("--n-params", n_params, 100),
+                                             ("--n-qmc", n_qmc, 256)) if v != default]
+    if ignored:
+        warnings.append(f"{', '.join(ignored)} set the vector calibration's physics uncertainty and are ignored for a "
+                        f"field calibration (its magnitude sd is the Laplace one, times the run's conformal scale).")
+    notes = ["x/y/z_calibrated are in the calibration's gauge frame (x along the sensor's x axis, y in its x-y "
+             "plane), not the vehicle's body frame: a magnitude fit cannot see that rotation (docs/field.md)."]
+    metrics = None
+    ref, origin, ref_notes = _reference_magnitude(data, data_path, _scalar_column(model_dir), field_unit)
+    notes += ref_notes
+    if ref is not None and relative:
+        notes.append(f"not scored: the calibrated magnitudes are relative (field = \"free\"), {origin} is in uT.")
+        ref = None
+    if ref is not None:
+        mismatch = _unit_mismatch(ref, pred["magnitude"], origin)
+        if mismatch:
+            notes.append(mismatch)
+            ref = None
+    if ref is not None:
+        m = ok & np.isfinite(ref)
+        if m.any():
+            err = ref[m] - pred["magnitude"][m]
+            inside = (ref[m] >= pred["magnitude_lower"][m]) & (ref[m] <= pred["magnitude_upper"][m])
+            dom = pred["in_domain"][m]
+            metrics = {
+                "reference": origin, "n": int(m.sum()), "rmse": float(np.sqrt(np.mean(err ** 2))),
+                "rmse_in_domain": float(np.sqrt(np.mean(err[dom] ** 2))) if dom.any() else None,
+                "mean_error": float(np.mean(err)), "mean_error_is": "reference - calibrated",
+                "coverage": float(inside.mean()),
+                "coverage_in_domain": float(inside[dom].mean()) if dom.any() else None,
+                "covered_or_flagged": float(np.mean(inside | ~dom))}
     cols = [(f"{a}_calibrated", pred["calibrated"][:, i]) for i, a in enumerate(AXES)]
     cols += [(c, pred[c]) for c in FIELD_OUTPUT_COLUMNS[3:]]
     write_apply_csv(out_path, data, cols, pred)
@@ -94,19 +165,10 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     summary = {"n_rows": data.n, "n_valid": int(ok.sum()), "n_outside_domain": n_out,
                "outside_domain_by_reason": {k: int(np.sum(reasons == k)) for k in sorted(set(reasons)) if k},
                "kind": "field", "measurement": meas.name, "interval_scale": cal.interval_scale,
-               "transfer_sd": None, "warnings": warnings, "level": level, "seconds": None}
-    ref, origin = _reference_magnitude(data, data_path, _scalar_column(model_dir), field_unit)
-    if ref is not None:
-        m = ok & np.isfinite(ref)
-        err = ref[m] - pred["magnitude"][m]
-        inside = (ref[m] >= pred["magnitude_lower"][m]) & (ref[m] <= pred["magnitude_upper"][m])
-        dom = pred["in_domain"][m]
-        summary["magnitude_metrics"] = {
-            "reference": origin, "n": int(m.sum()), "rmse": float(np.sqrt(np.mean(err ** 2))),
-            "mean_error": float(np.mean(err)), "coverage": float(inside.mean()),
-            "coverage_in_domain": float(inside[dom].mean()) if dom.any() else None,
-            "covered_or_flagged": float(np.mean(inside | ~dom))}
-    summary["seconds"] = time.perf_counter() - t0
+               "transfer_sd": None, "warnings": warnings, "notes": notes, "level": level,
+               "seconds": time.perf_counter() - t0}
+    if metrics is not None:
+        summary["magnitude_metrics"] = metrics
     return summary
 
 

@@ -24,14 +24,22 @@ def load_data(cfg: Config) -> CalibrationData:
     return load_dataset(d.source)
 
 
-def recording_paths(data) -> list:
+def recording_paths(data, run_dir=None) -> list:
     """The files on this machine that a job's ``[data]`` table (a dict, as saved in a calibration) read: its
     ``path``, or the file of its named dataset (``source``) where it is found. A command's ``--out`` never
-    replaces them (``apply``, ``export``)."""
+    replaces them (``apply``, ``export``). A relative ``path`` is taken both from here and from the folder the run
+    was started in (``run_dir``'s marker records it): the command may run elsewhere."""
     from pathlib import Path
     d = data if isinstance(data, dict) else {}
     if d.get("path"):
-        return [Path(d["path"])]
+        p = Path(d["path"])
+        out = [p]
+        if not p.is_absolute() and run_dir is not None:
+            from bayesmag._src.app.outdir import marker_status
+            cwd = (marker_status(run_dir) or {}).get("cwd")
+            if isinstance(cwd, str) and cwd:
+                out.append(Path(cwd) / p)
+        return out
     src = d.get("source")
     if src and src != "simulated":
         try:

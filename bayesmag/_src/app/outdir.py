@@ -247,6 +247,8 @@ def _write_marker(folder: Path, complete: bool) -> None:
     from bayesmag._src.core.version import __version__
     doc = {"tool": "bayesmag", "version": __version__, "complete": complete,
            "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    with contextlib.suppress(OSError):      # a relative [data] path of the run's config resolves against it
+        doc["cwd"] = os.getcwd()
     if complete:
         files, dirs = _walk(folder)
         doc["files"] = sorted(r for r, kind in files.items() if kind == "file" and r != MARKER)

@@ -678,12 +678,14 @@ def load_csv(
     return CalibrationData(b, t, ref, time, run, source=str(path), field_unit=declared)
 
 
-def load_column(path: str | Path, name: str, *, key: str = "the column", positive: bool = False) -> np.ndarray:
+def load_column(path: str | Path, name: str, *, key: str = "the column", positive: bool = False,
+                allow_nonfinite: bool = False) -> np.ndarray:
     """One extra numeric column of a CSV (e.g. a scalar magnetometer's magnitude), validated at load.
 
     Args:
       path: the file. name: the column's header. key: what named the column (for the message, e.g.
         ``"[measurement] scalar_column"``). positive: every value must be > 0 (a magnitude).
+        allow_nonfinite: empty or non-finite cells come back as NaN (and are not checked) instead of an error.
     Raises :class:`DataError` naming the column, the row and the fix.
     """
     path = Path(path)
@@ -695,10 +697,12 @@ def load_column(path: str | Path, name: str, *, key: str = "the column", positiv
                         f"Set {key} to one of them.")
     v = arr[:, header.index(name)]
     bad = ~np.isfinite(v)
+    if allow_nonfinite:
+        v, bad = np.where(bad, np.nan, v), np.zeros_like(bad)
     if bad.any():
         raise DataError(f"{path}: column '{name}' (named by {key}) is empty or not finite at {_bad_rows(bad)}; "
                         "drop those rows or fill them.")
-    if positive and np.any(v <= 0):
+    if positive and np.any(v <= 0):         # NaN compares False: only finite values are checked
         i = int(np.flatnonzero(v <= 0)[0])
         raise DataError(f"{path}: column '{name}' (named by {key}) holds {v[i]:g} at data row {i + 1}: a field "
                         f"magnitude must be positive (uT); check the column and its unit.")

@@ -454,12 +454,28 @@ class FieldFit:
             raise ValueError(f"field_params.json: measurement/t0/theta/cov are not readable ({e})") from None
         for key, a, shape in (("theta", theta, (p,)), ("cov", cov, (p, p)), ("prior_mean", prior_mean, (p,)),
                               ("prior_sd", prior_sd, (p,))):
-            if a.shape != shape or not np.isfinite(a).all():
-                raise ValueError(f"field_params.json: '{key}' must be {shape} finite numbers for the "
-                                 f"{m['name']} model's {p} parameters, got shape {a.shape}")
+            if a.shape != shape:
+                raise ValueError(f"field_params.json: '{key}' must have shape {shape} for the {m['name']} model's "
+                                 f"{p} parameters, got shape {a.shape}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"field_params.json: '{key}' holds NaN or inf at index "
+                                 f"{np.argwhere(~np.isfinite(a))[0].tolist()}; the file is damaged")
+        if not math.isfinite(model.t0):
+            raise ValueError(f"field_params.json: 't0' = {doc['t0']!r} must be a finite temperature (C)")
+        # what a fit can write: a symmetric positive semi-definite covariance, a positive noise variance, gains
+        # of a sensor (the fit's prior is 1 +- 0.25) and offsets of a vehicle's field (prior sd 100 uT)
+        scale = max(float(np.max(np.abs(cov))), 1e-300)
+        if np.max(np.abs(cov - cov.T)) > 1e-8 * scale or np.linalg.eigvalsh(0.5 * (cov + cov.T))[0] < -1e-8 * scale:
+            raise ValueError("field_params.json: 'cov' is not a symmetric positive semi-definite covariance; the "
+                             "file was edited or is damaged")
         s2 = float(doc["s2"])
-        if not (math.isfinite(s2) and s2 >= 0):
-            raise ValueError(f"field_params.json: 's2' = {doc['s2']!r} must be a noise variance >= 0")
+        if not (math.isfinite(s2) and s2 > 0):
+            raise ValueError(f"field_params.json: 's2' = {doc['s2']!r} must be a positive noise variance (uT^2)")
+        S, _, O, _, _ = (np.asarray(x) for x in model.unpack(jnp.asarray(theta)))
+        if not (np.all(np.abs(np.diag(S)) < 100) and np.all(np.abs(np.diag(S)) > 1e-3) and np.all(np.abs(O) < 1e5)):
+            raise ValueError(f"field_params.json: gains diag(S) = {np.round(np.diag(S), 4).tolist()} or offsets "
+                             f"O = {np.round(O, 2).tolist()} uT are not a sensor's (|gain| in (0.001, 100), |O| < 1e5 "
+                             f"uT); the file was edited or is damaged")
         return cls(model, theta, cov, prior_mean, prior_sd, s2, float(doc.get("rho1", 0.0)),
                    float(doc.get("inflation", 1.0)), int(doc.get("n", 0)), bool(doc.get("converged", True)),
                    int(doc.get("n_steps", 0)), str(doc.get("covariance", "white")),

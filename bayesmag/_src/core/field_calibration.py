@@ -49,14 +49,18 @@ class FieldCalibration:
     def predict(self, u, t, *, level: float | None = None, chunk_size: int = 200_000) -> dict:
         """Calibrated field (n, 3) in the gauge frame, its magnitude with sd and interval, and the domain flags.
 
-        Rows with a non-finite reading or temperature get NaN and ``valid`` False. ``in_domain_reason`` joins
+        ``u`` (n, 3) readings in uT, ``t`` (n,) temperatures in C. Rows with a non-finite reading or temperature get
+        NaN and ``valid`` False; the interval's lower end is clipped at 0. ``in_domain_reason`` joins
         ``field_range`` (a reading outside training's), ``temperature`` and ``magnitude`` (the predicted magnitude
         outside the training reference magnitudes) with ``;``; '' inside (or invalid).
         """
-        u = np.asarray(u, np.float64).reshape(-1, 3)
-        t = np.asarray(t, np.float64).reshape(-1)
-        if t.shape[0] != u.shape[0]:
-            raise ValueError(f"readings ({u.shape[0]} rows) and temperatures ({t.shape[0]}) differ in length")
+        u, t = np.asarray(u, np.float64), np.asarray(t, np.float64)
+        if u.ndim != 2 or u.shape[1] != 3:
+            raise ValueError(f"readings must be an (n, 3) array of Bx, By, Bz (uT), got shape {u.shape}"
+                             + (" (transposed? pass u.T)" if u.ndim == 2 and u.shape[0] == 3 else ""))
+        if t.ndim != 1 or t.shape[0] != u.shape[0]:
+            raise ValueError(f"temperatures must be an (n,) array with one value per reading ({u.shape[0]} rows), "
+                             f"got shape {t.shape}")
         level = self.level if level is None else float(level)
         if not 0 < level < 1:
             raise ValueError(f"level {level} must be in (0, 1)")
@@ -76,7 +80,7 @@ class FieldCalibration:
             out["magnitude_epistemic"][r] = pm["epistemic"]
             out["magnitude_noise"][r] = pm["noise"]
             out["magnitude_total"][r] = total
-            out["magnitude_lower"][r] = pm["mean"] - z * total
+            out["magnitude_lower"][r] = np.maximum(pm["mean"] - z * total, 0.0)      # a magnitude is >= 0
             out["magnitude_upper"][r] = pm["mean"] + z * total
         reason = np.full(n, "", dtype=object)
         if self.ranges:
@@ -115,6 +119,10 @@ class FieldCalibration:
         except (KeyError, TypeError, ValueError, IndexError) as e:
             raise ValueError(f"field_params.json: 'predictive' must hold interval_scale, level and domain_ranges "
                              f"{list(DOMAIN_KEYS)} ({e!r})") from None
-        if not (np.isfinite(scale) and scale > 0 and 0 < level < 1):
-            raise ValueError(f"field_params.json: interval_scale {scale} must be > 0 and level {level} in (0, 1)")
+        if not (np.isfinite(scale) and 0 < scale <= 100 and 0 < level < 1):
+            raise ValueError(f"field_params.json: interval_scale {scale} must be in (0, 100] (a conformal scale is "
+                             f"about 1) and level {level} in (0, 1)")
+        bad = [k for k, (a, b) in ranges.items() if not (np.isfinite(a) and np.isfinite(b) and a < b)]
+        if bad:
+            raise ValueError(f"field_params.json: domain_ranges {bad} must be finite [low, high] with low < high")
         return cls(fit, scale, level, ranges)
