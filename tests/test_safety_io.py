@@ -310,6 +310,27 @@ def test_export_never_replaces_the_training_recording(tmp_path, capsys):
     assert rec.read_bytes() == before
 
 
+def test_a_relative_training_recording_is_protected_from_another_folder(tmp_path, capsys, monkeypatch):
+    """The run was given ``data/rec.csv`` from ``tmp_path/work``; apply (and export) run from ``tmp_path`` resolved
+    that path there, found nothing to protect and replaced ``work/data/rec.csv`` with --force (outside smoke pass).
+    The run's marker now records the folder it started in."""
+    work = tmp_path / "work"
+    (work / "data").mkdir(parents=True)
+    _recording(work / "data" / "rec.csv")
+    _recording(tmp_path / "new.csv", seed=1)
+    monkeypatch.chdir(work)
+    assert main(["run", str(_config(work, Path("data/rec.csv"))), "--out", "run", "--no-progress"]) == 0
+    assert marker_status(work / "run")["cwd"] == str(work)
+    before = (work / "data" / "rec.csv").read_bytes()
+    monkeypatch.chdir(tmp_path)
+    assert main(["apply", "--model", "work/run", "--data", "new.csv", "--out", "work/data/rec.csv", "--force",
+                 "--no-progress"]) == 2
+    assert "trained on" in _err(capsys)
+    assert _export(Path("work/run"), "c-header", Path("work/data/rec.csv"), "--force") == 2
+    assert "training recording" in _err(capsys)
+    assert (work / "data" / "rec.csv").read_bytes() == before
+
+
 def test_export_refuses_a_users_file_unless_forced_and_replaces_its_own(tmp_path, capsys, model):
     run, _ = _copy(model, tmp_path)
     mine = tmp_path / "params.txt"
