@@ -81,7 +81,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     the interval is the magnitude's: Laplace predictive sd times the run's conformal scale. With a reference in the
     recording (``bx_ref, by_ref, bz_ref``, or the run's scalar column) the summary has the magnitude RMSE and
     coverage (rows without a usable reference, or a reference in another unit, are not scored, and a note says so).
-    ``method``, ``n_params`` and ``n_qmc`` (the vector apply's) are ignored, with a warning when set. The same path checks as the vector apply (:func:`~bayesmag._src.app.apply_io.check_apply_paths`).
+    ``method``, ``n_params`` and ``n_qmc`` (the vector apply's) are ignored, with a warning when set. The same
+    path checks as the vector apply (:func:`~bayesmag._src.app.apply_io.check_apply_paths`).
     """
     from bayesmag._src.app.apply_io import (check_apply_options, check_apply_paths, check_units_against,
                                             refuse_training_recording, write_apply_csv, _check_magnitudes)
@@ -114,9 +115,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
                         f"reading or temperature); nothing was written. Check the file's values and column mapping.")
     bad = np.flatnonzero(~pred["valid"])
     if bad.size:
-        shown = ", ".join(str(int(i) + 1) for i in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
         warnings.append(f"{bad.size} row(s) have a non-finite reading or temperature and were not calibrated "
-                        f"(marked valid=false): data row(s) {shown}.")
+                        f"(marked valid=false): data row(s) {_shown(bad)}.")
     ok = pred["valid"]
     n_out = int((~pred["in_domain"] & ok).sum())
     if n_out:
