@@ -12,6 +12,7 @@ reference (the scalar the field fit saw on the other runs).
 
   python benchmarks/bench_field_apply.py --generator simulate --seeds 20
   python benchmarks/bench_field_apply.py --generator belsten
+  python benchmarks/bench_field_apply.py --generator speed        # seconds per 100k rows
 """
 
 from __future__ import annotations
@@ -118,9 +119,37 @@ def belsten():
     return rows
 
 
+def speed(n: int, repeats: int = 3):
+    """Seconds of ``apply_calibration`` (load, predict, write) on an n-row new flight; the median of ``repeats``
+    after one warm-up, on the built-in ``field_simulated`` calibration."""
+    import bayesmag
+    from bayesmag._src.app.apply import apply_calibration
+    from bayesmag._src.app.config import load_config
+    from bayesmag._src.core.data import write_csv
+    from bayesmag.simulate import simulate_field
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "field_simulated.toml",
+                      ["output.figures=false", "output.progress=false"])
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        bayesmag.run_job(cfg, tmp / "run")
+        c = simulate_field("two_temperature", n=n, seed=5, sensor_seed=0, field=50.0, inclination=60.0,
+                           noise_sd=0.05, temperatures=(15.0, 40.0))
+        write_csv(c.data, tmp / "big.csv")
+        apply_calibration(tmp / "run", tmp / "big.csv", tmp / "out.csv")
+        times, s = [], None
+        for _ in range(repeats):
+            t = time.perf_counter()
+            s = apply_calibration(tmp / "run", tmp / "big.csv", tmp / "out.csv")
+            times.append(time.perf_counter() - t)
+    print(f"apply of a field calibration, {n} rows: median {np.median(times):.3f} s over {repeats} "
+          f"({n / np.median(times):,.0f} rows/s); |B| RMSE {s['magnitude_metrics']['rmse']:.4f} uT, coverage "
+          f"{s['magnitude_metrics']['coverage']:.3f}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--generator", choices=["simulate", "belsten"], default="simulate")
+    ap.add_argument("--generator", choices=["simulate", "belsten", "speed"], default="simulate")
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--kind", default="dance")
@@ -128,6 +157,8 @@ def main():
     ap.add_argument("--n", type=int, default=2000)
     ap.add_argument("--out", default=None, help="write the rows as JSON here")
     a = ap.parse_args()
+    if a.generator == "speed":
+        return speed(a.n if a.n != 2000 else 100_000)
     if a.generator == "belsten":
         rows = belsten()
     else:
