@@ -114,6 +114,21 @@ def test_nan_loss_warns_with_the_epoch_and_the_job_finishes(tmp_path):
     assert json.loads((tmp_path / "nan" / "metrics.json").read_text())["network"]["warnings"]
 
 
+def test_a_network_stopped_by_max_epochs_while_improving_is_warned_about(tmp_path):
+    """4 epochs on a quadratic the network has to learn: the validation loss is still falling when max_epochs ends
+    training, and the job says so per axis (it was silent); the rule agrees with the saved training record."""
+    from bayesmag._src.pipeline.hybrid import still_improving
+    raw = copy.deepcopy(SIMULATED)
+    raw["data"]["simulate"]["n"] = 1000
+    raw["output"]["figures"] = False
+    cfg = _config(raw, likelihoods=["gaussian"], hidden_layers=2, width=16, max_epochs=4, interval_calibration="none")
+    with pytest.warns(RuntimeWarning, match=r"stopped at network.max_epochs = 4 with the validation loss still"):
+        result = run_job(cfg, tmp_path / "short")
+    info = result["metrics"]["network"]["training"]["gaussian"]
+    flagged = [ax for ax in "xyz" if still_improving(info[ax], 4)]
+    assert flagged and any(f"axis {', '.join(flagged)}:" in w for w in result["metrics"]["network"]["warnings"])
+
+
 # --------------------------------------------------------------------------- end to end
 
 
