@@ -135,7 +135,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     notes = ["x/y/z_calibrated are in the calibration's gauge frame (x along the sensor's x axis, y in its x-y "
              "plane), not the vehicle's body frame: a magnitude fit cannot see that rotation (docs/field.md)."]
     metrics = None
-    ref, origin, ref_notes = _reference_magnitude(data, data_path, _scalar_column(model_dir), field_unit)
+    ref, origin, ref_notes = _reference_magnitude(data, data_path, cal.reference_column, field_unit)
     notes += ref_notes
     if ref is not None and relative:
         notes.append(f"not scored: the calibrated magnitudes are relative (field = \"free\"), {origin} is in uT.")
@@ -170,13 +170,3 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     if metrics is not None:
         summary["magnitude_metrics"] = metrics
     return summary
-
-
-def _scalar_column(model_dir) -> str | None:
-    """The scalar column the field run read its reference from (``field_params.json`` ``predictive``), or None."""
-    import json
-    try:
-        doc = json.loads((Path(model_dir) / "field_params.json").read_text())
-        return (doc.get("predictive") or {}).get("scalar_column") or None
-    except (OSError, ValueError, AttributeError):
-        return None

@@ -339,9 +339,8 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         timings["nuts"] = time.perf_counter() - t
     from bayesmag._src.core.field_calibration import FieldCalibration
     saved = FieldCalibration(fs.fit, float(fs.prediction.get("scale", 1.0)), cfg.uq.level,
-                             {k: tuple(v) for k, v in fs.domain["training_ranges"].items()})
+                             {k: tuple(v) for k, v in fs.domain["training_ranges"].items()}, mc.scalar_column or None)
     params = saved.to_json()      # what `bayesmag apply` reads back (FieldCalibration.from_json)
-    params["predictive"]["scalar_column"] = mc.scalar_column or None
     field_m = {"n_train": int(train.n), "n_test": int(test.n), "dropped_low_magnitude": dropped,
                "min_magnitude": mc.min_magnitude, "scores": fs.scores,
                "heading": None if fs.heading is None else {k: v for k, v in fs.heading.items()

@@ -104,6 +104,7 @@ def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     pred = hyb.compose(Components(uq, hyb.network_part(test)))      # the family and fusion of [network]
     t["network_predict"] = time.perf_counter() - t0
 
+    info = net.info_dict()
     y = test.b_ref
     hybrid = pred.mean
     lo_, hi_ = pred.interval(cfg.uq.level)
@@ -116,8 +117,8 @@ def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
         "hybrid_coverage": _axes(M.coverage(y, lo_, hi_)), "level": cfg.uq.level,
         "significance": {ax: {k: (v if not isinstance(v, (np.floating, np.integer)) else float(v))
                               for k, v in s.items()} for ax, s in sig.items()},
-        "network": {"epochs_run": net.info_dict(), "likelihood": likelihood,
-                    "still_improving": [ax for ax, i in net.info_dict().items() if still_improving(i, net_cfg.max_epochs)],
+        "network": {"epochs_run": info, "likelihood": likelihood,
+                    "still_improving": [ax for ax, i in info.items() if still_improving(i, net_cfg.max_epochs)],
                     "batch_size": net_cfg.batch_size, "max_epochs": net_cfg.max_epochs, "learning_rate": net_cfg.learning_rate},
         "seconds": {k: round(v, 3) for k, v in t.items()},
         "peak_rss_gb": round(_peak_rss_gb(), 3),

@@ -16,7 +16,7 @@ import scipy.stats
 
 from bayesmag._src.core.field import FieldFit
 
-__all__ = ["FieldCalibration", "FIELD_FORMAT", "FIELD_FORMAT_VERSION", "DOMAIN_KEYS"]
+__all__ = ["FieldCalibration", "FIELD_FORMAT", "FIELD_FORMAT_VERSION", "DOMAIN_KEYS", "range_flags"]
 
 FIELD_FORMAT = "bayesmag-field-calibration"
 FIELD_FORMAT_VERSION = 1
@@ -24,11 +24,31 @@ FIELD_FORMAT_VERSION = 1
 DOMAIN_KEYS = ("bx_meas", "by_meas", "bz_meas", "temperature", "magnitude")
 
 
+def range_flags(u, t, magnitude, ranges: dict, valid=None) -> tuple[np.ndarray, dict]:
+    """``(reason, hits)`` of every row against the training ``ranges`` (:data:`DOMAIN_KEYS` -> ``(low, high)``,
+    already widened): ``hits`` maps ``field_range`` (a reading Bx, By or Bz outside its range), ``temperature`` and
+    ``magnitude`` (the predicted |B|) to boolean rows; ``reason`` joins each row's hits with ``;`` ('' inside).
+    Rows not ``valid`` are never flagged."""
+    x = np.column_stack([np.asarray(u, np.float64), np.asarray(t, np.float64), np.asarray(magnitude, np.float64)])
+    n = x.shape[0]
+    valid = np.ones(n, bool) if valid is None else np.asarray(valid, bool)
+    hits = {"field_range": np.zeros(n, bool), "temperature": np.zeros(n, bool), "magnitude": np.zeros(n, bool)}
+    for j, key in enumerate(DOMAIN_KEYS):
+        a, b = ranges[key]
+        hits["field_range" if j < 3 else key] |= valid & ((x[:, j] < a) | (x[:, j] > b))
+    reason = np.full(n, "", dtype=object)
+    for k, h in hits.items():
+        reason[h] = np.where(reason[h] == "", k, reason[h] + ";" + k)
+    return reason, hits
+
+
 @dataclasses.dataclass(frozen=True)
 class FieldCalibration:
     """A field fit with what its run measured: the conformal scale of its magnitude sd, level, training ranges.
 
-    ``ranges`` maps each of :data:`DOMAIN_KEYS` to ``(low, high)`` (uT, C), already widened by the run's margin.
+    ``ranges`` maps each of :data:`DOMAIN_KEYS` to ``(low, high)`` (uT, C), already widened by the run's margin;
+    ``reference_column`` names the recording's scalar-magnetometer column the fit read (None: a constant field or
+    a vector reference), so a new recording holding it can be scored.
 
     Example:
       >>> from bayesmag.simulate import simulate_field
@@ -45,6 +65,7 @@ class FieldCalibration:
     interval_scale: float = 1.0
     level: float = 0.95
     ranges: dict = dataclasses.field(default_factory=dict)
+    reference_column: str | None = None
 
     def predict(self, u, t, *, level: float | None = None, chunk_size: int = 200_000) -> dict:
         """Calibrated field (n, 3) in the gauge frame, its magnitude with sd and interval, and the domain flags.
@@ -82,16 +103,8 @@ class FieldCalibration:
             out["magnitude_total"][r] = total
             out["magnitude_lower"][r] = np.maximum(pm["mean"] - z * total, 0.0)      # a magnitude is >= 0
             out["magnitude_upper"][r] = pm["mean"] + z * total
-        reason = np.full(n, "", dtype=object)
-        if self.ranges:
-            x = np.column_stack([u, t, out["magnitude"]])
-            hits = {"field_range": np.zeros(n, bool), "temperature": np.zeros(n, bool), "magnitude": np.zeros(n, bool)}
-            for j, key in enumerate(DOMAIN_KEYS):
-                a, b = self.ranges[key]
-                bad = valid & ((x[:, j] < a) | (x[:, j] > b))
-                hits["field_range" if j < 3 else key] |= bad
-            for k, h in hits.items():
-                reason[h] = np.where(reason[h] == "", k, reason[h] + ";" + k)
+        reason = (range_flags(u, t, out["magnitude"], self.ranges, valid)[0] if self.ranges
+                  else np.full(n, "", dtype=object))
         out.update(valid=valid, in_domain=valid & (reason == ""), in_domain_reason=reason, level=level)
         return out
 
@@ -99,7 +112,8 @@ class FieldCalibration:
         """``field_params.json``: the fit's :meth:`~bayesmag._src.core.field.FieldFit.to_json` plus ``predictive``."""
         return {"format": FIELD_FORMAT, "format_version": FIELD_FORMAT_VERSION, **self.fit.to_json(),
                 "predictive": {"interval_scale": self.interval_scale, "level": self.level,
-                               "domain_ranges": {k: [float(v) for v in self.ranges[k]] for k in self.ranges}}}
+                               "domain_ranges": {k: [float(v) for v in self.ranges[k]] for k in self.ranges},
+                               "scalar_column": self.reference_column}}
 
     @classmethod
     def from_json(cls, doc: dict) -> "FieldCalibration":
@@ -125,4 +139,5 @@ class FieldCalibration:
         bad = [k for k, (a, b) in ranges.items() if not (np.isfinite(a) and np.isfinite(b) and a < b)]
         if bad:
             raise ValueError(f"field_params.json: domain_ranges {bad} must be finite [low, high] with low < high")
-        return cls(fit, scale, level, ranges)
+        column = p.get("scalar_column")
+        return cls(fit, scale, level, ranges, column if isinstance(column, str) and column else None)

@@ -77,22 +77,16 @@ def field_domain_check(train: CalibrationData, y_train_mag, test: CalibrationDat
       >>> int(r["in_domain"].sum()), r["by_reason"]
       (0, {'magnitude': 200})
     """
-    from bayesmag._src.core.domain import Domain, _box
+    from bayesmag._src.core.domain import _box
+    from bayesmag._src.core.field_calibration import DOMAIN_KEYS, range_flags
 
-    lo, hi = _box(np.column_stack([train.b_meas, train.temperature]), margin, 0.5)
-    out = Domain(lo, hi, margin).outside(test)                                        # (n, 4): Bx, By, Bz, T
-    mlo, mhi = _box(np.asarray(y_train_mag, np.float64).reshape(-1, 1), margin, 0.5)
-    pm = np.asarray(predicted_mag, np.float64)
-    out_mag = (pm < mlo[0]) | (pm > mhi[0])
-    hits = {"field_range": out[:, :3].any(axis=1), "temperature": out[:, 3], "magnitude": out_mag}
-    reason = np.full(test.n, "", dtype=object)
-    for k, h in hits.items():
-        reason[h] = np.where(reason[h] == "", k, reason[h] + ";" + k)
+    lo, hi = _box(np.column_stack([train.b_meas, train.temperature,
+                                   np.asarray(y_train_mag, np.float64).reshape(-1)]), margin, 0.5)
+    ranges = {k: [a, b] for k, a, b in zip(DOMAIN_KEYS, lo, hi)}
+    reason, hits = range_flags(test.b_meas, test.temperature, predicted_mag, ranges)
     inside = reason == ""
     return {"in_domain": inside, "reason": reason, "margin": margin, "n_outside": int((~inside).sum()),
-            "by_reason": {k: int(h.sum()) for k, h in hits.items() if h.any()},
-            "training_ranges": {"bx_meas": [lo[0], hi[0]], "by_meas": [lo[1], hi[1]], "bz_meas": [lo[2], hi[2]],
-                                "temperature": [lo[3], hi[3]], "magnitude": [mlo[0], mhi[0]]}}
+            "by_reason": {k: int(h.sum()) for k, h in hits.items() if h.any()}, "training_ranges": ranges}
 
 
 def vector_comparison(fit: FieldFit, train: CalibrationData, *, covariance: str = "white") -> dict:
