@@ -114,8 +114,7 @@ if X64_AT_IMPORT:
     _jax.config.update("jax_enable_x64", True)
 
 
-class Float64Warning(UserWarning):
-    """A bayesmag computation that needs float64 ran with JAX in float32."""
+from bayesmag._src.core.precision import Float64Warning as Float64Warning  # noqa: E402
 
 
 def x64_enabled() -> bool:
@@ -136,10 +135,8 @@ def enable_x64():
 def _needs_x64(fn):
     @_functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        if not x64_enabled():
-            _warnings.warn(f"bayesmag.{fn.__name__} runs with JAX in float32 (BAYESMAG_ENABLE_X64=0 and no "
-                           f"`with bayesmag.enable_x64():`); its results are float32 approximations.",
-                           Float64Warning, stacklevel=2)
+        from bayesmag._src.core.precision import warn_if_float32
+        warn_if_float32(fn.__name__)
         return fn(*args, **kwargs)
     return wrapper
 

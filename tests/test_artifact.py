@@ -277,6 +277,7 @@ def test_single_network_calibration_of_the_previous_version_still_loads(ensemble
     doc = json.loads((run / "calibration.json").read_text())
     doc["format_version"] = 1
     doc["network"].pop("members")
+    doc["arrays"].pop("sha256")                 # written before the arrays' checksums were kept
     (run / "calibration.json").write_text(json.dumps(doc))
     cal = load(run)
     net = cal.predictor().network
@@ -391,3 +392,20 @@ def test_a_recording_whose_time_step_is_not_trainings_is_warned_about(tmp_path):
     assert "time step" in cal.domain.step_note(dc.replace(d, time=d.time * 1000.0))
     bare = CalibrationData(d.b_meas, d.temperature, None)                      # no time column: row index
     assert (cal.domain.step_note(bare) is None) == (1 / 3 <= 1.0 / step <= 3)
+
+
+def test_an_edited_array_is_refused_by_its_checksum(tmp_path):
+    """Before: theta[0, 0] x 1.5 in calibration.npz was applied (x RMSE 10.5 uT): plausible values pass the field
+    checks. Each array's sha256 is kept in calibration.json; a file without them (older) still loads."""
+    _, run = _run(tmp_path)
+    with np.load(run / "calibration.npz") as f:
+        a = {k: f[k] for k in f.files}
+    a["theta"] = a["theta"].copy()
+    a["theta"][0, 0] *= 1.5
+    np.savez(run / "calibration.npz", **a)
+    with pytest.raises(ArtifactError, match=r"\['theta'\] differ from the checksums"):
+        load(run)
+    doc = json.loads((run / "calibration.json").read_text())
+    doc["arrays"].pop("sha256")
+    (run / "calibration.json").write_text(json.dumps(doc))
+    assert load(run).theta[0, 0] == a["theta"][0, 0]

@@ -26,6 +26,7 @@ def test_defaults_and_round_trip():
     ({"data": {"source": "a", "path": "b"}}, r"both 'source' and 'path'"),
     ({"data": {"source": "simulated"}, "uq": {"sigma_in": [1, 2]}}, r"sigma_in"),
     ({"data": {"source": "simulated"}, "physics": {"t0": "median"}}, r"physics.t0"),
+    ({"data": {"source": "simulated"}, "physics": {"t0": 1e9}}, r"'physics.t0' = 1000000000.0 is not a reference temp"),
     ({"data": {"source": "simulated"}, "uq": "x"}, r"\[uq\] must be a table"),
     ({"data": {"source": "simulated"}, "network": {"conformal_folds": 1}}, r"'network.conformal_folds' = 1 is not valid"),
     ({"data": {"source": "simulated"}, "network": {"conformal_folds": 10}}, r"folds x fraction < 1"),

@@ -352,7 +352,6 @@ def test_export_says_training_rows_without_a_split_and_skips_a_changed_recording
     """``split.kind = "none"``: the accuracy is on the training rows and says so (it said "held-out (test) rows").
     A recording edited since the run (sha256 no longer the certificate's): the accuracy is not measured on it, with a
     warning (before: an x RMSE of 0.50 uT against the run's 0.05 after shifting bx_ref by 0.5 uT, silently)."""
-    import warnings
     rec = tmp_path / "rec.csv"
     bayesmag.write_csv(bayesmag.simulate.simulate(600, design="campaign", seed=2, noise_sd=0.05), rec)
     raw = {"data": {"path": str(rec)}, "split": {"kind": "none"}, "uq": {"method": "analytic"},
@@ -368,7 +367,31 @@ def test_export_says_training_rows_without_a_split_and_skips_a_changed_recording
     for r in rows:
         r[k] = repr(float(r[k]) + 0.5)
     rec.write_text("\n".join([text[0]] + [",".join(r) for r in rows]) + "\n")
-    with warnings.catch_warnings(record=True) as w:
-        warnings.simplefilter("always")
-        _, ex = E.export_run(run, "json", tmp_path / "b.export.json")
-    assert ex.accuracy is None and any("has changed since the run" in str(x.message) for x in w)
+    _, ex = E.export_run(run, "json", tmp_path / "b.export.json")
+    assert ex.accuracy is None and any("has changed since the run" in w for w in ex.warnings)
+    assert any(line.startswith("WARNING:") and "has changed" in line for line in E.limitations("json", ex))
+    # a least-squares target is fitted on the training rows: refused without them (it was fitted on a domain grid)
+    with pytest.raises(E.ExportError, match="has changed since the run.*least-squares fit"):
+        E.export_run(run, "px4", tmp_path / "c.params")
+
+
+def test_export_from_another_folder_finds_a_relative_recording(tmp_path, monkeypatch):
+    """A run given a relative ``[data] path`` and exported from another folder: the recording is found from the
+    folder the run started in (before: not found, and the PX4 form was fitted on a grid over the training box:
+    CAL_MAG0_YSCALE -0.022 instead of 1.12 on the smoke pass's real recording)."""
+    home = tmp_path / "home"
+    home.mkdir()
+    bayesmag.write_csv(bayesmag.simulate.simulate(600, design="campaign", seed=2, noise_sd=0.05), home / "rec.csv")
+    monkeypatch.chdir(home)
+    raw = {"data": {"path": "rec.csv"}, "split": {"kind": "time_blocks", "test_fraction": 0.2},
+           "uq": {"method": "analytic"}, "output": {"figures": False, "progress": False}}
+    bayesmag.run_job(config_from_dict(raw), home / "run")
+    here = E.export_run(home / "run", "px4", tmp_path / "here.params")[1]
+    monkeypatch.chdir(tmp_path)
+    there = E.export_run(home / "run", "px4", tmp_path / "there.params")[1]
+    assert there.accuracy is not None and set(there.px4) == set(here.px4)
+    for k in here.px4:
+        np.testing.assert_array_equal(np.asarray(there.px4[k]), np.asarray(here.px4[k]))
+    (home / "rec.csv").rename(home / "moved.csv")
+    with pytest.raises(E.ExportError, match="could not be reloaded.*least-squares"):
+        E.export_run(home / "run", "px4", tmp_path / "gone.params")

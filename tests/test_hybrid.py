@@ -10,6 +10,7 @@ import pytest
 
 from bayesmag import ConfigError, run_job
 from bayesmag._src.app.config import config_from_dict
+from bayesmag._src.core.data import CalibrationWarning
 from bayesmag._src.pipeline.hybrid import check_network_config, conformal_plan, fuse
 from bayesmag._src.core.network import NetworkSpec
 from helpers import uq_parts
@@ -106,7 +107,7 @@ def test_nan_loss_warns_with_the_epoch_and_the_job_finishes(tmp_path):
     cfg = _config(raw, likelihoods=["gaussian"], hidden_layers=2, width=16, learning_rate=0.3, epsilon=0.0,
                   log_scale_clip=[-300.0, 300.0], log_scale_l2=0.0, validation="random",
                   interval_calibration="none")                 # the rows and seed known to diverge
-    with pytest.warns(RuntimeWarning, match=r"NaN/inf in epoch \d+; training stopped there"):
+    with pytest.warns(CalibrationWarning, match=r"NaN/inf in epoch \d+; training stopped there"):
         result = run_job(cfg, tmp_path / "nan")
     info = result["metrics"]["network"]["training"]["gaussian"]
     assert any(info[ax]["nan_epoch"] >= 0 for ax in "xyz")
@@ -122,11 +123,12 @@ def test_a_network_stopped_by_max_epochs_while_improving_is_warned_about(tmp_pat
     raw["data"]["simulate"]["n"] = 1000
     raw["output"]["figures"] = False
     cfg = _config(raw, likelihoods=["gaussian"], hidden_layers=2, width=16, max_epochs=4, interval_calibration="none")
-    with pytest.warns(RuntimeWarning, match=r"stopped at network.max_epochs = 4 with the validation loss still"):
+    with pytest.warns(CalibrationWarning, match=r"stopped at network.max_epochs = 4 with the validation loss still"):
         result = run_job(cfg, tmp_path / "short")
     info = result["metrics"]["network"]["training"]["gaussian"]
     flagged = [ax for ax in "xyz" if still_improving(info[ax], 4)]
     assert flagged and any(f"axis {', '.join(flagged)}:" in w for w in result["metrics"]["network"]["warnings"])
+    assert set(result["metrics"]["network"]["warnings"]) <= set(result["metrics"]["warnings"])   # printed by the CLI
 
 
 # --------------------------------------------------------------------------- end to end

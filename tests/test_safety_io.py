@@ -166,6 +166,33 @@ def test_rerun_of_a_clean_run_folder_still_replaces_it(tmp_path, capsys, model):
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["run", "rec.csv", "cfg.toml"]), old
 
 
+@pytest.mark.parametrize("other", ["fleet", "discover", "study"])
+def test_a_run_never_replaces_another_commands_folder(tmp_path, capsys, model, no_work, other):
+    """Before: `bayesmag run --out <a fleet folder>` replaced an 8-sensor fleet (fleet.json, sensors/) with one run,
+    and `discover --out <a run>` a calibration, silently. The folder's kind: its marker's, or (older markers) its
+    files'."""
+    from bayesmag._src.app.outdir import KIND_FILES, check_out, folder_kind
+    run, cfg = _copy(model, tmp_path)
+    name = dict(KIND_FILES)[other]
+    (run / name).write_text("{}")
+    mark = json.loads((run / MARKER).read_text())
+    mark["files"] = sorted(set(mark["files"]) - {"calibration.json"} | {name})
+    mark.pop("kind")                                            # a marker written before it kept the command
+    (run / "calibration.json").unlink()
+    (run / MARKER).write_text(json.dumps(mark))
+    assert folder_kind(marker_status(run)) == other
+    before = _tree(run)
+    rc = main(["run", str(cfg), "--out", str(run), "--no-progress"])
+    err = _err(capsys)
+    assert rc == 2 and "this command would replace it" in err and f"bayesmag {other}" in err, err
+    assert _tree(run) == before
+    check_out(run, kind=other)                                  # its own command may replace it
+
+
+def test_the_marker_records_the_command_that_wrote_the_folder(model):
+    assert marker_status(model)["kind"] == "run"
+
+
 _NAMES = st.sampled_from(["a", "b.txt", "notes.md", MARKER + ".bak", ".hidden", "figure.png", "x y"])
 
 

@@ -446,7 +446,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     # limit; a worker past 95 % of --memory-limit is still restarted (and a partition that cannot fit is named below).
     memory = {"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
               "distributed.worker.memory.pause": False}
-    with reserve(out, inputs=[]), staging_dir(out) as tmp, dask.config.set(memory):
+    with reserve(out, inputs=[], kind="apply"), staging_dir(out, kind="apply") as tmp, dask.config.set(memory):
         cluster = None
         if scheduler:
             client = Client(scheduler, timeout="30s")

@@ -173,7 +173,7 @@ class Calibration:
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
                 new_session: bool = True, progress: bool = False, columns: dict | None = None,
                 field_unit: str | None = None, temperature_unit: str = "C",
-                check_units: bool = True) -> "dict[str, np.ndarray] | pandas.DataFrame":
+                check_units: bool = True, check_rates: bool | None = None) -> "dict[str, np.ndarray] | pandas.DataFrame":
         """Calibrated field and uncertainty for every row of ``data`` (reference columns not needed).
 
         Args:
@@ -184,6 +184,10 @@ class Calibration:
             values are checked to be in uT and C against the training range: nT, mT, gauss and
             kelvin are refused (``frames.as_calibration_data``). ``check_units=False`` skips that
             check for rows the caller checked already (``bayesmag apply``).
+          check_rates: check the field and temperature rates against the training domain (reasons
+            ``field_rate``, ``temperature_rate``); default: when ``data`` has times (a CalibrationData, or a
+            DataFrame with a ``time`` column), not for a NumPy array (its rows have no time: the rates of
+            consecutive rows would be read per row index, not per second).
 
         Returns:
           A DataFrame for a DataFrame (columns ``x_calibrated, x_lower, ...`` and the flags, the input's
@@ -203,12 +207,17 @@ class Calibration:
             raise ValueError(f"level = {level!r} must be a number in (0, 1), e.g. 0.95.")
         if is_frame(data):
             index = data.index
+            if check_rates is None:
+                check_rates = (columns or {}).get("time", "time") in data.columns
             out = self.predict(as_calibration_data(data, columns=columns, field_unit=field_unit,
                                                    temperature_unit=temperature_unit, train_max_ut=self._train_max(),
                                                    what="the data given to predict"),
                                level=level, method=method, n_params=n_params, n_qmc=n_qmc, seed=seed,
-                               chunk_size=chunk_size, new_session=new_session, progress=progress, check_units=False)
+                               chunk_size=chunk_size, new_session=new_session, progress=progress, check_units=False,
+                               check_rates=check_rates)
             return prediction_frame(out, index)
+        if check_rates is None:
+            check_rates = isinstance(data, CalibrationData)
         if check_units or not isinstance(data, CalibrationData):
             data = as_calibration_data(data, columns=columns, field_unit=field_unit, temperature_unit=temperature_unit,
                                        train_max_ut=self._train_max(), what="the data given to predict")
@@ -259,6 +268,8 @@ class Calibration:
         in_dom = np.zeros(n, dtype=bool)
         reason = np.full(n, "invalid", dtype=object)
         outside = self.domain.outside(data.subset(valid), out["calibrated"][valid])
+        if not check_rates:
+            outside = outside[:, :4]                    # values only: no time, no rates
         in_dom[valid] = ~outside.any(axis=1)
         reason[valid] = self.domain.reasons(outside)
         out["in_domain"] = in_dom
@@ -302,7 +313,8 @@ def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95
         "axes": list(AXES), "likelihood": predictor.family, "level": level,
         "domain": dataclasses.asdict(predictor.domain), "config": config, "network": meta_net,
         **({"sessions": sessions_meta} if sessions_meta is not None else {}),
-        "arrays": {"file": "calibration.npz", "keys": sorted(arrays)},
+        "arrays": {"file": "calibration.npz", "keys": sorted(arrays),
+                   "sha256": {k: array_sha256(v) for k, v in sorted(arrays.items())}},
         "units": {"field": "uT", "temperature": "C", "time": "s"},
     }
     bad = [k for k, v in arrays.items() if np.issubdtype(np.asarray(v).dtype, np.number)
@@ -388,7 +400,8 @@ def field_run_error(path, error) -> None:
                     f"field_params.json): `bayesmag export` and `report` take a calibration against a vector "
                     f"reference. The run folder already holds its exports (calibration.export.json with the full "
                     f"model, calibration.h, .params, .parm, .magcal.json) and its report.md; `bayesmag apply` "
-                    f"calibrates a new recording with it; docs/field.md.")
+                    f"calibrates a new recording with it, and from Python bayesmag.load_field(run).predict(b, t) "
+                    f"(bayesmag.load reads a vector calibration); docs/field.md.")
 
 
 def _check_version(v, j: Path, writer) -> None:
@@ -429,11 +442,38 @@ def read_calibration(path: str | Path) -> Calibration:
         raise ArtifactError(f"{z} cannot be read as a numpy .npz archive ({type(e).__name__}: {e}); "
                             f"the file is damaged.") from None
     try:
-        return validate_artifact(doc, arrays, where=str(path))
+        cal = validate_artifact(doc, arrays, where=str(path))
     except ArtifactError:
         raise
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
         raise ArtifactError(f"{j}: the calibration description is damaged ({type(e).__name__}: {e}).") from None
+    _check_sums(doc, arrays, z)         # after the field checks: they name what is implausible, this what changed
+    return cal
+
+
+def array_sha256(a) -> str:
+    """sha256 of an array's dtype, shape and bytes (C order): what ``calibration.json`` records per array."""
+    import hashlib
+    a = np.ascontiguousarray(np.asarray(a))
+    h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
+    h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _check_sums(doc: dict, arrays: dict, z: Path) -> None:
+    """Every array of ``calibration.npz`` as ``calibration.json`` recorded it (its sha256); files written before
+    the sums were recorded have none to check."""
+    sums = (doc.get("arrays") or {}).get("sha256") if isinstance(doc.get("arrays"), dict) else None
+    if sums is None:
+        return
+    if not isinstance(sums, dict):
+        raise ArtifactError(f"{z.parent / 'calibration.json'}: field 'arrays.sha256' must map array names to "
+                            f"checksums; the file is damaged.")
+    changed = sorted(k for k in set(sums) | set(arrays) if k not in arrays or sums.get(k) != array_sha256(arrays[k]))
+    if changed:
+        raise ArtifactError(f"{z}: array(s) {changed[:5]} differ from the checksums calibration.json recorded when the "
+                            f"run wrote them: the file was edited or damaged after the run, so the calibration is "
+                            f"not applied. Re-run `bayesmag run` (or restore the run folder).")
 
 
 def _field(name: str, value, where: str, *, shape=None, finite=True, kind: str = "value") -> np.ndarray:

@@ -153,10 +153,21 @@ class Calibrator:
             X = CalibrationData(a[:, :3], a[:, 3], None, a[:, 4] if a.shape[1] > 4 else None,
                                 a[:, 5].astype(int) if a.shape[1] > 5 else None, source="array X")
         if y is not None:
+            if index is not None and hasattr(y, "index") and not index.equals(y.index):
+                raise DataError("X and y are pandas objects with different indexes; y is used by position (as in "
+                                "scikit-learn), so its rows would be paired with other rows of X. Align them first: "
+                                "y.loc[X.index] (or y.to_numpy() if the row order is already right).")
             ref = np.asarray(y.to_numpy() if hasattr(y, "to_numpy") else y, dtype=np.float64)
             n = len(X) if is_frame(X) else X.n
             if ref.shape != (n, 3):
                 raise DataError(f"y must be the reference field (n, 3) = ({n}, 3); got shape {ref.shape}.")
+            bad = ~np.isfinite(ref)
+            if bad.any():
+                from bayesmag._src.core.data import _bad_rows
+                col = ("bx_ref", "by_ref", "bz_ref")[int(np.flatnonzero(bad.any(axis=0))[0])]
+                raise DataError(f"y (the reference field) has {int(bad.sum())} non-finite value(s) (NaN or inf), "
+                                f"first in column {col}, at {_bad_rows(bad.any(axis=1))}. Remove or repair those "
+                                f"rows (of X and y alike) before calibrating.")
             if is_frame(X):
                 X = X.assign(**{f"{a}_ref": ref[:, i] for i, a in enumerate(("bx", "by", "bz"))})
             else:
@@ -198,8 +209,10 @@ class Calibrator:
         config enables them) on the rows (minus the ``holdout`` rows, which are scored into ``metrics_``).
         """
         from bayesmag._src.core.data import validate
+        from bayesmag._src.core.precision import warn_if_float32
         from bayesmag._src.pipeline.calibrate import calibrate
 
+        warn_if_float32("Calibrator.fit")
         cfg = self._config()
         rows, _ = self._rows(X, y, need_reference=True)
         split = self._split(cfg, rows)
@@ -211,6 +224,12 @@ class Calibrator:
             raise ConfigError(f"[physics] extra_terms: {e}") from None
         validate(rows, n_params=model.n_params, origin=rows.source or "the rows given to Calibrator.fit",
                  need_temperature_variation=cfg.physics.temperature_terms, allow_duplicate_times=True)
+        from bayesmag._src.app.job import time_order_reasons
+        from bayesmag._src.core.data import check_time_order
+        reasons = time_order_reasons(cfg, model)
+        if split is None:                   # no holdout: no split takes the rows in time order
+            reasons = [r for r in reasons if r and "split" not in r]
+        check_time_order(rows, reasons, origin=rows.source or "the rows given to Calibrator.fit")
         if cfg.nuts.enabled:
             from bayesmag._src.app.nuts_stage import check_nuts_config
             settings = cfg.settings(nuts_priors=check_nuts_config(cfg, model.param_names))
@@ -264,7 +283,7 @@ class Calibrator:
 
         self._check_fitted("run_")
         path = Path(path)
-        with staging_dir(path) as tmp:
+        with staging_dir(path, kind="run") as tmp:
             (tmp / "params.json").write_text(json.dumps(self.physics_fit_.to_json(), indent=2))
             (tmp / "config.resolved.toml").write_text(to_toml(self._cfg.to_dict()))
             save_calibration(tmp, self.run_.predictor, config=self._cfg.to_dict(), level=self._cfg.uq.level)

@@ -53,7 +53,7 @@ def _run(args, worker) -> int:
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     import gc
     gc.freeze()                     # the imports so far live to the end: the collector need not walk them again
-    with reserve(out, inputs=[cfg_path, cfg.data.path]):       # refused before any computation
+    with reserve(out, inputs=[cfg_path, cfg.data.path], kind="run"):       # refused before any computation
         result = run_job(cfg, out, progress=None if _progress(args) else False,   # None: [output] progress
                          figure_worker=worker)
     m = result["metrics"]
@@ -235,7 +235,7 @@ def _cmd_study(args) -> int:
     cfg_path = _resolve_config(args.config)
     cfg = load_config(cfg_path, args.set or [])
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
-    with reserve(out, inputs=[cfg_path, cfg.data.path]):
+    with reserve(out, inputs=[cfg_path, cfg.data.path], kind="study"):
         res = run_study(cfg, out, progress=_progress(args) and cfg.output.progress)
     print(f"bayesmag: wrote {out}/ ({res['seconds_total']:.0f} s, peak memory {res['peak_rss_gb']:.2f} GB)")
     print((out / "simulation_study.md").read_text())
@@ -411,7 +411,7 @@ def _cmd_discover(argv: list[str]) -> int:
     name = Path(args.data).stem if args.data else raw.get("name", "bayesmag")
     out = Path(args.out) if args.out else default_out(name)
     data_table = raw.get("data") if isinstance(raw.get("data"), dict) else {}
-    with reserve(out, inputs=[args.data, args.config, data_table.get("path")]):
+    with reserve(out, inputs=[args.data, args.config, data_table.get("path")], kind="discover"):
         return discover_main(argv)
 
 
@@ -458,7 +458,7 @@ def _main(argv: list[str]) -> int:
 
     import warnings
 
-    from bayesmag._src.core.data import DataNote
+    from bayesmag._src.core.data import CalibrationWarning, DataNote
 
     expected = (ConfigError, DataError, JobError, ArtifactError, OutputError, OSError)
     show = warnings.showwarning
@@ -466,6 +466,8 @@ def _main(argv: list[str]) -> int:
     def note(message, category, *a, **k):       # a DataNote is one line on stderr, not a warning with a source line
         if issubclass(category, DataNote):
             print(f"bayesmag: note: {_one_line(message)}", file=sys.stderr)
+        elif issubclass(category, CalibrationWarning):
+            pass                                # the job prints each from metrics.json's warnings, once
         else:
             show(message, category, *a, **k)
     try:
@@ -476,6 +478,12 @@ def _main(argv: list[str]) -> int:
                 return _cmd_discover(argv[1:])
             args = build_parser().parse_args(argv)
             return args.func(args)
+    except BrokenPipeError:                 # `bayesmag run ... | head -1`: the reader left; the result is written
+        import contextlib
+        import os
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # no second error at exit's flush
+        return 0
     except expected as e:
         print(f"bayesmag: error: {_one_line(e)}", file=sys.stderr)
         return 2

@@ -414,6 +414,10 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"Config key 'uq.level' = {cfg.uq.level} must be in (0, 1).")
     if isinstance(cfg.physics.t0, str) and cfg.physics.t0 != "mean":
         raise ConfigError(f"Config key 'physics.t0' = {cfg.physics.t0!r} must be a number or \"mean\".")
+    if not isinstance(cfg.physics.t0, str) and not (-273.15 <= float(cfg.physics.t0) <= 1000.0):
+        raise ConfigError(f"Config key 'physics.t0' = {cfg.physics.t0!r} is not a reference temperature in C (it must "
+                          f"lie in [-273.15, 1000]); use the calibration's typical temperature, or \"mean\" (the "
+                          f"training mean).")
     s = cfg.uq.sigma_in
     if isinstance(s, str) and s != "auto":
         raise ConfigError(f"Config key 'uq.sigma_in' = {s!r} must be \"auto\", 4 standard deviations or a 4x4 matrix.")
@@ -547,8 +551,9 @@ def resolve_config_path(name: str) -> Path:
 
 
 def load_config(path: str | Path, overrides: list[str] = ()) -> Config:
-    """Read a TOML config, apply ``--set`` overrides and validate it."""
-    return config_from_dict(read_config_dict(path, overrides))
+    """Read a TOML config (a path, or a packaged config's name as ``bayesmag run`` takes it: ``"quickstart"``),
+    apply ``--set`` overrides and validate it."""
+    return config_from_dict(read_config_dict(resolve_config_path(str(path)), overrides))
 
 
 def _toml_value(v: Any) -> str:

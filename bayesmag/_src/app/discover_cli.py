@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-from bayesmag._src.core.data import load_csv
 from bayesmag._src.pipeline.discover.options import DiscoverOptions
 from bayesmag._src.pipeline.discover.pipeline import discover
 
@@ -86,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.data and args.config:
             raise ConfigError("give a CONFIG or --data FILE.csv, not both.")
         if args.data:
-            data = load_csv(args.data, field_unit=args.field_unit)
+            from bayesmag._src.core.frames import load_table      # CSV, or Parquet by its suffix
+            data = load_table(args.data, field_unit=args.field_unit)
             opts = DiscoverOptions()
             header = Path(args.data).read_text(encoding="utf-8-sig").splitlines()[0]   # BOM-safe, any delimiter
             if "time" not in [c.strip().strip('"') for c in re.split(r"[,;\t]", header)]:

@@ -21,7 +21,7 @@ def write_discovery(res: DiscoveryResult, out: str | Path) -> Path:
     from bayesmag._src.core.jsonio import write_json
 
     out = Path(out)
-    with staging_dir(out) as tmp:
+    with staging_dir(out, kind="discover") as tmp:
         figures = []
         if res.options.figures:
             from bayesmag._src.app import discover_plots

@@ -51,6 +51,9 @@ __all__ = ["FORMATS", "ExportError", "affine_at", "hard_soft_iron", "fit_symmetr
 
 #: File suffix per format (never plain ".json": calibration.json is the artifact itself).
 from bayesmag._src.app.formats import FORMATS  # noqa: E402  (re-exported: the export formats)
+
+#: Formats fitted by least squares to the run's training rows (the others hold the model exactly).
+LEAST_SQUARES_FORMATS = ("px4", "ardupilot")
 #: The token every exported file carries near its top: a file without it was not written by
 #: ``bayesmag export`` and is never replaced without ``force``.
 SIGNATURE = "bayesmag-export"
@@ -658,14 +661,20 @@ def split_rows(cal) -> tuple[CalibrationData, CalibrationData]:
     return data.subset(train), data.subset(test)
 
 
-def split_recording(cal) -> tuple[CalibrationData, np.ndarray, np.ndarray]:
+def split_recording(cal, run_dir=None) -> tuple[CalibrationData, np.ndarray, np.ndarray]:
     """``(recording, train_index, test_index)`` of a ``bayesmag run`` folder's calibration, reloaded through its
-    saved config (data source and split)."""
+    saved config (data source and split). A relative ``[data] path`` is found from here or, with ``run_dir``, from
+    the folder the run was started in (its marker records it)."""
     from bayesmag._src.app.config import config_from_dict
     from bayesmag._src.core.data import make_split
-    from bayesmag._src.app.inputs import load_data
+    from bayesmag._src.app.inputs import load_data, recording_paths
 
     raw = {k: v for k, v in cal.config.items() if v is not None}
+    data_cfg = raw.get("data") if isinstance(raw.get("data"), dict) else {}
+    if data_cfg.get("path") and run_dir is not None:
+        found = [p for p in recording_paths(data_cfg, run_dir) if p.exists()]
+        if found:
+            raw = {**raw, "data": {**data_cfg, "path": str(found[0])}}
     cfg = config_from_dict(_drop_none(raw))
     data = load_data(cfg)
     s = cfg.split
@@ -796,25 +805,33 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     train = test = series = None
     cert = run_certificate(run_dir)
     changed = _recording_changed(cal, cert)
+    missing = None                                  # why the run's rows are not here (None: they are)
     if measure and changed:
-        import warnings
-        warnings.warn(f"the run's recording {changed} has changed since the run (its sha256 differs from the one the "
-                      f"run recorded); the accuracy loss is not measured on it.", stacklevel=2)
+        missing = (f"the run's recording {changed} has changed since the run (its sha256 differs from the one the "
+                   f"run recorded)")
     elif measure:
         try:
             if "sensor_id" in cal.config:
                 train, test = split_rows(cal)
             else:
-                series = split_recording(cal)
+                series = split_recording(cal, run_dir)
                 train, test = series[0].subset(series[1]), series[0].subset(series[2])
             if ((cal.config.get("split") or {}).get("kind") == "none"
                     and not ("sensor_id" in cal.config)):   # no split: the "test" rows are the training rows
                 test, series = None, None
-        except Exception as e:  # noqa: BLE001 -- the export is still useful without the accuracy table
-            import warnings
-            warnings.warn(f"the run's rows could not be reloaded ({e}); accuracy loss not measured.", stacklevel=2)
+        except Exception as e:  # noqa: BLE001 -- the exact formats are still useful without the rows
+            missing = f"the run's rows could not be reloaded ({' '.join(str(e).split())})"
+    if missing is not None and fmt in LEAST_SQUARES_FORMATS:
+        raise ExportError(f"{missing}. The {fmt} parameters are a least-squares fit to the run's training rows, so "
+                          f"they cannot be exported without them (a fit on a grid over the training box was far off: a "
+                          f"negative scale on the real data). Run `bayesmag export` where the run's recording is found "
+                          f"(restore it, or run from the folder the run started in); --format "
+                          f"{', '.join(f for f in FORMATS if f not in LEAST_SQUARES_FORMATS)} hold the model exactly "
+                          f"and need no rows.")
     ex = build_export(cal, train, t_ref=t_ref, held_out=test, uncertainty=run_uncertainty(run_dir), series=series)
-    ex = dataclasses.replace(ex, certificate=cert)
+    ex = dataclasses.replace(ex, certificate=cert,
+                             warnings=ex.warnings + ((f"{missing}; the accuracy loss is not measured.",)
+                                                     if missing else ()))
     text = render(fmt, ex)
     check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # changed meanwhile?
     recover(out.parent, files_only=True)        # partial files of killed exports (never a live pid's)

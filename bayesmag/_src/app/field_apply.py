@@ -108,7 +108,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     r = cal.ranges
     train_max = max(abs(v) for k in ("bx_meas", "by_meas", "bz_meas") for v in r[k])
     warnings = check_units_against(data, train_max)
-    pred = cal.predict(data.b_meas, data.temperature, level=level)
+    pred = cal.predict(data.b_meas, data.temperature, level=level,
+                       field_unit=None if data.field_unit is None else "uT")      # declared: converted at load
     level = pred["level"]
     if not pred["valid"].any():
         raise DataError(f"No row of {data_path} could be calibrated ({data.n} rows, every one with a non-finite "

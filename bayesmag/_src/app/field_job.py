@@ -362,7 +362,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs]},
                "warnings": [n for n in fs.fit.notes] + ([] if nuts is None else list(nuts["warnings"]))
                + _domain_warning(fs.domain, test.n)}
-    with staging_dir(Path(out)) as tmp:
+    with staging_dir(Path(out), kind="run") as tmp:
         t = time.perf_counter()
         (tmp / "field_params.json").write_text(json.dumps(params, indent=2))
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))

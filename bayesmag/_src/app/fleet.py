@@ -367,7 +367,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
     inputs = [] if cfg.source == "simulated" else [p for _, p in _recording_paths(cfg)]
     if cfg.manifest is not None:
         inputs.append(_resolve(cfg, cfg.manifest))
-    with reserve(out, inputs=inputs):       # an --out holding a recording is refused before any work
+    with reserve(out, inputs=inputs, kind="fleet"):       # an --out holding a recording is refused before any work
         timings = {}
         t_all = t = time.perf_counter()
         recs, ids, truth = load_recordings(cfg)
@@ -506,7 +506,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                                        "exact": planted == got}
         t = time.perf_counter()
         say(f"uncertainty {timings['physics_uq']:.1f} s; writing {out}")
-        with staging_dir(out) as tmp:
+        with staging_dir(out, kind="fleet") as tmp:
             from bayesmag._src.app.fleet_report import write_fleet_outputs
             sources = ([f"simulated fleet sensor {sid}" for sid in ids] if cfg.source == "simulated" else
                        [str(p) for _, p in _recording_paths(cfg)])

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from bayesmag._src.app.config import Config, ConfigError
-from bayesmag._src.core.data import CalibrationData, load_csv
+from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.core.datasets import find_dataset, load_dataset
 
 __all__ = ["load_data", "recording_paths"]
@@ -12,9 +12,10 @@ __all__ = ["load_data", "recording_paths"]
 def load_data(cfg: Config) -> CalibrationData:
     """The recording a config names (CSV path, named dataset, or the built-in simulator)."""
     d = cfg.data
-    if d.path is not None:
-        return load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit,
-                        field_unit=d.field_unit)
+    if d.path is not None:                  # CSV, or Parquet by its suffix (as `apply` reads)
+        from bayesmag._src.core.frames import load_table
+        return load_table(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit,
+                          field_unit=d.field_unit)
     if d.source == "simulated":
         from bayesmag._src.core.simulate import simulate_from_config
         try:

@@ -152,7 +152,7 @@ def run_job(cfg: Config, out: str | Path, *, progress: bool | None = None, figur
     from bayesmag._src.app.figure_worker import JOB_BARE, JOB_MODULES, FigureWorker, InlineFigures, figures
     from bayesmag._src.app.outdir import reserve
     release_compiled_if_crowded()           # many jobs in one process: stay under the kernel's mapping limit
-    with reserve(out, inputs=[cfg.data.path]):      # refuse a foreign or locked --out before any work
+    with reserve(out, inputs=[cfg.data.path], kind="run"):      # refuse a foreign or locked --out before any work
         # [output] compile_cache: on or off for this job only (the environment variable wins); "auto" leaves
         # the process's setting (on from the command line, the caller's from Python)
         cc = cfg.output.compile_cache
@@ -260,7 +260,7 @@ def _run_job(cfg: Config, out: str | Path, figs, *, progress: bool | None = None
                        sigma_in=ps.sigma_in, domain=run.domain, residual_sd=ps.residual_sd, network_artifact=None,
                        physics=ps, predictor=run.predictor, run=run, writers=tuple(writers), **extra)
 
-    with staging_dir(Path(out)) as tmp:
+    with staging_dir(Path(out), kind="run") as tmp:
         t = time.perf_counter()
         write_json(tmp / "params.json", run.fit.to_json())
         write_predictions(tmp / "predictions.csv", test, split.test, columns)
@@ -318,7 +318,7 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
     metrics["certificate"] = certificate_record(cfg, data)
     metrics["domain"] = domain.summary(test, uq.mean)
     metrics["transfer"] = {**ps.transfer.as_dict(), "n_test_rows_new_session": int(ps.new_session.sum())}
-    metrics["warnings"] = [w for w in [domain.warning(test, uq.mean), ps.transfer.warning,
+    metrics["warnings"] = [w for w in [*fit.design_warnings, domain.warning(test, uq.mean), ps.transfer.warning,
                                        input_noise_warning(ps.sigma_source, uq.aleatoric, ps.fit)] if w]
     outside = domain.outside(test, uq.mean)
     columns = {
@@ -335,6 +335,7 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
         metrics["field"].update({f"hybrid ({name})": M.field_metrics(p.mean, y, test.run)
                                  for name, p in run.hybrid.predictions.items()})
         columns = {**columns, **hybrid_columns(run.hybrid, y, level)}
+        metrics["warnings"].extend(w for w in run.hybrid.nan_messages if w not in metrics["warnings"])
     if run.nuts is not None:
         metrics["nuts"] = run.nuts.metrics()
         metrics["warnings"].extend(w for w in run.nuts.warnings if w not in metrics["warnings"])   # each once

@@ -39,7 +39,7 @@ from bayesmag._src.app import signals
 
 __all__ = ["staging_dir", "reserve", "check_out", "recover", "OutputError", "MARKER", "marker_status",
            "is_staging_name", "marker_problem", "foreign_paths", "remove_listed", "register", "atomic_write_text",
-           "partial_name"]
+           "partial_name", "folder_kind"]
 
 #: The marker file in every folder bayesmag writes (JSON: tool, version, complete, written, and the files
 #: it wrote once complete).
@@ -243,10 +243,31 @@ def register(folder: str | Path, path: str | Path) -> bool:
     return True
 
 
-def _write_marker(folder: Path, complete: bool) -> None:
+#: What each command leaves in its folder, in the order checked: the kind of an older folder whose marker predates
+#: the marker's ``kind`` field is read from its files.
+KIND_FILES = (("fleet", "fleet.json"), ("study", "simulation_study.md"), ("discover", "findings.json"),
+              ("run", "calibration.json"), ("run", "field_params.json"))
+KIND_WORDS = {"run": "a calibration run (`bayesmag run`)", "fleet": "a fleet result (`bayesmag fleet`)",
+              "study": "a simulation study (`bayesmag study`)", "discover": "a discovery result (`bayesmag discover`)",
+              "apply": "a calibrated recording (`bayesmag apply`)"}
+
+
+def folder_kind(mark: dict | None) -> str | None:
+    """The command that wrote a bayesmag folder (its marker's ``kind``, else read from the files it lists)."""
+    if not isinstance(mark, dict):
+        return None
+    if isinstance(mark.get("kind"), str):
+        return mark["kind"]
+    files = set(mark.get("files") or ())
+    return next((k for k, f in KIND_FILES if f in files), None)
+
+
+def _write_marker(folder: Path, complete: bool, kind: str | None = None) -> None:
     from bayesmag._src.core.version import __version__
     doc = {"tool": "bayesmag", "version": __version__, "complete": complete,
            "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    if kind:
+        doc["kind"] = kind
     with contextlib.suppress(OSError):      # a relative [data] path of the run's config resolves against it
         doc["cwd"] = os.getcwd()
     if complete:
@@ -285,12 +306,13 @@ def _suggest(out: Path) -> str:
     return str(out.parent / f"{out.name}_{k}")
 
 
-def check_out(out: str | Path, *, inputs=()) -> Path:
+def check_out(out: str | Path, *, inputs=(), kind: str | None = None) -> Path:
     """Refuse an output folder bayesmag may not replace, and check it can be written; before any work.
 
     Allowed: a path that does not exist, an empty folder, or a folder bayesmag wrote earlier
     (it holds :data:`MARKER`) that contains none of ``inputs``. Everything else raises
-    :class:`OutputError` naming the folder and suggesting a new name. The parent folder is
+    :class:`OutputError` naming the folder and suggesting a new name. A folder another command wrote (``kind``:
+    the command writing now; :func:`folder_kind`) is refused too: a run never replaces a fleet. The parent folder is
     created and a probe folder with the longest name the swap uses is made and removed, so an
     unwritable, read-only or over-long target fails here, not after the computation.
     """
@@ -311,6 +333,11 @@ def check_out(out: str | Path, *, inputs=()) -> Path:
             raise OutputError(f"--out {out}: {problem}, so bayesmag cannot tell which files it wrote and treats the "
                               f"folder as not its own; it will not be replaced. Give a new folder name, e.g. --out "
                               f"{_suggest(out)} (or delete the folder yourself).")
+        had = folder_kind(mark)
+        if kind is not None and had is not None and had != kind:
+            raise OutputError(f"--out {out} holds {KIND_WORDS.get(had, had)}; this command would replace it with "
+                              f"{KIND_WORDS.get(kind, kind)}. Give a new folder name, e.g. --out {_suggest(out)} "
+                              f"(or delete the folder yourself if it is no longer needed).")
         for p in inputs:
             if p is not None and _inside(Path(p), out):
                 raise OutputError(f"--out {out} contains the input {p}; replacing the folder would delete it. "
@@ -410,14 +437,14 @@ def _acquire(out: Path) -> None:
 
 
 @contextlib.contextmanager
-def reserve(out: str | Path, *, inputs=()):
-    """Hold ``out`` for this process for the whole block: recover, check, lock (re-entrant)."""
+def reserve(out: str | Path, *, inputs=(), kind: str | None = None):
+    """Hold ``out`` for this process for the whole block: recover, check (:func:`check_out`), lock (re-entrant)."""
     out = Path(out)
     if out.name in ("", ".", ".."):
         out = out.resolve()
     key = out.resolve()
     if key in _HELD:
-        check_out(out, inputs=inputs)
+        check_out(out, inputs=inputs, kind=kind)
         _HELD[key] += 1
         try:
             yield out
@@ -427,7 +454,7 @@ def reserve(out: str | Path, *, inputs=()):
     recover(out.parent)
     if out.is_dir() and not out.is_symlink() and marker_problem(marker_status(out)) is None:
         recover(out, files_only=True)           # partial files of killed `export`/`report` into the run folder
-    check_out(out, inputs=inputs)
+    check_out(out, inputs=inputs, kind=kind)
     _acquire(out)
     _HELD[key] = 1
     lock = _lock_path(out)
@@ -443,15 +470,16 @@ def reserve(out: str | Path, *, inputs=()):
 
 
 @contextlib.contextmanager
-def staging_dir(out: str | Path):
+def staging_dir(out: str | Path, *, kind: str | None = None):
     """Yield a staging folder; on success it replaces ``out`` (two-phase swap), on failure it is removed.
 
-    See the module docstring for the scheme. A failed run leaves ``out`` untouched.
+    See the module docstring for the scheme. A failed run leaves ``out`` untouched. ``kind``: the command writing
+    (:data:`KIND_WORDS`), kept in the marker; a folder of another kind is not replaced (:func:`check_out`).
     """
     out = Path(out)
     if out.name in ("", ".", ".."):
         out = out.resolve()
-    with reserve(out):
+    with reserve(out, kind=kind):
         tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
         if tmp.exists():
             if marker_status(tmp) is None:
@@ -460,10 +488,10 @@ def staging_dir(out: str | Path):
         tmp.mkdir()
         forget = signals.on_abort(lambda: shutil.rmtree(tmp, ignore_errors=True))
         try:
-            _write_marker(tmp, complete=False)
+            _write_marker(tmp, complete=False, kind=kind)
             yield tmp
-            _write_marker(tmp, complete=True)
-            check_out(out)                      # the target may have changed during the computation
+            _write_marker(tmp, complete=True, kind=kind)
+            check_out(out, kind=kind)           # the target may have changed during the computation
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             forget()

@@ -193,7 +193,7 @@ def run_study(cfg: Config, out: str | Path, *, progress: bool = True) -> dict:
                            f"study.per_size.{s}.max_epochs." for s, ax in short.items()]
     table12 = {s: {k: r[k] for k in ("raw", "physics", "hybrid", "noise_floor")} for s, r in records.items()}
     table13 = {s: r["significance"] for s, r in records.items()}
-    with staging_dir(Path(out)) as tmp:
+    with staging_dir(Path(out), kind="study") as tmp:
         write_json(tmp / "simulation_study.json", table12)
         (tmp / "simulation_study.md").write_text("# Test RMSE (uT) by sample size (the paper's Table 12)\n\n"
                                                  + _table12_md(records)

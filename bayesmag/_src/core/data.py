@@ -79,6 +79,24 @@ class DataNote(UserWarning):
     """Something bayesmag did to the input on the user's behalf (e.g. ignored an unused text column)."""
 
 
+class CalibrationWarning(UserWarning):
+    """A calibration was computed but should not be trusted without reading this (too few rows for its
+    parameters, a temperature span too small for the thermal terms, no between-session term). The command line
+    prints each as a WARNING line and keeps it in ``metrics.json``; the library raises it once per run."""
+
+
+def user_stacklevel() -> int:
+    """``stacklevel`` for :func:`warnings.warn`, called from the function that warns: the first frame outside the
+    bayesmag package, so the warning names the user's line, not the library's."""
+    import os
+    import sys
+    pkg = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))   # .../bayesmag
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(pkg + os.sep):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 @dataclasses.dataclass(frozen=True)
 class CalibrationData:
     """One calibration recording (or a subset of one).
@@ -487,6 +505,9 @@ def _decode(path: Path, raw: bytes, *, note: bool = True) -> str:
     """``raw`` as text: UTF-8 (a byte-order mark removed); else Latin-1 with a :class:`DataNote` naming the
     line of the first non-UTF-8 byte. A NUL byte means a binary file: refused."""
     if b"\x00" in raw[:65536]:
+        if raw[:4] == b"PAR1":
+            raise DataError(f"{path} is a Parquet file without the .parquet suffix; rename it to .parquet (Parquet is "
+                            f"read by its suffix) or write it as a CSV with a header row.")
         raise DataError(f"{path} is not a text file (it holds NUL bytes); expected a CSV with a header row.")
     try:
         return raw.decode("utf-8-sig")
@@ -638,7 +659,9 @@ def load_csv(
     """
     path = Path(path)
     if not path.exists():
-        raise DataError(f"Data file {path} does not exist.")
+        where = ("" if path.is_absolute() else f" (looked for {path.resolve()}; a config's relative [data] path is "
+                                               f"read from the current folder, then from the config file's folder)")
+        raise DataError(f"Data file {path} does not exist{where}.")
     declared = field_unit
     field_unit = field_unit or "uT"
     mapping = column_mapping(columns, field_unit=field_unit, temperature_unit=temperature_unit,

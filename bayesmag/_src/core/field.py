@@ -349,6 +349,12 @@ class FieldFit:
     def param_names(self):
         return self.model.param_names
 
+    def __repr__(self) -> str:
+        m = self.model
+        return (f"FieldFit({m.measurement!r}, n={self.n}, {len(self.theta)} parameters, t0={m.t0:.4g} C, "
+                f"temperature_terms={m.temperature}, noise sd={float(np.sqrt(self.s2)):.3g} uT, "
+                f"converged={self.converged}, {len(self.notes)} note(s))")
+
     @property
     def std(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.cov), 0, None))
@@ -528,6 +534,20 @@ def _check_fit_inputs(u, t, target, keep) -> None:
                             f"rows before fitting.")
 
 
+def _check_fit_units(u, t, target, measurement: MeasurementModel, field_unit: str | None) -> None:
+    """The command line's unit checks (:func:`~bayesmag._src.core.data.check_units`) on ``fit_field``'s arrays:
+    readings (and a scalar or vector reference) in uT, temperature in C."""
+    from bayesmag._src.core.data import CalibrationData, DataError, check_units
+    if field_unit not in (None, "uT"):
+        raise DataError(f"fit_field: field_unit = {field_unit!r}; the arrays must be in uT (convert them), and "
+                        f"field_unit = 'uT' declares a genuine low-field recording.")
+    extra = ([("reference (target)", np.asarray(target).reshape(len(u), -1))]
+             if isinstance(measurement, (Scalar, Vector)) else [])
+    check_units(CalibrationData(u, t, None, field_unit=field_unit), origin="the arrays given to fit_field",
+                fix="Convert u (and the reference) to uT", declare="field_unit='uT'",
+                temperature_fix="Subtract 273.15", extra_fields=extra)
+
+
 #: a magnitude recording whose readings' spread along their thinnest direction (temperature-driven change removed)
 #: is under this many times the reading noise spans a plane: level turns without tilt (ratio 1.0) fitted gains of
 #: 0.03 / 0.03 / 0.001 with a 24 deg heading error and 100 % "coverage"; 0.25 deg of tilt gives 1.8 and fits well
@@ -568,7 +588,7 @@ def planar_spread(u, t, run=None) -> tuple[float, float, float, float]:
 def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = "mean",
               temperature_terms: bool | str = "auto", covariance: str = "white", run=None,
               prior: FieldPrior = FieldPrior(), keep=None, start: "FieldFit | None" = None,
-              diagnostics: bool = True) -> FieldFit:
+              diagnostics: bool = True, field_unit: str | None = None) -> FieldFit:
     """Fit the thermo-affine model to what ``measurement`` knows per row.
 
     Args:
@@ -582,7 +602,11 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
         different subsets of the same rows share one compiled solver: cross-validation folds).
       start: a fit of the same model to start from (its estimate and noise level), e.g. a refit without a fold;
         such a refit ends after one pass when its noise level moved < 1 % (``_REFIT_SIG_RTOL``).
-      diagnostics: False skips the direction coverage and identifiability notes (refits that only predict).
+      diagnostics: False skips the direction coverage and identifiability notes and the unit check (refits that
+        only predict).
+      field_unit: ``None``: ``u`` (and a scalar or vector ``target``) are checked to be in uT (nT, mT and gauss
+        refused, as the command line does) and ``t`` in C (kelvin refused); ``"uT"`` declares a genuine low-field
+        recording in uT (the check is skipped).
       With ``Scalar(ref_sd > 0)``: the 1/g fit is a pilot, then one solve weighted by 1/sqrt(g^2 + kappa^2) with the
       pilot's noise level, the sandwich covariance, kept unless a gain S_ii leaves 1 +- 3.29 prior sd
       (``FieldFit.weighting`` says which; docs/field.md).
@@ -603,6 +627,10 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
     target = np.asarray(target, np.float64)
     kp = np.ones(len(u), bool) if keep is None else np.asarray(keep, bool).reshape(-1)
     _check_fit_inputs(u, t, target, kp)
+    if diagnostics:
+        from bayesmag._src.core.precision import warn_if_float32
+        warn_if_float32("field.fit_field")
+        _check_fit_units(u, t, target, measurement, field_unit)
     if temperature_terms == "auto":
         temperature_terms = bool(np.ptp(t[kp]) >= 1.0)
     t0v = float(np.mean(t[kp])) if t0 == "mean" else float(t0)

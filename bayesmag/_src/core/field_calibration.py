@@ -67,13 +67,20 @@ class FieldCalibration:
     ranges: dict = dataclasses.field(default_factory=dict)
     reference_column: str | None = None
 
-    def predict(self, u, t, *, level: float | None = None, chunk_size: int = 200_000) -> dict:
+    def __repr__(self) -> str:
+        return (f"FieldCalibration({self.fit!r}, interval_scale={self.interval_scale:.4g}, level={self.level:g}, "
+                f"reference_column={self.reference_column!r})")
+
+    def predict(self, u, t, *, level: float | None = None, chunk_size: int = 200_000,
+                field_unit: str | None = None) -> dict:
         """Calibrated field (n, 3) in the gauge frame, its magnitude with sd and interval, and the domain flags.
 
         ``u`` (n, 3) readings in uT, ``t`` (n,) temperatures in C. Rows with a non-finite reading or temperature get
         NaN and ``valid`` False; the interval's lower end is clipped at 0. ``in_domain_reason`` joins
         ``field_range`` (a reading outside training's), ``temperature`` and ``magnitude`` (the predicted magnitude
-        outside the training reference magnitudes) with ``;``; '' inside (or invalid).
+        outside the training reference magnitudes) with ``;``; '' inside (or invalid). The readings are checked
+        against the training field as ``bayesmag apply`` checks them (nT, mT or gauss refused, kelvin refused:
+        :class:`~bayesmag.DataError`); ``field_unit="uT"`` declares a genuine field far below the training one.
         """
         u, t = np.asarray(u, np.float64), np.asarray(t, np.float64)
         if u.ndim != 2 or u.shape[1] != 3:
@@ -87,6 +94,15 @@ class FieldCalibration:
             raise ValueError(f"level {level} must be in (0, 1)")
         n = u.shape[0]
         valid = np.isfinite(u).all(axis=1) & np.isfinite(t)
+        if field_unit not in (None, "uT"):
+            raise ValueError(f"field_unit = {field_unit!r}; the readings must be in uT (convert them), and "
+                             f"field_unit = 'uT' declares a field far below the training one")
+        if valid.any() and self.ranges:
+            from bayesmag._src.core.data import CalibrationData, check_units
+            train_max = max(abs(v) for k in DOMAIN_KEYS[:3] for v in self.ranges[k])
+            check_units(CalibrationData(u[valid], t[valid], None, field_unit=field_unit), train_max_ut=train_max,
+                        origin="the readings given to FieldCalibration.predict", fix="Convert the readings to uT",
+                        declare="field_unit='uT'", temperature_fix="Subtract 273.15")
         out = {k: np.full((n, 3) if k == "calibrated" else n, np.nan) for k in
                ("calibrated", "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_total",
                 "magnitude_lower", "magnitude_upper")}

@@ -307,6 +307,7 @@ class PhysicsFit:
     cov_info: tuple[dict, dict, dict]
     diagnostics: tuple[dict, dict, dict]
     design_notes: tuple[str, ...] = ()
+    design_warnings: tuple[str, ...] = ()
 
     @property
     def param_names(self):
@@ -336,7 +337,7 @@ class PhysicsFit:
 
     def to_json(self) -> dict:
         out = {"model": self.model.describe(), "n_rows": self.n, "covariance_method": self.covariance_method,
-               "axes": {}, "design_notes": list(self.design_notes)}
+               "axes": {}, "design_notes": list(self.design_notes), "design_warnings": list(self.design_warnings)}
         for a, ax in enumerate(AXES):
             d = self.diagnostics[a]
             out["axes"][ax] = {
@@ -353,6 +354,38 @@ class PhysicsFit:
                 "covariance_info": {k: v for k, v in self.cov_info[a].items()},
             }
         return out
+
+
+#: Fewest rows per parameter (per axis) before a fit is warned about: below it the noise level and every
+#: uncertainty rest on few residuals (5 x 8 = 40 rows: 32 residual dof, the noise sd known to about 13 %).
+MIN_ROWS_PER_PARAM = 5
+#: Smallest training temperature span (C) for thermal terms before a fit is warned about (the field
+#: calibration's ``temperature_terms = "auto"`` switches them off below the same span).
+MIN_TEMPERATURE_SPAN_C = 1.0
+
+
+def _design_warnings(data, model: PhysicsModel, cov: np.ndarray) -> tuple[str, ...]:
+    """What makes a converged fit untrustworthy as a calibration: too few rows for its parameters, or thermal
+    terms fitted on a temperature span too small to inform them (they are then extrapolations)."""
+    out, p = [], model.n_params
+    if data.n < MIN_ROWS_PER_PARAM * p:
+        out.append(f"The fit used {data.n} rows for {p} parameters per axis ({data.n - p} residual degrees of "
+                   f"freedom): its noise level and every uncertainty rest on so few residuals that they are "
+                   f"themselves uncertain. Record at least {MIN_ROWS_PER_PARAM * p} rows (many more for a useful "
+                   f"calibration).")
+    if any(getattr(t, "temperature", False) for t in model.terms):
+        span = float(np.ptp(data.temperature))
+        if span < MIN_TEMPERATURE_SPAN_C:
+            names = list(model.param_names)
+            thermal = [i for i, n in enumerate(names) if n.startswith(("Ks", "Ko"))]
+            sd = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
+            ko = [i for i in thermal if names[i].startswith("Ko")]
+            worst = (f" (Ko sd up to {float(sd[:, ko].max()):.3g} uT/C)" if ko else "")
+            out.append(f"The training temperature spans only {span:.3g} C: the thermal terms Ks and Ko are "
+                       f"extrapolated from it{worst}, and every calibrated value at another temperature rests on "
+                       f"that extrapolation. Record over a wider temperature range, or fit without them ([physics] "
+                       f"temperature_terms = false).")
+    return tuple(out)
 
 
 def _design_notes(data, model: PhysicsModel) -> tuple[str, ...]:
@@ -561,5 +594,5 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
         rmse_in_sample=np.sqrt(np.mean(resid**2, axis=0)),
         result=tuple(RESULTS[int(r)] for r in np.asarray(sol.result)), n_steps=np.asarray(sol.n_steps),
         covariance_method=covariance_method, cov_info=tuple(infos), diagnostics=tuple(diags),
-        design_notes=_design_notes(data, model),
+        design_notes=_design_notes(data, model), design_warnings=_design_warnings(data, model, np.stack(covs)),
     )

@@ -110,7 +110,7 @@ def as_calibration_data(obj, *, columns: Mapping[str, str] | None = None, field_
       field_unit: ``None`` (uT, checked: nT, mT and gauss refused), or a declared unit of
         :data:`FIELD_UNITS` (converted to uT and trusted).
       temperature_unit: ``"C"`` or ``"K"`` (converted); kelvin given as Celsius is refused.
-      require_reference: refuse data without the reference field.
+      require_reference: refuse data without the reference field, or with a non-finite value (a fit's rows).
       duplicate_times: one of :data:`DUPLICATE_TIMES`.
       train_max_ut: the calibration's largest training |B| (``predict``: the field is checked against it).
       what: how messages name ``obj`` (e.g. ``"the data given to fit_physics"``).
@@ -141,6 +141,9 @@ def as_calibration_data(obj, *, columns: Mapping[str, str] | None = None, field_
                         f"in the order {list(ARRAY_COLUMNS)}; got {type(obj).__name__}.")
     if require_reference and data.b_ref is None:
         raise DataError(f"{what} has no reference field (bx_ref, by_ref, bz_ref); a fit needs it.")
+    if require_reference:                   # a fit: every row counts (a NaN would end in a LinAlgError)
+        from bayesmag._src.core.data import check_values
+        check_values(data, origin=what)
     arg_fix = "Convert the field to uT or pass field_unit='nT' (or 'mT', 'G')"
     finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
     if finite.any():

@@ -162,7 +162,8 @@ def resolve_t0(t0, temperature) -> float:
     if isinstance(t0, str):
         if t0 != "mean":
             raise ValueError(f"t0 = {t0!r} must be a number (C) or \"mean\".")
-        return float(np.mean(np.asarray(temperature, dtype=np.float64)))
+        t = np.asarray(temperature, dtype=np.float64)
+        return float(np.mean(t)) if t.size else 0.0     # no rows: the caller refuses them (too few rows)
     return float(t0)
 
 

@@ -690,6 +690,20 @@ def get_effect(name: str, **params) -> Effect:
     return cls(**params)
 
 
+def _effect(e) -> Effect:
+    """An :class:`Effect` from an instance, a name or a config table ``{"name": ..., **params}``."""
+    if isinstance(e, str):
+        return get_effect(e)
+    if isinstance(e, dict):
+        if not isinstance(e.get("name"), str):
+            raise TypeError(f"an effect table needs a 'name' (one of {sorted(_REGISTRY)}); got {e!r}.")
+        return get_effect(e["name"], **{k: v for k, v in e.items() if k != "name"})
+    if not isinstance(e, Effect):
+        raise TypeError(f"effects must be Effect instances, effect names or tables {{name = ..., parameters}}; "
+                        f"got {e!r}.")
+    return e
+
+
 # --------------------------------------------------------------------------- simulate
 
 
@@ -728,7 +742,7 @@ def simulate(
     params: TrueParams = TrueParams.paper(),
     noise_sd: float | Sequence[float] = 0.5,
     temp_noise_sd: float = 0.0,
-    effects: Sequence[Effect | str] = (),
+    effects: Sequence[Effect | str | dict] = (),
     **design_kwargs,
 ) -> CalibrationData:
     r"""Simulate a calibration recording of a sensor with known parameters.
@@ -746,7 +760,8 @@ def simulate(
       params: true parameters (default the paper's Table 2).
       noise_sd: Gaussian noise sd on the reading, uT, scalar or per axis (paper: 0.5).
       temp_noise_sd: Gaussian noise sd on the *logged* temperature, C (the sensor sees the true one).
-      effects: :class:`Effect` instances (or names, with default parameters), applied in order.
+      effects: :class:`Effect` instances, names (default parameters) or tables as a config writes them
+        (``{"name": "axis_quadratic", "coeff": 0.02}``), applied in order.
       **design_kwargs: options of the design function.
 
     Returns:
@@ -763,10 +778,7 @@ def simulate(
     sd = np.broadcast_to(np.asarray(noise_sd, dtype=np.float64), (3,))
     if np.any(sd < 0) or not temp_noise_sd >= 0:
         raise ValueError(f"noise_sd and temp_noise_sd must be >= 0; got {noise_sd!r}, {temp_noise_sd!r}.")
-    effects = tuple(get_effect(e) if isinstance(e, str) else e for e in effects)
-    for e in effects:
-        if not isinstance(e, Effect):
-            raise TypeError(f"effects must be Effect instances or effect names; got {e!r}.")
+    effects = tuple(_effect(e) for e in effects)
     cond, label = _conditions(design, n, seed, design_kwargs)
     params.check_invertible(cond.temperature)
 

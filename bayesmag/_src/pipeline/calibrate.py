@@ -48,6 +48,16 @@ class CalibrationRun:
         return self.physics.fit
 
     @property
+    def warnings(self) -> tuple[str, ...]:
+        """What limits trust in this calibration (too few rows, a tiny temperature span, no between-session
+        term, a network stopped while improving or by a NaN loss, NUTS diagnostics): each is also raised once as a
+        :class:`~bayesmag.CalibrationWarning` by :func:`calibrate`."""
+        found = (*self.physics.fit.design_warnings, self.physics.transfer.warning,
+                 *(self.hybrid.nan_messages if self.hybrid is not None else ()),
+                 *(self.nuts.warnings if self.nuts is not None else ()))
+        return tuple(dict.fromkeys(w for w in found if w))
+
+    @property
     def prediction(self) -> Prediction | None:
         """The calibration's prediction of the test rows (None without test rows)."""
         if self.hybrid is not None:
@@ -83,7 +93,8 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
       a frozen :class:`CalibrationRun`.
 
     Raises:
-      DataError: no reference, or constant temperature with temperature terms.
+      DataError: no reference, a non-finite value, a field not in uT or a temperature not in C, fewer rows than
+        parameters, or constant temperature with temperature terms.
       ValueError: settings that do not fit the data (e.g. a network too large for the rows).
       CalibrationError: the physics fit did not converge.
 
@@ -103,6 +114,11 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
     s = settings if settings is not None else CalibrationSettings()
     if data.b_ref is None:
         raise DataError("calibrate needs the reference field (bx_ref, by_ref, bz_ref).")
+    from bayesmag._src.core.data import check_units, check_values
+    origin = data.source or "the rows given to calibrate"
+    check_values(data, origin=origin)       # the command line's checks (it ran them on the whole recording)
+    check_units(data, origin=origin, fix="Convert the field columns to uT",
+                declare="CalibrationData(..., field_unit='uT')", temperature_fix="Subtract 273.15")
     if s.physics.temperature_terms and np.ptp(data.temperature) < 1e-6:
         raise DataError("The training rows have constant temperature: Ks and Ko are not identifiable. "
                         "Set temperature_terms = false or use a split that keeps temperature variation.")
@@ -115,6 +131,9 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
                              "(recording.subset(train_index) is data) and the test rows; it does not.")
     timings: dict[str, float] = {}
     model = s.physics.model(data)
+    if data.n < model.n_params + 1:
+        raise DataError(f"{origin} holds {data.n} rows but the physics model has {model.n_params} parameters per axis: "
+                        f"at least {model.n_params + 1} are needed (many more for a useful calibration).")
     domain = Domain.from_data(data)
     training = []                   # the networks train while the physics stage's uncertainty parts are computed
 
@@ -145,4 +164,10 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
         nuts = stages.run_nuts_stage(s.nuts, ps.fit, data, progress=progress,
                                      series=None if series is None else series[:2])
         timings["nuts"] = time.perf_counter() - t
-    return CalibrationRun(s, ps, predictor, domain, hs, nuts, timings)
+    run = CalibrationRun(s, ps, predictor, domain, hs, nuts, timings)
+    import warnings
+
+    from bayesmag._src.core.data import CalibrationWarning, user_stacklevel
+    for w in run.warnings:
+        warnings.warn(w, CalibrationWarning, stacklevel=user_stacklevel())
+    return run

@@ -203,7 +203,8 @@ def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: 
     t = time.perf_counter()
     y_tr = field_target(measurement, b_ref=train.b_ref, f_ref=f_ref_train, n=train.n)
     fit_kw = dict(t0=t0, temperature_terms=temperature_terms, covariance=covariance, prior=prior)
-    fit = fit_field(train.b_meas, train.temperature, y_tr, measurement, run=train.run, **fit_kw)
+    fit = fit_field(train.b_meas, train.temperature, y_tr, measurement, run=train.run,
+                    field_unit=None if train.field_unit is None else "uT", **fit_kw)   # declared: converted
     timings["field_fit"] = time.perf_counter() - t
     cal = None
     if conformal is not None:

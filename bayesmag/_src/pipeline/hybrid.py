@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -229,14 +228,14 @@ def still_improving(info: dict, max_epochs: int) -> bool:
 
 
 def _warn_max_epochs(name: str, net: ResidualNetwork, max_epochs: int) -> list[str]:
-    """One message for the axes whose network was still improving when ``max_epochs`` stopped it."""
+    """One message for the axes whose network was still improving when ``max_epochs`` stopped it (:func:`calibrate`
+    raises it, with the run's other warnings, once)."""
     axes = [ax for ax, info in net.info_dict().items() if still_improving(info, max_epochs)]
     if not axes:
         return []
     msg = (f"Residual network '{name}', axis {', '.join(axes)}: training stopped at network.max_epochs = {max_epochs} "
            f"with the validation loss still falling (best epoch in the last tenth); the network is likely "
            f"under-trained. Raise network.max_epochs (early stopping, network.patience, still ends it).")
-    warnings.warn(msg, RuntimeWarning, stacklevel=3)
     return [msg]
 
 
@@ -251,7 +250,6 @@ def _warn_nan(name: str, net: ResidualNetwork) -> list[str]:
                    f"{info['nan_epoch']}; training stopped there and {kept}. Usual causes: a learning rate too "
                    "high for the data (lower 'network.learning_rate') or a log-scale clip that lets the scale "
                    "collapse (raise the low end of 'network.log_scale_clip').")
-            warnings.warn(msg, RuntimeWarning, stacklevel=3)
             msgs.append(msg)
     return msgs
 

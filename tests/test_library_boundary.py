@@ -1,0 +1,218 @@
+"""The library's boundary checks, as the command line's: what a Python caller gets for bad input and for a
+calibration that should not be trusted (an outside smoke pass of the Python API found each case here silent,
+wrong or unclear; each test fails on the code before its fix)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import bayesmag
+from bayesmag._src.core.data import CalibrationData, CalibrationWarning, DataError
+from bayesmag.field import Constant, FieldCalibration, Scalar, fit_field
+from bayesmag.simulate import simulate_field
+
+FAST = {"n_params": 20, "n_qmc": 32, "seed": 0}
+
+
+@pytest.fixture(scope="module")
+def data():
+    return bayesmag.simulate.simulate(900, design="campaign", seed=0, noise_sd=0.05)
+
+
+def _settings():
+    return bayesmag.CalibrationSettings(uq=bayesmag.UQSettings(method="analytic"))
+
+
+# --------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("entry", ["calibrate", "fit_physics"])
+def test_a_nan_reading_is_refused_naming_row_and_column(data, entry):
+    """Before: numpy's LinAlgError 'SVD did not converge' with no row or column."""
+    b = data.b_meas.copy()
+    b[10, 1] = np.nan
+    bad = CalibrationData(b, data.temperature, data.b_ref, data.time, data.run)
+    fn = bayesmag.calibrate if entry == "calibrate" else bayesmag.fit_physics
+    with pytest.raises(DataError, match=r"by_meas.*row\(s\) 11"):
+        fn(bad)
+
+
+def test_calibrate_refuses_a_field_in_nt_and_a_temperature_in_kelvin(data):
+    nt = CalibrationData(data.b_meas * 1e3, data.temperature, data.b_ref * 1e3, data.time, data.run)
+    with pytest.raises(DataError, match="nT"):
+        bayesmag.calibrate(nt, _settings())
+    kelvin = CalibrationData(data.b_meas, data.temperature + 273.15, data.b_ref, data.time, data.run)
+    with pytest.raises(DataError, match="kelvin"):
+        bayesmag.calibrate(kelvin, _settings())
+
+
+def test_y_with_another_index_than_x_is_refused(data):
+    """Before: y was paired with X by position after a shuffle: S_xx -0.05 instead of 1.1, no word."""
+    df = bayesmag.to_frame(data)
+    X, y = df.drop(columns=["bx_ref", "by_ref", "bz_ref"]), df[["bx_ref", "by_ref", "bz_ref"]]
+    with pytest.raises(DataError, match=r"different indexes.*y.loc\[X.index\]"):
+        bayesmag.Calibrator().fit(X, y.sample(frac=1.0, random_state=0))
+    bayesmag.Calibrator().fit(X, y.loc[X.index])                        # aligned: fits
+
+
+def test_a_non_finite_y_is_named_as_y(data):
+    df = bayesmag.to_frame(data)
+    y = df[["bx_ref", "by_ref", "bz_ref"]].to_numpy().copy()
+    y[5, 2] = np.inf
+    with pytest.raises(DataError, match=r"y \(the reference field\).*bz_ref.*row\(s\) 6"):
+        bayesmag.Calibrator().fit(np.c_[data.b_meas, data.temperature], y)
+
+
+def test_the_calibrator_refuses_rows_out_of_time_order_where_the_config_needs_them(data):
+    """Before: the time-block split of ``honest_physics`` ran on shuffled rows (a random split in effect: coverage
+    100 % on every axis) while ``bayesmag run`` refused the same file."""
+    df = bayesmag.to_frame(data).sample(frac=1.0, random_state=0)
+    with pytest.raises(DataError, match="not sorted.*time-block split"):
+        bayesmag.Calibrator("honest_physics", holdout="config").fit(df)
+
+
+# --------------------------------------------------------------------------- untrustworthy calibrations
+def test_too_few_rows_and_no_temperature_span_warn_at_the_callers_line(data):
+    """Before: 10 rows (2 residual dof, 0.002 C) gave Ko = -15872 +- 9193 uT/C with no warning."""
+    ten = data.subset(np.arange(10))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run = bayesmag.calibrate(ten, _settings())
+    ours = [w for w in caught if issubclass(w.category, CalibrationWarning)]
+    text = " ".join(str(w.message) for w in ours)
+    assert "10 rows for 8 parameters" in text and "temperature spans only" in text
+    assert all(w.filename == __file__ for w in ours)                   # the user's line, not the library's
+    assert {str(w.message) for w in ours} == set(run.warnings)
+    assert len(run.fit.design_warnings) == 2
+
+
+def test_a_well_designed_campaign_has_no_design_warning(data):
+    run = bayesmag.calibrate(data, _settings())
+    assert run.fit.design_warnings == ()
+
+
+def test_one_training_run_warns_that_there_is_no_between_session_term(data):
+    one = data.subset(np.flatnonzero(data.run == data.run[0]))
+    with pytest.warns(CalibrationWarning, match="no between-session term"):
+        bayesmag.Calibrator().fit(one)
+
+
+def test_the_command_line_prints_a_run_warning_once(tmp_path, capsys):
+    from bayesmag._src.app.cli import main
+    d = bayesmag.simulate.simulate(300, design="campaign", seed=1)
+    one = d.subset(np.flatnonzero(d.run == d.run[0]))
+    bayesmag.write_csv(one, tmp_path / "one.csv")
+    rc = main(["run", "paper_physics", "--set", f"data.path={tmp_path / 'one.csv'}", "--set", "uq.method=\"analytic\"",
+               "--set", "output.figures=false", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert rc == 0 and err.count("no between-session term") == 1, err
+
+
+# --------------------------------------------------------------------------- field API
+@pytest.fixture(scope="module")
+def field():
+    c = simulate_field("two_temperature", n=400, seed=11)
+    return c, fit_field(c.data.b_meas, c.data.temperature, c.f_ref, Scalar())
+
+
+@pytest.mark.parametrize("case, match", [("nT", "nT"), ("gauss", "gauss"), ("kelvin", "kelvin"),
+                                         ("reference nT", "reference")])
+def test_fit_field_checks_units_as_the_command_line(field, case, match):
+    """Before: readings in nT converged to S_xx = 0.00098; in gauss 'tilt or tumble' notes; kelvin kept."""
+    c, _ = field
+    u, t, f = c.data.b_meas, c.data.temperature, c.f_ref
+    u, t, f = {"nT": (u * 1e3, t, f), "gauss": (u / 100, t, f), "kelvin": (u, t + 273.15, f),
+               "reference nT": (u, t, f * 1e3)}[case]
+    with pytest.raises(DataError, match=match):
+        fit_field(u, t, f, Scalar())
+
+
+def test_fit_field_trusts_a_declared_low_field(field):
+    c, ref = field
+    weak = fit_field(c.data.b_meas / 100, c.data.temperature, np.full(c.data.n, 0.5), Constant(0.5), field_unit="uT")
+    assert weak.converged
+
+
+def test_a_field_calibration_refuses_readings_in_another_unit(field):
+    c, fit = field
+    u = c.data.b_meas
+    cal = FieldCalibration(fit, 1.0, 0.95, {"bx_meas": (-60, 60), "by_meas": (-60, 60), "bz_meas": (-60, 60),
+                                            "temperature": (-10, 50), "magnitude": (40, 60)})
+    with pytest.raises(DataError, match="nT"):
+        cal.predict(u * 1e3, c.data.temperature)
+    with pytest.raises(DataError, match="kelvin"):
+        cal.predict(u, c.data.temperature + 273.15)
+    assert np.isfinite(cal.predict(u, c.data.temperature)["magnitude"]).all()
+    assert len(repr(cal)) < 300                                         # not the covariance matrices
+
+
+# --------------------------------------------------------------------------- consistency
+def test_rates_are_checked_only_where_the_rows_have_times(data):
+    """Before: the same rows got 99 rate flags as CalibrationData and 54 as an (n, 4) array (time taken as the row
+    index there)."""
+    cal = bayesmag.Calibrator().fit(data).calibration_
+    new = bayesmag.simulate.simulate(300, design="campaign", seed=7, noise_sd=0.05)
+    timed = cal.predict(new)
+    assert any("rate" in r for r in timed["in_domain_reason"])          # the case: rates flag rows here
+    arr = cal.predict(np.c_[new.b_meas, new.temperature])
+    untimed_frame = cal.predict(bayesmag.to_frame(new).drop(columns=["time"]))
+    for r in (arr["in_domain_reason"], untimed_frame["in_domain_reason"]):
+        assert not any("rate" in x for x in r)
+    values_only = np.array([";".join(k for k in x.split(";") if "rate" not in k) for x in timed["in_domain_reason"]])
+    np.testing.assert_array_equal(np.asarray(arr["in_domain_reason"]), values_only)
+    assert cal.predict(new, check_rates=False)["in_domain"].sum() == arr["in_domain"].sum()
+
+
+def test_load_config_takes_a_packaged_name_as_the_command_line_does():
+    assert bayesmag.load_config("quickstart").name == "quickstart"
+
+
+def test_simulate_takes_effects_as_config_tables():
+    from bayesmag._src.core.simulate import get_effect
+    a = bayesmag.simulate.simulate(200, seed=1, effects=[{"name": "axis_quadratic", "coeff": 0.02}])
+    b = bayesmag.simulate.simulate(200, seed=1, effects=[get_effect("axis_quadratic", coeff=0.02)])
+    np.testing.assert_array_equal(a.b_meas, b.b_meas)
+    with pytest.raises(TypeError, match="'name'"):
+        bayesmag.simulate.simulate(200, seed=1, effects=[{"coeff": 0.02}])
+
+
+def test_float32_entry_points_warn(field, monkeypatch):
+    """``Calibrator.fit`` and ``field.fit_field`` computed in float32 without a word (``calibrate`` warned)."""
+    import jax
+    from bayesmag._src.core import precision
+    with jax.enable_x64(False):
+        with pytest.warns(bayesmag.Float64Warning, match="Calibrator.fit.*float32"):
+            precision.warn_if_float32("Calibrator.fit")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", bayesmag.Float64Warning)
+        precision.warn_if_float32("Calibrator.fit")                     # float64: silent
+    called = []
+    monkeypatch.setattr(precision, "warn_if_float32", called.append)
+    c, _ = field
+    fit_field(c.data.b_meas, c.data.temperature, c.f_ref, Scalar())
+    assert called == ["field.fit_field"]
+    import inspect
+    from bayesmag._src.app.calibrator import Calibrator
+    assert 'warn_if_float32("Calibrator.fit")' in inspect.getsource(Calibrator.fit)
+
+
+def test_loading_a_field_run_as_a_vector_calibration_names_load_field(tmp_path):
+    from bayesmag._src.app.artifact import ArtifactError, field_run_error
+    (tmp_path / "field_params.json").write_text("{}")
+    with pytest.raises(ArtifactError, match="load_field"):
+        field_run_error(tmp_path, ArtifactError)
+
+
+def test_a_job_reads_parquet_by_its_suffix_and_names_one_without_it(tmp_path):
+    """`run` and `discover` said "not a text file (it holds NUL bytes)" of a Parquet file `apply` reads."""
+    pytest.importorskip("pyarrow")
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag._src.app.inputs import load_data
+    d = bayesmag.simulate.simulate(300, design="campaign", seed=3)
+    bayesmag.to_frame(d).to_parquet(tmp_path / "rec.parquet", index=False)
+    got = load_data(config_from_dict({"data": {"path": str(tmp_path / "rec.parquet")}}))
+    np.testing.assert_allclose(got.b_ref, d.b_ref)
+    (tmp_path / "rec.parquet").rename(tmp_path / "rec.csv")
+    with pytest.raises(DataError, match="Parquet file without the .parquet suffix"):
+        load_data(config_from_dict({"data": {"path": str(tmp_path / "rec.csv")}}))
