@@ -153,7 +153,7 @@ from bayesmag._src.core.version import __version__ as __version__  # noqa: E402
 _EXPORTS = {
     "app.config": ("Config", "ConfigError", "load_config", "config_from_dict"),
     "core.data": (
-        "CalibrationData", "DataError", "Split", "load_belsten", "load_csv", "make_split", "validate",
+        "CalibrationData", "CalibrationWarning", "DataError", "Split", "load_belsten", "load_csv", "make_split", "validate",
         "write_csv",
     ),
     "core.datasets": ("fetch_dataset", "find_dataset", "load_dataset"),
@@ -222,7 +222,8 @@ __all__ = [  # noqa: F822 (resolved lazily by __getattr__)
     "NetworkSpec", "ResidualNetwork", "fit_residual_network", "mc_predict", "CATALOGUE", "AxisQuadratic",
     "CrossAxisQuadratic", "CubicNonlinearity", "Hysteresis", "OffsetDrift", "RunOffset", "TimingOffset", "NutsResult",
     "compare_models", "crosscheck", "loo", "parse_priors", "run_nuts", "ArtifactError", "Calibration", "load",
-    "load_field", "DiscoverOptions", "DiscoveryResult", "discover", "CalibrationData", "Config", "ConfigError", "DataError",
+    "load_field", "DiscoverOptions", "DiscoveryResult", "discover", "CalibrationData", "CalibrationWarning", "Config",
+    "ConfigError", "DataError",
     "EXTRA_TERMS", "Inputs", "InputTransform", "JobError", "LMSolution", "PhysicsFit", "PhysicsModel",
     "PhysicsUQ", "Split", "Term", "TemperatureQuadratic", "ThermalLag", "ThermoAffine", "covariance",
     "estimate_input_noise", "fetch_dataset", "find_dataset", "fit_physics", "identifiability",

@@ -199,6 +199,29 @@ def test_a_hysteresis_threshold_between_the_coarse_grid_values_is_found():
     assert abs(h["value"] - 0.5) < 3 * h["se"], h
 
 
+def test_cli_data_takes_set_overrides_and_refuses_unknown_keys(tmp_path, monkeypatch, capsys):
+    """`discover --data FILE --set ...` dropped every --set, an unknown key included (smoke pass): the kelvin
+    error's own fix (data.temperature_unit) could not be applied. Now --set applies as with a config."""
+    import bayesmag._src.app.discover_cli as cli
+    d = simulate(300, design="campaign", seed=5)
+    csv = tmp_path / "rec.csv"
+    bayesmag.write_csv(d, csv)
+    assert main(["--data", str(csv), "--set", "discover.bogus=1", "--out", str(tmp_path / "a"), "--no-progress"]) == 2
+    assert "discover.bogus" in capsys.readouterr().err
+    seen = {}
+
+    def fake(data, opts, progress=None):
+        seen.update(opts=opts, data=data)
+        raise ValueError("stop here")
+    monkeypatch.setattr(cli, "discover", fake)
+    kelvin = bayesmag.CalibrationData(d.b_meas, d.temperature + 273.15, d.b_ref, d.time, d.run)
+    bayesmag.write_csv(kelvin, tmp_path / "k.csv")
+    main(["--data", str(tmp_path / "k.csv"), "--set", "discover.n_folds=3", "--set", 'data.temperature_unit="K"',
+          "--out", str(tmp_path / "b"), "--no-progress"])
+    assert seen["opts"].n_folds == 3
+    np.testing.assert_allclose(seen["data"].temperature, d.temperature, atol=1e-9)
+
+
 def test_cli_writes_folder_atomically(tmp_path):
     d = simulate(N, design="campaign", seed=5, effects=[get_effect("hysteresis", axis="x", h=0.6)])
     csv = tmp_path / "rec.csv"

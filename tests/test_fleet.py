@@ -190,6 +190,30 @@ def test_fleet_from_a_folder_of_csv_files(tmp_path, capsys):
     assert not (tmp_path / "out2").exists()
 
 
+def test_a_sensor_recorded_at_one_temperature_is_not_signed_off(tmp_path):
+    """Belsten run 3 alone (23.90-24.01 C) got a tempco verdict from thermal terms the data cannot inform (Ko[z]
+    -2.1 uT/C, S_y[y] -1.54 at t0 25): now its tempco is not scored and it fails 'temperature_span', with a note."""
+    import dataclasses as dc
+    from bayesmag._src.core.data import write_csv
+    recs, _ = simulate_fleet(3, 700, seed=2, n_defective=0)
+    (tmp_path / "recs").mkdir()
+    for k, r in enumerate(recs):
+        if k == 1:
+            r = dc.replace(r, temperature=24.0 + 0.05 * np.sin(np.arange(r.n) / 50.0))
+        write_csv(r, tmp_path / "recs" / f"unit-{k}.csv")
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\nbatch_size = 4\n')
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    s = {x["id"]: x for x in json.loads((tmp_path / "out" / "fleet.json").read_text())["sensors"]}
+    narrow = s["unit-1"]
+    assert narrow["verdict"] == "fail" and "temperature_span" in narrow["fails_limits"]
+    assert "max_offset_tempco" not in narrow["fails_limits"] and narrow["training_temperature_span_c"] < 0.11
+    assert "not measured" in narrow["notes"][0]
+    assert "unit-1: the training temperature spans only" in (tmp_path / "out" / "fleet_report.md").read_text()
+    for k in ("unit-0", "unit-2"):
+        assert "temperature_span" not in s[k]["fails_limits"] and "notes" not in s[k]
+
+
 # ------------------------------------------------------------------ sensor folders = single-run folders (#27)
 
 

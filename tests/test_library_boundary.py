@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import bayesmag
-from bayesmag._src.core.data import CalibrationData, CalibrationWarning, DataError
+from bayesmag._src.core.data import CalibrationData, DataError
+from bayesmag import CalibrationWarning
 from bayesmag.field import Constant, FieldCalibration, Scalar, fit_field
 from bayesmag.simulate import simulate_field
 
@@ -216,3 +217,22 @@ def test_a_job_reads_parquet_by_its_suffix_and_names_one_without_it(tmp_path):
     (tmp_path / "rec.parquet").rename(tmp_path / "rec.csv")
     with pytest.raises(DataError, match="Parquet file without the .parquet suffix"):
         load_data(config_from_dict({"data": {"path": str(tmp_path / "rec.csv")}}))
+
+
+def test_a_glitch_sample_in_the_reference_is_named(data):
+    """One by_ref spike doubled the y RMSE with no word (smoke pass): a residual over OUTLIER_Z robust sds is named
+    by run and time. The threshold leaves clean data alone (largest on Belsten 8.4, quickstart 5.1)."""
+    ref = data.b_ref.copy()
+    ref[31, 1] += 20.0
+    spiked = CalibrationData(data.b_meas, data.temperature, ref, data.time, data.run)
+    run = bayesmag.calibrate(spiked, _settings())
+    text = [w for w in run.fit.design_warnings if "robust sds off" in w]
+    assert len(text) == 1 and f"run {int(data.run[31])} time {data.time[31]:.6g} s (y" in text[0], text
+    assert not [w for w in bayesmag.calibrate(data, _settings()).fit.design_warnings if "robust" in w]
+
+
+@pytest.mark.realdata
+def test_the_real_recording_has_no_gross_outlier(belsten):
+    from bayesmag._src.core.fit import OUTLIER_Z, gross_outliers
+    fit = bayesmag.fit_physics(belsten, bayesmag.PhysicsModel.paper(t0=0.0))
+    assert not gross_outliers(fit.residuals(belsten)).any() and OUTLIER_Z >= 15

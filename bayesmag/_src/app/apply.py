@@ -30,11 +30,17 @@ def check_units(cal, data) -> list[str]:
 def new_session_notes(cal) -> list[str]:
     """What a new recording does not get from the calibration: its terms bound to training runs (``run_offset``,
     ``run_step``: :func:`~bayesmag._src.core.physics.new_session_runs`)."""
+    notes = []
+    tsd = getattr(cal, "transfer_sd", None)
+    if getattr(cal, "sessions", None) is None and (tsd is None or not np.any(np.asarray(tsd, float) > 0)):
+        notes.append("the calibration holds no between-session (transfer) term (its training data held one run, or "
+                     "[uq] transfer = \"off\"): the intervals of this recording, a new session, cover only the error "
+                     "within a session and can be far too narrow. Calibrate on at least 3 sessions for a transfer term.")
     bound = [t.name for t in cal.model.terms if t.bound_runs()]
     if not bound:
-        return []
+        return notes
     it = "it" if len(bound) == 1 else "them"
-    return [f"the calibration's {', '.join(bound)} describe{'s' if len(bound) == 1 else ''} training runs "
+    return notes + [f"the calibration's {', '.join(bound)} describe{'s' if len(bound) == 1 else ''} training runs "
             f"{list(cal.model.bound_runs)} only: this recording is calibrated without {it} (as a run with no offset "
             f"of its own and no step; run ids are not matched), and the spread between runs is in the transfer part."]
 

@@ -401,6 +401,15 @@ def _check_semantics(cfg: Config) -> None:
     if cfg.measurement.scalar_column and cfg.data.path is None:
         raise ConfigError(f"Config key 'measurement.scalar_column' = {cfg.measurement.scalar_column!r} names a CSV "
                           "column, but [data] names no 'path'; give data.path (a CSV with that column).")
+    field_job = cfg.measurement.kind != "vector" or cfg.data.source == "field_simulated"
+    if field_job:                           # keys the field job does not read are refused, not silently dropped
+        unused = [f"uq.{k}" for k, default in (("transfer", "loro"), ("transfer_likelihood", "gaussian"),
+                                               ("transfer_networks", "none"))
+                  if getattr(cfg.uq, k) != default]
+        if unused:
+            raise ConfigError(f"Config key(s) {unused} set a vector calibration's between-session (transfer) term; "
+                              f"a field calibration (measurement.kind = {cfg.measurement.kind!r}) has none and does "
+                              f"not read them (docs/field.md, \"Not done / limits\"). Remove them.")
     d = cfg.data
     if d.source is not None and d.path is not None:
         raise ConfigError("[data] names both 'source' and 'path'; give one.")

@@ -19,9 +19,16 @@ __all__ = ["load_discover_config", "build_parser", "main"]
 def load_discover_config(path: str | Path, overrides: Sequence[str] = ()):
     """(Config, DiscoverOptions) from a TOML file whose optional ``[discover]`` table holds
     :class:`DiscoverOptions` fields (validated; unknown keys are errors naming the valid set)."""
-    from bayesmag._src.app.config import ConfigError, config_from_dict, read_config_dict
+    from bayesmag._src.app.config import read_config_dict
 
-    raw = read_config_dict(path, overrides)
+    return discover_config_from_dict(read_config_dict(path, overrides))
+
+
+def discover_config_from_dict(raw: dict):
+    """(Config, DiscoverOptions) from a raw config dict (:func:`load_discover_config`'s checks)."""
+    from bayesmag._src.app.config import ConfigError, config_from_dict
+
+    raw = dict(raw)
     disc = raw.pop("discover", {})
     cfg = config_from_dict(raw)
     valid = [f.name for f in dataclasses.fields(DiscoverOptions)]
@@ -36,6 +43,16 @@ def load_discover_config(path: str | Path, overrides: Sequence[str] = ()):
         opts = dataclasses.replace(opts, t0=cfg.physics.t0)
     return cfg, opts
 
+
+
+def _columns_of(path: Path) -> list[str]:
+    """The column names of a CSV's header (BOM-safe, any delimiter) or of a Parquet file's schema."""
+    if path.suffix.lower() in (".parquet", ".pq"):
+        import pyarrow.parquet as pq
+        return list(pq.read_schema(path).names)
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
+        header = f.readline()
+    return [c.strip().strip('"') for c in re.split(r"[,;\t]", header)]
 
 
 def resolve_config(name: str) -> Path:
@@ -84,14 +101,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.data and args.config:
             raise ConfigError("give a CONFIG or --data FILE.csv, not both.")
-        if args.data:
-            from bayesmag._src.core.frames import load_table      # CSV, or Parquet by its suffix
-            data = load_table(args.data, field_unit=args.field_unit)
-            opts = DiscoverOptions()
-            header = Path(args.data).read_text(encoding="utf-8-sig").splitlines()[0]   # BOM-safe, any delimiter
-            if "time" not in [c.strip().strip('"') for c in re.split(r"[,;\t]", header)]:
+        if args.data:                       # the defaults for everything else; --set overrides them as for a config
+            from bayesmag._src.app.config import apply_overrides
+            units = [f'data.field_unit="{args.field_unit}"'] if args.field_unit else []
+            raw = apply_overrides({"name": Path(args.data).stem, "data": {"path": str(args.data)}},
+                                  (args.set or []) + units)
+            cfg, opts = discover_config_from_dict(raw)
+            data = load_data(cfg)
+            if opts.time_available is None and "time" not in _columns_of(Path(cfg.data.path)):
                 opts = dataclasses.replace(opts, time_available=False)
-            name = Path(args.data).stem
+            name = cfg.name
         elif args.config:
             units = [f'data.field_unit="{args.field_unit}"'] if args.field_unit else []
             cfg, opts = load_discover_config(resolve_config(args.config), (args.set or []) + units)

@@ -113,9 +113,27 @@ def validate_field_data(data, f_ref=None, *, scalar_column: str = "") -> None:
     scalar reference column's unit checked like the readings, and rows in time order within each run: the
     time-block split and the folds of the conformal scale take contiguous rows as contiguous time (unsorted rows
     made them a random split). Raises :class:`DataError` (one line, naming the rows and the fix)."""
-    from bayesmag._src.core.data import check_time_order, validate
-    extra = () if f_ref is None else ((f"scalar reference column '{scalar_column or 'f_ref'}'",
-                                       np.asarray(f_ref, np.float64).reshape(-1, 1)),)
+    from bayesmag._src.core.data import DataError, check_time_order, validate
+    name = f"scalar reference column '{scalar_column or 'f_ref'}'"
+    extra = () if f_ref is None else ((name, np.asarray(f_ref, np.float64).reshape(-1, 1)),)
+    ok = np.isfinite(data.b_meas).all(axis=1)
+    mag = np.linalg.norm(data.b_meas[ok], axis=1) if ok.any() else np.zeros(0)
+    if f_ref is not None and mag.size:      # the column against the readings: one of them in another unit
+        f = np.asarray(f_ref, np.float64)
+        f = f[np.isfinite(f)]
+        ratio = float(np.median(f) / max(np.median(mag), 1e-300)) if f.size else 1.0
+        if not 1 / 50 <= ratio <= 50:
+            big = "the column" if ratio > 1 else "the readings"
+            raise DataError(f"The {name} in {data.source} is {ratio:.3g}x the readings' |B| (medians {np.median(f):.4g} "
+                            f"and {np.median(mag):.4g} uT{' after the declared field_unit' if data.field_unit else ''}): "
+                            f"{big} look{'s' if big == 'the column' else ''} like another unit (nT is x1000). Convert "
+                            f"that column (or the readings) to uT; [data] field_unit converts the readings and the "
+                            f"column alike, so it cannot fix one of them.")
+    if data.field_unit is not None and mag.size and float(np.median(mag)) < 1.0:
+        raise DataError(f"After the declared [data] field_unit = {data.field_unit!r} the readings' median |B| is "
+                        f"{np.median(mag):.3g} uT; a field calibration (the Earth's field is 25-65 uT, or a scalar "
+                        f"reference) cannot work at that field, so the readings are probably in uT already. Remove "
+                        f"field_unit (it converts the readings and the scalar column alike), or convert the file.")
     validate(data, n_params=0, need_reference=False, need_temperature_variation=False, origin=data.source,
              extra_fields=extra)
     check_time_order(data, ["the time-block split and the conformal folds"], origin=data.source)

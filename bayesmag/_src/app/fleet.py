@@ -440,10 +440,18 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
 
         names = model.param_names
         q = _limits_quantities(fit.theta, names, rmse, cover)
+        # a sensor whose training temperature barely varies has no measured thermal terms (the fit's Ks and Ko are
+        # extrapolations, core.fit.MIN_TEMPERATURE_SPAN_C): it cannot be signed off, and its tempco is not scored
+        from bayesmag._src.core.fit import MIN_TEMPERATURE_SPAN_C
+        thermal = "Ko" in names
+        span = np.array([float(np.ptp(train.temperature[i][train.mask[i]])) for i in range(len(ids))])
         fails = []
         for i in range(len(ids)):
-            f = [k for k, v in q.items() if (v[i] < getattr(cfg.limits, k) if k.startswith("min")
-                                              else v[i] > getattr(cfg.limits, k))]
+            narrow = thermal and span[i] < MIN_TEMPERATURE_SPAN_C
+            f = [k for k, v in q.items() if not (narrow and k == "max_offset_tempco")
+                 and (v[i] < getattr(cfg.limits, k) if k.startswith("min") else v[i] > getattr(cfg.limits, k))]
+            if narrow:
+                f.append("temperature_span")
             if not fit.converged[i]:
                 f.append("not_converged")
             if not fit.identifiable[i]:
@@ -469,6 +477,11 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                 "outlier": bool(outlier[i]), "max_abs_robust_z": None if not outliers_computed else float(zmax[i]),
                 "outlying_quantities": top,
                 "limits_quantities": {k: float(v[i]) for k, v in q.items()},
+                "training_temperature_span_c": float(span[i]),
+                **({"notes": [f"the training temperature spans only {span[i]:.3g} C (< {MIN_TEMPERATURE_SPAN_C:g} C): "
+                              f"the thermal terms are not measured, so the tempco is not scored and the sensor "
+                              f"cannot be signed off (fails 'temperature_span'); record it over a wider range"]}
+                   if thermal and span[i] < MIN_TEMPERATURE_SPAN_C else {}),
                 "test_rmse": dict(zip(AXES, map(float, rmse[i]))), "raw_rmse": dict(zip(AXES, map(float, raw_rmse[i]))),
                 "test_coverage": dict(zip(AXES, map(float, cover[i]))),
                 "prediction": f"hybrid ({cfg.network.likelihoods[0]})" if cfg.network.enabled else "physics",

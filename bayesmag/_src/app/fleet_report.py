@@ -141,6 +141,9 @@ def write_fleet_report(folder: Path, summary: dict) -> Path:
                          f" | {top} |")
     else:
         lines.append("None.")
+    notes = [(x["id"], n) for x in s["sensors"] for n in x.get("notes", [])]
+    if notes:
+        lines += [""] + [f"- {sid}: {n}" for sid, n in notes]
     lines += ["", "## Parameter distribution over the fleet", "",
               "| quantity | unit | median | robust sd | p05 | p95 | min | max |", "|---|---|---|---|---|---|---|---|"]
     for k, d in s["distribution"].items():

@@ -364,10 +364,45 @@ MIN_ROWS_PER_PARAM = 5
 MIN_TEMPERATURE_SPAN_C = 1.0
 
 
-def _design_warnings(data, model: PhysicsModel, cov: np.ndarray) -> tuple[str, ...]:
-    """What makes a converged fit untrustworthy as a calibration: too few rows for its parameters, or thermal
-    terms fitted on a temperature span too small to inform them (they are then extrapolations)."""
+#: A residual this many robust sds (1.4826 MAD) from the axis's median marks a gross outlier (a glitch sample in the
+#: reference or the readings). The largest on the real Belsten fit is 8.4, on the quickstart campaign 5.1.
+OUTLIER_Z = 15.0
+
+
+def gross_outliers(resid: np.ndarray, *, z: float = OUTLIER_Z) -> np.ndarray:
+    """(n, 3) bool: residuals more than ``z`` robust sds (1.4826 MAD about the median) from their axis's median.
+
+    Example:
+      >>> r = np.random.default_rng(0).normal(size=(500, 3)) * 0.05; r[31, 1] = 450.0
+      >>> np.argwhere(gross_outliers(r)).tolist()
+      [[31, 1]]
+    """
+    r = np.asarray(resid, np.float64)
+    med = np.median(r, axis=0)
+    sd = 1.4826 * np.median(np.abs(r - med), axis=0)
+    return np.abs(r - med) > z * np.where(sd > 0, sd, np.inf)
+
+
+def _outlier_warning(data, resid: np.ndarray, what: str = "reference or reading") -> list[str]:
+    """A warning naming the rows (run, time) and axes of gross outliers in the residuals, or none."""
+    bad = gross_outliers(resid)
+    rows = np.flatnonzero(bad.any(axis=1))
+    if not rows.size:
+        return []
+    shown = "; ".join(f"run {int(data.run[i])} time {data.time[i]:.6g} s ({', '.join(a for a, b in zip(AXES, bad[i]) if b)}"
+                      f": residual {float(np.max(np.abs(resid[i][bad[i]]))):.3g} uT)" for i in rows[:5])
+    more = f" and {rows.size - 5} more" if rows.size > 5 else ""
+    return [f"{rows.size} row(s) fit more than {OUTLIER_Z:g} robust sds off ({shown}{more}): a glitch in the "
+            f"{what} pulls every parameter of a least-squares fit. Check those rows in the file and remove them if "
+            f"they are glitches."]
+
+
+def _design_warnings(data, model: PhysicsModel, cov: np.ndarray, resid: np.ndarray | None = None) -> tuple[str, ...]:
+    """What makes a converged fit untrustworthy as a calibration: too few rows for its parameters, thermal terms
+    fitted on a temperature span too small to inform them (they are then extrapolations), or gross outliers."""
     out, p = [], model.n_params
+    if resid is not None and data.n >= MIN_ROWS_PER_PARAM * p:
+        out += _outlier_warning(data, resid)
     if data.n < MIN_ROWS_PER_PARAM * p:
         out.append(f"The fit used {data.n} rows for {p} parameters per axis ({data.n - p} residual degrees of "
                    f"freedom): its noise level and every uncertainty rest on so few residuals that they are "
@@ -594,5 +629,5 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
         rmse_in_sample=np.sqrt(np.mean(resid**2, axis=0)),
         result=tuple(RESULTS[int(r)] for r in np.asarray(sol.result)), n_steps=np.asarray(sol.n_steps),
         covariance_method=covariance_method, cov_info=tuple(infos), diagnostics=tuple(diags),
-        design_notes=_design_notes(data, model), design_warnings=_design_warnings(data, model, np.stack(covs)),
+        design_notes=_design_notes(data, model), design_warnings=_design_warnings(data, model, np.stack(covs), resid),
     )

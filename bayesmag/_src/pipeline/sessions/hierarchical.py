@@ -1598,8 +1598,11 @@ def _hierarchical_transfer(train, fit, *, method, level, seed, effects, likeliho
                          f"effects would duplicate. Drop {bound[0]} from the physics extra terms, or use "
                          f"transfer = \"loro\".")
     runs = np.unique(train.run)
-    if runs.size < 2:
-        return estimate_transfer(train, fit, series=series), None
+    if runs.size < 2:                       # no spread between sessions to learn: loro's fallback, said so
+        tr = estimate_transfer(train, fit, series=series)
+        note = (f"transfer = \"hierarchical\" was asked for, but the training data hold {runs.size} run "
+                f"(session): the session model needs at least 2 and was not fitted. ")
+        return dataclasses.replace(tr, warning=note + (tr.warning or "")), None
     post = fit_sessions(train, fit, method=method, effects=effects, level=level, seed=seed, likelihood=likelihood,
                         df=df, uninformed=uninformed)
     sd = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
