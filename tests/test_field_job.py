@@ -299,7 +299,8 @@ def _swap_rows(head, rows):
 @pytest.mark.parametrize("edit, match, vector_same", [
     (_scale_columns(FIELD_COLUMNS + ("bx_ref", "by_ref", "bz_ref"), 1000.0),
      r"The measured field \(bx_meas, by_meas, bz_meas\) in \S+ reaches .* looks like nT \(x1000\)", True),
-    (_scale_columns(("F_ovh",), 1000.0), r"The scalar reference column 'F_ovh' in \S+ reaches .* looks like nT", False),
+    (_scale_columns(("F_ovh",), 1000.0), r"The scalar reference column 'F_ovh' in \S+ is \S+x the readings' \|B\| .*"
+                                          r"the column looks like another unit \(nT is x1000\)\. Convert that column", False),
     (_nan_rows, r"Column 'by_meas' in \S+ has 2 non-finite value\(s\) \(NaN or inf\) at data row\(s\) 4, 9\.", True),
     (_swap_rows, r"Column 'time' in \S+ is not sorted within run 0: data row 6 \(time 0\.4\) comes after data row 5 "
                  r"\(time 0\.5\)\. Sort the file by run, then time\.", False),
@@ -374,3 +375,17 @@ def test_report_when_no_held_out_row_is_in_the_training_domain(tmp_path, capsys)
     m = json.loads((tmp_path / "o" / "metrics.json").read_text())["field"]["scores"]
     assert m["n_in_domain"] == 0 and m["coverage_in_domain"] is None
     assert "Inside it (0 rows) the intervals cover n/a" in (tmp_path / "o" / "report.md").read_text()
+
+
+def test_a_declared_field_unit_that_shrinks_the_readings_to_nothing_is_refused(tmp_path, capsys):
+    """Readings in uT, the scalar column in nT, `field_unit = "nT"` (as the docs name it): the readings became an
+    Earth field of 0.05 uT and the run fitted a 'dead sensor' with a held-out RMSE under the reading noise (smoke
+    pass). A field calibration at under 1 uT is refused, naming field_unit."""
+    from bayesmag._src.app.field_job import validate_field_data
+    from bayesmag._src.core.data import CalibrationData, DataError
+    from bayesmag.simulate import simulate_field
+    c = simulate_field("dance", n=200, seed=1)
+    d = c.data
+    declared = CalibrationData(d.b_meas / 1000, d.temperature, None, d.time, d.run, "rec.csv", field_unit="nT")
+    with pytest.raises(DataError, match=r"median \|B\| is .* uT; a field calibration .* Remove field_unit"):
+        validate_field_data(declared, c.f_ref / 1000, scalar_column="F")

@@ -236,3 +236,39 @@ def test_the_real_recording_has_no_gross_outlier(belsten):
     from bayesmag._src.core.fit import OUTLIER_Z, gross_outliers
     fit = bayesmag.fit_physics(belsten, bayesmag.PhysicsModel.paper(t0=0.0))
     assert not gross_outliers(fit.residuals(belsten)).any() and OUTLIER_Z >= 15
+
+
+# --------------------------------------------------------------------------- the command line's side (smoke pass 3)
+def test_a_hierarchical_transfer_on_one_run_says_it_was_not_fitted(data):
+    from bayesmag._src.pipeline.sessions import hierarchical_transfer
+    one = data.subset(np.flatnonzero(data.run == data.run[0]))
+    tr, sessions = hierarchical_transfer(one, bayesmag.fit_physics(one))
+    assert sessions is None and "hierarchical\" was asked for" in tr.warning and "was not fitted" in tr.warning
+
+
+def test_apply_says_when_a_calibration_has_no_transfer_term():
+    """`apply` to new sessions of a one-run calibration (coverage 21 / 15 / 37 %) printed no warning."""
+    from types import SimpleNamespace
+    from bayesmag._src.app.apply import new_session_notes
+    model = bayesmag.PhysicsModel.paper()
+    none = SimpleNamespace(transfer_sd=np.zeros(3), sessions=None, model=model)
+    assert any("no between-session (transfer) term" in n for n in new_session_notes(none))
+    some = SimpleNamespace(transfer_sd=np.array([0.1, 0.2, 0.1]), sessions=None, model=model)
+    assert new_session_notes(some) == []
+
+
+def test_a_field_job_refuses_the_vector_transfer_keys():
+    from bayesmag._src.app.config import ConfigError, config_from_dict
+    with pytest.raises(ConfigError, match=r"\['uq.transfer'\].*field calibration.*has none"):
+        config_from_dict({"data": {"source": "field_simulated"}, "uq": {"transfer": "hierarchical"}})
+    config_from_dict({"data": {"source": "field_simulated"}})                # the defaults pass
+
+
+def test_apply_names_a_folder_that_is_not_a_calibration(tmp_path):
+    import json
+    from bayesmag._src.app.artifact import ArtifactError, check_run_folder
+    from bayesmag._src.app.outdir import MARKER
+    (tmp_path / "findings.json").write_text("{}")
+    (tmp_path / MARKER).write_text(json.dumps({"tool": "bayesmag", "complete": True, "files": ["findings.json"]}))
+    with pytest.raises(ArtifactError, match=r"holds a discovery result \(`bayesmag discover`\), not a calibration"):
+        check_run_folder(tmp_path)
