@@ -292,15 +292,26 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     tau = ex["transfer_sd"]
     if tr.get("method") in (None, "off"):
         how = "off (`[uq] transfer = \"off\"`): not estimated" if tr.get("method") == "off" else "not estimated"
+    elif str(tr["method"]).startswith("hierarchical"):
+        how = ("hierarchical session model (docs/sessions.md): its new-session predictive sd, the uncertainty about "
+               "the between-session spread included, root mean square over the training rows (each row's own in "
+               "`bayesmag apply`'s `transfer` column); counted with infinite dof")
+    elif tr["method"] == "largest_offset_change":
+        how = ("largest run-to-run change of the mean residual (fewer than 3 usable runs: a rough bound, not a "
+               "confidence bound); counted with infinite dof")
     else:
         how = (f"{tr['method'].replace('_', ' ')} over the training runs; already an upper confidence bound, so "
                "counted with infinite dof")
     missing = ex["new_session_missing"]
     dom = {a: max(comps, key=lambda c: c[1][a])[0].split(" (")[0] for a in AXES}
     same, new = ex["same_session"], ex["new_session"]
+    n_runs = len((m.get("data") or {}).get("runs") or [])
     same_applies = (f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
                     "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
-                    "power-up, the conditions of the test rows above)")
+                    "power-up, the conditions of the test rows above)"
+                    + (f"; with {n_runs} training sessions pooled in one fit it holds over their rows together, and "
+                       f"the rows of one particular session can be off by part of the between-session spread, for "
+                       f"which U new session is the safe statement" if n_runs > 1 else ""))
     if missing:                 # no transfer term: a "U new session" would be the same-session U, understated
         lines += ["| transfer (between sessions; new session only) | A | | not estimated | not estimated | "
                   f"not estimated | {missing} |",
@@ -330,6 +341,10 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                   f"({' / '.join(_u2(new[a]['U']) for a in AXES)} uT) holds for any later recording, i.e. in the "
                   "field (`bayesmag apply` adds the transfer term to every row of a new recording; column "
                   "`transfer`). Inside the calibration domain only (section Calibration domain)."
+                  + (" With the hierarchical session model the transfer sd depends on the row's field and "
+                     "temperature: the U here uses its root mean square over the training rows, and the table of "
+                     "U at the corners of the training domain below shows its range."
+                     if str(tr.get("method", "")).startswith("hierarchical") else "")
                   + (" U new session is the hybrid predictor's (the one `bayesmag apply` uses): its within-session "
                      "parts and the transfer part it adds, the residual network's own new-session error included "
                      "(`[uq] transfer_networks`); U same session is the physics budget's." if hybrid else "")]

@@ -1609,8 +1609,9 @@ def _hierarchical_transfer(train, fit, *, method, level, seed, effects, likeliho
     warnings = []
     if runs.size < FEW_RUNS:
         warnings.append(f"The training data hold {runs.size} runs (sessions): the between-session sds of the "
-                        f"hierarchical transfer model are then set largely by their prior (half-normal, scale "
-                        f"{TAU_PRIOR_SCALE} uT), and new-session intervals are wide. Record at least {FEW_RUNS} sessions.")
+                        f"hierarchical transfer model are then poorly determined (their prior, half-normal with scale "
+                        f"{TAU_PRIOR_SCALE} uT, weighs as much as the few runs), and new-session intervals are wide. "
+                        f"Record at least {FEW_RUNS} sessions.")
     dropped = select_effects(train, fit, effects)[1]
     weak = weak_directions(train, fit, [e for e in post.effects if e not in post.prior_only])     # as fit_sessions
     summary = {**post.as_dict(), "dropped_effects_informing_runs": dropped,
