@@ -394,7 +394,8 @@ def _outlier_warning(data, resid: np.ndarray, what: str = "reference or reading"
     more = f" and {rows.size - 5} more" if rows.size > 5 else ""
     return [f"{rows.size} row(s) fit more than {OUTLIER_Z:g} robust sds off ({shown}{more}): a glitch in the "
             f"{what} pulls every parameter of a least-squares fit. Check those rows in the file and remove them if "
-            f"they are glitches."]
+            f"they are glitches; many such rows together are more likely physics the model lacks (`bayesmag "
+            f"discover`)."]
 
 
 def _design_warnings(data, model: PhysicsModel, cov: np.ndarray, resid: np.ndarray | None = None) -> tuple[str, ...]:
