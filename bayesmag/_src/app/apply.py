@@ -126,20 +126,17 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
 def _reference_unit_note(data, cal) -> str | None:
     """Why the recording's reference columns are not scored, or None: with a declared ``--field-unit`` both the
     readings and the reference are converted, and a reference logged in another unit (uT beside nT readings) would
-    be scored 1000x off (before: RMSE 22 uT, coverage 10 %, no word). Checked against the training reference range."""
+    be scored 1000x off (before: RMSE 22 uT, coverage 10 %, no word). Checked against the training field (:func:`train_max_ut`)."""
     if data.field_unit is None:
         return None                         # undeclared: the unit check refused a reference in another unit
     ok = np.isfinite(data.b_ref).all(axis=1)
     if not ok.any():
         return None
     p99 = float(np.percentile(np.abs(data.b_ref[ok]), 99))
-    hi = max(abs(float(v)) for v in np.concatenate([np.ravel(cal.domain.out_low if cal.domain.out_low is not None
-                                                              else cal.domain.low[:3]),
-                                                     np.ravel(cal.domain.out_high if cal.domain.out_high is not None
-                                                              else cal.domain.high[:3])]))
+    hi = train_max_ut(cal)
     if hi > 0 and not hi / 50 <= p99 <= 50 * hi:
         return (f"the reference columns (bx_ref, by_ref, bz_ref) reach {p99:.4g} uT (99th percentile) after the "
-                f"declared --field-unit {data.field_unit} conversion, while the calibration's reference reached "
+                f"declared --field-unit {data.field_unit} conversion, while the calibration's training field reached "
                 f"{hi:.4g} uT: they look like they are in another unit than the readings, so the calibrated rows were "
                 f"written but not scored against them. Convert the reference columns to {data.field_unit} (or to uT "
                 f"and apply without --field-unit after converting the readings).")

@@ -105,11 +105,9 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False)
     _check_magnitudes(data)
-    r = cal.ranges
-    train_max = max(abs(v) for k in ("bx_meas", "by_meas", "bz_meas") for v in r[k])
-    warnings = check_units_against(data, train_max)
+    warnings = check_units_against(data, cal.train_max_ut)
     pred = cal.predict(data.b_meas, data.temperature, level=level,
-                       field_unit=None if data.field_unit is None else "uT")      # declared: converted at load
+                       field_unit="uT")      # checked above, with the command line's wording (declared: converted)
     level = pred["level"]
     if not pred["valid"].any():
         raise DataError(f"No row of {data_path} could be calibrated ({data.n} rows, every one with a non-finite "

@@ -67,6 +67,11 @@ class FieldCalibration:
     ranges: dict = dataclasses.field(default_factory=dict)
     reference_column: str | None = None
 
+    @property
+    def train_max_ut(self) -> float:
+        """The largest |reading component| (uT) of the training ranges: the unit checks compare new readings with it."""
+        return max(abs(v) for k in DOMAIN_KEYS[:3] for v in self.ranges[k])
+
     def __repr__(self) -> str:
         return (f"FieldCalibration({self.fit!r}, interval_scale={self.interval_scale:.4g}, level={self.level:g}, "
                 f"reference_column={self.reference_column!r})")
@@ -99,8 +104,7 @@ class FieldCalibration:
                              f"field_unit = 'uT' declares a field far below the training one")
         if valid.any() and self.ranges:
             from bayesmag._src.core.data import CalibrationData, check_units
-            train_max = max(abs(v) for k in DOMAIN_KEYS[:3] for v in self.ranges[k])
-            check_units(CalibrationData(u[valid], t[valid], None, field_unit=field_unit), train_max_ut=train_max,
+            check_units(CalibrationData(u[valid], t[valid], None, field_unit=field_unit), train_max_ut=self.train_max_ut,
                         origin="the readings given to FieldCalibration.predict", fix="Convert the readings to uT",
                         declare="field_unit='uT'", temperature_fix="Subtract 273.15")
         out = {k: np.full((n, 3) if k == "calibrated" else n, np.nan) for k in
