@@ -294,3 +294,25 @@ def test_a_hierarchical_calibration_keeps_its_row_wise_transfer_column(cluster, 
     got = out[[f"{ax}_transfer" for ax in "xyz"]].to_numpy(float)
     assert np.ptp(ref["transfer"], axis=0).max() > 0                 # row-dependent
     np.testing.assert_allclose(got, ref["transfer"], rtol=1e-12, atol=1e-15)
+
+
+def test_a_near_zero_field_partition_is_not_refused_but_an_all_small_file_is(cal_dir, cluster, tmp_path):
+    """Fourth safety pass: the mT test ran per partition, so a file whose first row group is a near-zero-field run
+    was refused ("looks like mT") though the in-process apply accepts it; now it runs on the whole recording, and a
+    file small in every partition is still refused, with nothing written."""
+    from bayesmag._src.core.simulate import simulate
+    df = to_frame(simulate(600, design="campaign", seed=14, noise_sd=0.05))
+    quiet = df.iloc[:200].copy()
+    quiet[["bx_meas", "by_meas", "bz_meas"]] = quiet[["bx_meas", "by_meas", "bz_meas"]] * 0.001   # near zero field
+    quiet[["bx_ref", "by_ref", "bz_ref"]] = quiet[["bx_ref", "by_ref", "bz_ref"]] * 0.001
+    mixed = pd.concat([quiet, df.iloc[200:]], ignore_index=True)
+    (tmp_path / "in").mkdir()
+    mixed.to_parquet(tmp_path / "in" / "a.parquet", row_group_size=100, index=False)
+    apply_calibration(cal_dir, tmp_path / "in" / "a.parquet", tmp_path / "ref.csv")        # accepted in process
+    s = apply_dask(cal_dir, str(tmp_path / "in"), tmp_path / "out", scheduler=cluster)
+    assert s["n_rows"] == 600 and s["n_partitions"] == 6
+    (tmp_path / "in2").mkdir()
+    quiet.to_parquet(tmp_path / "in2" / "b.parquet", row_group_size=100, index=False)
+    with pytest.raises(DataError, match="every partition.*mT"):
+        apply_dask(cal_dir, str(tmp_path / "in2"), tmp_path / "out2", scheduler=cluster)
+    assert not (tmp_path / "out2").exists()

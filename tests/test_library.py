@@ -126,7 +126,7 @@ def test_calibrator_constructor_only_stores_and_params_round_trip():
     cal = bayesmag.Calibrator("paper_physics", holdout=0.1)
     assert cal.get_params() == {"config": "paper_physics", "overrides": (), "out": None, "columns": None,
                                 "temperature_unit": "C", "field_unit": None, "holdout": 0.1,
-                                "duplicate_times": "ignore"}
+                                "duplicate_times": "ignore", "output": "full"}
     assert cal.set_params(holdout=None) is cal and cal.holdout is None
     with pytest.raises(ValueError, match="no parameter 'seed'"):
         cal.set_params(seed=1)
@@ -181,7 +181,8 @@ def test_y_is_the_reference_even_when_columns_maps_reference_columns(data):
     Before, the mapped columns silently replaced it (offsets fitted -0.2 uT where y put them 5 uT higher)."""
     df = bayesmag.to_frame(data).rename(columns={"bx_ref": "RX", "by_ref": "RY", "bz_ref": "RZ"})
     y = data.b_ref + 5.0
-    mapped = bayesmag.Calibrator({"uq": FAST}, columns={"bx_ref": "RX", "by_ref": "RY", "bz_ref": "RZ"}).fit(df, y)
+    with pytest.warns(UserWarning, match="y is the reference used"):      # and says so (fourth safety pass)
+        mapped = bayesmag.Calibrator({"uq": FAST}, columns={"bx_ref": "RX", "by_ref": "RY", "bz_ref": "RZ"}).fit(df, y)
     plain = bayesmag.Calibrator({"uq": FAST}).fit(bayesmag.CalibrationData(data.b_meas, data.temperature, y,
                                                                            data.time, data.run))
     np.testing.assert_allclose(mapped.physics_fit_.theta, plain.physics_fit_.theta, rtol=1e-10, atol=1e-12)

@@ -18,13 +18,14 @@ OUTPUT_COLUMNS = ("calibrated", "aleatoric_physics", "epistemic_physics", "resid
                   "epistemic_nn", "transfer", "total", "lower", "upper")
 
 
-def check_units(cal, data) -> list[str]:
+def check_units(cal, data, *, small_ok: bool = False) -> list[str]:
     """Errors for units that cannot be right; warnings for suspicious ones (vs the training domain).
 
     The check is :func:`~bayesmag._src.core.data.check_units`, shared with ``run``, ``discover`` and the library;
-    measured and reference columns are both checked against the training range.
+    measured and reference columns are both checked against the training range (``small_ok``: not the mT / gauss
+    test, for a part of a recording whose whole the caller checks).
     """
-    return check_units_against(data, train_max_ut(cal))
+    return check_units_against(data, train_max_ut(cal), small_ok=small_ok)
 
 
 def new_session_notes(cal) -> list[str]:
@@ -82,6 +83,10 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     note = cal.domain.step_note(data)
     if note:
         warnings.append(note)
+    if cal.domain.rate_high is not None and not data.time_given:
+        warnings.append(f"{data_path} has no time column: the field and temperature rates (in_domain_reason "
+                        f"field_rate / temperature_rate) were not checked (rows without times have no rate per "
+                        f"second). Give the time in seconds (a 'time' column, or --columns time=NAME) to check them.")
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
                        progress=progress, check_units=False)      # checked above, with the CLI's wording
     level = cal.level if level is None else level

@@ -325,7 +325,7 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
     if n:
         from bayesmag._src.app.apply import check_units, new_session_notes
         try:
-            warns = check_units(cal, data) + new_session_notes(cal)
+            warns = check_units(cal, data, small_ok=True) + new_session_notes(cal)   # mT: on the whole, below
             step = cal.domain.step_note(data) if data.n > 1 else None     # as the in-process apply
             if step:
                 warns.append(step)
@@ -345,7 +345,7 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
             except DataError:
                 lo, full = 0, data
         pred = cal.predict(full, level=opts["level"], method=opts["method"], n_params=opts["n_params"],
-                           n_qmc=opts["n_qmc"], chunk_size=opts["chunk_size"])
+                           n_qmc=opts["n_qmc"], chunk_size=opts["chunk_size"], check_units=False)   # checked above
         if full is not data:                                      # drop the neighbour rows again
             pred = {k: np.asarray(v)[lo:lo + n] for k, v in pred.items()}
     else:
@@ -365,7 +365,8 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
         raise RuntimeError(f"{where}: {len(df)} rows in but {len(out)} out; nothing was written.")
     out.to_parquet(Path(out_dir) / f"part.{index:06d}.parquet", index=False)
     row = {"partition": index, "rows_in": len(df), "rows_out": len(out), "valid": int(cols["valid"].sum()),
-           "outside": int((~cols["in_domain"] & cols["valid"]).sum()), "warnings": " | ".join(warns)}
+           "outside": int((~cols["in_domain"] & cols["valid"]).sum()), "warnings": " | ".join(warns),
+           "p99_meas": _p99(data.b_meas), "p99_ref": _p99(data.b_ref)}
     if data.b_ref is not None and n:
         ok = cols["valid"] & np.isfinite(data.b_ref).all(axis=1)
         y, mu = data.b_ref[ok], pred["calibrated"][ok]
@@ -375,6 +376,34 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
             row[f"covered_{ax}"] = int(inside[:, a].sum())
         row["n_ref"] = int(ok.sum())
     return pd.DataFrame([row])
+
+
+def _p99(b) -> float:
+    """The 99th percentile of |component| over the finite rows of ``b`` (NaN without any): a partition's field size."""
+    if b is None:
+        return float("nan")
+    b = np.asarray(b, np.float64)
+    ok = np.isfinite(b).all(axis=1)
+    return float(np.percentile(np.abs(b[ok]), 99)) if ok.any() else float("nan")
+
+
+def _check_small_field(table, cal, field_unit) -> None:
+    """The mT / gauss test of :func:`~bayesmag._src.core.data.check_field_unit` on the whole recording: every
+    partition's field is small against the training field (a partition alone is not refused: a near-zero-field run
+    in one partition was, though the in-process apply accepts the file)."""
+    from bayesmag._src.app.apply import train_max_ut
+    top = train_max_ut(cal)
+    if field_unit is not None or top <= 10:
+        return
+    for col, label in (("p99_meas", "measured field (bx_meas, by_meas, bz_meas)"),
+                       ("p99_ref", "reference field (bx_ref, by_ref, bz_ref)")):
+        v = np.asarray(table[col], np.float64) if col in table else np.zeros(0)
+        v = v[np.isfinite(v)]
+        if v.size and v.max() < top / 50:
+            raise DataError(f"The {label} of every partition is at most {v.max():.3g} (99th percentile) while the "
+                            f"calibration was trained on |B| up to {top:.3g} uT: the data look like mT (/1000) or "
+                            f"gauss (/100). Convert them to uT, or --field-unit uT if they really are (e.g. a "
+                            f"magnetically shielded recording); nothing was written.")
 
 
 def _check_paths(model_dir, data, out) -> Path:
@@ -398,14 +427,15 @@ def _check_paths(model_dir, data, out) -> Path:
 
 def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers: int = 2, threads_per_worker: int = 1,
                memory_limit: str = "900MB", blocksize: int = 16 * 2**20, level=None, method: str = "auto",
-               n_params: int = 100, n_qmc: int = 256, temperature_unit: str = "C", field_unit: str = "uT",
+               n_params: int = 100, n_qmc: int = 256, temperature_unit: str = "C", field_unit: str | None = None,
                columns: dict | None = None, chunk_size: int = 50_000, progress: bool = False) -> dict:
     """Calibrate every row of an archive (Parquet dataset folder, Parquet file, or glob of CSV files) on Dask.
 
     ``scheduler``: address of a running Dask scheduler (its workers must see ``data`` and ``out`` at the same paths);
     None starts a local cluster of ``n_workers`` processes with ``threads_per_worker`` threads and ``memory_limit``
     each. Writes a Parquet dataset (``part.<k>.parquet``, one per input partition, in input order) to ``out``; returns
-    a summary like :func:`~bayesmag._src.app.apply.apply_calibration`'s.
+    a summary like :func:`~bayesmag._src.app.apply.apply_calibration`'s. ``field_unit``: as ``apply``'s (None, the
+    default: checked to be uT, on the whole archive; a declared unit is converted and trusted).
     """
     try:
         import dask
@@ -441,7 +471,8 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                 columns_out=[c for c in OUTPUT_COLUMNS if c in names])
     meta = pd.DataFrame({"partition": pd.Series(dtype="int64"), "rows_in": pd.Series(dtype="int64"),
                          "rows_out": pd.Series(dtype="int64"), "valid": pd.Series(dtype="int64"),
-                         "outside": pd.Series(dtype="int64"), "warnings": pd.Series(dtype="object")})
+                         "outside": pd.Series(dtype="int64"), "warnings": pd.Series(dtype="object"),
+                         "p99_meas": pd.Series(dtype="float64"), "p99_ref": pd.Series(dtype="float64")})
     # Tasks hold no data between them: spilling and pausing would only stall a worker whose JAX runtime sits near the
     # limit; a worker past 95 % of --memory-limit is still restarted (and a partition that cannot fit is named below).
     memory = {"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
@@ -480,6 +511,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                         raise
                     raise DataError(f"a Dask worker died (out of memory?) on {e}: give it more memory (--memory-limit), "
                                     f"or smaller partitions (Parquet row groups, --blocksize-mb).") from None
+                _check_small_field(table, cal, opts["field_unit"])     # inside the staging: a refusal writes nothing
         finally:
             client.close()
             if cluster is not None:

@@ -185,9 +185,9 @@ class Calibration:
             kelvin are refused (``frames.as_calibration_data``). ``check_units=False`` skips that
             check for rows the caller checked already (``bayesmag apply``).
           check_rates: check the field and temperature rates against the training domain (reasons
-            ``field_rate``, ``temperature_rate``); default: when ``data`` has times (a CalibrationData, or a
-            DataFrame with a ``time`` column), not for a NumPy array (its rows have no time: the rates of
-            consecutive rows would be read per row index, not per second).
+            ``field_rate``, ``temperature_rate``); default: when ``data`` has times (a CalibrationData made
+            with times, ``time_given``, or a DataFrame with a ``time`` column), not for a NumPy array (its rows
+            have no time: the rates of consecutive rows would be read per row index, not per second).
 
         Returns:
           A DataFrame for a DataFrame (columns ``x_calibrated, x_lower, ...`` and the flags, the input's
@@ -217,7 +217,7 @@ class Calibration:
                                check_rates=check_rates)
             return prediction_frame(out, index)
         if check_rates is None:
-            check_rates = isinstance(data, CalibrationData)
+            check_rates = isinstance(data, CalibrationData) and data.time_given
         if check_units or not isinstance(data, CalibrationData):
             data = as_calibration_data(data, columns=columns, field_unit=field_unit, temperature_unit=temperature_unit,
                                        train_max_ut=self._train_max(), what="the data given to predict")

@@ -34,6 +34,19 @@ PARAM_UNITS = {"S": "1", "Ks": "1/C", "O": "uT", "Ko": "uT/C"}
 ARRAY_COLUMNS = ("bx_meas", "by_meas", "bz_meas", "temperature", "time", "run")
 
 
+#: What :meth:`Calibrator.predict` returns (the ``output`` parameter).
+OUTPUTS = ("full", "field")
+
+
+class NotFittedError(RuntimeError, ValueError, AttributeError):
+    """A :class:`Calibrator` used before :meth:`~Calibrator.fit` (scikit-learn's ``NotFittedError`` contract: a
+    ``ValueError`` and an ``AttributeError``; a ``RuntimeError`` as before)."""
+
+
+#: The reference columns ``y`` may name (a DataFrame ``y`` is read by these names, in this order).
+_REF_COLUMNS = ("bx_ref", "by_ref", "bz_ref")
+
+
 def _drop_none(d):
     if isinstance(d, dict):
         return {k: _drop_none(v) for k, v in d.items() if v is not None}
@@ -59,6 +72,10 @@ class Calibrator:
       holdout: None (default: every row fits, no metrics), a fraction in (0, 1) (that share of the rows,
         chosen as the config's ``[split]`` kind chooses them, is held out and scored into ``metrics_``),
         or ``"config"`` (the config's own ``[split]``). Nothing is ever held out silently.
+      output: what :meth:`predict` returns: ``"full"`` (default: a DataFrame of the calibrated field, its
+        uncertainty parts, interval and domain flags for a DataFrame, the dict of arrays otherwise) or
+        ``"field"`` (the calibrated field alone, an ``(n, 3)`` array: what scikit-learn's metrics, scorers and
+        ``cross_val_predict`` expect).
 
     NumPy input: ``X`` ``(n, 4)`` columns :data:`ARRAY_COLUMNS` (``bx, by, bz`` in uT, temperature in C;
     optional 5th time in s and 6th run), ``y`` ``(n, 3)`` the reference field in uT.
@@ -79,7 +96,7 @@ class Calibrator:
 
     def __init__(self, config=None, overrides=(), *, out: str | Path | None = None, columns: dict | None = None,
                  temperature_unit: str = "C", field_unit: str | None = None, holdout: float | str | None = None,
-                 duplicate_times: str = "ignore"):
+                 duplicate_times: str = "ignore", output: str = "full"):
         self.config = config
         self.overrides = overrides
         self.out = out
@@ -88,6 +105,7 @@ class Calibrator:
         self.field_unit = field_unit
         self.holdout = holdout
         self.duplicate_times = duplicate_times
+        self.output = output
 
     # ------------------------------------------------------------------ scikit-learn's parameter protocol
     @classmethod
@@ -113,8 +131,10 @@ class Calibrator:
 
     def __sklearn_tags__(self):
         from sklearn.utils import Tags, TargetTags  # only called by scikit-learn itself
+        from sklearn.utils import RegressorTags
         tags = Tags(estimator_type="regressor", target_tags=TargetTags(required=False, multi_output=True,
-                                                                      single_output=False))
+                                                                      single_output=False),
+                    regressor_tags=RegressorTags())
         tags.input_tags.two_d_array = True
         tags.input_tags.allow_nan = False
         return tags
@@ -135,14 +155,21 @@ class Calibrator:
             raise ConfigError(f"config must be None, a path, a Config or a dict; got {type(c).__name__}.")
         if self.overrides:
             from bayesmag._src.app.config import apply_overrides
-            raw = apply_overrides(raw, list(self.overrides))
+            ov = [self.overrides] if isinstance(self.overrides, str) else list(self.overrides)   # one key=value
+            raw = apply_overrides(raw, ov)
         raw["data"] = {"source": "simulated"}        # a placeholder: the rows come from fit()
         return config_from_dict(raw)
 
-    def _rows(self, X, y=None, *, need_reference: bool = False) -> tuple[CalibrationData, object]:
+    def _rows(self, X, y=None, *, need_reference: bool = False, field_unit=None, temperature_unit=None,
+              columns=None, train_max_ut: float | None = None) -> tuple[CalibrationData, object]:
         """``X`` (and ``y``) as checked CalibrationData in uT and C (the command line's unit checks,
-        :func:`~bayesmag._src.core.frames.as_calibration_data`), and the DataFrame index (or None)."""
+        :func:`~bayesmag._src.core.frames.as_calibration_data`), and the DataFrame index (or None).
+        ``field_unit``, ``temperature_unit``, ``columns``: the caller's (``predict``'s), else the constructor's."""
         from bayesmag._src.core.frames import as_calibration_data, is_frame
+
+        field_unit = self.field_unit if field_unit is None else field_unit
+        temperature_unit = self.temperature_unit if temperature_unit is None else temperature_unit
+        columns = self.columns if columns is None else columns
 
         index = X.index if is_frame(X) else None
         if not isinstance(X, CalibrationData) and not is_frame(X):
@@ -157,7 +184,8 @@ class Calibrator:
                 raise DataError("X and y are pandas objects with different indexes; y is used by position (as in "
                                 "scikit-learn), so its rows would be paired with other rows of X. Align them first: "
                                 "y.loc[X.index] (or y.to_numpy() if the row order is already right).")
-            ref = np.asarray(y.to_numpy() if hasattr(y, "to_numpy") else y, dtype=np.float64)
+            ref = np.asarray(_reference_by_name(y, columns).to_numpy() if hasattr(y, "to_numpy") else y,
+                             dtype=np.float64)
             n = len(X) if is_frame(X) else X.n
             if ref.shape != (n, 3):
                 raise DataError(f"y must be the reference field (n, 3) = ({n}, 3); got shape {ref.shape}.")
@@ -168,16 +196,19 @@ class Calibrator:
                 raise DataError(f"y (the reference field) has {int(bad.sum())} non-finite value(s) (NaN or inf), "
                                 f"first in column {col}, at {_bad_rows(bad.any(axis=1))}. Remove or repair those "
                                 f"rows (of X and y alike) before calibrating.")
+            _note_second_reference(X, ref, columns)
             if is_frame(X):
                 X = X.assign(**{f"{a}_ref": ref[:, i] for i, a in enumerate(("bx", "by", "bz"))})
             else:
-                X = CalibrationData(X.b_meas, X.temperature, ref, X.time, X.run, source=X.source)
-        columns = self.columns if is_frame(X) else None
+                X = CalibrationData(X.b_meas, X.temperature, ref, X.time, X.run, source=X.source,
+                                    field_unit=X.field_unit, time_given=X.time_given)
+        columns = columns if is_frame(X) else None
         if columns and y is not None:       # y is the reference: a mapping of reference columns must not replace it
             columns = {k: v for k, v in dict(columns).items() if k not in ("bx_ref", "by_ref", "bz_ref")}
-        rows = as_calibration_data(X, columns=columns, field_unit=self.field_unit,
-                                   temperature_unit=self.temperature_unit, require_reference=need_reference,
-                                   duplicate_times=self.duplicate_times, what="the data given to Calibrator")
+        rows = as_calibration_data(X, columns=columns, field_unit=field_unit,
+                                   temperature_unit=temperature_unit, require_reference=need_reference,
+                                   duplicate_times=self.duplicate_times, what="the data given to Calibrator",
+                                   train_max_ut=train_max_ut)
         return rows, index
 
     def _split(self, cfg: Config, rows: CalibrationData):
@@ -213,6 +244,8 @@ class Calibrator:
         from bayesmag._src.pipeline.calibrate import calibrate
 
         warn_if_float32("Calibrator.fit")
+        for attr in ("run_", "physics_fit_", "metrics_", "calibration_", "params_", "run_dir_", "_cfg"):
+            self.__dict__.pop(attr, None)          # a refit (or a failed one) keeps nothing of the last fit
         cfg = self._config()
         rows, _ = self._rows(X, y, need_reference=True)
         split = self._split(cfg, rows)
@@ -283,33 +316,52 @@ class Calibrator:
 
         self._check_fitted("run_")
         path = Path(path)
+        config = self._cfg.to_dict()
+        # the rows came from fit(), not from a file: no [data] source (the placeholder "simulated" would make
+        # `bayesmag run` of this config, and `export`'s refit of a least-squares format, use simulated rows)
+        config["data"] = {k: v for k, v in config["data"].items() if k not in ("source", "path", "simulate")}
         with staging_dir(path, kind="run") as tmp:
             (tmp / "params.json").write_text(json.dumps(self.physics_fit_.to_json(), indent=2))
-            (tmp / "config.resolved.toml").write_text(to_toml(self._cfg.to_dict()))
-            save_calibration(tmp, self.run_.predictor, config=self._cfg.to_dict(), level=self._cfg.uq.level)
+            (tmp / "config.resolved.toml").write_text(
+                "# Fitted by bayesmag.Calibrator on rows given in Python (no [data] source): to rerun it with\n"
+                "# `bayesmag run`, set [data] path to the recording.\n" + to_toml(config))
+            save_calibration(tmp, self.run_.predictor, config=config, level=self._cfg.uq.level)
             if self.metrics_ is not None:
                 (tmp / "metrics.json").write_text(json.dumps(self.metrics_, indent=2))
         return path
 
     def _check_fitted(self, attr: str = "calibration_"):
         if not hasattr(self, attr):
-            raise RuntimeError("this Calibrator is not fitted yet: call fit(data) first.")
+            raise NotFittedError("this Calibrator is not fitted yet: call fit(data) first.")
 
     def predict(self, X, **kwargs):
-        """Calibrated field and uncertainty (:meth:`bayesmag.Calibration.predict`): a DataFrame for a
-        DataFrame (its index kept), the dict of ``(n, 3)`` arrays for a CalibrationData or an array."""
+        """Calibrated field and uncertainty (:meth:`bayesmag.Calibration.predict`'s keywords): with ``output =
+        "full"`` a DataFrame for a DataFrame (its index kept), the dict of ``(n, 3)`` arrays for a CalibrationData
+        or an array; with ``"field"`` the ``(n, 3)`` calibrated field. ``columns``, ``field_unit`` and
+        ``temperature_unit`` given here replace the constructor's for these rows. The rates are checked only for
+        rows with times (a ``time`` column, a 5th array column, or a CalibrationData made with times)."""
         self._check_fitted()
-        if isinstance(X, CalibrationData):
-            return self.calibration_.predict(X, **kwargs)
+        if self.output not in OUTPUTS:
+            raise ValueError(f"output = {self.output!r} must be one of {list(OUTPUTS)}.")
         from bayesmag._src.core.frames import is_frame, prediction_frame
-        rows, index = self._rows(X)
-        out = self.calibration_.predict(rows, **kwargs)
-        return prediction_frame(out, index) if is_frame(X) else out
+        units = {k: kwargs.pop(k) for k in ("columns", "field_unit", "temperature_unit") if k in kwargs}
+        if isinstance(X, CalibrationData) and not units:
+            out = self.calibration_.predict(X, **kwargs)
+        else:
+            rows, index = self._rows(X, train_max_ut=self.calibration_._train_max(), **units)
+            kwargs.setdefault("check_rates", rows.time_given)
+            out = self.calibration_.predict(rows, check_units=False, **kwargs)   # checked by _rows
+            if is_frame(X) and self.output == "full":
+                return prediction_frame(out, index)
+        return out if self.output == "full" else out["calibrated"]
 
     def score(self, X, y=None) -> float:
         r"""Minus the mean CRPS (uT) of the predictive distribution at the reference, over rows and axes:
         :math:`-\frac{1}{3n}\sum_{i,a} \mathrm{CRPS}(F_{ia}, y_{ia})` (higher is better, 0 is perfect;
-        scikit-learn's convention). ``y``: the reference, unless ``X`` holds it."""
+        scikit-learn's convention). ``y``: the reference, unless ``X`` holds it. The rows are scored as a *new
+        session* (the transfer part included, as :meth:`predict` and ``bayesmag apply`` treat them): rows of a
+        training session (a random split) score a little worse than ``metrics_``, which scores same-session
+        intervals."""
         from bayesmag._src.core import metrics as M
 
         self._check_fitted()
@@ -321,3 +373,45 @@ class Calibrator:
         params = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items()
                            if v != inspect.signature(type(self).__init__).parameters[k].default)
         return f"Calibrator({params})"
+
+
+def _reference_by_name(y, columns):
+    """A DataFrame ``y`` in the reference order ``bx_ref, by_ref, bz_ref`` when it names them (or the names
+    ``columns`` maps them to), in any order; otherwise as given (scikit-learn reads ``y`` by position). A ``y`` that
+    names some reference or other canonical columns but not all three is refused (it would be read by position)."""
+    if not hasattr(y, "columns"):
+        return y
+    from bayesmag._src.core.data import CANONICAL_COLUMNS
+    names = [dict(columns or {}).get(c, c) for c in _REF_COLUMNS]
+    have = [str(c) for c in y.columns]
+    if set(names) <= set(have):
+        return y[names]
+    known = set(names) | set(CANONICAL_COLUMNS)
+    if any(c in known for c in have):
+        raise DataError(f"y has columns {have}: it names canonical column(s) but not all of the reference columns "
+                        f"{names}, so its columns cannot be matched to x, y and z. Give y the columns {names} (any "
+                        f"order), or pass y.to_numpy() in the order x, y, z.")
+    return y
+
+
+def _note_second_reference(X, ref, columns) -> None:
+    """``fit(X, y)`` where ``X`` holds the reference columns too and they differ from ``y``: ``y`` is the reference
+    (scikit-learn's target), said with a :class:`~bayesmag.DataNote` naming the rows (it was silent before)."""
+    from bayesmag._src.core.frames import is_frame
+    if is_frame(X):
+        names = [dict(columns or {}).get(c, c) for c in _REF_COLUMNS]
+        if not set(names) <= set(map(str, X.columns)):
+            return
+        own = np.asarray(X[names].to_numpy(), dtype=np.float64)
+    elif isinstance(X, CalibrationData) and X.b_ref is not None:
+        own = np.asarray(X.b_ref, dtype=np.float64)
+    else:
+        return
+    diff = ~np.isclose(own, ref, rtol=1e-9, atol=1e-9) & np.isfinite(own)
+    if diff.any():
+        import warnings
+
+        from bayesmag._src.core.data import DataNote, _bad_rows, user_stacklevel
+        warnings.warn(DataNote(f"X holds reference columns and y differs from them at {_bad_rows(diff.any(axis=1))}: "
+                               f"y is the reference used (X's reference columns are ignored). Drop them from X, or "
+                               f"leave y out, to silence this."), stacklevel=user_stacklevel())

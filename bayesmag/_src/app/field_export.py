@@ -53,7 +53,8 @@ def field_export_texts(fit: FieldFit, train: CalibrationData, formats=tuple(FORM
     model, on ``held_out`` (the run's held-out rows) where given, else on the training rows, said so). The component
     figures include the gauge rotation a magnitude fit does not determine; the |B| figure does not."""
     cal = FieldCalibration.from_fit(fit, train)
-    strip = lambda d, what: CalibrationData(d.b_meas, d.temperature, None, d.time, d.run, source=what)  # noqa: E731
+    strip = lambda d, what: CalibrationData(d.b_meas, d.temperature, None, d.time, d.run, source=what,
+                                                       time_given=d.time_given)  # noqa: E731
     rows = strip(train, "training rows")
     test = strip(held_out, "held-out rows") if held_out is not None and held_out.n > 0 else None
     ex = build_export(cal, rows, held_out=test)

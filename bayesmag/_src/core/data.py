@@ -61,6 +61,8 @@ ABSOLUTE_ZERO_C = -273.15
 _MAX_RUN_ID = 2**53
 #: A temperature column whose median is above this is almost surely kelvin.
 _KELVIN_THRESHOLD_C = 150.0
+#: A column declared kelvin whose median lies below this after conversion (C; 93 K) held Celsius already.
+_CELSIUS_AS_KELVIN_C = -180.0
 #: Field units ``load_csv`` converts from, as the factor to microtesla.
 FIELD_UNITS = {"uT": 1.0, "nT": 1e-3, "mT": 1e3, "G": 100.0}
 #: Without a training domain, a field whose 99th percentile |component| lies outside this range (uT) is in
@@ -112,6 +114,8 @@ class CalibrationData:
       field_unit: the field unit the user declared at load (values are converted to uT), or ``None``
         when none was declared: entry points then check that the values look like uT
         (:func:`check_units`); a declared unit is trusted (e.g. a genuine low-field session).
+      time_given: whether the rows came with times (default: ``time`` was given); without, ``time`` is the row
+        index and nothing that needs seconds (the rate checks of the training domain) reads it.
 
     Example:
       >>> d = CalibrationData(np.zeros((2, 3)), np.array([20.0, 21.0]), np.zeros((2, 3)))
@@ -126,6 +130,7 @@ class CalibrationData:
     run: np.ndarray | None = None
     source: str = ""
     field_unit: str | None = None
+    time_given: bool | None = None
 
     def __post_init__(self):
         b = np.asarray(self.b_meas, dtype=np.float64)
@@ -145,6 +150,8 @@ class CalibrationData:
             if self.time is None
             else np.asarray(self.time, dtype=np.float64).reshape(-1)
         )
+        object.__setattr__(self, "time_given", self.time is not None if self.time_given is None
+                           else bool(self.time_given))
         run = np.zeros(n, dtype=np.int64) if self.run is None else _run_ids(self.run)
         if time.shape[0] != n or run.shape[0] != n:
             raise DataError(f"time and run must have {n} rows.")
@@ -176,6 +183,7 @@ class CalibrationData:
             self.run[idx],
             self.source,
             self.field_unit,
+            self.time_given,
         )
 
     def __repr__(self) -> str:
@@ -258,9 +266,23 @@ def check_values(data: CalibrationData, *, origin: str = "", allow_nonfinite: bo
                 )
 
 
+def kelvin_to_celsius(t, where: str = "") -> np.ndarray:
+    """``t`` (kelvin, as declared) in Celsius; a declared kelvin column whose median is below
+    :data:`_CELSIUS_AS_KELVIN_C` after conversion held Celsius already (read as -250 C before: every row out of domain,
+    nothing naming the cause), refused naming the column and the fix."""
+    c = np.asarray(t, dtype=np.float64) - 273.15
+    f = c[np.isfinite(c)]
+    if f.size and float(np.median(f)) < _CELSIUS_AS_KELVIN_C:
+        m = float(np.median(f))
+        raise DataError(f"Column 'temperature'{where} was declared kelvin (temperature_unit K), but its median "
+                        f"{m + 273.15:.4g} K would be {m:.4g} C: the values look like Celsius already. Drop the kelvin "
+                        f"declaration (--temperature-unit, [data] temperature_unit, temperature_unit=).")
+    return c
+
+
 def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
                      fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT",
-                     extra_fields: Sequence[tuple[str, np.ndarray]] = ()) -> list[str]:
+                     extra_fields: Sequence[tuple[str, np.ndarray]] = (), small_ok: bool = False) -> list[str]:
     """Refuse a field that is not in microtesla; return warnings for a suspicious one.
 
     With ``train_max_ut`` (the largest |B| a calibration was trained on, ``apply``): a 99th
@@ -271,7 +293,9 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
     zero in every row is refused as such. A unit the user declared at load (``data.field_unit``, e.g.
     ``--field-unit uT`` for a genuine low-field session) is trusted: only the all-zero check runs.
     ``extra_fields``: more ``(label, (n, k) array)`` groups in the same unit, checked alike (a field
-    calibration's scalar reference column).
+    calibration's scalar reference column). ``small_ok``: skip the mT / gauss test against ``train_max_ut`` (a part
+    of a recording, e.g. one Dask partition of a near-zero-field run, says nothing about the whole's unit; the
+    caller checks the whole).
     """
     where = f" in {origin}" if origin else ""
     groups = [("measured field (bx_meas, by_meas, bz_meas)", data.b_meas)]
@@ -295,7 +319,7 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
             if p99 > 50 * train_max_ut:
                 raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile) but the calibration was "
                                 f"trained on |B| up to {train_max_ut:.3g} uT: the file looks like nT (x1000). {fix}.")
-            if train_max_ut > 10 and p99 < train_max_ut / 50:
+            if train_max_ut > 10 and p99 < train_max_ut / 50 and not small_ok:
                 what = ("its RMSE would be meaningless" if label.startswith("reference") else
                         "every calibrated value would be wrong")
                 raise DataError(f"The {label}{where} is at most {p99:.3g} (99th percentile) while the calibration "
@@ -330,7 +354,7 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
 def check_units(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
                 fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT",
                 temperature_fix: str = "Set [data] temperature_unit = \"K\" (or subtract 273.15)",
-                extra_fields: Sequence[tuple[str, np.ndarray]] = ()) -> list[str]:
+                extra_fields: Sequence[tuple[str, np.ndarray]] = (), small_ok: bool = False) -> list[str]:
     """The one unit check of every entry point (``run``, ``apply``, ``discover`` and the library's
     ``fit_physics``, ``Calibration.predict``, ``Calibrator``, ``discover``).
 
@@ -341,7 +365,7 @@ def check_units(data: CalibrationData, *, train_max_ut: float | None = None, ori
     """
     where = f" in {origin}" if origin else ""
     warn = check_field_unit(data, train_max_ut=train_max_ut, origin=origin, fix=fix, declare=declare,
-                            extra_fields=extra_fields)
+                            extra_fields=extra_fields, small_ok=small_ok)
     t = data.temperature[np.isfinite(data.temperature)]
     if t.size:
         med = float(np.median(t))
@@ -686,7 +710,7 @@ def load_csv(
     b = np.stack([col(c, True) for c in _REQUIRED[:3]], axis=1) * FIELD_UNITS[field_unit]
     t = col("temperature", True)
     if temperature_unit == "K":
-        t = t - 273.15
+        t = kelvin_to_celsius(t, f" of {path}")
     refs = [col(c, require_reference) for c in _REF]
     if any(r is None for r in refs) and not all(r is None for r in refs):
         missing = [c for c, r in zip(_REF, refs) if r is None]

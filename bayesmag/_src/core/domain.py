@@ -83,12 +83,13 @@ class Domain:
 
     @classmethod
     def from_data(cls, data, *, margin: float = 0.05, rates: bool = True) -> "Domain":
+        """The domain of ``data``'s rows; ``rates``: also the rate limits (only for rows with times)."""
         lo, hi = _box(np.column_stack([data.b_meas, data.temperature]), margin, 0.5)
         olo = ohi = None
         if data.b_ref is not None:
             olo, ohi = _box(data.b_ref, margin, 0.5)
         rh = step = None
-        if rates:
+        if rates and getattr(data, "time_given", True):     # rows without times: no rates (per row index is not per s)
             rmax = _rates(data).max(axis=0)
             rh = tuple(float(v) for v in rmax * (1 + margin) + np.asarray(RATE_FLOOR))
             step = sampling_step(data)
@@ -98,7 +99,7 @@ class Domain:
         """A warning when ``data``'s median sampling step differs from training's by more than ``ratio`` (either
         way): the rate limits are per second, so a time column in other units (ms) or absent (rows counted as 1 s
         apart) misreads them; None otherwise, or without rate limits or a step."""
-        if self.rate_high is None or not self.step:
+        if self.rate_high is None or not self.step or not getattr(data, "time_given", True):
             return None
         new = sampling_step(data)
         if not new or 1 / ratio <= new / self.step <= ratio:

@@ -14,7 +14,7 @@ from typing import Mapping
 import numpy as np
 
 from bayesmag._src.core.data import (ARRAY_COLUMNS, AXES, CANONICAL_COLUMNS, FIELD_UNITS, CalibrationData, DataError,
-                                     check_units, column_mapping, spread_duplicate_times)
+                                     check_units, column_mapping, kelvin_to_celsius, spread_duplicate_times)
 
 __all__ = ["FIELD_UNITS", "frame_io", "load_table", "from_frame", "to_frame", "prediction_frame", "read_parquet", "as_data",
            "is_frame", "as_calibration_data", "DUPLICATE_TIMES"]
@@ -69,7 +69,7 @@ def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit
     b = np.stack([col(c, True) for c in ("bx_meas", "by_meas", "bz_meas")], axis=1)
     t = col("temperature", True)
     if temperature_unit == "K":
-        t = t - 273.15
+        t = kelvin_to_celsius(t, f" of {source}" if source else "")
     refs = [col(c, require_reference) for c in ("bx_ref", "by_ref", "bz_ref")]
     if any(r is None for r in refs) and not all(r is None for r in refs):
         missing = [mapping[c] for c, r in zip(("bx_ref", "by_ref", "bz_ref"), refs) if r is None]
@@ -90,7 +90,7 @@ def _from_array(x, *, field_unit: str | None, temperature_unit: str, source: str
                         f"of {x.dtype}. Or pass a DataFrame with named columns.")
     x = x.astype(np.float64)
     f = FIELD_UNITS[field_unit or "uT"]
-    t = x[:, 3] - 273.15 if temperature_unit == "K" else x[:, 3]
+    t = kelvin_to_celsius(x[:, 3], f" of {source}" if source else "") if temperature_unit == "K" else x[:, 3]
     return CalibrationData(x[:, :3] * f, t, x[:, 4:7] * f if x.shape[1] == 7 else None, source=source,
                            field_unit=field_unit)
 
@@ -126,9 +126,10 @@ def as_calibration_data(obj, *, columns: Mapping[str, str] | None = None, field_
         data = obj                          # columns= maps DataFrame names: nothing to map here
         if field_unit is not None or temperature_unit != "C":
             f = FIELD_UNITS[field_unit or "uT"]
-            data = CalibrationData(data.b_meas * f, data.temperature - (273.15 if temperature_unit == "K" else 0.0),
+            t = kelvin_to_celsius(data.temperature, f" of {what}") if temperature_unit == "K" else data.temperature
+            data = CalibrationData(data.b_meas * f, t,
                                    None if data.b_ref is None else data.b_ref * f, data.time, data.run, data.source,
-                                   field_unit or data.field_unit)
+                                   field_unit or data.field_unit, data.time_given)
     elif is_frame(obj):
         data = from_frame(obj, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                           require_reference=require_reference, source=what)

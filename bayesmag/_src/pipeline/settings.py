@@ -127,7 +127,9 @@ class NetworkSettings(NetworkSpec):
     """The hybrid stage: the :class:`~bayesmag.NetworkSpec` settings shared by every network, plus
     ``likelihoods`` (one network per family; the first is the primary one), ``interval_calibration``
     (``"conformal"``: cross-conformal time-block folds, at most ``conformal_folds`` of them;
-    ``"none"``) and ``fusion`` (one of :data:`~bayesmag._src.core.predictor.FUSIONS`).
+    ``"none"``) and ``fusion`` (one of :data:`~bayesmag._src.core.predictor.FUSIONS`). NetworkSpec's
+    one-network ``likelihood``, set alone, is read as ``likelihoods=(likelihood,)``; set beside ``likelihoods``
+    it must be one of them.
 
     The stage's default early-stopping rows are held-out time blocks (``validation =
     "time_blocks"``; the bare :class:`NetworkSpec` keeps the paper's ``"random"``).
@@ -141,6 +143,13 @@ class NetworkSettings(NetworkSpec):
 
     def __post_init__(self):
         super().__post_init__()
+        if self.likelihood != "gaussian":       # NetworkSpec's one-network field: here the family of the networks
+            if tuple(self.likelihoods) == ("gaussian",):
+                object.__setattr__(self, "likelihoods", (self.likelihood,))    # likelihood="laplace" alone: honoured
+            elif self.likelihood not in self.likelihoods:
+                raise ValueError(f"likelihood = {self.likelihood!r} is not in likelihoods = {list(self.likelihoods)}: "
+                                 f"the hybrid stage trains one network per entry of likelihoods (the first is the "
+                                 f"primary one). Name the family there, e.g. likelihoods=({self.likelihood!r},).")
         names = list(self.likelihoods)
         if not names:
             raise ValueError(f"likelihoods = [] is empty; name at least one of {sorted(LIKELIHOODS)}.")
