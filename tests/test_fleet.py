@@ -408,3 +408,158 @@ def test_fleet_training_progress_in_a_log_is_one_line_per_stopped_network():
     assert len(lines) == 7                      # the first report, then one per stopped network
     assert "\r" not in log.getvalue()
     assert lines[-1].startswith("  fleet: network training, 6 of 6")
+
+
+# ------------------------------------------------------------------ fourth safety pass (fleet of CSV files)
+
+
+def _csv_fleet(tmp_path, *, data_table: str = ""):
+    """A fleet of three CSV recordings: U0 good (700 rows), U1 47 rows spread over its recording (36 training rows
+    for 8 parameters per axis, sigma_in "auto" far too large), U2 its first 15 rows (12 training rows, field held:
+    the data cannot inform every parameter). Returns (summary, fleet folder, recordings folder)."""
+    from bayesmag._src.core.data import write_csv
+    recs, _ = simulate_fleet(3, 700, seed=2, n_defective=0)
+    (tmp_path / "recs").mkdir()
+    write_csv(recs[0], tmp_path / "recs" / "U0.csv")
+    write_csv(recs[1].subset(np.linspace(0, recs[1].n - 1, 47).astype(int)), tmp_path / "recs" / "U1.csv")
+    write_csv(recs[2].subset(np.arange(15)), tmp_path / "recs" / "U2.csv")
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\nbatch_size = 4\n' + data_table)
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    return json.loads((tmp_path / "out" / "fleet.json").read_text()), tmp_path / "out", tmp_path / "recs"
+
+
+@pytest.fixture(scope="module")
+def csv_fleet(tmp_path_factory):
+    return _csv_fleet(tmp_path_factory.mktemp("csvfleet"))
+
+
+def test_a_fleet_sensors_recording_is_never_overwritten(tmp_path, capsys):
+    """`apply --out recs/U0.csv --force` replaced the sensor's training recording with the apply output, and
+    `export --out recs/U0.csv --force` wrote over it: both are refused, as for a run folder."""
+    s, out, recs = _csv_fleet(tmp_path)
+    before = (recs / "U0.csv").read_bytes()
+    capsys.readouterr()
+    assert main(["apply", "--model", str(out / "sensors" / "U0"), "--data", str(recs / "U1.csv"), "--out",
+                 str(recs / "U0.csv"), "--force", "--no-progress"]) == 2
+    assert "is the recording the calibration was trained on" in capsys.readouterr().err
+    assert main(["export", str(out / "sensors" / "U0"), "--format", "json", "--out", str(recs / "U0.csv"),
+                 "--force"]) == 2
+    assert "training recording" in capsys.readouterr().err
+    assert (recs / "U0.csv").read_bytes() == before
+    from bayesmag._src.app.inputs import recording_paths      # a sensor folder written before [data] path was kept
+    assert [p.resolve() for p in recording_paths(None, out / "sensors" / "U0")] == [(recs / "U0.csv").resolve()]
+
+
+def test_fleet_export_refuses_a_changed_recording(tmp_path, capsys):
+    """5 uT added to U0's bx_ref after the fleet: export --format px4 reported RMSE from the altered rows; now the
+    sensor's file sha256 is recorded (as a run's) and the least-squares export is refused."""
+    from bayesmag._src.core.datasets import sha256_of
+    s, out, recs = _csv_fleet(tmp_path)
+    m = json.loads((out / "sensors" / "U0" / "metrics.json").read_text())
+    assert m["certificate"]["data_sha256"] == sha256_of(recs / "U0.csv")
+    lines = (recs / "U0.csv").read_text().splitlines()
+    i = lines[0].split(",").index("bx_ref")
+    rows = [ln.split(",") for ln in lines[1:]]
+    for r in rows:
+        r[i] = repr(float(r[i]) + 5.0)
+    (recs / "U0.csv").write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    capsys.readouterr()
+    assert main(["export", str(out / "sensors" / "U0"), "--format", "px4", "--out", str(tmp_path / "u0.params")]) == 2
+    assert "has changed since the run" in capsys.readouterr().err
+    assert not (tmp_path / "u0.params").exists()
+
+
+def test_a_sensor_with_too_few_rows_fails_on_its_design_warnings(csv_fleet):
+    """U1 (36 training rows for 8 parameters per axis, sigma_in "auto" 2-4 uT against a true 0.05) passed with
+    warnings [] where `bayesmag run` warns: it now fails 'design' and 'input_noise', and the warnings are in its
+    metrics.json, params.json and report, fleet.json and fleet_report.md."""
+    s, out, _ = csv_fleet
+    u1 = {x["id"]: x for x in s["sensors"]}["U1"]
+    assert u1["verdict"] == "fail" and {"design", "input_noise"} <= set(u1["fails_limits"])
+    assert any("rows for 8 parameters" in w for w in u1["warnings"]) and s["warnings"]["U1"] == u1["warnings"]
+    m = json.loads((out / "sensors" / "U1" / "metrics.json").read_text())
+    assert any("rows for 8 parameters" in w for w in m["warnings"])
+    assert any("sigma_in" in w for w in m["warnings"])
+    assert json.loads((out / "sensors" / "U1" / "params.json").read_text())["design_warnings"]
+    assert "rows for 8 parameters" in (out / "sensors" / "U1" / "report.md").read_text()
+    assert "U1: WARNING: The fit used 36 rows" in (out / "fleet_report.md").read_text()
+    u0 = {x["id"]: x for x in s["sensors"]}["U0"]
+    assert u0["verdict"] == "pass" and u0["warnings"] == []
+
+
+def test_a_rank_deficient_sensor_fails_unidentifiable_and_is_not_exported(csv_fleet, tmp_path, capsys):
+    """U2 (12 training rows, field held) wrote a loadable calibration with offsets of 1600 uT and a condition
+    number of 5e300, failing only limits: it now fails 'unidentifiable' with a note, and export refuses it unless
+    --force."""
+    s, out, _ = csv_fleet
+    u2 = {x["id"]: x for x in s["sensors"]}["U2"]
+    assert "unidentifiable" in u2["fails_limits"]
+    assert any("cannot inform every parameter" in n for n in u2["notes"])
+    capsys.readouterr()
+    assert main(["export", str(out / "sensors" / "U2"), "--format", "json", "--out", str(tmp_path / "u2.json")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot inform every parameter" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert main(["export", str(out / "sensors" / "U2"), "--format", "json", "--out", str(tmp_path / "u2.json"),
+                 "--force"]) == 0
+    assert "WARNING: sensor U2 FAILED the fleet's sign-off" in capsys.readouterr().out
+
+
+def test_a_failed_sensor_says_so_in_its_report_export_and_apply(csv_fleet, tmp_path, capsys):
+    """A failed sensor's report.md did not mention the fleet verdict, and export / apply said nothing."""
+    s, out, recs = csv_fleet
+    assert "**Fleet verdict: FAIL** (design, input_noise;" in (out / "sensors" / "U1" / "report.md").read_text()
+    assert "**Fleet verdict: PASS**" in (out / "sensors" / "U0" / "report.md").read_text()
+    capsys.readouterr()
+    assert main(["export", str(out / "sensors" / "U1"), "--format", "json", "--out", str(tmp_path / "u1.json")]) == 0
+    assert "WARNING: sensor U1 FAILED the fleet's sign-off (design, input_noise" in capsys.readouterr().out
+    assert main(["apply", "--model", str(out / "sensors" / "U1"), "--data", str(recs / "U0.csv"), "--out",
+                 str(tmp_path / "u1.csv"), "--no-progress"]) == 0
+    said = capsys.readouterr()
+    assert "WARNING: sensor U1 FAILED the fleet's sign-off" in said.out + said.err
+    assert main(["export", str(out / "sensors" / "U0"), "--format", "json", "--out", str(tmp_path / "u0.json")]) == 0
+    assert "FAILED" not in capsys.readouterr().out
+
+
+def test_a_coverage_limit_in_percent_is_refused():
+    """fleet.limits.min_coverage = 95 was accepted, and every sensor then failed min_coverage."""
+    with pytest.raises(ConfigError, match=r"fleet\.limits\.min_coverage.*0\.95"):
+        fleet_config_from_dict({"fleet": {"source": "simulated", "limits": {"min_coverage": 95}}})
+    cfg = fleet_config_from_dict({"fleet": {"source": "simulated", "limits": {"min_coverage": 1}}})
+    assert cfg.limits.min_coverage == 1
+
+
+def test_fleet_data_table_reads_kelvin_and_mapped_columns(tmp_path, capsys):
+    """The kelvin error said 'Set [data] temperature_unit = "K"' and a missing column suggested [data.columns], and
+    the fleet config refused key 'data': both now apply to every recording (and to export's reload)."""
+    import csv
+    from bayesmag._src.core.data import write_csv
+    recs, _ = simulate_fleet(2, 700, seed=2, n_defective=0)
+    (tmp_path / "recs").mkdir()
+    for k, r in enumerate(recs):
+        write_csv(r, tmp_path / "recs" / f"K{k}.csv")
+        rows = list(csv.reader(open(tmp_path / "recs" / f"K{k}.csv")))
+        t = rows[0].index("temperature")
+        rows[0][rows[0].index("bx_meas")] = "Bx"
+        for row in rows[1:]:
+            row[t] = repr(float(row[t]) + 273.15)
+        with open(tmp_path / "recs" / f"K{k}.csv", "w", newline="") as f:
+            csv.writer(f).writerows(rows)
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\n')
+    capsys.readouterr()
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "bad"), "--no-progress"]) == 2
+    assert "sensor K0" in capsys.readouterr().err
+    cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\n[data]\ntemperature_unit = "K"\n'
+                   '[data.columns]\nbx_meas = "Bx"\n')
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    s = json.loads((tmp_path / "out" / "fleet.json").read_text())
+    assert s["n_pass"] == 2, s["failed_limits"]
+    capsys.readouterr()
+    assert main(["export", str(tmp_path / "out" / "sensors" / "K0"), "--format", "px4", "--out",
+                 str(tmp_path / "k0.params")]) == 0
+    assert "could not be reloaded" not in capsys.readouterr().out
+    with pytest.raises(ConfigError, match=r"data\.temperature_unit"):
+        fleet_config_from_dict({"fleet": {"recordings": "recs"}, "data": {"temperature_unit": "F"}})
+    with pytest.raises(ConfigError, match="simulated fleet has no files"):
+        fleet_config_from_dict({"fleet": {"source": "simulated"}, "data": {"temperature_unit": "K"}})

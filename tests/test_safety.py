@@ -120,7 +120,7 @@ def test_study_refuses_a_foreign_out_before_computing(tmp_path, capsys, monkeypa
     (tmp_path / "u").mkdir()
     (tmp_path / "u" / "thesis.txt").write_text("x")
     cfg = tmp_path / "s.toml"
-    cfg.write_text('[data]\nsource = "simulated"\n')
+    cfg.write_text('[data]\nsource = "simulated"\n[study]\nsizes = [1000]\n')   # a study needs its sizes
     assert main(["study", str(cfg), "--out", str(tmp_path / "u")]) == 2
     assert "did not write" in _err(capsys) and (tmp_path / "u" / "thesis.txt").exists()
 

@@ -80,6 +80,10 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
                       require_reference=False)
     _check_magnitudes(data)
     warnings = check_units(cal, data) + new_session_notes(cal)
+    from bayesmag._src.app.inputs import failed_sensor_warning
+    failed = failed_sensor_warning(model_dir)            # a fleet sensor that failed sign-off
+    if failed:
+        warnings.insert(0, failed)
     note = cal.domain.step_note(data)
     if note:
         warnings.append(note)

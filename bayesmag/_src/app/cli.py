@@ -228,12 +228,12 @@ def _parse_columns(text: str | None) -> dict[str, str] | None:
 
 
 def _cmd_study(args) -> int:
-    from bayesmag._src.app.config import load_config
     from bayesmag._src.app.outdir import reserve
-    from bayesmag._src.app.study import run_study
+    from bayesmag._src.app.study import load_study_config, run_study
 
     cfg_path = _resolve_config(args.config)
-    cfg = load_config(cfg_path, args.set or [])
+    _refuse_fleet_config(cfg_path, "study")
+    cfg = load_study_config(cfg_path, args.set or [])      # the study's checks, before any computation
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
     with reserve(out, inputs=[cfg_path, cfg.data.path], kind="study"):
         res = run_study(cfg, out, progress=_progress(args) and cfg.output.progress)
@@ -375,7 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="reference temperature (C) of the hard/soft-iron and PX4 forms (default: median training temperature)")
     ex.add_argument("--force", action="store_true",
                     help="replace an existing --out file that bayesmag export did not write (never a file of a run "
-                         "folder or the training recording)")
+                         "folder or the training recording); also export a fleet sensor whose data cannot inform "
+                         "every parameter (fleet verdict 'unidentifiable')")
     ex.set_defaults(func=_cmd_export)
 
     dc = sub.add_parser("discover", help="find physics missing from the calibration model", add_help=False)

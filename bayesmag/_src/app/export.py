@@ -790,7 +790,8 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
 
     ``out`` (default ``run_dir/calibration<suffix>``) follows :func:`check_export_out`: never a
     file of a run folder or the training recording, never a file ``bayesmag export`` did not
-    write unless ``force``. The file is written to a temporary sibling and renamed into place.
+    write unless ``force``. The file is written to a temporary sibling and renamed into place. A fleet sensor
+    that failed sign-off gets a warning; one whose data cannot inform every parameter is refused unless ``force``.
     """
     from bayesmag._src.app.artifact import load
     from bayesmag._src.app.outdir import atomic_write_text, recover, register
@@ -799,9 +800,12 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
         raise ExportError(f"export format {fmt!r} is not known; it must be one of {list(FORMATS)}.")
     cal = load(run_dir)
     out = Path(out) if out else Path(run_dir) / f"calibration{FORMATS[fmt]}"
-    from bayesmag._src.app.inputs import recording_paths
+    from bayesmag._src.app.inputs import failed_sensor_warning, fleet_verdict, recording_paths
     recordings = recording_paths((cal.config or {}).get("data") if isinstance(cal.config, dict) else None, run_dir)
     check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # before the slow part
+    failed = failed_sensor_warning(run_dir)         # a fleet sensor that failed sign-off
+    if failed and "unidentifiable" in (fleet_verdict(run_dir).get("fails_limits") or []) and not force:
+        raise ExportError(f"{run_dir}: {failed} It is not exported; add --force to export it anyway.")
     train = test = series = None
     cert = run_certificate(run_dir)
     changed = _recording_changed(cal, cert)
@@ -830,8 +834,8 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
                           f"and need no rows.")
     ex = build_export(cal, train, t_ref=t_ref, held_out=test, uncertainty=run_uncertainty(run_dir), series=series)
     ex = dataclasses.replace(ex, certificate=cert,
-                             warnings=ex.warnings + ((f"{missing}; the accuracy loss is not measured.",)
-                                                     if missing else ()))
+                             warnings=((failed,) if failed else ()) + ex.warnings
+                             + ((f"{missing}; the accuracy loss is not measured.",) if missing else ()))
     text = render(fmt, ex)
     check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # changed meanwhile?
     recover(out.parent, files_only=True)        # partial files of killed exports (never a live pid's)

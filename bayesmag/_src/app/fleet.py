@@ -8,7 +8,8 @@ every sensor at once (:func:`~bayesmag._src.core.fleet_fit.fit_fleet`), the exac
 is propagated (:func:`~bayesmag._src.core.fleet_fit.fleet_uncertainty`), and every sensor gets:
 
 * a verdict against ``[fleet.limits]`` (|offset|, gain error, cross-axis, offset tempco, test RMSE,
-  test coverage, converged, identifiable);
+  test coverage, converged, identifiable, and ``run``'s design and input-noise warnings: ``design``,
+  ``input_noise``);
 * robust z-scores of each parameter and of log test RMSE against the fleet (outlier when
   ``max |z| > outlier_z``; computed only with at least :data:`MIN_SENSORS_OUTLIERS` sensors);
 * its own folder ``sensors/<id>/`` with the files of a single ``bayesmag run`` folder: ``calibration.json``/``.npz``
@@ -95,6 +96,9 @@ class FleetConfig:
     covariance: str = "white"
     level: float = 0.95
     sigma_in: str | list = "auto"
+    temperature_unit: str = "C"          # [data]: how every recording is read (as a run's [data] keys)
+    field_unit: str | None = None
+    columns: dict = dataclasses.field(default_factory=dict)
     network: NetworkConfig = dataclasses.field(default_factory=lambda: NetworkConfig(interval_calibration="none"))
     sensor_figures: bool = False         # [output] figures: each sensor folder gets the single run's figures
     base: Path = Path(".")               # folder of the config file (relative paths)
@@ -106,7 +110,8 @@ class FleetConfig:
 
 
 _TABLES = {
-    "": {"name", "fleet", "split", "physics", "uq", "network", "output"},
+    "": {"name", "fleet", "data", "split", "physics", "uq", "network", "output"},
+    "data": {"temperature_unit", "field_unit", "columns"},
     "fleet": {"source", "recordings", "manifest", "batch_size", "outlier_z", "sensor_folders", "figures", "simulate",
               "limits"},
     "fleet.simulate": {f.name for f in dataclasses.fields(SimulateFleet)},
@@ -158,7 +163,7 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
     if not is_fleet_config(raw):
         raise ConfigError("This is not a fleet config: it has no [fleet] table (see configs/fleet_simulated.toml).")
     _check_keys(raw, "")
-    fl, sp, ph, uq = (raw.get(k, {}) for k in ("fleet", "split", "physics", "uq"))
+    fl, sp, ph, uq, da = (raw.get(k, {}) for k in ("fleet", "split", "physics", "uq", "data"))
     network = _network_config(raw.get("network", {}))
     chosen = [k for k in ("source", "recordings", "manifest") if fl.get(k) not in (None, "")]
     if len(chosen) != 1:
@@ -167,6 +172,9 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
     if fl.get("source") not in (None, "simulated"):
         raise ConfigError(f"[fleet] source = {fl['source']!r} is not known; the only named source is \"simulated\" "
                           f"(give recordings = \"FOLDER or GLOB\" or manifest = \"FILE.csv\" for your files).")
+    if fl.get("source") == "simulated" and da:
+        raise ConfigError(f"[data] {sorted(da)}: a simulated fleet has no files to read; remove the [data] table "
+                          f"(it applies to recordings = \"FOLDER or GLOB\" or manifest = \"FILE.csv\").")
     if sp.get("kind", "time_blocks") != "time_blocks":
         raise ConfigError(f"[split] kind = {sp['kind']!r}: a fleet holds out contiguous time blocks in every run "
                           f"(kind = \"time_blocks\"), so test rows are never neighbours of training rows.")
@@ -199,7 +207,7 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
         split_seed=_typed(sp.get("seed", 0), int, "split.seed"), n_blocks=_typed(sp.get("n_blocks", 1), int, "split.n_blocks"),
         t0=float(t0), temperature_terms=_typed(ph.get("temperature_terms", True), bool, "physics.temperature_terms"),
         covariance=ph.get("covariance", "white"), level=_typed(uq.get("level", 0.95), float, "uq.level"),
-        sigma_in=sig, network=network,
+        sigma_in=sig, network=network, **_data_keys(da),
         sensor_figures=_typed(raw.get("output", {}).get("figures", False), bool, "output.figures"), base=Path(base))
     s, lim = cfg.simulate, cfg.limits
     checks = [("fleet.batch_size", cfg.batch_size, cfg.batch_size >= 1, ">= 1"),
@@ -214,10 +222,34 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
               ("fleet.simulate.rows_spread", s.rows_spread, 0 <= s.rows_spread < 1, "in [0, 1)")]
     checks += [(f"fleet.limits.{f.name}", getattr(lim, f.name), getattr(lim, f.name) > 0, "> 0")
                for f in dataclasses.fields(Limits)]
+    checks.append(("fleet.limits.min_coverage", lim.min_coverage, lim.min_coverage <= 1,
+                   "a fraction in (0, 1], e.g. 0.95 for 95 %"))
     for key, value, ok, what in checks:
         if not ok:
             raise ConfigError(f"Fleet config key {key!r} is {value!r}; it must be {what}.")
     return cfg
+
+
+def _data_keys(raw: dict) -> dict:
+    """``[data]`` of a fleet: ``temperature_unit``, ``field_unit`` and ``columns`` of a run's ``[data]``, applied to
+    every recording."""
+    choices = {"temperature_unit": ("C", "K"), "field_unit": ("uT", "nT", "mT", "G")}
+    for k, ok in choices.items():
+        if k in raw and raw[k] not in ok:
+            raise ConfigError(f"Fleet config key 'data.{k}' is {raw[k]!r}; it must be one of {list(ok)}.")
+    cols = raw.get("columns", {})
+    if not isinstance(cols, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in cols.items()):
+        raise ConfigError(f"Fleet config key 'data.columns' must be a table of canonical name = \"file column\" "
+                          f"(e.g. bx_meas = \"Bx\"); got {cols!r}.")
+    return {"temperature_unit": raw.get("temperature_unit", "C"), "field_unit": raw.get("field_unit"),
+            "columns": dict(cols)}
+
+
+def _read(cfg: FleetConfig, path) -> CalibrationData:
+    """One recording, read with the fleet's ``[data]`` units and column mapping."""
+    from bayesmag._src.core.frames import load_table
+    return load_table(path, columns=cfg.columns or None, temperature_unit=cfg.temperature_unit,
+                      field_unit=cfg.field_unit, require_reference=True)
 
 
 def _network_config(raw) -> NetworkConfig:
@@ -305,11 +337,10 @@ def load_recordings(cfg: FleetConfig) -> tuple[list[CalibrationData], tuple[str,
         recs, truth = simulate_fleet(s.n_sensors, s.n_rows, seed=s.seed, n_defective=s.n_defective,
                                      noise_sd=s.noise_sd, rows_spread=s.rows_spread)
         return recs, truth.ids, truth
-    from bayesmag._src.core.frames import load_table
     recs, ids = [], []
     for sid, p in _recording_paths(cfg):
         try:
-            recs.append(load_table(p, require_reference=True))
+            recs.append(_read(cfg, p))
         except DataError as e:
             raise DataError(f"sensor {sid}: {e}") from None
         ids.append(sid)
@@ -329,8 +360,7 @@ def sensor_split_rows(saved: dict) -> tuple[CalibrationData, CalibrationData]:
         recs, ids, _ = load_recordings(cfg)
         rec = recs[ids.index(sid)]
     else:
-        from bayesmag._src.core.frames import load_table
-        rec = load_table(dict(_recording_paths(cfg))[sid], require_reference=True)
+        rec = _read(cfg, dict(_recording_paths(cfg))[sid])
     sp = make_split(rec, kind="time_blocks", test_fraction=cfg.test_fraction, seed=cfg.split_seed,
                     n_blocks=cfg.n_blocks)
     return rec.subset(sp.train), rec.subset(sp.test)
@@ -359,6 +389,26 @@ def _limits_quantities(theta: np.ndarray, names: tuple[str, ...], rmse: np.ndarr
     return q
 
 
+#: The start of :func:`~bayesmag._src.core.fit._design_warnings`' temperature-span warning (its own fail reason here).
+_SPAN_WARNING = "The training temperature spans only"
+
+
+def _sensor_warnings(cfg: FleetConfig, model, fit, trains, train_pred, uq, n_test) -> tuple[list, list]:
+    """Each sensor's design warnings (those of :func:`~bayesmag.fit_physics`: too few rows per parameter, a narrow
+    temperature span, gross outliers) and its input-noise warning or None (``bayesmag run``'s, on its test rows)."""
+    import types
+
+    from bayesmag._src.app.job import input_noise_warning
+    from bayesmag._src.core.fit import _design_warnings
+    source = "auto" if cfg.sigma_in == "auto" else "config"
+    design, noise = [], []
+    for i, d in enumerate(trains):
+        design.append(list(_design_warnings(d, model, fit.cov[i], d.b_ref - train_pred[i, :d.n])))
+        noise.append(input_noise_warning(source, uq.aleatoric[i, :int(n_test[i])],
+                                         types.SimpleNamespace(s2=fit.s2[i])))
+    return design, noise
+
+
 def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
     """Run the fleet job described by ``cfg`` and write its outputs into ``out`` (staged, swapped in whole)."""
     from bayesmag._src.app.outdir import reserve, staging_dir
@@ -371,6 +421,9 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         timings = {}
         t_all = t = time.perf_counter()
         recs, ids, truth = load_recordings(cfg)
+        from bayesmag._src.core.datasets import sha256_of     # each sensor's file, as a run records its recording
+        files = [None] * len(ids) if cfg.source == "simulated" else [
+            (p.resolve(), sha256_of(p)) for _, p in _recording_paths(cfg)]
         model = PhysicsModel.paper(t0=cfg.t0, temperature=cfg.temperature_terms)
         trains, tests, test_rows, splits = [], [], [], []
         for sid, d in zip(ids, recs):
@@ -415,14 +468,16 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         rmse = np.sqrt(np.where(mt, err**2, 0).sum(axis=1) / nt)
         cover = np.where(mt, np.abs(err) <= zq * total, False).sum(axis=1) / nt
         raw_rmse = np.sqrt(np.where(mt, (test.b_ref - test.b_meas) ** 2, 0).sum(axis=1) / nt)
+        from bayesmag._src.core.fleet_fit import fleet_predict
+        train_pred = fleet_predict(fit, train, batch_size=cfg.batch_size)
+        design, noise = _sensor_warnings(cfg, model, fit, trains, train_pred, uq, test.n_rows)
 
         stages = None
         if cfg.sensor_folders or cfg.network.enabled:
             from bayesmag._src.app.fleet_sensors import fleet_networks, sensor_stages
             t = time.perf_counter()
-            from bayesmag._src.core.fleet_fit import fleet_predict
             stages = sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, residual_sd,
-                                   fleet_predict(fit, train, batch_size=cfg.batch_size))
+                                   train_pred, design)
             timings["sensor_predictions"] = time.perf_counter() - t
         physics_rmse, physics_cover = rmse, cover
         if cfg.network.enabled:
@@ -445,7 +500,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         from bayesmag._src.core.fit import MIN_TEMPERATURE_SPAN_C
         thermal = "Ko" in names
         span = np.array([float(np.ptp(train.temperature[i][train.mask[i]])) for i in range(len(ids))])
-        fails = []
+        fails, identifiable = [], fit.identifiable       # (N,), computed once
         for i in range(len(ids)):
             narrow = thermal and span[i] < MIN_TEMPERATURE_SPAN_C
             f = [k for k, v in q.items() if not (narrow and k == "max_offset_tempco")
@@ -454,8 +509,12 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                 f.append("temperature_span")
             if not fit.converged[i]:
                 f.append("not_converged")
-            if not fit.identifiable[i]:
+            if not identifiable[i]:
                 f.append("unidentifiable")
+            if [w for w in design[i] if not (narrow and w.startswith(_SPAN_WARNING))]:
+                f.append("design")          # too few rows, gross outliers (the span has its own reason)
+            if noise[i]:
+                f.append("input_noise")     # the intervals (and so the coverage verdict) are too wide
             fails.append(f)
         N = len(ids)
         feat_names = [f"{n}[{ax}]" for ax in AXES for n in names] + [f"log_rmse[{ax}]" for ax in AXES]
@@ -466,6 +525,15 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         outlier = zmax > cfg.outlier_z if outliers_computed else np.zeros(N, bool)
         flagged = np.array([bool(fails[i]) or bool(outlier[i]) for i in range(N)])
 
+        notes = [[n for n, on in (
+            (f"the training temperature spans only {span[i]:.3g} C (< {MIN_TEMPERATURE_SPAN_C:g} C): the thermal "
+             f"terms are not measured, so the tempco is not scored and the sensor cannot be signed off (fails "
+             f"'temperature_span'); record it over a wider range", thermal and span[i] < MIN_TEMPERATURE_SPAN_C),
+            (f"the data cannot inform every parameter (smallest relative singular value "
+             f"{float(fit.sv_ratio[i].min()):.2g}, or a covariance that is not positive definite): its parameters and "
+             f"their uncertainties are meaningless, so the calibration must not be used (fails 'unidentifiable'); "
+             f"record more rows with every field axis and the temperature varied", not identifiable[i])) if on]
+            for i in range(len(ids))]
         sensors = []
         for i, sid in enumerate(ids):
             top = [] if not outliers_computed else [
@@ -478,10 +546,8 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                 "outlying_quantities": top,
                 "limits_quantities": {k: float(v[i]) for k, v in q.items()},
                 "training_temperature_span_c": float(span[i]),
-                **({"notes": [f"the training temperature spans only {span[i]:.3g} C (< {MIN_TEMPERATURE_SPAN_C:g} C): "
-                              f"the thermal terms are not measured, so the tempco is not scored and the sensor "
-                              f"cannot be signed off (fails 'temperature_span'); record it over a wider range"]}
-                   if thermal and span[i] < MIN_TEMPERATURE_SPAN_C else {}),
+                **({"notes": notes[i]} if notes[i] else {}),
+                "warnings": [*design[i], *([noise[i]] if noise[i] else [])],
                 "test_rmse": dict(zip(AXES, map(float, rmse[i]))), "raw_rmse": dict(zip(AXES, map(float, raw_rmse[i]))),
                 "test_coverage": dict(zip(AXES, map(float, cover[i]))),
                 "prediction": f"hybrid ({cfg.network.likelihoods[0]})" if cfg.network.enabled else "physics",
@@ -502,6 +568,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
             "flagged": [ids[i] for i in np.flatnonzero(flagged)],
             "failed_limits": {ids[i]: fails[i] for i in range(N) if fails[i]},
             "outliers": [ids[i] for i in np.flatnonzero(outlier)],
+            "warnings": {sid: x["warnings"] for sid, x in zip(ids, sensors) if x["warnings"]},
             "outlier_test": ({"computed": True, "threshold_abs_z": cfg.outlier_z, "quantities": feat_names}
                              if outliers_computed else
                              {"computed": False, "reason": f"{N} sensors < {MIN_SENSORS_OUTLIERS}: the fleet median "
@@ -524,7 +591,8 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
             sources = ([f"simulated fleet sensor {sid}" for sid in ids] if cfg.source == "simulated" else
                        [str(p) for _, p in _recording_paths(cfg)])
             write_fleet_outputs(tmp, cfg, summary, stages=stages, sigma_in=sigma_in, ids=ids, feats=feats,
-                                feat_names=feat_names, z=z, flagged=flagged, timings=timings, sources=sources)
+                                feat_names=feat_names, z=z, flagged=flagged, timings=timings, sources=sources,
+                                files=files)
             timings["write"] = time.perf_counter() - t
             timings["total"] = time.perf_counter() - t_all
             summary["timings"] = {k: round(v, 3) for k, v in timings.items()}

@@ -12,10 +12,10 @@ __all__ = ["write_fleet_outputs", "write_fleet_report"]
 
 
 def write_fleet_outputs(folder: Path, cfg, summary: dict, *, stages, sigma_in, ids, feats, feat_names, z, flagged,
-                        timings: dict, sources) -> None:
+                        timings: dict, sources, files=None) -> None:
     """Sensor folders (``sensors/<id>/``: the files of a single ``bayesmag run`` folder,
     :func:`~bayesmag._src.app.fleet_sensors.write_sensor_folder`), ``fleet_table.csv`` and the figures, into
-    ``folder``."""
+    ``folder``. ``files``: each sensor's ``(recording path, sha256)``, or None (simulated)."""
     from bayesmag._src.app.fleet_sensors import write_sensor_folder
 
     folder = Path(folder)
@@ -24,7 +24,8 @@ def write_fleet_outputs(folder: Path, cfg, summary: dict, *, stages, sigma_in, i
         per = {f"fleet_{k}_per_sensor": round(v / n, 5) for k, v in timings.items()}
         for i, sid in enumerate(ids):
             write_sensor_folder(folder / "sensors" / sid, stages[i], cfg=cfg, verdict=summary["sensors"][i],
-                                sigma_in=np.asarray(sigma_in[i]), source=sources[i], timings=per)
+                                sigma_in=np.asarray(sigma_in[i]), source=sources[i], timings=per,
+                                recording=None if files is None else files[i])
     with open(folder / "fleet_table.csv", "w", newline="") as f:
         w = csv.writer(f)
         lim = list(summary["sensors"][0]["limits_quantities"]) if summary["sensors"] else []
@@ -142,6 +143,7 @@ def write_fleet_report(folder: Path, summary: dict) -> Path:
     else:
         lines.append("None.")
     notes = [(x["id"], n) for x in s["sensors"] for n in x.get("notes", [])]
+    notes += [(x["id"], f"WARNING: {w}") for x in s["sensors"] for w in x.get("warnings", [])]
     if notes:
         lines += [""] + [f"- {sid}: {n}" for sid, n in notes]
     lines += ["", "## Parameter distribution over the fleet", "",

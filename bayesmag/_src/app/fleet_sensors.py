@@ -53,13 +53,14 @@ class SensorStage:
 
 
 def sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, residual_sd,
-                  train_pred) -> list[SensorStage]:
+                  train_pred, design=None) -> list[SensorStage]:
     """Each sensor's physics :class:`Predictor` and prediction of its test rows, from the batched fit and UQ
-    (``train_pred``: :func:`~bayesmag._src.core.fleet_fit.fleet_predict` of the training rows)."""
+    (``train_pred``: :func:`~bayesmag._src.core.fleet_fit.fleet_predict` of the training rows; ``design``: each
+    sensor's design warnings, kept with its fit)."""
     from bayesmag._src.core.domain import Domain
     out = []
     for i, sid in enumerate(ids):
-        pf = sensor_fit(fit, i)
+        pf = sensor_fit(fit, i, () if design is None else tuple(design[i]))
         pr = Predictor(fit=pf, sigma_in=np.asarray(sigma_in[i]), residual_sd=np.asarray(residual_sd[i]),
                        domain=Domain.from_data(trains[i]), uq=UQOptions(method="analytic"))
         k = tests[i].n
@@ -242,8 +243,9 @@ def _per_axis(v) -> dict:
     return {ax: float(x) for ax, x in zip(AXES, np.asarray(v, np.float64).reshape(3))}
 
 
-def _certificate(conf_toml: str, sid: str, parts: tuple[CalibrationData, ...]) -> dict:
-    """The identity block of a single run's metrics.json for one sensor (hash of its recording's arrays)."""
+def _certificate(conf_toml: str, sid: str, parts: tuple[CalibrationData, ...], recording=None) -> dict:
+    """The identity block of a single run's metrics.json for one sensor: the sha256 of its recording file
+    (``recording``: ``(path, sha256)``; ``bayesmag export`` checks it as a run's), else of its rows' arrays."""
     import datetime
 
     from bayesmag._src.core.version import __version__
@@ -251,16 +253,20 @@ def _certificate(conf_toml: str, sid: str, parts: tuple[CalibrationData, ...]) -
     for data in parts:
         for arr in (data.b_meas, data.temperature, data.b_ref, data.time, data.run):
             h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
-    digest = h.hexdigest()
+    digest, what = h.hexdigest(), f"fleet sensor {sid} (sha256 of its train + test rows, float64)"
+    if recording is not None:
+        digest, what = recording[1], f"file {Path(recording[0]).name}"
     return {"calibration_id": hashlib.sha256((conf_toml + sid + digest).encode()).hexdigest()[:16],
             "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "bayesmag_version": __version__, "data": f"fleet sensor {sid} (sha256 of its train + test rows, float64)",
+            "bayesmag_version": __version__, "data": what,
             "data_sha256": digest, "dut": sid, "reference": "", "operator": ""}
 
 
 def write_sensor_folder(d: Path, s: SensorStage, *, cfg, verdict: dict, sigma_in: np.ndarray, source: str,
-                        timings: dict) -> None:
-    """Write sensor ``s``'s calibration folder ``d`` (the file set of a single ``bayesmag run`` folder)."""
+                        timings: dict, recording=None) -> None:
+    """Write sensor ``s``'s calibration folder ``d`` (the file set of a single ``bayesmag run`` folder).
+    ``recording``: ``(path, sha256)`` of its file, saved as a run's ``[data] path`` and data sha256, so ``apply`` and
+    ``export`` never write over it and ``export`` refuses to measure on it once it changed."""
     from bayesmag._src.app.artifact import save_calibration
     from bayesmag._src.app.config import to_toml
     from bayesmag._src.app.report import write_report
@@ -274,7 +280,8 @@ def write_sensor_folder(d: Path, s: SensorStage, *, cfg, verdict: dict, sigma_in
     resid_train = s.train_residual
     phys = score_rows(y, pred.dist, level, mean=pred.mean)
     paper = score_rows(y, s.paper_prediction.dist, level, mean=s.paper_prediction.mean)
-    conf = {**cfg.to_dict(), "sensor_id": s.sid, "fleet_base": str(Path(cfg.base).resolve())}
+    conf = {**cfg.to_dict(), "sensor_id": s.sid, "fleet_base": str(Path(cfg.base).resolve()),
+            **({"data": {"path": str(recording[0])}} if recording is not None else {})}
     conf_toml = to_toml(conf)
     runs = np.union1d(train.run, test.run)
     transfer = TransferEstimate(np.zeros(3), "off", {})
@@ -292,10 +299,10 @@ def write_sensor_folder(d: Path, s: SensorStage, *, cfg, verdict: dict, sigma_in
         "split": s.split,
         "data": {"source": source, "n_rows": int(train.n + test.n), "runs": [int(r) for r in runs]},
         "field": {"raw": M.field_metrics(test.b_meas, y, test.run), "physics": M.field_metrics(pred.mean, y, test.run)},
-        "certificate": _certificate(conf_toml, s.sid, (train, test)),
+        "certificate": _certificate(conf_toml, s.sid, (train, test), recording),
         "domain": domain.summary(test, uq.mean),
         "transfer": {**transfer.as_dict(), "n_test_rows_new_session": 0},
-        "warnings": [w for w in [domain.warning(test, uq.mean)] if w],
+        "warnings": [w for w in [*verdict.get("warnings", []), domain.warning(test, uq.mean)] if w],
     }
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,
@@ -347,7 +354,7 @@ class _FigureSwitch:
         self.output = type("Output", (), {"figures": bool(figures)})()
 
 
-def sensor_fit(fit, i: int):
+def sensor_fit(fit, i: int, design_warnings: tuple[str, ...] = ()):
     """Sensor ``i``'s :class:`~bayesmag.PhysicsFit` (diagnostics from its covariance) from the batched fit."""
     from bayesmag._src.core.fit import RESULTS, PhysicsFit, identifiability
     names = fit.model.param_names
@@ -356,4 +363,5 @@ def sensor_fit(fit, i: int):
     return PhysicsFit(model=fit.model, theta=fit.theta[i], cov=fit.cov[i], s2=fit.s2[i], n=int(fit.n[i]),
                       rmse_in_sample=fit.rmse[i], result=tuple(RESULTS[int(r)] for r in fit.result[i]),
                       n_steps=fit.n_steps[i], covariance_method=fit.covariance_method, cov_info=infos,
-                      diagnostics=tuple(identifiability(fit.cov[i, a], names) for a in range(3)))
+                      diagnostics=tuple(identifiability(fit.cov[i, a], names) for a in range(3)),
+                      design_warnings=design_warnings)

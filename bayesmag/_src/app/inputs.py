@@ -6,7 +6,7 @@ from bayesmag._src.app.config import Config, ConfigError
 from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.core.datasets import find_dataset, load_dataset
 
-__all__ = ["load_data", "recording_paths"]
+__all__ = ["load_data", "recording_paths", "fleet_verdict", "failed_sensor_warning"]
 
 
 def load_data(cfg: Config) -> CalibrationData:
@@ -25,13 +25,52 @@ def load_data(cfg: Config) -> CalibrationData:
     return load_dataset(d.source)
 
 
+def _sensor_metrics(run_dir) -> dict | None:
+    """metrics.json of a ``bayesmag fleet`` sensor folder (it has a ``fleet`` block), else None."""
+    import json
+    from pathlib import Path
+    try:
+        m = json.loads((Path(run_dir) / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return m if isinstance(m, dict) and isinstance(m.get("fleet"), dict) else None
+
+
+def fleet_verdict(run_dir) -> dict | None:
+    """The fleet's verdict on a sensor folder (``metrics.json: fleet``: ``verdict``, ``fails_limits``, ...), or
+    None for any other folder."""
+    m = _sensor_metrics(run_dir)
+    return None if m is None else m["fleet"]
+
+
+def failed_sensor_warning(run_dir) -> str | None:
+    """A warning when ``run_dir`` is a fleet sensor folder whose sensor failed the fleet's sign-off, else None."""
+    v = fleet_verdict(run_dir)
+    if not v or v.get("verdict") != "fail":
+        return None
+    why = [*(v.get("fails_limits") or []), *(["outlier"] if v.get("outlier") else [])]
+    msg = (f"sensor {v.get('id', '?')} FAILED the fleet's sign-off ({', '.join(why) or 'see fleet_report.md'}; "
+           f"its metrics.json 'fleet' block and the fleet's fleet_report.md say why)")
+    if "unidentifiable" in why:
+        return msg + (": its data cannot inform every parameter, so its parameters are meaningless; recalibrate "
+                      "it on a recording with every field axis and the temperature varied.")
+    return msg + ": its calibration is not signed off; use it only if you accept those reasons."
+
+
 def recording_paths(data, run_dir=None) -> list:
     """The files on this machine that a job's ``[data]`` table (a dict, as saved in a calibration) read: its
     ``path``, or the file of its named dataset (``source``) where it is found. A command's ``--out`` never
     replaces them (``apply``, ``export``). A relative ``path`` is taken both from here and from the folder the run
-    was started in (``run_dir``'s marker records it): the command may run elsewhere."""
+    was started in (``run_dir``'s marker records it): the command may run elsewhere.
+
+    A fleet sensor folder (``run_dir``) saved before its config held ``[data] path``: the recording its
+    metrics.json names."""
     from pathlib import Path
     d = data if isinstance(data, dict) else {}
+    sensor = _sensor_metrics(run_dir) if run_dir is not None else None
+    if sensor is not None and not d.get("path"):
+        src = Path(str((sensor.get("data") or {}).get("source", "")))
+        return [src] if src.suffix and src.is_file() else []
     if d.get("path"):
         p = Path(d["path"])
         out = [p]

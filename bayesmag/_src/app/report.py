@@ -546,6 +546,12 @@ def _identity_section(c: ReportContext) -> list[str]:
               f"Split: {m['split']['description']} ({m['split']['n_train']} train / {m['split']['n_test']} test rows).",
               f"Covariance: {c.params.get('covariance_method', '')}. Physics model parameters: "
               f"{', '.join(c.params['model']['param_names'])}.", ""]
+    fl = m.get("fleet")
+    if isinstance(fl, dict) and fl.get("verdict"):     # a sensor folder of `bayesmag fleet`
+        why = [*(fl.get("fails_limits") or []), *(["outlier"] if fl.get("outlier") else [])]
+        lines += [f"**Fleet verdict: {fl['verdict'].upper()}**"
+                  + (f" ({', '.join(why)}; the fleet's fleet_report.md and docs/fleet.md say what each means)."
+                     if fl["verdict"] == "fail" else " (every check of the fleet's sign-off met)."), ""]
     for w in m.get("warnings", []):
         lines += [f"> **Warning.** {w}", ""]
     for note in c.params.get("design_notes", []):
