@@ -151,3 +151,12 @@ def test_celsius_declared_as_kelvin_is_refused(frame, fitted, tmp_path, entry):
             from bayesmag._src.app.apply import apply_calibration
             frame.to_csv(tmp_path / "c.csv", index=False)
             apply_calibration(fitted.save(tmp_path / "cal"), tmp_path / "c.csv", tmp_path / "o.csv", temperature_unit="K")
+
+
+def test_a_parquet_file_missing_a_column_is_named(frame, tmp_path):
+    """Before: "the DataFrame has no column 'temperature' ... or a columns= mapping", neither the file nor --columns."""
+    pytest.importorskip("pyarrow")
+    from bayesmag._src.core.frames import load_table
+    frame.drop(columns=["temperature"]).to_parquet(tmp_path / "r.parquet", index=False)
+    with pytest.raises(DataError, match=r"r\.parquet has no column 'temperature'.*--columns"):
+        load_table(tmp_path / "r.parquet")

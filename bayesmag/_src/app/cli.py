@@ -322,8 +322,10 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--model", required=True, help="run folder written by `bayesmag run` (a vector or a field "
                                                     "calibration; a field run gives the calibrated field and its "
                                                     "magnitude interval)")
-    a.add_argument("--data", required=True, help="canonical CSV (time,run,bx_meas,by_meas,bz_meas,temperature[,*_ref])")
-    a.add_argument("--out", required=True, help="output CSV")
+    a.add_argument("--data", required=True, help="the recording: a CSV or Parquet file with the canonical columns "
+                   "(time,run,bx_meas,by_meas,bz_meas,temperature[,*_ref]; others via --columns), or an archive "
+                   "(a folder of Parquet/CSV files or a glob: applied on Dask)")
+    a.add_argument("--out", required=True, help="output CSV (for an archive: a folder, written as a Parquet dataset)")
     a.add_argument("--level", type=float, default=None, help="central interval level (default: the run's)")
     a.add_argument("--uq", choices=["auto", "analytic", "psqmc"], default="auto",
                    help="physics uncertainty method (auto, the default everywhere: analytic -- exact moments, "

@@ -56,9 +56,11 @@ def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit
         src = mapping[name]
         if src not in df.columns:
             if required:
-                raise DataError(f"the DataFrame has no column {src!r}" + (f" (for {name!r})" if src != name else "")
+                who = "the DataFrame" if source == "DataFrame" else source      # a Parquet file: its path
+                raise DataError(f"{who} has no column {src!r}" + (f" (for {name!r})" if src != name else "")
                                 + f". Columns found: {list(df.columns)}; expected {list(CANONICAL_COLUMNS)} "
-                                "or a columns= mapping.")
+                                "or a column mapping (columns= in Python, --columns / [data.columns] on the "
+                                "command line).")
             return None
         try:
             v = df[src].to_numpy(dtype=np.float64, na_value=np.nan)
