@@ -187,9 +187,10 @@ def belsten(args):
     d = load_dataset("belsten2023")
     sigma_in = bayesmag.estimate_input_noise(d) if hasattr(bayesmag, "estimate_input_noise") else None
     f = lambda v: " / ".join(f"{100 * x:.0f}" for x in v)   # noqa: E731
-    print("| left-out run | in-domain rows | transfer | covered x / y / z (%) | covered or flagged x / y / z (%) | "
-          "mean in-domain 95 % width (uT) | effects | job's misfit warning (rms transfer sd / loro's) |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| left-out run | in-domain rows | transfer | covered x / y / z (%) | in-domain rows covered x / y / z (%) | "
+          "covered or flagged x / y / z (%) | mean in-domain 95 % width (uT) | effects | "
+          "job's misfit warning (rms transfer sd / loro's) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     from bayesmag._src.core.catalogue import make_extra
     extra = tuple(make_extra(name, t0=0.0) for name in args.extra)
     for r in np.unique(d.run):
@@ -218,7 +219,9 @@ def belsten(args):
             c = (test.b_ref >= lo) & (test.b_ref <= hi)
             dom = p.in_domain
             w = (hi - lo)[dom].mean(0) if dom.any() else np.full(3, np.nan)
-            print(f"| {r} | {int(dom.sum())} of {test.n} | {key} | {f(c.mean(0))} | {f((c | ~dom[:, None]).mean(0))} | "
+            cin = c[dom].mean(0) if dom.any() else np.full(3, np.nan)
+            print(f"| {r} | {int(dom.sum())} of {test.n} | {key} | {f(c.mean(0))} | {f(cin)} | "
+                  f"{f((c | ~dom[:, None]).mean(0))} | "
                   f"{' / '.join(f'{v:.3f}' for v in w)} | {', '.join(post.effects) if key != 'loro' else '-'} | "
                   f"{said if key != 'loro' else '-'} |",
                   flush=True)

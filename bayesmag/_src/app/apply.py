@@ -53,7 +53,7 @@ def train_max_ut(cal) -> float:
 
 def apply_calibration(model_dir, data_path, out_path, *, level=None, method="auto", n_params=100, n_qmc=256,
                       temperature_unit="C", field_unit=None, columns=None, chunk_size=100_000,
-                      progress=False, force: bool = False) -> dict:
+                      progress=False, force: bool = False, time_unit: str = "s") -> dict:
     """Calibrate every row of ``data_path`` with the calibration in ``model_dir``; write ``out_path``.
 
     ``columns`` maps canonical names to the file's columns; ``field_unit`` and ``temperature_unit``
@@ -68,7 +68,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
         from bayesmag._src.app.field_apply import apply_field_calibration
         return apply_field_calibration(model_dir, data_path, out_path, level=level, temperature_unit=temperature_unit,
                                        field_unit=field_unit, columns=columns, force=force, method=method,
-                                       n_params=n_params, n_qmc=n_qmc)
+                                       n_params=n_params, n_qmc=n_qmc, time_unit=time_unit)
     t0 = time.perf_counter()
     check_apply_options(level, n_params, n_qmc)
     out_path = check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
@@ -77,7 +77,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
                                                         if isinstance(cal.config, dict) else None, model_dir))
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                      require_reference=False)
+                      require_reference=False, time_unit=time_unit)
     _check_magnitudes(data)
     warnings = check_units(cal, data) + new_session_notes(cal)
     from bayesmag._src.app.inputs import failed_sensor_warning

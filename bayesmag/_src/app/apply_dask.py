@@ -255,7 +255,7 @@ def _context(piece, index: int, df, data, cal, opts: dict, pieces) -> tuple:
 
     def settled(before) -> bool:
         d = from_frame(before, columns=opts["columns"], temperature_unit=opts["temperature_unit"],
-                       field_unit=opts["field_unit"], source="context")
+                       time_unit=opts.get("time_unit", "s"), field_unit=opts["field_unit"], source="context")
         ok = np.isfinite(np.column_stack([d.b_meas, d.temperature])).all(axis=1) & np.isfinite(d.time)
         return model.history_settled(inputs_from_data(d.subset(np.flatnonzero(ok))))
 
@@ -313,7 +313,7 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
     df, where, first = _read_piece(piece, index)
     try:
         data = from_frame(df, columns=opts["columns"], temperature_unit=opts["temperature_unit"],
-                          field_unit=opts["field_unit"], source=where)
+                          time_unit=opts.get("time_unit", "s"), field_unit=opts["field_unit"], source=where)
         check_values(data, origin="the partition", allow_nonfinite=True)
     except DataError as e:
         if first is None and piece[0] == "csv":
@@ -341,7 +341,7 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
             try:
                 full = from_frame(pd.concat([h for h in (prev, df, nxt) if h is not None], ignore_index=True),
                                   columns=opts["columns"], temperature_unit=opts["temperature_unit"],
-                                  field_unit=opts["field_unit"], source=where)
+                                  time_unit=opts.get("time_unit", "s"), field_unit=opts["field_unit"], source=where)
             except DataError:
                 lo, full = 0, data
         pred = cal.predict(full, level=opts["level"], method=opts["method"], n_params=opts["n_params"],
@@ -428,7 +428,8 @@ def _check_paths(model_dir, data, out) -> Path:
 def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers: int = 2, threads_per_worker: int = 1,
                memory_limit: str = "900MB", blocksize: int = 16 * 2**20, level=None, method: str = "auto",
                n_params: int = 100, n_qmc: int = 256, temperature_unit: str = "C", field_unit: str | None = None,
-               columns: dict | None = None, chunk_size: int = 50_000, progress: bool = False) -> dict:
+               columns: dict | None = None, chunk_size: int = 50_000, progress: bool = False,
+               time_unit: str = "s") -> dict:
     """Calibrate every row of an archive (Parquet dataset folder, Parquet file, or glob of CSV files) on Dask.
 
     ``scheduler``: address of a running Dask scheduler (its workers must see ``data`` and ``out`` at the same paths);
@@ -467,6 +468,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
             or (cal.network is not None and cal.network_transfer_sd is not None)):
         names.append("transfer")
     opts = dict(columns=columns, temperature_unit=temperature_unit, field_unit=field_unit, level=level, method=method,
+                time_unit=time_unit,
                 n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
                 columns_out=[c for c in OUTPUT_COLUMNS if c in names])
     meta = pd.DataFrame({"partition": pd.Series(dtype="int64"), "rows_in": pd.Series(dtype="int64"),

@@ -172,7 +172,7 @@ def _cmd_apply(args) -> int:
     summary = apply_calibration(args.model, args.data, args.out, level=args.level, method=args.uq,
                                 n_params=args.n_params, n_qmc=args.n_qmc, temperature_unit=args.temperature_unit,
                                 field_unit=args.field_unit, columns=_parse_columns(args.columns),
-                                progress=_progress(args), force=args.force)
+                                progress=_progress(args), force=args.force, time_unit=args.time_unit)
     print(f"bayesmag: calibrated {summary['n_valid']} of {summary['n_rows']} rows -> {args.out} "
           f"({summary['seconds']:.2f} s)")
     return _report_apply(summary)
@@ -185,7 +185,7 @@ def _cmd_apply_dask(args) -> int:
                    threads_per_worker=args.threads_per_worker, memory_limit=args.memory_limit,
                    blocksize=int(args.blocksize_mb * 2**20), level=args.level, method=args.uq, n_params=args.n_params,
                    n_qmc=args.n_qmc, temperature_unit=args.temperature_unit, field_unit=args.field_unit,
-                   columns=_parse_columns(args.columns), progress=_progress(args))
+                   columns=_parse_columns(args.columns), progress=_progress(args), time_unit=args.time_unit)
     print(f"bayesmag: calibrated {s['n_valid']} of {s['n_rows']} rows in {s['n_partitions']} partitions -> {args.out}/ "
           f"({s['seconds']:.2f} s, {s['n_rows'] / max(s['seconds'], 1e-9):,.0f} rows/s)")
     return _report_apply(s)
@@ -335,6 +335,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--temperature-unit", choices=["C", "K"], default="C", help="temperature unit of --data")
     a.add_argument("--field-unit", choices=["uT", "nT", "mT", "G"], default=None,
                    help="declare the field unit of --data (converted to uT at load and trusted; default: uT, checked)")
+    a.add_argument("--time-unit", choices=["s", "ms", "us", "min", "h"], default="s",
+                   help="unit of --data's time column (converted to seconds; loggers often stamp ms or us since boot)")
     a.add_argument("--columns", metavar="NAME=COL,...",
                    help="map canonical columns to the file's, e.g. time=t,bx_meas=X,by_meas=Y,bz_meas=Z,temperature=T")
     a.add_argument("--no-progress", action="store_true")

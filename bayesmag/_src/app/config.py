@@ -43,6 +43,7 @@ class DataConfig:
     path: str | None = None             # canonical CSV (or mapped with `columns`)
     temperature_unit: str = "C"
     field_unit: str | None = None       # declared unit of the file's field (nT/mT/G converted; uT trusted); None: uT, checked
+    time_unit: str = "s"                # unit of the file's time column (ms, us, min, h converted to seconds)
     columns: dict = dataclasses.field(default_factory=dict)
     simulate: dict = dataclasses.field(default_factory=dict)
 
@@ -222,6 +223,7 @@ _CHOICES = {
     "physics.covariance": ("white", "ar1", "newey_west"),
     "uq.method": ("auto", "psqmc", "mc", "analytic"),
     "data.temperature_unit": ("C", "K"),
+    "data.time_unit": ("s", "ms", "us", "min", "h"),
     "data.field_unit": ("uT", "nT", "mT", "G"),
     "network.interval_calibration": ("conformal", "none"),
     "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),

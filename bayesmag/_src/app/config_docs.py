@@ -15,6 +15,8 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "data.source": ("", 'named dataset ("belsten2023") or "simulated"; give this or data.path'),
     "data.path": ("", "CSV file: time,run,bx_meas,by_meas,bz_meas,temperature[,bx_ref,by_ref,bz_ref]"),
     "data.temperature_unit": ("", "unit of the temperature column: C or K"),
+    "data.time_unit": ("", "unit of the time column: s, ms, us, min or h (converted to seconds; loggers often "
+                           "stamp ms or us since boot)"),
     "data.field_unit": ("", "declared unit of the field columns: uT | nT | mT | G (converted to uT and trusted); "
                             "unset: uT, checked (nT, mT and gauss refused)"),
     "data.columns": ("", "map canonical column names to the file's, e.g. {time = \"t\", bx_meas = \"X\"}"),

@@ -71,6 +71,7 @@ def _unit_mismatch(ref, magnitude, origin) -> str | None:
 
 
 def apply_field_calibration(model_dir, data_path, out_path, *, level=None, temperature_unit="C", field_unit=None,
+                            time_unit="s",
                             columns=None, force: bool = False, method: str = "auto", n_params: int = 100,
                             n_qmc: int = 256) -> dict:
     """Calibrate every row of ``data_path`` with the field calibration in ``model_dir``; write ``out_path``.
@@ -103,7 +104,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
             data_cfg = None
         refuse_training_recording(out_path, recording_paths(data_cfg, model_dir))
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                      require_reference=False)
+                      require_reference=False, time_unit=time_unit)
     _check_magnitudes(data)
     warnings = check_units_against(data, cal.train_max_ut)
     pred = cal.predict(data.b_meas, data.temperature, level=level,

@@ -98,7 +98,7 @@ def load_field_data(cfg: Config):
     from bayesmag._src.core.data import FIELD_UNITS, load_column, load_csv
     # a field recording needs no reference vector: a scalar column, or one constant field, is the reference
     data = load_csv(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit, field_unit=d.field_unit,
-                    require_reference=False)
+                    require_reference=False, time_unit=d.time_unit)
     f_ref = None
     if mc.scalar_column:
         f_ref = load_column(d.path, mc.scalar_column, key="[measurement] scalar_column", positive=True)

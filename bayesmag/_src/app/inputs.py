@@ -15,7 +15,7 @@ def load_data(cfg: Config) -> CalibrationData:
     if d.path is not None:                  # CSV, or Parquet by its suffix (as `apply` reads)
         from bayesmag._src.core.frames import load_table
         return load_table(d.path, columns=d.columns or None, temperature_unit=d.temperature_unit,
-                          field_unit=d.field_unit)
+                          field_unit=d.field_unit, time_unit=d.time_unit)
     if d.source == "simulated":
         from bayesmag._src.core.simulate import simulate_from_config
         try:

@@ -318,8 +318,10 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
     metrics["certificate"] = certificate_record(cfg, data)
     metrics["domain"] = domain.summary(test, uq.mean)
     metrics["transfer"] = {**ps.transfer.as_dict(), "n_test_rows_new_session": int(ps.new_session.sum())}
-    metrics["warnings"] = [w for w in [*fit.design_warnings, domain.warning(test, uq.mean), ps.transfer.warning,
-                                       input_noise_warning(ps.sigma_source, uq.aleatoric, ps.fit)] if w]
+    from bayesmag._src.core.data import time_step_warning
+    metrics["warnings"] = [w for w in [time_step_warning(data), *fit.design_warnings, domain.warning(test, uq.mean),
+                                       ps.transfer.warning, input_noise_warning(ps.sigma_source, uq.aleatoric, ps.fit)]
+                           if w]
     outside = domain.outside(test, uq.mean)
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,

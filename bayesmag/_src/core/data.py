@@ -65,6 +65,36 @@ _KELVIN_THRESHOLD_C = 150.0
 _CELSIUS_AS_KELVIN_C = -180.0
 #: Field units ``load_csv`` converts from, as the factor to microtesla.
 FIELD_UNITS = {"uT": 1.0, "nT": 1e-3, "mT": 1e3, "G": 100.0}
+#: Time units a file may declare, and their factor to seconds (loggers often stamp ms or us since boot).
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "min": 60.0, "h": 3600.0}
+
+
+#: A median time step within runs outside this range (s) is named (:func:`time_step_warning`): a time column in ms or
+#: us read as seconds is the likelier cause than a logger at 10 kHz or one row in 100 s.
+PLAUSIBLE_STEP_S = (1e-4, 100.0)
+
+
+def time_step_warning(data: "CalibrationData", declare: str = "[data] time_unit") -> str | None:
+    """A warning when the rows' median time step within runs lies outside :data:`PLAUSIBLE_STEP_S` (the time column is
+    read in seconds: a logger's ms or us stamps make every rate, lag time constant and correlation time 1000x off);
+    None otherwise, or for rows without times. ``declare``: how the caller declares the unit."""
+    if not getattr(data, "time_given", True):
+        return None
+    from bayesmag._src.core.physics import median_step
+    step = median_step(data.time, data.run)
+    if not step or PLAUSIBLE_STEP_S[0] <= step <= PLAUSIBLE_STEP_S[1]:
+        return None
+    return (f"The rows' median time step within runs is {step:.4g} s ({1 / step:.3g} rows per second): the time column "
+            f"is read in seconds, so if it holds ms or us (as many loggers stamp), every rate, lag time constant and "
+            f"correlation time is off by 1000x or more. Declare its unit ({declare} = \"ms\" or \"us\"), or ignore "
+            f"this if the rows really are that far apart.")
+
+
+def time_in_seconds(time, time_unit: str = "s"):
+    """``time`` (or None) in seconds from the declared ``time_unit`` (one of :data:`TIME_UNITS`; else DataError)."""
+    if time_unit not in TIME_UNITS:
+        raise DataError(f"time_unit is {time_unit!r}; it must be one of {list(TIME_UNITS)}.")
+    return None if time is None else np.asarray(time, dtype=np.float64) * TIME_UNITS[time_unit]
 #: Without a training domain, a field whose 99th percentile |component| lies outside this range (uT) is in
 #: the wrong unit: the Earth's field is 25-65 uT and calibration coils reach a few hundred uT, i.e.
 #: 25 000-65 000 in nT (above the range) but 0.025-0.065 in mT and 0.25-0.65 in gauss (below it).
@@ -665,6 +695,7 @@ def load_csv(
     temperature_unit: str = "C",
     field_unit: str | None = None,
     require_reference: bool = True,
+    time_unit: str = "s",
 ) -> CalibrationData:
     """Load a canonical CSV (``time,run,bx_meas,by_meas,bz_meas,temperature,bx_ref,by_ref,bz_ref``).
 
@@ -675,6 +706,7 @@ def load_csv(
       field_unit: one of :data:`FIELD_UNITS` (``uT``, ``nT``, ``mT``, ``G``), converted to uT and trusted
         (recorded as ``data.field_unit``); ``None`` (default): uT, checked by :func:`check_units`.
       require_reference: if False, the ``*_ref`` columns may be absent.
+      time_unit: the ``time`` column's unit, one of :data:`TIME_UNITS` (converted to seconds).
 
     ``run`` is optional (all rows one run); ``time`` is optional (row index). The delimiter
     (comma, semicolon or tab) is sniffed from the header and first row; a quoted header is read.
@@ -716,7 +748,7 @@ def load_csv(
         missing = [c for c, r in zip(_REF, refs) if r is None]
         raise DataError(f"{path} has some reference columns but not {missing}; give all three or none.")
     ref = None if refs[0] is None else np.stack(refs, axis=1) * FIELD_UNITS[field_unit]
-    time = col("time", False)
+    time = time_in_seconds(col("time", False), time_unit)
     run = col("run", False)
     try:
         run = None if run is None else _run_ids(run)

@@ -14,7 +14,8 @@ from typing import Mapping
 import numpy as np
 
 from bayesmag._src.core.data import (ARRAY_COLUMNS, AXES, CANONICAL_COLUMNS, FIELD_UNITS, CalibrationData, DataError,
-                                     check_units, column_mapping, kelvin_to_celsius, spread_duplicate_times)
+                                     check_units, column_mapping, kelvin_to_celsius, spread_duplicate_times,
+                                     time_in_seconds)
 
 __all__ = ["FIELD_UNITS", "frame_io", "load_table", "from_frame", "to_frame", "prediction_frame", "read_parquet", "as_data",
            "is_frame", "as_calibration_data", "DUPLICATE_TIMES"]
@@ -36,11 +37,12 @@ def is_frame(obj) -> bool:
 
 def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit: str = "C",
                field_unit: str | None = None, require_reference: bool = False,
-               source: str = "DataFrame") -> CalibrationData:
+               source: str = "DataFrame", time_unit: str = "s") -> CalibrationData:
     """A :class:`~bayesmag.CalibrationData` from a DataFrame with canonical (or mapped) columns.
 
     ``time`` and ``run`` are optional (row index / one run); the three ``*_ref`` columns are
-    all present or all absent (absent is fine unless ``require_reference``).
+    all present or all absent (absent is fine unless ``require_reference``). ``time_unit``: the
+    ``time`` column's (one of ``data.TIME_UNITS``, converted to seconds).
     """
     if not is_frame(df):
         raise DataError(f"expected a pandas DataFrame; got {type(df).__name__}.")
@@ -80,7 +82,8 @@ def from_frame(df, *, columns: Mapping[str, str] | None = None, temperature_unit
     run = col("run", False)
     if run is not None and (not np.isfinite(run).all() or np.any(run != np.round(run))):
         raise DataError("column 'run' of the DataFrame must hold finite integers.")
-    return CalibrationData(b, t, ref, col("time", False), run, source=source, field_unit=declared)
+    return CalibrationData(b, t, ref, time_in_seconds(col("time", False), time_unit), run, source=source,
+                           field_unit=declared)
 
 
 def _from_array(x, *, field_unit: str | None, temperature_unit: str, source: str) -> CalibrationData:
@@ -253,11 +256,11 @@ def frame_io(method=None, *, physics_inputs: bool = False):
 
 
 def load_table(path: str | Path, *, columns: Mapping[str, str] | None = None, temperature_unit: str = "C",
-               field_unit: str | None = None, require_reference: bool = True) -> CalibrationData:
+               field_unit: str | None = None, require_reference: bool = True, time_unit: str = "s") -> CalibrationData:
     """A recording from CSV (``data.load_csv``) or Parquet (by suffix), with column mapping and units."""
     if Path(path).suffix.lower() in (".parquet", ".pq"):
         return read_parquet(path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                            require_reference=require_reference)
+                            require_reference=require_reference, time_unit=time_unit)
     from bayesmag._src.core.data import load_csv
     return load_csv(path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                    require_reference=require_reference)
+                    require_reference=require_reference, time_unit=time_unit)

@@ -289,6 +289,11 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
         if not time_ok:
             notes.append("The data have no time column (time equals the row index): time-domain candidates "
                          "and the periodicity check are skipped.")
+    if time_ok:
+        from bayesmag._src.core.data import time_step_warning
+        step_note = time_step_warning(data)
+        if step_note:
+            notes.append(step_note)
     t_std = float(np.std(data.temperature))
     temp_terms = t_std > 0.05
     t0 = resolve_t0(options.t0, data.temperature)
