@@ -384,8 +384,9 @@ def _reference_by_name(y, columns):
     from bayesmag._src.core.data import CANONICAL_COLUMNS
     names = [dict(columns or {}).get(c, c) for c in _REF_COLUMNS]
     have = [str(c) for c in y.columns]
-    if set(names) <= set(have):
-        return y[names]
+    for cand in (names, list(_REF_COLUMNS)):            # the mapped names, or the canonical ones
+        if set(cand) <= set(have):
+            return y[cand]
     known = set(names) | set(CANONICAL_COLUMNS)
     if any(c in known for c in have):
         raise DataError(f"y has columns {have}: it names canonical column(s) but not all of the reference columns "
