@@ -181,7 +181,7 @@ def test_an_input_noise_estimate_above_the_residuals_is_warned_about(tmp_path):
     0.02 rad per sample (4 Hz, noise 0.05 uT) read 0.17-0.37 uT: intervals 1.0-1.4 uT wide around a 0.05 uT RMSE and
     100 % coverage, without a word. The propagated noise cannot exceed the residuals that hold it: over 2x the
     residual sd is now a warning (the paper and quickstart configs stay under it)."""
-    from bayesmag._src.app.job import NOISE_EXCESS, input_noise_warning
+    from bayesmag._src.pipeline.settings import NOISE_EXCESS, input_noise_warning
     rng = np.random.default_rng(0)
     n = 1500
     ph = np.cumsum(rng.normal(0, 0.02, (n, 2)), axis=0) + [1.0, 0.5]

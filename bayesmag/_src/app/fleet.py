@@ -398,7 +398,7 @@ def _sensor_warnings(cfg: FleetConfig, model, fit, trains, train_pred, uq, n_tes
     temperature span, gross outliers) and its input-noise warning or None (``bayesmag run``'s, on its test rows)."""
     import types
 
-    from bayesmag._src.app.job import input_noise_warning
+    from bayesmag._src.pipeline.settings import input_noise_warning
     from bayesmag._src.core.fit import _design_warnings
     source = "auto" if cfg.sigma_in == "auto" else "config"
     design, noise = [], []

@@ -26,6 +26,7 @@ from bayesmag._src.core.physics import PhysicsModel
 from bayesmag._src.app.outdir import staging_dir
 from bayesmag._src.core.predictor import UQOptions
 from bayesmag._src.core import metrics as M
+from bayesmag._src.pipeline.settings import input_noise_warning
 from bayesmag._src.pipeline.stages import CalibrationError, PhysicsStage, residual_variance
 
 __all__ = ["run_job", "run_physics_stage", "load_data", "build_model", "resolve_sigma_in", "uq_options", "JobError",
@@ -55,30 +56,6 @@ def time_order_reasons(cfg: Config, model: PhysicsModel) -> list[str]:
                 [c.name for c in model.transforms] + [t.name for t in model.terms if t.history]),
             cfg.physics.covariance != "white" and f"the {cfg.physics.covariance} covariance",
             str(cfg.uq.transfer).startswith("hierarchical") and "the session model's AR(1) noise"]
-
-
-#: the propagated input noise may exceed the fit's residual sd by this factor before the estimate is doubted
-NOISE_EXCESS = 2.0
-
-
-def input_noise_warning(source: str, aleatoric: np.ndarray, fit: PhysicsFit) -> str | None:
-    """A warning when ``sigma_in = "auto"`` gives a propagated input noise (mean aleatoric sd) over
-    :data:`NOISE_EXCESS` times the fit's in-sample residual sd on some axis. The residuals hold that noise, so it
-    cannot be larger: the estimate (second differences of the readings) took fast real change of the field between
-    samples for noise. On a 4 Hz recording whose field direction random-walks 0.02 rad per sample (noise 0.05 uT) it
-    read 0.17-0.37 uT: intervals 1.0-1.4 uT wide around a 0.05 uT RMSE, 100 % coverage, no word."""
-    if not str(source).startswith("auto"):
-        return None
-    alea = np.mean(np.asarray(aleatoric, np.float64), axis=0)
-    s = np.sqrt(np.asarray(fit.s2, np.float64))
-    bad = [a for a, x, y in zip(AXES, alea, s) if x > NOISE_EXCESS * y]
-    if not bad:
-        return None
-    ratio = ", ".join(f"{a} {x / y:.1f}x" for a, x, y in zip(AXES, alea, s) if a in bad)
-    return (f"The input noise estimated from the readings (uq.sigma_in = \"auto\": second differences) propagates to "
-            f"more than the fit's own residual sd on axis {', '.join(bad)} ({ratio}): the field changes fast between "
-            f"samples, and that change was taken for noise, so the intervals are too wide. Set [uq] sigma_in to the "
-            f"sensor's noise (datasheet or a static recording), e.g. sigma_in = [0.05, 0.05, 0.05, 0.01].")
 
 
 def resolve_sigma_in(cfg: Config, train: CalibrationData) -> tuple[np.ndarray, str]:
