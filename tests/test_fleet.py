@@ -130,6 +130,24 @@ def test_sensor_folder_is_a_calibration(small_fleet):
     assert np.abs(cal.theta - truth.theta[i]).max() < 0.5
 
 
+def test_report_regenerates_a_sensor_certificate(small_fleet, tmp_path, capsys):
+    """`bayesmag report sensors/<id>` rewrites the sensor's certificate as the fleet wrote it (it was refused: the
+    sensor folder has no marker of its own; the fleet's lists its files); a look-alike folder is still refused."""
+    import shutil
+    s, out = small_fleet
+    sid = s["sensors"][0]["id"]
+    d = out / "sensors" / sid
+    want = (d / "report.md").read_text()
+    (d / "report.md").unlink()
+    (d / "report.html").write_text("damaged")
+    assert main(["report", str(d)]) == 0
+    assert (d / "report.md").read_text() == want and "damaged" not in (d / "report.html").read_text()
+    fake = tmp_path / "copy" / "sensors" / sid                # no fleet marker above it
+    shutil.copytree(d, fake)
+    assert main(["report", str(fake)]) == 2
+    assert "not a finished bayesmag run folder" in capsys.readouterr().err
+
+
 def test_fewer_than_40_sensors_skips_outliers_not_limits(small_fleet, tmp_path, monkeypatch):
     import bayesmag._src.app.fleet as F
     monkeypatch.setattr(F, "MIN_SENSORS_OUTLIERS", 41)
@@ -563,3 +581,31 @@ def test_fleet_data_table_reads_kelvin_and_mapped_columns(tmp_path, capsys):
         fleet_config_from_dict({"fleet": {"recordings": "recs"}, "data": {"temperature_unit": "F"}})
     with pytest.raises(ConfigError, match="simulated fleet has no files"):
         fleet_config_from_dict({"fleet": {"source": "simulated"}, "data": {"temperature_unit": "K"}})
+
+
+def test_fleet_data_time_unit_reads_millisecond_stamps(tmp_path):
+    """A fleet's recordings stamped in ms: `[data] time_unit = "ms"` converts them to seconds, as a run's does
+    (the fleet config refused the key); the sensor folder's predictions carry seconds; a unit outside the set is
+    refused naming it."""
+    import csv
+    from bayesmag._src.core.data import write_csv
+    recs, _ = simulate_fleet(2, 700, seed=4, n_defective=0)
+    (tmp_path / "recs").mkdir()
+    for k, r in enumerate(recs):
+        write_csv(r, tmp_path / "recs" / f"M{k}.csv")
+        rows = list(csv.reader(open(tmp_path / "recs" / f"M{k}.csv")))
+        t = rows[0].index("time")
+        for row in rows[1:]:
+            row[t] = repr(float(row[t]) * 1000.0)
+        with open(tmp_path / "recs" / f"M{k}.csv", "w", newline="") as f:
+            csv.writer(f).writerows(rows)
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\n[data]\ntime_unit = "ms"\n')
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    import pandas as pd
+    pred = pd.read_csv(tmp_path / "out" / "sensors" / "M0" / "predictions.csv")
+    assert np.isin(pred["time"].to_numpy(), recs[0].time).all()             # seconds again, row for row
+    saved = json.loads((tmp_path / "out" / "sensors" / "M0" / "calibration.json").read_text())["config"]
+    assert saved["time_unit"] == "ms"
+    with pytest.raises(ConfigError, match=r"data\.time_unit.*'us'"):
+        fleet_config_from_dict({"fleet": {"recordings": "recs"}, "data": {"time_unit": "sec"}})

@@ -98,6 +98,7 @@ class FleetConfig:
     sigma_in: str | list = "auto"
     temperature_unit: str = "C"          # [data]: how every recording is read (as a run's [data] keys)
     field_unit: str | None = None
+    time_unit: str = "s"
     columns: dict = dataclasses.field(default_factory=dict)
     network: NetworkConfig = dataclasses.field(default_factory=lambda: NetworkConfig(interval_calibration="none"))
     sensor_figures: bool = False         # [output] figures: each sensor folder gets the single run's figures
@@ -111,7 +112,7 @@ class FleetConfig:
 
 _TABLES = {
     "": {"name", "fleet", "data", "split", "physics", "uq", "network", "output"},
-    "data": {"temperature_unit", "field_unit", "columns"},
+    "data": {"temperature_unit", "field_unit", "time_unit", "columns"},
     "fleet": {"source", "recordings", "manifest", "batch_size", "outlier_z", "sensor_folders", "figures", "simulate",
               "limits"},
     "fleet.simulate": {f.name for f in dataclasses.fields(SimulateFleet)},
@@ -231,9 +232,10 @@ def fleet_config_from_dict(raw: dict, *, base: Path = Path(".")) -> FleetConfig:
 
 
 def _data_keys(raw: dict) -> dict:
-    """``[data]`` of a fleet: ``temperature_unit``, ``field_unit`` and ``columns`` of a run's ``[data]``, applied to
-    every recording."""
-    choices = {"temperature_unit": ("C", "K"), "field_unit": ("uT", "nT", "mT", "G")}
+    """``[data]`` of a fleet: ``temperature_unit``, ``field_unit``, ``time_unit`` and ``columns`` of a run's
+    ``[data]``, applied to every recording."""
+    from bayesmag._src.core.data import TIME_UNITS
+    choices = {"temperature_unit": ("C", "K"), "field_unit": ("uT", "nT", "mT", "G"), "time_unit": tuple(TIME_UNITS)}
     for k, ok in choices.items():
         if k in raw and raw[k] not in ok:
             raise ConfigError(f"Fleet config key 'data.{k}' is {raw[k]!r}; it must be one of {list(ok)}.")
@@ -242,14 +244,14 @@ def _data_keys(raw: dict) -> dict:
         raise ConfigError(f"Fleet config key 'data.columns' must be a table of canonical name = \"file column\" "
                           f"(e.g. bx_meas = \"Bx\"); got {cols!r}.")
     return {"temperature_unit": raw.get("temperature_unit", "C"), "field_unit": raw.get("field_unit"),
-            "columns": dict(cols)}
+            "time_unit": raw.get("time_unit", "s"), "columns": dict(cols)}
 
 
 def _read(cfg: FleetConfig, path) -> CalibrationData:
     """One recording, read with the fleet's ``[data]`` units and column mapping."""
     from bayesmag._src.core.frames import load_table
     return load_table(path, columns=cfg.columns or None, temperature_unit=cfg.temperature_unit,
-                      field_unit=cfg.field_unit, require_reference=True)
+                      field_unit=cfg.field_unit, time_unit=cfg.time_unit, require_reference=True)
 
 
 def _network_config(raw) -> NetworkConfig:

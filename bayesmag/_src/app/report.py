@@ -938,15 +938,21 @@ def write_report(run_dir: str | Path, *, require_marker: bool = True) -> Path:
     run_dir = Path(run_dir)
     field_run_error(run_dir, OutputError)
     out, out_html = run_dir / "report.md", run_dir / "report.html"
+    owner, prefix = run_dir, ""
     if require_marker:
         mark = marker_status(run_dir) if run_dir.is_dir() else None
+        fleet = _fleet_owner(run_dir) if mark is None else None
+        if fleet is not None:                       # sensors/<id>/ of `bayesmag fleet`: the fleet's marker lists it
+            owner, mark = fleet
+            prefix = run_dir.resolve().relative_to(owner.resolve()).as_posix() + "/"
         problem = marker_problem(mark)
         if problem is not None:
             raise OutputError(f"{run_dir} is not a finished bayesmag run folder ({problem}); `bayesmag report` "
-                              f"writes only into folders written by `bayesmag run`. Give such a folder.")
+                              f"writes only into folders written by `bayesmag run` (or the sensors/<id>/ folders "
+                              f"of `bayesmag fleet`). Give such a folder.")
         for path in (out, out_html):
-            if (path.exists() or path.is_symlink()) and (path.name not in mark["files"] or path.is_symlink()
-                                                         or not path.is_file()):
+            if (path.exists() or path.is_symlink()) and (prefix + path.name not in mark["files"]
+                                                         or path.is_symlink() or not path.is_file()):
                 raise OutputError(f"{path} was not written by bayesmag (its {MARKER} does not list it); it will "
                                   f"not be replaced. Move it away and retry.")
     for f in ("metrics.json", "params.json"):
@@ -968,11 +974,28 @@ def write_report(run_dir: str | Path, *, require_marker: bool = True) -> Path:
         recover(run_dir, files_only=True)   # partial reports of killed processes
         for path, content in ((out, text), (out_html, page)):
             atomic_write_text(path, content)
-            register(run_dir, path)
+            register(owner, path)
     else:
         out.write_text(text)
         out_html.write_text(page)
     return out
+
+
+def _fleet_owner(sensor_dir: Path):
+    """``(fleet folder, its marker)`` when ``sensor_dir`` is ``<fleet>/sensors/<id>/`` of a finished
+    ``bayesmag fleet`` whose marker lists the sensor's ``metrics.json``; else None."""
+    from bayesmag._src.app.outdir import marker_problem, marker_status
+
+    sensor_dir = Path(sensor_dir)
+    if not sensor_dir.is_dir() or sensor_dir.resolve().parent.name != "sensors":
+        return None
+    fleet = sensor_dir.resolve().parent.parent
+    mark = marker_status(fleet)
+    if marker_problem(mark) is not None or mark.get("kind", "fleet") != "fleet" or not (fleet / "fleet.json").is_file():
+        return None
+    if f"sensors/{sensor_dir.resolve().name}/metrics.json" not in mark["files"]:
+        return None
+    return fleet, mark
 
 
 def run_reference_sd(run_dir: Path):
