@@ -316,3 +316,31 @@ def test_a_near_zero_field_partition_is_not_refused_but_an_all_small_file_is(cal
     with pytest.raises(DataError, match="every partition.*mT"):
         apply_dask(cal_dir, str(tmp_path / "in2"), tmp_path / "out2", scheduler=cluster)
     assert not (tmp_path / "out2").exists()
+
+
+@pytest.mark.parametrize("fmt", ["parquet", "csv"])
+def test_rows_not_calibrated_are_named_by_file_and_row(cal_dir, archive, cluster, tmp_path, fmt):
+    """Blank (NaN) readings in later partitions of the second of two files: the warning names each row as the
+    in-process apply does ("data row N", the header not counted), by file (it gave only a count)."""
+    src = tmp_path / "in"
+    src.mkdir()
+    bad = [5, 377, 640]
+    for k in (0, 1):
+        df = pd.read_csv(archive / "csv" / f"day{k}.csv")
+        if k == 1:
+            df.loc[bad, "bz_meas"] = np.nan
+        if fmt == "parquet":
+            df.to_parquet(src / f"d{k}.parquet", row_group_size=300, index=False)
+        else:
+            df.to_csv(src / f"d{k}.csv", index=False)
+    kw = {} if fmt == "parquet" else {"blocksize": 20_000}
+    s = apply_dask(cal_dir, str(src if fmt == "parquet" else src / "*.csv"), tmp_path / "out", scheduler=cluster, **kw)
+    assert s["n_partitions"] >= 4
+    msg = next(w for w in s["warnings"] if "not calibrated" in w)
+    ext = "parquet" if fmt == "parquet" else "csv"
+    assert msg.startswith("3 row(s)")
+    for r in bad:
+        assert f"d1.{ext} data row {r + 1}" in msg, msg
+    assert "d0." not in msg
+    out = pd.read_parquet(tmp_path / "out")
+    assert np.flatnonzero(~out["valid"].to_numpy()).tolist() == [800 + r for r in bad]

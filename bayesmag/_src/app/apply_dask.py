@@ -193,6 +193,21 @@ def _halo(piece) -> tuple:
         return None, None
 
 
+def _invalid_rows(table, pieces, limit: int = 10) -> list[str]:
+    """The first ``limit`` rows no partition could calibrate, as "FILE data row N" (1-based, the header not counted,
+    as the in-process apply names them): each partition's local indices offset by the rows of the same file's
+    earlier partitions (partitions of a file are listed in order; every row in is a row out)."""
+    shown, seen = [], {}
+    for _, r in table.sort_values("partition").iterrows():
+        path = str(pieces[int(r["partition"])][1])
+        start = seen.get(path, 0)
+        seen[path] = start + int(r["rows_in"])
+        for i in str(r.get("invalid", "") or "").split(","):
+            if i.strip() and len(shown) < limit:
+                shown.append(f"{path} data row {start + int(i) + 1}")
+    return shown
+
+
 #: Partitions read before one for a history term's state (:func:`_context`); beyond it, a warning.
 MAX_HISTORY_PIECES = 50
 #: Partitions read on each side for the input transforms' memory, as ``Calibration.predict``'s 10 chunks.
@@ -366,7 +381,8 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
     out.to_parquet(Path(out_dir) / f"part.{index:06d}.parquet", index=False)
     row = {"partition": index, "rows_in": len(df), "rows_out": len(out), "valid": int(cols["valid"].sum()),
            "outside": int((~cols["in_domain"] & cols["valid"]).sum()), "warnings": " | ".join(warns),
-           "p99_meas": _p99(data.b_meas), "p99_ref": _p99(data.b_ref)}
+           "p99_meas": _p99(data.b_meas), "p99_ref": _p99(data.b_ref),
+           "invalid": ",".join(str(int(i)) for i in np.flatnonzero(~cols["valid"])[:10])}
     if data.b_ref is not None and n:
         ok = cols["valid"] & np.isfinite(data.b_ref).all(axis=1)
         y, mu = data.b_ref[ok], pred["calibrated"][ok]
@@ -474,7 +490,8 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     meta = pd.DataFrame({"partition": pd.Series(dtype="int64"), "rows_in": pd.Series(dtype="int64"),
                          "rows_out": pd.Series(dtype="int64"), "valid": pd.Series(dtype="int64"),
                          "outside": pd.Series(dtype="int64"), "warnings": pd.Series(dtype="object"),
-                         "p99_meas": pd.Series(dtype="float64"), "p99_ref": pd.Series(dtype="float64")})
+                         "p99_meas": pd.Series(dtype="float64"), "p99_ref": pd.Series(dtype="float64"),
+                         "invalid": pd.Series(dtype="object")})
     # Tasks hold no data between them: spilling and pausing would only stall a worker whose JAX runtime sits near the
     # limit; a worker past 95 % of --memory-limit is still restarted (and a partition that cannot fit is named below).
     memory = {"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
@@ -524,8 +541,11 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                "n_valid": int(table["valid"].sum()), "n_outside_domain": int(table["outside"].sum()),
                "warnings": warns, "level": level, "out": str(out), "seconds": time.perf_counter() - t0}
     if rows_out - summary["n_valid"]:
-        summary["warnings"].append(f"{rows_out - summary['n_valid']} row(s) have non-finite inputs or outputs and were "
-                                   f"not calibrated (valid=false).")
+        n_bad = rows_out - summary["n_valid"]
+        shown = _invalid_rows(table, pieces)
+        more = f" and {n_bad - len(shown)} more" if n_bad > len(shown) else ""
+        summary["warnings"].append(f"{n_bad} row(s) have non-finite inputs or outputs and were not calibrated "
+                                   f"(valid=false)" + (f": {'; '.join(shown)}{more}." if shown else "."))
     if summary["n_outside_domain"]:
         summary["warnings"].append(f"{summary['n_outside_domain']} of {rows_out} rows lie outside the calibration's "
                                    f"training domain (in_domain=false): their intervals may be far too narrow.")
