@@ -272,3 +272,92 @@ def test_apply_names_a_folder_that_is_not_a_calibration(tmp_path):
     (tmp_path / MARKER).write_text(json.dumps({"tool": "bayesmag", "complete": True, "files": ["findings.json"]}))
     with pytest.raises(ArtifactError, match=r"holds a discovery result \(`bayesmag discover`\), not a calibration"):
         check_run_folder(tmp_path)
+
+
+# --------------------------------------------------------------------------- settings built in a script (fifth pass)
+@pytest.mark.parametrize("cls, kw, match", [
+    ("UQSettings", {"transfer": "hierarchal"}, r"transfer = 'hierarchal' is not valid.*'hierarchical'"),
+    ("UQSettings", {"level": 95}, r"level = 95 must be in \(0, 1\)"),
+    ("UQSettings", {"transfer_likelihood": "cauchy"}, r"transfer_likelihood = 'cauchy'.*'student_t'"),
+    ("UQSettings", {"transfer_uninformed": "free"}, r"transfer_uninformed"),
+    ("UQSettings", {"method": "pqsmc"}, r"method = 'pqsmc'.*'psqmc'"),
+    ("UQSettings", {"n_params": 1}, r"n_params = 1 must be an integer of at least 2"),
+    ("UQSettings", {"sigma_in": [0.05, 0.05, 0.05]}, r"sigma_in"),
+    ("UQSettings", {"sigma_in": [0.05, 0.05, -0.05, 0.01]}, r"sigma_in.*>= 0"),
+    ("UQSettings", {"reference_sd": -0.1}, r"reference_sd"),
+    ("UQSettings", {"transfer_df": 2}, r"transfer_df = 2 must be a number > 2"),
+    ("PhysicsSettings", {"covariance": "ar2"}, r"covariance = 'ar2'.*'newey_west'"),
+    ("PhysicsSettings", {"t0": "men"}, r"t0 = 'men'"),
+    ("PhysicsSettings", {"t0": 2000.0}, r"t0 = 2000.0 is not a reference temperature"),
+    ("NutsSettings", {"chains": 0}, r"chains = 0"),
+    ("NutsSettings", {"target_accept": 80}, r"target_accept = 80"),
+    ("NutsSettings", {"chain_method": "threads"}, r"chain_method = 'threads'.*'vectorized'"),
+])
+def test_library_settings_are_checked_as_the_config_keys(cls, kw, match):
+    """A script's settings: a misspelled `transfer` ran as "off" (new-session coverage 85-93 %), `level=95` and
+    `transfer_likelihood="cauchy"` were accepted; now each is refused as the config key is, naming the value and the
+    valid set. The defaults and every config-valid value still pass."""
+    from bayesmag._src.pipeline import settings as S
+    with pytest.raises(ValueError, match=match):
+        getattr(S, cls)(**kw)
+    getattr(S, cls)()
+
+
+@pytest.mark.parametrize("transfer", ["loro", "hierarchical", "hierarchical_nuts", "off"])
+def test_every_config_transfer_is_a_valid_setting(transfer):
+    from bayesmag._src.app.config import _CHOICES
+    assert set(_CHOICES["uq.transfer"]) == {"loro", "hierarchical", "hierarchical_nuts", "off"}
+    bayesmag.UQSettings(transfer=transfer, sigma_in=[0.05, 0.05, 0.05, 0.01], reference_sd=[0.0, 0.01, 0.0])
+
+
+def test_transfer_off_warns_that_new_sessions_get_no_between_session_term(data):
+    """An explicit transfer="off" gave no CalibrationWarning (the other ways to lose the term warn)."""
+    s = bayesmag.CalibrationSettings(uq=bayesmag.UQSettings(method="analytic", transfer="off"))
+    with pytest.warns(CalibrationWarning, match=r"transfer = \"off\".*no between-session"):
+        run = bayesmag.calibrate(data, s)
+    assert any("transfer = \"off\"" in w for w in run.warnings)
+
+
+def test_a_loaded_calibration_warns_on_predict_as_apply_does(data, tmp_path):
+    """`bayesmag.load(run).predict(new)` of a one-run calibration said nothing where `apply` prints WARNING lines
+    (no transfer term; rows out of domain: coverage 5-15 %); now the same texts as CalibrationWarnings. A
+    same-session prediction (new_session=False) and warn=False say nothing."""
+    from bayesmag._src.app.artifact import out_of_domain_note
+    one = data.subset(np.flatnonzero(data.run == data.run[0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = bayesmag.Calibrator(config={"uq": {"method": "analytic"}}).fit(one)
+    cal.save(tmp_path / "one")
+    loaded = bayesmag.load(tmp_path / "one")
+    new = bayesmag.simulate.simulate(300, design="campaign", seed=7, noise_sd=0.05)
+    with pytest.warns(CalibrationWarning) as rec:
+        out = loaded.predict(new)
+    texts = [str(w.message) for w in rec]
+    assert any("no between-session (transfer) term" in t for t in texts), texts
+    n_out = int((~out["in_domain"] & out["valid"]).sum())
+    assert n_out > 0 and any(out_of_domain_note(n_out, new.n)[1:] in t for t in texts), texts
+    assert all(w.filename == __file__ for w in rec)                   # at the caller's line
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        inside = one.subset(np.arange(50))
+        loaded.predict(inside, new_session=False)                     # rows of its session, in domain: silent
+        loaded.predict(new, warn=False)
+
+
+def test_python_messages_name_no_command_line_option(data, tmp_path):
+    """`Calibrator.save(path)` into a user's folder said "--out mythesis ... e.g. --out mythesis_2" (Python has no
+    --out); `bayesmag.load` of a folder bayesmag never wrote called it an incomplete run."""
+    from bayesmag._src.app.artifact import ArtifactError
+    from bayesmag._src.app.outdir import OutputError
+    mine = tmp_path / "mythesis"
+    mine.mkdir()
+    (mine / "chapter1.tex").write_text("keep me")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = bayesmag.Calibrator(config={"uq": {"method": "analytic"}}).fit(data)
+    with pytest.raises(OutputError) as e:
+        cal.save(mine)
+    assert "--out" not in str(e.value) and "mythesis_2" in str(e.value)
+    assert (mine / "chapter1.tex").read_text() == "keep me"
+    with pytest.raises(ArtifactError, match="holds no bayesmag calibration"):
+        bayesmag.load(mine)

@@ -9,7 +9,7 @@ import numpy as np
 from bayesmag._src.app.apply_io import (APPLY_HEADER_END, check_apply_options, check_apply_paths,  # noqa: F401
                                         check_units_against, is_apply_output, refuse_training_recording,
                                         write_apply_csv, _check_magnitudes)
-from bayesmag._src.app.artifact import load
+from bayesmag._src.app.artifact import load, new_session_notes, out_of_domain_note  # noqa: F401 (re-exported)
 from bayesmag._src.core.data import AXES, DataError
 
 __all__ = ["apply_calibration", "check_units", "check_apply_paths"]
@@ -26,24 +26,6 @@ def check_units(cal, data, *, small_ok: bool = False) -> list[str]:
     test, for a part of a recording whose whole the caller checks).
     """
     return check_units_against(data, train_max_ut(cal), small_ok=small_ok)
-
-
-def new_session_notes(cal) -> list[str]:
-    """What a new recording does not get from the calibration: its terms bound to training runs (``run_offset``,
-    ``run_step``: :func:`~bayesmag._src.core.physics.new_session_runs`)."""
-    notes = []
-    tsd = getattr(cal, "transfer_sd", None)
-    if getattr(cal, "sessions", None) is None and (tsd is None or not np.any(np.asarray(tsd, float) > 0)):
-        notes.append("the calibration holds no between-session (transfer) term (its training data held one run, or "
-                     "[uq] transfer = \"off\"): the intervals of this recording, a new session, cover only the error "
-                     "within a session and can be far too narrow. Calibrate on at least 3 sessions for a transfer term.")
-    bound = [t.name for t in cal.model.terms if t.bound_runs()]
-    if not bound:
-        return notes
-    it = "it" if len(bound) == 1 else "them"
-    return notes + [f"the calibration's {', '.join(bound)} describe{'s' if len(bound) == 1 else ''} training runs "
-            f"{list(cal.model.bound_runs)} only: this recording is calibrated without {it} (as a run with no offset "
-            f"of its own and no step; run ids are not matched), and the spread between runs is in the transfer part."]
 
 
 def train_max_ut(cal) -> float:
@@ -92,7 +74,8 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
                         f"field_rate / temperature_rate) were not checked (rows without times have no rate per "
                         f"second). Give the time in seconds (a 'time' column, or --columns time=NAME) to check them.")
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
-                       progress=progress, check_units=False)      # checked above, with the CLI's wording
+                       seed=run_seed(cal), progress=progress, check_units=False,
+                       warn=False)                     # checked above, said below, as the CLI says it
     level = cal.level if level is None else level
     if not pred["valid"].any():
         raise DataError(f"No row of {data_path} could be calibrated ({data.n} rows, every one with a non-finite "
@@ -104,8 +87,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
                         f"(marked valid=false): data row(s) {shown}.")
     n_out = int((~pred["in_domain"] & pred["valid"]).sum())
     if n_out:
-        warnings.append(f"{n_out} of {data.n} rows lie outside the calibration's training domain (in_domain=false): "
-                        f"their values are extrapolation and their intervals may be far too narrow.")
+        warnings.append(out_of_domain_note(n_out, data.n))
     cols = [c for c in OUTPUT_COLUMNS if c in pred]
     write_apply_csv(out_path, data, [(f"{a}_{c}", pred[c][:, i]) for i, a in enumerate(AXES) for c in cols], pred)
     summary = {"n_rows": data.n, "n_valid": int(pred["valid"].sum()), "n_outside_domain": n_out,
@@ -114,6 +96,9 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
                "transfer_sd": (None if cal.transfer_sd is None
                                else dict(zip(AXES, np.asarray(cal.transfer_sd, float).tolist()))),
                "warnings": warnings, "level": level, "seconds": time.perf_counter() - t0}
+    note = method_note(cal, method)
+    if note:
+        summary["notes"] = [note]
     ref_note = _reference_unit_note(data, cal) if data.b_ref is not None else None
     if ref_note:
         warnings.append(ref_note)
@@ -130,6 +115,35 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
         summary["metrics"]["misses_flagged"] = dict(zip(AXES, [float((miss[:, a] & ~dom).sum() / max(miss[:, a].sum(), 1))
                                                                for a in range(3)]))
     return summary
+
+
+def run_seed(cal) -> int:
+    """The seed of the calibration's run (``[uq] seed``): a Monte-Carlo apply draws as the run drew."""
+    uq = cal.config.get("uq") if isinstance(cal.config, dict) else None
+    seed = (uq or {}).get("seed", 0)
+    return int(seed) if isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0 else 0
+
+
+def method_note(cal, method: str) -> str | None:
+    """A note when this apply propagates the physics uncertainty by another method than the calibration's run did
+    (e.g. the run ``psqmc``, reporting Monte-Carlo means, the apply ``auto`` = exact moments): the calibrated values of
+    the same rows then differ by that Monte-Carlo error (0.3 uT on Belsten's extrapolated rows with n_params = 100)."""
+    from bayesmag._src.core.physics_uq import resolve_method
+    ran_as = (cal.config.get("uq") or {}).get("method", "auto") if isinstance(cal.config, dict) else "auto"
+    try:
+        ran, used = resolve_method(ran_as, cal.model), resolve_method(method, cal.model)
+    except (AttributeError, TypeError):
+        return None
+    if ran == used:
+        return None
+    uq = cal.config.get("uq") or {}
+    mc = "its Monte-Carlo means" if ran in ("psqmc", "mc") else "exact moments"
+    how = {"psqmc": f"--uq psqmc --n-params {uq.get('n_params', 100)} --n-qmc {uq.get('n_qmc', 256)}",
+           "analytic": "--uq analytic"}.get(ran)
+    return (f"the calibration's run propagated the physics uncertainty with [uq] method = {ran_as!r} ({ran}: {mc}); "
+            f"this apply used {used!r}, so on rows the run also predicted the calibrated values and intervals differ "
+            f"by the Monte-Carlo error (largest where the epistemic part is large)"
+            + (f"; {how} reproduces the run's predictions.csv." if how else "."))
 
 
 def _reference_unit_note(data, cal) -> str | None:

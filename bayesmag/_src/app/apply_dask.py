@@ -360,7 +360,9 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
             except DataError:
                 lo, full = 0, data
         pred = cal.predict(full, level=opts["level"], method=opts["method"], n_params=opts["n_params"],
-                           n_qmc=opts["n_qmc"], chunk_size=opts["chunk_size"], check_units=False)   # checked above
+                           n_qmc=opts["n_qmc"], chunk_size=opts["chunk_size"], seed=opts.get("seed", 0),
+                           check_units=False,
+                           warn=False)                                                    # checked and said above
         if full is not data:                                      # drop the neighbour rows again
             pred = {k: np.asarray(v)[lo:lo + n] for k, v in pred.items()}
     else:
@@ -461,6 +463,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     except ImportError as e:
         raise DataError(f"applying to an archive needs Dask: pip install 'bayesmag[dask]' ({e}).") from None
     import pandas as pd
+    from bayesmag._src.app.apply import method_note, run_seed
     from bayesmag._src.app.artifact import load
     from bayesmag._src.app.outdir import reserve, staging_dir
 
@@ -484,7 +487,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
             or (cal.network is not None and cal.network_transfer_sd is not None)):
         names.append("transfer")
     opts = dict(columns=columns, temperature_unit=temperature_unit, field_unit=field_unit, level=level, method=method,
-                time_unit=time_unit,
+                time_unit=time_unit, seed=run_seed(cal),
                 n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
                 columns_out=[c for c in OUTPUT_COLUMNS if c in names])
     meta = pd.DataFrame({"partition": pd.Series(dtype="int64"), "rows_in": pd.Series(dtype="int64"),
@@ -546,6 +549,9 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
         more = f" and {n_bad - len(shown)} more" if n_bad > len(shown) else ""
         summary["warnings"].append(f"{n_bad} row(s) have non-finite inputs or outputs and were not calibrated "
                                    f"(valid=false)" + (f": {'; '.join(shown)}{more}." if shown else "."))
+    note = method_note(cal, method)
+    if note:
+        summary["notes"] = [note]
     if summary["n_outside_domain"]:
         summary["warnings"].append(f"{summary['n_outside_domain']} of {rows_out} rows lie outside the calibration's "
                                    f"training domain (in_domain=false): their intervals may be far too narrow.")

@@ -173,7 +173,8 @@ class Calibration:
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
                 new_session: bool = True, progress: bool = False, columns: dict | None = None,
                 field_unit: str | None = None, temperature_unit: str = "C",
-                check_units: bool = True, check_rates: bool | None = None) -> "dict[str, np.ndarray] | pandas.DataFrame":
+                check_units: bool = True, check_rates: bool | None = None,
+                warn: bool = True) -> "dict[str, np.ndarray] | pandas.DataFrame":
         """Calibrated field and uncertainty for every row of ``data`` (reference columns not needed).
 
         Args:
@@ -196,6 +197,10 @@ class Calibration:
           and ``transfer`` when the calibration holds a transfer sd) and (n,) arrays ``in_domain``,
           ``in_domain_reason`` (strings, '' inside) and ``valid``.
 
+          warn: raise what ``bayesmag apply`` prints as WARNING lines, each a :class:`~bayesmag.CalibrationWarning`:
+            a new session (``new_session``) without a between-session term (:func:`new_session_notes`) and the
+            rows outside the training domain (``apply`` passes False: it prints them itself).
+
         Rows with non-finite inputs are not dropped: their outputs are NaN and ``valid`` is False.
         Every chunk is predicted by :meth:`predictor`. ``new_session`` (default True: ``data`` is a
         new recording) adds the transfer part; False treats the rows as from the training sessions.
@@ -214,7 +219,7 @@ class Calibration:
                                                    what="the data given to predict"),
                                level=level, method=method, n_params=n_params, n_qmc=n_qmc, seed=seed,
                                chunk_size=chunk_size, new_session=new_session, progress=progress, check_units=False,
-                               check_rates=check_rates)
+                               check_rates=check_rates, warn=warn)
             return prediction_frame(out, index)
         if check_rates is None:
             check_rates = isinstance(data, CalibrationData) and data.time_given
@@ -275,7 +280,39 @@ class Calibration:
         out["in_domain"] = in_dom
         out["in_domain_reason"] = reason
         out["valid"] = valid
+        if warn:
+            import warnings
+
+            from bayesmag._src.core.data import CalibrationWarning, user_stacklevel
+            n_out = int((~in_dom & valid).sum())
+            for w in [*(new_session_notes(self) if new_session else []), n_out and out_of_domain_note(n_out, n)]:
+                if w:
+                    warnings.warn(w[0].upper() + w[1:], CalibrationWarning, stacklevel=user_stacklevel())
         return out
+
+
+def new_session_notes(cal) -> list[str]:
+    """What a new recording does not get from the calibration: a between-session (transfer) term, and its terms
+    bound to training runs (``run_offset``, ``run_step``: :func:`~bayesmag._src.core.physics.new_session_runs`)."""
+    notes = []
+    tsd = getattr(cal, "transfer_sd", None)
+    if getattr(cal, "sessions", None) is None and (tsd is None or not np.any(np.asarray(tsd, float) > 0)):
+        notes.append("the calibration holds no between-session (transfer) term (its training data held one run, or "
+                     "[uq] transfer = \"off\"): the intervals of this recording, a new session, cover only the error "
+                     "within a session and can be far too narrow. Calibrate on at least 3 sessions for a transfer term.")
+    bound = [t.name for t in cal.model.terms if t.bound_runs()]
+    if not bound:
+        return notes
+    it = "it" if len(bound) == 1 else "them"
+    return notes + [f"the calibration's {', '.join(bound)} describe{'s' if len(bound) == 1 else ''} training runs "
+            f"{list(cal.model.bound_runs)} only: this recording is calibrated without {it} (as a run with no offset "
+            f"of its own and no step; run ids are not matched), and the spread between runs is in the transfer part."]
+
+
+def out_of_domain_note(n_out: int, n: int) -> str:
+    """The rows of a prediction outside the calibration's training domain, as ``apply`` and ``predict`` say it."""
+    return (f"{n_out} of {n} rows lie outside the calibration's training domain (in_domain=false): their values are "
+            f"extrapolation and their intervals may be far too narrow.")
 
 
 def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95) -> None:
@@ -431,6 +468,9 @@ def read_calibration(path: str | Path) -> Calibration:
     path = Path(path)
     j, z = path / "calibration.json", path / "calibration.npz"
     missing = [p.name for p in (j, z) if not p.exists()]
+    if len(missing) == 2:
+        raise ArtifactError(f"{path} holds no bayesmag calibration (no calibration.json, no calibration.npz): give the "
+                            f"folder a `bayesmag run` (or `Calibrator.save`, or a fleet's sensors/<id>) wrote.")
     if missing:
         raise ArtifactError(f"{path} is incomplete: {missing} missing. Re-run `bayesmag run` to write a full calibration.")
     try:

@@ -308,11 +308,7 @@ class Calibrator:
         """Write the fitted calibration into folder ``path`` (atomically): ``calibration.json``/``.npz``
         (``bayesmag apply --model PATH`` and :func:`bayesmag.load` read them), ``params.json``,
         ``config.resolved.toml`` and, with a holdout, ``metrics.json``. Returns ``path``."""
-        import json
-
-        from bayesmag._src.app.artifact import save_calibration
-        from bayesmag._src.app.config import to_toml
-        from bayesmag._src.app.outdir import staging_dir
+        from bayesmag._src.app.outdir import OutputError, staging_dir
 
         self._check_fitted("run_")
         path = Path(path)
@@ -320,15 +316,26 @@ class Calibrator:
         # the rows came from fit(), not from a file: no [data] source (the placeholder "simulated" would make
         # `bayesmag run` of this config, and `export`'s refit of a least-squares format, use simulated rows)
         config["data"] = {k: v for k, v in config["data"].items() if k not in ("source", "path", "simulate")}
-        with staging_dir(path, kind="run") as tmp:
-            (tmp / "params.json").write_text(json.dumps(self.physics_fit_.to_json(), indent=2))
-            (tmp / "config.resolved.toml").write_text(
-                "# Fitted by bayesmag.Calibrator on rows given in Python (no [data] source): to rerun it with\n"
-                "# `bayesmag run`, set [data] path to the recording.\n" + to_toml(config))
-            save_calibration(tmp, self.run_.predictor, config=config, level=self._cfg.uq.level)
-            if self.metrics_ is not None:
-                (tmp / "metrics.json").write_text(json.dumps(self.metrics_, indent=2))
+        try:
+            with staging_dir(path, kind="run") as tmp:
+                self._write(tmp, config)
+        except OutputError as e:                # the command line's words without its option: save(path) has none
+            raise OutputError(str(e).replace("--out ", "")) from None
         return path
+
+    def _write(self, tmp: Path, config: dict) -> None:
+        """The files of :meth:`save` into the staging folder ``tmp``."""
+        import json
+
+        from bayesmag._src.app.artifact import save_calibration
+        from bayesmag._src.app.config import to_toml
+        (tmp / "params.json").write_text(json.dumps(self.physics_fit_.to_json(), indent=2))
+        (tmp / "config.resolved.toml").write_text(
+            "# Fitted by bayesmag.Calibrator on rows given in Python (no [data] source): to rerun it with\n"
+            "# `bayesmag run`, set [data] path to the recording.\n" + to_toml(config))
+        save_calibration(tmp, self.run_.predictor, config=config, level=self._cfg.uq.level)
+        if self.metrics_ is not None:
+            (tmp / "metrics.json").write_text(json.dumps(self.metrics_, indent=2))
 
     def _check_fitted(self, attr: str = "calibration_"):
         if not hasattr(self, attr):

@@ -19,6 +19,7 @@ import typing
 from pathlib import Path
 from typing import Any, ClassVar, Union
 
+from bayesmag._src.core.data import TIME_UNITS
 from bayesmag._src.core.likelihoods import LIKELIHOODS
 from bayesmag._src.core.network import ACTIVATIONS, VALIDATION_KINDS
 from bayesmag._src.core.physics import T0_DEFAULT
@@ -220,16 +221,16 @@ class Config:
 
 _CHOICES = {
     "split.kind": ("random", "by_run", "time_blocks", "none"),
-    "physics.covariance": ("white", "ar1", "newey_west"),
-    "uq.method": ("auto", "psqmc", "mc", "analytic"),
+    "physics.covariance": S.COVARIANCES,
+    "uq.method": S.UQ_METHODS,
     "data.temperature_unit": ("C", "K"),
-    "data.time_unit": ("s", "ms", "us", "min", "h"),
+    "data.time_unit": tuple(TIME_UNITS),
     "data.field_unit": ("uT", "nT", "mT", "G"),
-    "network.interval_calibration": ("conformal", "none"),
-    "uq.transfer": ("loro", "hierarchical", "hierarchical_nuts", "off"),
-    "uq.transfer_likelihood": ("gaussian", "student_t", "laplace"),
-    "uq.transfer_uninformed": ("pooled", "prior", "fixed"),
-    "uq.transfer_networks": ("none", "by_run_folds"),
+    "network.interval_calibration": S.INTERVAL_CALIBRATIONS,
+    "uq.transfer": S.TRANSFER_METHODS,
+    "uq.transfer_likelihood": S.TRANSFER_LIKELIHOODS,
+    "uq.transfer_uninformed": S.TRANSFER_UNINFORMED,
+    "uq.transfer_networks": S.TRANSFER_NETWORKS,
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),
     "measurement.interval_calibration": ("conformal", "none"),
@@ -390,9 +391,7 @@ def _check_measurement(m: MeasurementConfig) -> None:
     bad = [f for f in m.exports if f not in FORMATS]
     if bad:
         raise ConfigError(f"Config key 'measurement.exports' has unknown format(s) {bad}; valid: {list(FORMATS)}.")
-#: Largest plausible input-noise sd (uT or C) and reference-magnetometer sd (uT); larger ones are typos.
-_MAX_SD = 1e4
-_MAX_REFERENCE_SD = 1e3
+_MAX_SD, _MAX_REFERENCE_SD = S.MAX_SD, S.MAX_REFERENCE_SD        # larger sds are typos
 
 
 def _check_semantics(cfg: Config) -> None:

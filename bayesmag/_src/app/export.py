@@ -312,8 +312,8 @@ def build_export(cal, train: CalibrationData | None = None, *, t_ref: float | No
         scored, which, k = ((held_out, "held-out (test) rows", 2) if held_out is not None and held_out.n > 0
                             else (train, "training rows (the run has no held-out rows)", 1))
         if cal.network is not None:
-            full = (cal.predict(series[0], new_session=False)["calibrated"][series[k]] if whole
-                    else cal.predict(scored)["calibrated"])
+            full = (cal.predict(series[0], new_session=False, warn=False)["calibrated"][series[k]] if whole
+                    else cal.predict(scored, warn=False)["calibrated"])
         else:
             full = full_physics(scored, k)
         ex = dataclasses.replace(ex, accuracy=accuracy_loss(ex, scored, full, which=which))

@@ -24,11 +24,32 @@ from bayesmag._src.core.physics import T0_DEFAULT, PhysicsModel, resolve_t0
 from bayesmag._src.core.predictor import FUSIONS, UQOptions
 
 __all__ = ["PhysicsSettings", "UQSettings", "sigma_in_matrix", "NetworkSettings", "NutsSettings", "ConformalPlan", "CalibrationSettings",
-           "COVARIANCES", "UQ_METHODS", "TRANSFER_METHODS", "INTERVAL_CALIBRATIONS"]
+           "COVARIANCES", "UQ_METHODS", "TRANSFER_METHODS", "TRANSFER_LIKELIHOODS", "TRANSFER_UNINFORMED",
+           "TRANSFER_NETWORKS", "INTERVAL_CALIBRATIONS"]
 
 COVARIANCES = ("white", "ar1", "newey_west")
 UQ_METHODS = ("auto", "psqmc", "mc", "analytic")
-TRANSFER_METHODS = ("loro", "off")
+TRANSFER_METHODS = ("loro", "hierarchical", "hierarchical_nuts", "off")
+TRANSFER_LIKELIHOODS = ("gaussian", "student_t", "laplace")
+TRANSFER_UNINFORMED = ("pooled", "prior", "fixed")
+TRANSFER_NETWORKS = ("none", "by_run_folds")
+#: Largest plausible input-noise sd (uT or C) and reference-magnetometer sd (uT); larger ones are typos.
+MAX_SD = 1e4
+MAX_REFERENCE_SD = 1e3
+
+
+def _one_of(name: str, value, valid) -> None:
+    if not isinstance(value, str) or value not in valid:
+        raise ValueError(f"{name} = {value!r} is not valid; it must be one of {list(valid)}.")
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def _at_least(name: str, value, lo: int) -> None:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < lo:
+        raise ValueError(f"{name} = {value!r} must be an integer of at least {lo}.")
 INTERVAL_CALIBRATIONS = ("conformal", "none")
 
 
@@ -47,6 +68,16 @@ class PhysicsSettings:
     temperature_terms: bool = True
     extra_terms: tuple = ()
     covariance: str = "white"
+
+    def __post_init__(self):
+        """The checks of the config's ``[physics]`` keys, so a script's settings are refused as a config's are."""
+        if isinstance(self.t0, str):
+            if self.t0 != "mean":
+                raise ValueError(f"t0 = {self.t0!r} must be a number (C) or \"mean\".")
+        elif not _number(self.t0) or not -273.15 <= float(self.t0) <= 1000.0:
+            raise ValueError(f"t0 = {self.t0!r} is not a reference temperature in C (it must lie in [-273.15, 1000]); "
+                             f"use the calibration's typical temperature, or \"mean\" (the training mean).")
+        _one_of("covariance", self.covariance, COVARIANCES)
 
     def model(self, train) -> PhysicsModel:
         """The physics model for the training rows ``train`` (T0 resolved here, once).
@@ -93,6 +124,41 @@ class UQSettings:
     transfer_df: Union[float, str] = 4.0
     transfer_uninformed: str = "pooled"
     transfer_networks: str = "none"
+
+    def __post_init__(self):
+        """The checks of the config's ``[uq]`` keys, so a script's settings are refused as a config's are (a
+        misspelled ``transfer`` gave no between-session term and intervals 85-93 % instead of 95 %)."""
+        _one_of("method", self.method, UQ_METHODS)
+        _one_of("transfer", self.transfer, TRANSFER_METHODS)
+        _one_of("transfer_likelihood", self.transfer_likelihood, TRANSFER_LIKELIHOODS)
+        _one_of("transfer_uninformed", self.transfer_uninformed, TRANSFER_UNINFORMED)
+        _one_of("transfer_networks", self.transfer_networks, TRANSFER_NETWORKS)
+        if not _number(self.level) or not 0 < self.level < 1:
+            raise ValueError(f"level = {self.level!r} must be in (0, 1), e.g. 0.95.")
+        for name, lo in (("n_params", 2), ("n_qmc", 2), ("seed", 0), ("chunk_size", 1)):
+            _at_least(name, getattr(self, name), lo)
+        tdf = self.transfer_df
+        if tdf != "learned" and (not _number(tdf) or not 2 < tdf < 1e6):
+            raise ValueError(f"transfer_df = {tdf!r} must be a number > 2 (Student-t degrees of freedom with a finite "
+                             f"variance; e.g. 4) or \"learned\".")
+        sig = self.sigma_in
+        if isinstance(sig, str):
+            if sig != "auto":
+                raise ValueError(f"sigma_in = {sig!r} must be \"auto\", 4 standard deviations [Bx, By, Bz, T] or a "
+                                 f"4x4 covariance.")
+        else:
+            arr = np.asarray(sig, dtype=object)
+            if arr.shape not in ((4,), (4, 4)) or not all(_number(v) and np.isfinite(v) for v in arr.ravel()):
+                raise ValueError(f"sigma_in = {sig!r} must be \"auto\", 4 standard deviations [Bx, By, Bz, T] or a "
+                                 f"4x4 covariance of finite numbers.")
+            if arr.shape == (4,) and not all(0 <= v <= MAX_SD for v in arr):
+                raise ValueError(f"sigma_in = {sig!r}: each standard deviation [Bx, By, Bz (uT), T (C)] must be >= 0 "
+                                 f"and at most {MAX_SD:g}.")
+        r = self.reference_sd
+        rs = list(np.ravel(np.asarray(r, dtype=object)))
+        if not (len(rs) in (1, 3) and all(_number(v) and 0 <= v <= MAX_REFERENCE_SD for v in rs)):
+            raise ValueError(f"reference_sd = {r!r} must be a standard uncertainty >= 0 in uT, or 3 of them, at most "
+                             f"{MAX_REFERENCE_SD:g} uT (a reference magnetometer's: typically 0.001-1).")
 
     def options(self) -> UQOptions:
         """The :class:`~bayesmag._src.core.predictor.UQOptions` a :class:`Predictor` keeps."""
@@ -194,6 +260,16 @@ class NutsSettings:
     likelihood: str = "gaussian"
     priors: Any = None
     seed: int = 0
+
+    def __post_init__(self):
+        """The checks of the config's ``[nuts]`` keys, so a script's settings are refused as a config's are."""
+        from bayesmag._src.pipeline.nuts.constants import CHAIN_METHODS
+        for name, lo in (("chains", 1), ("warmup", 0), ("draws", 1), ("seed", 0)):
+            _at_least(name, getattr(self, name), lo)
+        if not _number(self.target_accept) or not 0 < self.target_accept < 1:
+            raise ValueError(f"target_accept = {self.target_accept!r} must be in (0, 1), e.g. 0.8.")
+        _one_of("chain_method", self.chain_method, CHAIN_METHODS)
+        _one_of("likelihood", self.likelihood, tuple(LIKELIHOODS))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -76,6 +76,14 @@ def series_rows(parts, idx):
     return np.asarray(parts)[idx]
 
 
+#: what ``[uq] transfer = "off"`` leaves out, said as the other missing-transfer cases are (a script that chose it, or
+#: misspelled another value before settings were checked, got intervals 85-93 % on new sessions without a word)
+TRANSFER_OFF_WARNING = ("[uq] transfer = \"off\": the calibration holds no between-session (transfer) term, so its "
+                        "intervals for a new session (another recording of the sensor) cover only the error within a "
+                        "session and can be far too narrow. Use transfer = \"loro\" or \"hierarchical\" with 3 or "
+                        "more recorded sessions.")
+
+
 def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: CalibrationData | None,
                       model: PhysicsModel, domain, timings: dict[str, float], *, covariance: str = "white",
                       progress: bool = False, after_fit=None, series=None) -> PhysicsStage:
@@ -138,7 +146,7 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
                                              uninformed=uq_settings.transfer_uninformed,
                                              series=series[:2] if whole else None)
     else:
-        tr = TransferEstimate(np.zeros(3), "off", {})
+        tr = TransferEstimate(np.zeros(3), "off", {}, warning=TRANSFER_OFF_WARNING)
     predictor = dataclasses.replace(predictor, transfer_sd=None if sessions is not None else tr.sd,
                                     sessions=sessions)
     timings["transfer"] = time.perf_counter() - t
