@@ -78,3 +78,13 @@ def _mappings():
             return sum(1 for _ in f)
     except OSError:
         return None
+
+
+def pytest_runtest_logreport(report):
+    """With ``BAYESMAG_TEST_TIMES=FILE``: append each test's phase durations to FILE as it ends (``nodeid phase
+    seconds``), so a run cut short (a CI time limit) still tells which tests are slow; ``--durations`` prints only
+    at the end of a completed run."""
+    path = os.environ.get("BAYESMAG_TEST_TIMES")
+    if path:
+        with open(path, "a") as f:
+            f.write(f"{report.nodeid} {report.when} {report.duration:.3f}\n")

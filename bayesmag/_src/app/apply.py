@@ -59,7 +59,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
                                                         if isinstance(cal.config, dict) else None, model_dir))
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                      require_reference=False, time_unit=time_unit)
+                      require_reference=False, time_unit=time_unit, mapping_hint="--columns (NAME=COL,...)")
     _check_magnitudes(data)
     warnings = check_units(cal, data) + new_session_notes(cal)
     from bayesmag._src.app.inputs import failed_sensor_warning

@@ -394,6 +394,31 @@ def _check_measurement(m: MeasurementConfig) -> None:
 _MAX_SD, _MAX_REFERENCE_SD = S.MAX_SD, S.MAX_REFERENCE_SD        # larger sds are typos
 
 
+#: Keys of a vector calibration that a field calibration (``[measurement] kind`` "constant" / "scalar") does not
+#: read, with the key it reads instead (None: nothing does). A value other than the default is refused: it was
+#: silently ignored (``physics.temperature_terms = false`` still fitted thermal terms; ``uq.reference_sd`` left the
+#: scalar fit unweighted, the key read is ``measurement.reference_sd``).
+_FIELD_INSTEAD = {
+    "physics.temperature_terms": "measurement.temperature_terms", "physics.covariance": "measurement.covariance",
+    "physics.extra_terms": None, "uq.reference_sd": "measurement.reference_sd", "uq.method": None,
+    "uq.n_params": None, "uq.n_qmc": None, "uq.sigma_in": None, "uq.residual_term": None, "uq.chunk_size": None,
+    "uq.transfer_df": None, "uq.transfer_uninformed": None, "network.enabled": None,
+}
+
+
+def _refuse_vector_keys(cfg: Config) -> None:
+    defaults = {"physics": PhysicsConfig(), "uq": UQConfig(), "network": NetworkConfig()}
+    bad = [k for k in _FIELD_INSTEAD
+           if getattr(getattr(cfg, k.split(".")[0]), k.split(".")[1]) != getattr(defaults[k.split(".")[0]],
+                                                                                    k.split(".")[1])]
+    if bad:
+        instead = [f"{_FIELD_INSTEAD[k]} instead of {k}" for k in bad if _FIELD_INSTEAD[k]]
+        raise ConfigError(f"Config key(s) {bad} belong to a vector calibration; a field calibration (measurement.kind "
+                          f"= {cfg.measurement.kind!r}) does not read them (its uncertainty is the Laplace posterior of "
+                          f"the magnitude fit, its model the thermo-affine one, no network; docs/field.md)"
+                          + (f". Set {', '.join(instead)}" if instead else "") + ". Remove them.")
+
+
 def _check_semantics(cfg: Config) -> None:
     _check_numbers(cfg)
     _check_measurement(cfg.measurement)
@@ -411,6 +436,7 @@ def _check_semantics(cfg: Config) -> None:
             raise ConfigError(f"Config key(s) {unused} set a vector calibration's between-session (transfer) term; "
                               f"a field calibration (measurement.kind = {cfg.measurement.kind!r}) has none and does "
                               f"not read them (docs/field.md, \"Not done / limits\"). Remove them.")
+        _refuse_vector_keys(cfg)
     d = cfg.data
     if d.source is not None and d.path is not None:
         raise ConfigError("[data] names both 'source' and 'path'; give one.")

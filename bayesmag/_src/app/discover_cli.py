@@ -31,6 +31,12 @@ def discover_config_from_dict(raw: dict):
     raw = dict(raw)
     disc = raw.pop("discover", {})
     cfg = config_from_dict(raw)
+    if cfg.measurement.kind != "vector" or cfg.data.source == "field_simulated":
+        raise ConfigError(f"`bayesmag discover` compares the calibrated field with a vector reference, row by row; this "
+                          f"config is a field calibration (measurement.kind = {cfg.measurement.kind!r}{', data.source = ' + repr(cfg.data.source) if cfg.data.source == 'field_simulated' else ''}), "
+                          f"whose recordings have none (or withhold it). Give discover a config with a vector "
+                          f"reference (bx_ref, by_ref, bz_ref; e.g. discover_belsten), or set measurement.kind = "
+                          f"\"vector\" if the recording holds one.")
     valid = [f.name for f in dataclasses.fields(DiscoverOptions)]
     unknown = sorted(set(disc) - set(valid))
     if unknown:

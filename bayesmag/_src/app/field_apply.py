@@ -104,7 +104,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
             data_cfg = None
         refuse_training_recording(out_path, recording_paths(data_cfg, model_dir))
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                      require_reference=False, time_unit=time_unit)
+                      require_reference=False, time_unit=time_unit, mapping_hint="--columns (NAME=COL,...)")
     _check_magnitudes(data)
     warnings = check_units_against(data, cal.train_max_ut)
     pred = cal.predict(data.b_meas, data.temperature, level=level,

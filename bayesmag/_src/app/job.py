@@ -45,6 +45,8 @@ def build_model(cfg: Config, train: CalibrationData) -> PhysicsModel:
         return PhysicsSettings(t0=p.t0, temperature_terms=p.temperature_terms, extra_terms=tuple(p.extra_terms),
                                covariance=p.covariance).model(train)
     except (ValueError, TypeError) as e:
+        if str(e).startswith("t0 = "):
+            raise ConfigError(f"Config key 'physics.t0' = {str(e)[5:]}") from None
         raise ConfigError(f"[physics] extra_terms: {e}") from None
 
 

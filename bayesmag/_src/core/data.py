@@ -74,13 +74,23 @@ TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "min": 60.0, "h": 3600.0}
 PLAUSIBLE_STEP_S = (1e-4, 100.0)
 
 
+def median_step(time, run=None) -> float | None:
+    """The median positive sampling step (s) of ``time`` (with ``run``: between rows of the same run); None without
+    one."""
+    steps = np.diff(np.asarray(time, np.float64))
+    if run is not None:
+        run = np.asarray(run).reshape(-1)
+        steps = steps[run[1:] == run[:-1]]
+    steps = steps[np.isfinite(steps) & (steps > 0)]
+    return float(np.median(steps)) if steps.size else None
+
+
 def time_step_warning(data: "CalibrationData", declare: str = "[data] time_unit") -> str | None:
     """A warning when the rows' median time step within runs lies outside :data:`PLAUSIBLE_STEP_S` (the time column is
     read in seconds: a logger's ms or us stamps make every rate, lag time constant and correlation time 1000x off);
     None otherwise, or for rows without times. ``declare``: how the caller declares the unit."""
     if not getattr(data, "time_given", True):
         return None
-    from bayesmag._src.core.physics import median_step
     step = median_step(data.time, data.run)
     if not step or PLAUSIBLE_STEP_S[0] <= step <= PLAUSIBLE_STEP_S[1]:
         return None
@@ -688,6 +698,14 @@ def column_mapping(columns: Mapping[str, str] | None, *, field_unit: str = "uT",
     return mapping
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def load_csv(
     path: str | Path,
     *,
@@ -696,6 +714,7 @@ def load_csv(
     field_unit: str | None = None,
     require_reference: bool = True,
     time_unit: str = "s",
+    mapping_hint: str = "a [data.columns] mapping",
 ) -> CalibrationData:
     """Load a canonical CSV (``time,run,bx_meas,by_meas,bz_meas,temperature,bx_ref,by_ref,bz_ref``).
 
@@ -707,6 +726,7 @@ def load_csv(
         (recorded as ``data.field_unit``); ``None`` (default): uT, checked by :func:`check_units`.
       require_reference: if False, the ``*_ref`` columns may be absent.
       time_unit: the ``time`` column's unit, one of :data:`TIME_UNITS` (converted to seconds).
+      mapping_hint: how the caller maps columns, for the missing-column message (``apply``: its ``--columns``).
 
     ``run`` is optional (all rows one run); ``time`` is optional (row index). The delimiter
     (comma, semicolon or tab) is sniffed from the header and first row; a quoted header is read.
@@ -732,9 +752,17 @@ def load_csv(
         if src not in idx:
             if required:
                 hint = f" (mapped from '{name}')" if src != name else ""
+                if header and all(_is_number(h) for h in header):
+                    raise DataError(f"{path} has no header row: its first line holds numbers ({', '.join(header[:4])}"
+                                    f"{', ...' if len(header) > 4 else ''}). Add the header line "
+                                    f"{','.join(CANONICAL_COLUMNS)} (in the file's own column order), or name "
+                                    f"the columns with {mapping_hint} after adding a header.")
+                extra = (". A recording without a temperature sensor: add a temperature column holding one constant "
+                         "value (e.g. 25) and turn the temperature terms off (physics.temperature_terms = false; "
+                         "measurement.temperature_terms = false for a field calibration)") if name == "temperature" else ""
                 raise DataError(
                     f"{path} has no column '{src}'{hint}. Columns found: {header}. Expected the canonical header "
-                    f"{','.join(CANONICAL_COLUMNS)} or a [data.columns] mapping."
+                    f"{','.join(CANONICAL_COLUMNS)} or {mapping_hint}{extra}."
                 )
             return None
         return arr[:, idx[src]]

@@ -256,11 +256,12 @@ def frame_io(method=None, *, physics_inputs: bool = False):
 
 
 def load_table(path: str | Path, *, columns: Mapping[str, str] | None = None, temperature_unit: str = "C",
-               field_unit: str | None = None, require_reference: bool = True, time_unit: str = "s") -> CalibrationData:
+               field_unit: str | None = None, require_reference: bool = True, time_unit: str = "s",
+               mapping_hint: str = "a [data.columns] mapping") -> CalibrationData:
     """A recording from CSV (``data.load_csv``) or Parquet (by suffix), with column mapping and units."""
     if Path(path).suffix.lower() in (".parquet", ".pq"):
         return read_parquet(path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                             require_reference=require_reference, time_unit=time_unit)
     from bayesmag._src.core.data import load_csv
     return load_csv(path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                    require_reference=require_reference, time_unit=time_unit)
+                    require_reference=require_reference, time_unit=time_unit, mapping_hint=mapping_hint)

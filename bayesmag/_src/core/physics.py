@@ -36,6 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bayesmag._src.core.data import median_step  # noqa: F401 (re-exported: it lived here)
+
 __all__ = ["T0_DEFAULT", "resolve_t0", "Inputs", "Term", "InputTransform", "ThermoAffine", "ThermalLag",
            "PhysicsModel", "inputs_from_data", "centred", "AXES"]
 
@@ -164,7 +166,31 @@ def resolve_t0(t0, temperature) -> float:
             raise ValueError(f"t0 = {t0!r} must be a number (C) or \"mean\".")
         t = np.asarray(temperature, dtype=np.float64)
         return float(np.mean(t)) if t.size else 0.0     # no rows: the caller refuses them (too few rows)
+    check_t0(t0, temperature)
     return float(t0)
+
+
+#: A reference temperature this far (C) outside every training temperature is not a choice but a unit slip: 273.15
+#: (kelvin for C) is the one seen (``physics.t0 = 298.15`` beside kelvin data: a certificate at "T0 = 298.1 C" whose
+#: parameters were extrapolated 270 C, 18 correlation notes blaming the motion).
+T0_FAR_C = 150.0
+
+
+def check_t0(t0, temperature, name: str = "t0") -> None:
+    """Refuse (:class:`~bayesmag.DataError`, naming ``name``) a numeric ``t0`` more than :data:`T0_FAR_C` outside the
+    finite ``temperature`` values (C)."""
+    from bayesmag._src.core.data import DataError
+    t = np.asarray(temperature, dtype=np.float64)
+    t = t[np.isfinite(t)]
+    if not t.size or isinstance(t0, str):
+        return
+    lo, hi = float(t.min()), float(t.max())
+    gap = max(lo - float(t0), float(t0) - hi, 0.0)
+    if gap > T0_FAR_C:
+        k = " (it reads as kelvin: t0 is in C, like the converted data)" if 150 < float(t0) < 450 else ""
+        raise DataError(f"{name} = {t0!r} C lies {gap:.0f} C outside the training temperatures ({lo:.1f} to {hi:.1f} C)"
+                         f"{k}; the thermal parameters would be extrapolated that far. Give t0 in C within or near "
+                         f"that range, or \"mean\".")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -418,17 +444,6 @@ class PhysicsModel:
             "transforms": [dict(name=t.name, **dataclasses.asdict(t)) for t in self.transforms],
             "param_names": list(self.param_names),
         }
-
-
-def median_step(time, run=None) -> float | None:
-    """The median positive sampling step (s) of ``time`` (with ``run``: between rows of the same run); None without
-    one."""
-    steps = np.diff(np.asarray(time, np.float64))
-    if run is not None:
-        run = np.asarray(run).reshape(-1)
-        steps = steps[run[1:] == run[:-1]]
-    steps = steps[np.isfinite(steps) & (steps > 0)]
-    return float(np.median(steps)) if steps.size else None
 
 
 def restricted(model: PhysicsModel, runs) -> PhysicsModel:

@@ -199,6 +199,8 @@ def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: 
     (:func:`conformal_plan`) scales the magnitude intervals by :func:`magnitude_interval_scale`; ``None``
     keeps the Laplace predictive as it is.
     """
+    from bayesmag._src.core.physics import check_t0
+    check_t0(t0, train.temperature, "Config key 'physics.t0'")     # a kelvin t0 beside kelvin data: as the vector job
     timings = {}
     t = time.perf_counter()
     y_tr = field_target(measurement, b_ref=train.b_ref, f_ref=f_ref_train, n=train.n)
