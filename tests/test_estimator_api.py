@@ -89,8 +89,10 @@ def test_rows_without_times_get_no_rate_flags(data, frame, fitted, tmp_path):
     fitted.save(run)
     from bayesmag._src.app.apply import apply_calibration
     s = apply_calibration(run, path, tmp_path / "out.csv", n_params=10, n_qmc=16)
-    assert any("no time column" in w for w in s["warnings"])
+    assert any("no time column" in w and "time column is nan" in w for w in s["warnings"])
     assert not any(k.endswith("rate") for k in s["outside_domain_by_reason"])
+    import pandas as pd
+    assert pd.read_csv(tmp_path / "out.csv")["time"].isna().all()            # before: 0, 1, 2, ... (the row index)
 
 
 def test_network_settings_likelihood_is_honoured_or_refused():

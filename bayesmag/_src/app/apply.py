@@ -72,7 +72,8 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     if cal.domain.rate_high is not None and not data.time_given:
         warnings.append(f"{data_path} has no time column: the field and temperature rates (in_domain_reason "
                         f"field_rate / temperature_rate) were not checked (rows without times have no rate per "
-                        f"second). Give the time in seconds (a 'time' column, or --columns time=NAME) to check them.")
+                        f"second), and the output's time column is nan. Give the time in seconds (a 'time' column, "
+                        f"or --columns time=NAME) to check them.")
     pred = cal.predict(data, level=level, method=method, n_params=n_params, n_qmc=n_qmc, chunk_size=chunk_size,
                        seed=run_seed(cal), progress=progress, check_units=False,
                        warn=False)                     # checked above, said below, as the CLI says it

@@ -115,10 +115,12 @@ def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, pr
 def write_apply_csv(out_path: Path, data, columns, pred) -> None:
     """The apply output: ``time,run``, the ``(name, (n,) values)`` columns, then ``in_domain_reason`` (bit code, sum
     of :data:`REASON_CODES`; 0 inside or invalid), ``in_domain``, ``valid``; written to a temporary sibling and
-    renamed into place, so a killed process never leaves a half-written file under the name."""
+    renamed into place, so a killed process never leaves a half-written file under the name. Rows read without a time
+    column get ``nan`` times (the row index they are numbered by inside is not a time)."""
     header = ["time", "run"] + [c for c, _ in columns] + ["in_domain_reason", "in_domain", "valid"]
     code = np.array([sum(REASON_CODES[k] for k in w.split(";") if k in REASON_CODES) for w in pred["in_domain_reason"]])
-    mat = np.column_stack([data.time, data.run.astype(np.float64)] + [np.asarray(v, np.float64) for _, v in columns]
+    time = data.time if getattr(data, "time_given", True) else np.full(data.n, np.nan)
+    mat = np.column_stack([time, data.run.astype(np.float64)] + [np.asarray(v, np.float64) for _, v in columns]
                           + [code.astype(np.float64), pred["in_domain"].astype(np.float64),
                              pred["valid"].astype(np.float64)])
     fmt = ["%.6f", "%d"] + ["%.8g"] * len(columns) + ["%d", "%d", "%d"]

@@ -440,7 +440,7 @@ def field_run_error(path, error) -> None:
     does not give it a ``calibration.json`` (the message said so), so say what it is and what to use instead."""
     if is_field_run(path):
         raise error(f"{path} is a field-calibration run (calibration against |B| or a scalar reference, "
-                    f"field_params.json): `bayesmag export` and `report` take a calibration against a vector "
+                    f"field_params.json): `bayesmag export`, `bayesmag report` and bayesmag.load take a calibration against a vector "
                     f"reference. The run folder already holds its exports (calibration.export.json with the full "
                     f"model, calibration.h, .params, .parm, .magcal.json) and its report.md; `bayesmag apply` "
                     f"calibrates a new recording with it, and from Python bayesmag.load_field(run).predict(b, t) "

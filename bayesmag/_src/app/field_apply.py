@@ -117,6 +117,9 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     if bad.size:
         warnings.append(f"{bad.size} row(s) have a non-finite reading or temperature and were not calibrated "
                         f"(marked valid=false): data row(s) {_shown(bad)}.")
+    if not data.time_given:
+        warnings.append(f"{data_path} has no time column: the output's time column is nan (the rows are in file "
+                        f"order).")
     ok = pred["valid"]
     n_out = int((~pred["in_domain"] & ok).sum())
     if n_out:
