@@ -87,4 +87,4 @@ def pytest_runtest_logreport(report):
     path = os.environ.get("BAYESMAG_TEST_TIMES")
     if path:
         with open(path, "a") as f:
-            f.write(f"{report.nodeid} {report.when} {report.duration:.3f}\n")
+            f.write(f"{report.nodeid} {report.when} {report.duration:.3f} {report.outcome}\n")

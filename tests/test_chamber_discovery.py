@@ -19,7 +19,8 @@ def _lag_finding(kind, seed):
     return d, p, r, lags
 
 
-@pytest.mark.parametrize("kind,seed", [("lag_first_order", 8), ("lag_two_node", 4)])
+@pytest.mark.parametrize("kind,seed", [("lag_first_order", 8),
+                                       pytest.param("lag_two_node", 4, marks=pytest.mark.slow)])  # 230 s on 2 busy cores
 def test_minute_lag_named_with_tau_in_its_interval(kind, seed):
     """Seed 8: tau 583 s, runs with a median of 392 s (short check runs): the rule of commit
     b64e352 (reject tau > 2x the median run) threw this lag away; seed 4: a two-node heat path
@@ -105,6 +106,7 @@ def test_lag_longer_than_every_run_is_kept_when_the_runs_start_in_equilibrium():
     assert not r.unexplained, r.unexplained
 
 
+@pytest.mark.slow     # the longest default test (340 s beside the rest on 2 busy cores): run with `-m slow`
 def test_refined_lag_leaves_no_misfit_for_run_offsets():
     """independent_campaigns thermal_lag seed 10 (tau 99.07 s, se 0.15 s): refined in two rounds
     (2.2 % spacing) the search's tau was 100.5 s, and the misfit, a different mean in every run,
