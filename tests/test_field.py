@@ -401,3 +401,96 @@ def test_level_turns_without_tilt_are_refused_as_planar():
         tilted = field_campaign_from_config({"kind": "level_turns", "n": 1500, "tilt_deg": 0.25, "seed": 1,
                                              "temperature": temps}).data
         assert planar_spread(tilted.b_meas, tilted.temperature, tilted.run)[0] > 1.5
+
+
+# --------------------------------------------------------------------------- the declared field against the readings
+
+
+@pytest.fixture(scope="module")
+def two_temperature_50():
+    """The outside tester's campaign: two temperatures, 50 uT site field (the readings' |B| median is 48.8 uT)."""
+    return simulate_field("two_temperature", n=1000, sensor_seed=7, seed=1)
+
+
+@pytest.mark.parametrize("field, match", [
+    (5.0, r"The declared field F = 5 uT is 0\.1\d*x the field the readings support \(49\.\d uT after the fitted "
+          r"hard-iron offset\): the calibration it implies has gains .*not a sensor but a wrong field\. Likely cause: "
+          r"the horizontal intensity H given for the total intensity F.*a typo \(a missing digit is /10\)"),
+    (25.0, r"F = 25 uT is 0\.5\d*x the field .*Likely cause: the horizontal intensity H given for the total intensity "
+           r"F.*these readings support about 49\.\d uT"),
+    (500.0, r"F = 500 uT is 10\.\dx the field .*Likely cause: a typo \(an extra digit is x10\)"),
+    (50000.0, r"fit_field: constant field 50000\.0 is not a magnitude in uT .* looks like nT \(x1000\)"),
+])
+def test_fit_field_refuses_a_declared_field_off_by_a_factor(two_temperature_50, field, match):
+    """From Python: Constant(5.0) converged to S_xx = -0.105 with no note, Constant(25.0) (H typed for F) to gains
+    0.52 / 0.49 / 0.50 with a magnitude RMSE half the reading noise, Constant(500.0) to S_yy 0.0004, O_y 498 uT,
+    Constant(50000.0) to S_zz 11.7 (the command line refused 50000 as nT). Now each is a DataError naming the
+    declared field, the field the readings support and the likely cause (FIELD_SCALE_REFUSE, GAIN_REFUSE)."""
+    from bayesmag._src.core.data import DataError
+    d = two_temperature_50.data
+    with pytest.raises(DataError, match=match):
+        fit_field(d.b_meas, d.temperature, field_target(Constant(field), n=d.n), Constant(field))
+
+
+def test_a_declared_field_in_the_warning_band_warns_and_notes(two_temperature_50):
+    """F = 37 uT for the 49.4 uT the readings support: overall gain 0.75, between the refusal (2/3) and warning (0.8)
+    limits. The fit is returned, with a CalibrationWarning at the caller's line and the same text in its notes."""
+    from bayesmag._src.core.data import CalibrationWarning
+    d = two_temperature_50.data
+    with pytest.warns(CalibrationWarning, match=r"F = 37 uT is 0\.7\d*x .*\(overall 0\.7\d.* horizontal intensity H") as w:
+        f = fit_field(d.b_meas, d.temperature, field_target(Constant(37.0), n=d.n), Constant(37.0))
+    assert [x.filename for x in w if issubclass(x.category, CalibrationWarning)] == [__file__]
+    assert f.notes[0].startswith("The declared field F = 37 uT")
+
+
+@pytest.mark.parametrize("meas", [Constant(50.0), Scalar()], ids=["constant", "scalar"])
+def test_a_large_hard_iron_offset_and_10_percent_gains_do_not_warn(meas):
+    """Against false alarms (an independent check): the right field, readings with a 30-40 uT hard-iron offset and
+    gains 10 % off (diag 1.1, 0.9, 1.1). The raw |B| median is far from 50 uT (a naive comparison would cry wolf);
+    the fitted gains are 0.91-1.11, overall 0.96-1.0: no warning, no refusal."""
+    import warnings
+    from bayesmag._src.core.data import CalibrationWarning
+    from bayesmag._src.core.field import field_scale_check, supported_field
+    c = simulate_field("dance", n=1200, seed=4, temperature=(15.0, 35.0))
+    d = c.data
+    u = d.b_meas @ np.diag([1.1, 0.9, 1.1]) + np.array([30.0, -40.0, 35.0])
+    assert abs(np.median(np.linalg.norm(u, axis=1)) / 50.0 - 1.0) > 0.3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CalibrationWarning)
+        f = fit_field(u, d.temperature, field_target(meas, f_ref=c.f_ref, n=d.n), meas)
+    sv = np.linalg.svd(f.matrices()[0], compute_uv=False)
+    assert 0.85 < sv.min() and sv.max() < 1.2, sv
+    assert field_scale_check(f, u, c.f_ref) == ("ok", "") and not any("declared field" in n for n in f.notes)
+    assert abs(supported_field(u) / 50.0 - 1.0) < 0.1                 # the offset removed, gains averaging ~1
+
+
+def test_a_level_turn_fit_whose_vertical_drifted_is_no_evidence_of_a_wrong_field():
+    """Level turns, scalar reference with noise (seed 103): the vertical gain is the prior's answer and the refit
+    drifted to gains 0.52 / 0.51 / 0.24 (overall 0.40) while its heading intervals still cover (docs/field.md).
+    Judged on the point estimate alone it would be refused as 'a wrong field'; the limits count only beyond GAIN_Z
+    posterior sds (sd of log k here about 1.1), so it passes without a warning."""
+    import warnings
+    from bayesmag._src.core.data import CalibrationWarning
+    from bayesmag._src.core.field import gain_check, log_gain_sd
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CalibrationWarning)
+        _, f, _ = _level_turn_heading_coverage(103, 0.01)
+    g = gain_check(f.matrices()[0], f.model.measurement)
+    assert g["verdict"] == "refuse" and g["overall"] < 0.6                 # the point estimate alone: refused
+    assert gain_check(f.matrices()[0], f.model.measurement, log_gain_sd(f))["verdict"] == "ok"
+
+
+def test_a_saved_calibration_with_a_wrong_field_is_refused_when_read(two_temperature_50):
+    """A field_params.json written before the check, from a fit at H for F (gains 0.5): FieldCalibration.from_json
+    (what `bayesmag apply` and bayesmag.load_field read) refuses it, naming the gains and the declared field."""
+    from bayesmag._src.core.field_calibration import DOMAIN_KEYS, FieldCalibration
+    d = two_temperature_50.data
+    f = fit_field(d.b_meas, d.temperature, field_target(Constant(50.0), n=d.n), Constant(50.0), diagnostics=False)
+    doc = FieldCalibration(f, 1.0, 0.95, {k: (-1e3, 1e3) for k in DOMAIN_KEYS}).to_json()
+    assert FieldCalibration.from_json(doc).fit.model.measurement == Constant(50.0)
+    n_s = sum(name.startswith("S_") for name in f.param_names)
+    doc = {**doc, "theta": [0.5 * v for v in doc["theta"][:n_s]] + doc["theta"][n_s:],
+           "measurement": {**doc["measurement"], "field": 25.0}}
+    with pytest.raises(ValueError, match=r"gains \(singular values of S\) 0\.5.* are not a magnetometer's .*declared "
+                                         r"field F = 25 uT was probably wrong \(H given for the total intensity F"):
+        FieldCalibration.from_json(doc)

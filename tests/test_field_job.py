@@ -38,7 +38,9 @@ def test_field_export_reproduces_the_fit_at_tref(tmp_path):
     doc = json.loads((tmp_path / "f" / "calibration.magcal.json").read_text())
     u = res["stage"].train.b_meas[:50]
     t = np.full(50, doc["temperature_C"])
-    assert np.allclose(apply_magcal(np.array(doc["A"]), np.array(doc["b"]), u), fit.calibrate(u, t), atol=1e-8)
+    # the exports are in the symmetric frame: B_export = R^T B_gauge, i.e. row vectors B_gauge @ R
+    R = np.array(doc["field_frame"]["R"])
+    assert np.allclose(apply_magcal(np.array(doc["A"]), np.array(doc["b"]), u), fit.calibrate(u, t) @ R, atol=1e-8)
     # the accuracy table is on the run's held-out rows (it said "the run has no held-out rows"), with each form's |B|
     # error beside its per-component one (which carries the gauge rotation a magnitude fit does not determine)
     acc = json.loads((tmp_path / "f" / "calibration.export.json").read_text())["accuracy"]
@@ -389,3 +391,91 @@ def test_a_declared_field_unit_that_shrinks_the_readings_to_nothing_is_refused(t
     declared = CalibrationData(d.b_meas / 1000, d.temperature, None, d.time, d.run, "rec.csv", field_unit="nT")
     with pytest.raises(DataError, match=r"median \|B\| is .* uT; a field calibration .* Remove field_unit"):
         validate_field_data(declared, c.f_ref / 1000, scalar_column="F")
+
+
+# --------------------------------------------------------------------------- the declared field against the readings
+
+
+def _constant_cfg(tmp_path, n=1000):
+    """The outside tester's recording (two temperatures, 50 uT site, |B| median 48.8 uT) and a constant-field config."""
+    import csv
+    from bayesmag.simulate import simulate_field
+    c = simulate_field("two_temperature", n=n, sensor_seed=7, seed=1)
+    d = c.data
+    with open(tmp_path / "train.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["time", "run", "bx_meas", "by_meas", "bz_meas", "temperature"])
+        for i in range(d.n):
+            w.writerow([repr(float(v)) for v in (d.time[i], d.run[i], *d.b_meas[i], d.temperature[i])])
+    p = tmp_path / "c.toml"
+    p.write_text(f'name = "c"\n[data]\npath = "{tmp_path / "train.csv"}"\n[measurement]\nkind = "constant"\n'
+                 f'field = 50.0\nexports = ["ardupilot", "px4", "json"]\n[split]\nkind = "time_blocks"\n'
+                 f'test_fraction = 0.2\nn_blocks = 4\n[output]\nfigures = false\n')
+    return p
+
+
+@pytest.mark.parametrize("field, match", [
+    (25, r"The declared field F = 25 uT is 0\.5\d*x the field the readings support \(49\.\d uT after the fitted "
+         r"hard-iron offset\): the calibration it implies has gains \(singular values of S\) 0\.5.*Likely cause: the "
+         r"horizontal intensity H given for the total intensity F .*Set \[measurement\] field"),
+    (500, r"The declared field F = 500 uT is 10\.\dx the field .*Likely cause: a typo \(an extra digit is x10\)"),
+    (5, r"The declared field F = 5 uT is 0\.1\d*x the field .*a typo \(a missing digit is /10\)"),
+])
+def test_a_declared_field_off_by_a_factor_is_refused_and_nothing_is_written(tmp_path, capsys, field, match):
+    """field = 25 (H typed for F; |B| 48.8 uT): it ran, exit 0, gains 0.52 / 0.49 / 0.50 and a held-out RMSE half the
+    reading noise; field = 500: exit 0, S_yy -0.001, O_y 498 uT, COMPASS_OFS_Y = -1132039 exported; field = 5: 'did
+    not converge; check the data for outliers'. Now each is one line naming the declared field, the field the
+    readings support and the likely cause, exit 2, and no output folder (no firmware export)."""
+    from bayesmag._src.app.cli import main
+    cfg = _constant_cfg(tmp_path)
+    rc = main(["run", str(cfg), "--set", f"measurement.field={field}", "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "Traceback" not in err[0], err
+    assert re.search(match, err[0]), err[0]
+    assert not (tmp_path / "o").exists() and not list(tmp_path.rglob("calibration*")) and not list(tmp_path.rglob("*.parm"))
+
+
+def test_a_scalar_column_scaled_by_half_is_refused(tmp_path, capsys):
+    """A scalar column half the field (a unit or gain factor in the reference's output): it fitted gains of 0.5
+    as the constant H-for-F case did. Refused like it, naming the column's level; nothing written."""
+    from bayesmag._src.app.cli import main
+    _scalar_csv(tmp_path / "a.csv", n=1000, scale=0.5)
+    (tmp_path / "c.toml").write_text(f'name = "x"\n[data]\npath = "{tmp_path / "a.csv"}"\n[measurement]\n'
+                                     f'kind = "scalar"\nscalar_column = "F_ovh"\nexports = ["ardupilot"]\n'
+                                     f'[output]\nfigures = false\n')
+    rc = main(["run", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert re.search(r"The scalar reference \(median 2\d\.?\d* uT\) is 0\.(49|5)\d*x the field the readings support .*"
+                     r"Likely cause: a reference column in another unit or scaled", err[0]), err[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_field_fit_that_does_not_converge_names_the_declared_field(tmp_path):
+    """The job's line when the fit did not converge (it said only 'check the data for outliers'): the declared
+    field and the field the readings support come first."""
+    from bayesmag._src.app.config import load_config
+    from bayesmag._src.app.field_job import _not_converged_message
+    from bayesmag._src.core.measurement import Constant, Scalar
+    from bayesmag.simulate import simulate_field
+    d = simulate_field("dance", n=300, seed=0).data
+    mc = load_config(CONFIGS / "field_simulated.toml").measurement
+    msg = _not_converged_message(Constant(5.0), d, None, mc)
+    assert re.search(r"did not converge\. Likely cause: the declared field \(\[measurement\] field = 5 uT, while the "
+                     r"readings support about \d\d\.?\d* uT .*total intensity F in uT \(not H", msg), msg
+    assert "median 25" in _not_converged_message(Scalar(), d, np.full(d.n, 25.0), mc)
+    assert _not_converged_message(Constant(None), d, None, mc).endswith("check the data for outliers.")
+
+
+def test_a_declared_field_in_the_warning_band_is_kept_with_a_note(tmp_path, capsys):
+    """field = 38 for a site whose readings support 49.4 uT (overall gain 0.77: between the warning and refusal
+    limits): the run is written, and the warning is on stderr, in metrics.json and in the report."""
+    from bayesmag._src.app.cli import main
+    cfg = _constant_cfg(tmp_path)
+    rc = main(["run", str(cfg), "--set", "measurement.field=38", "--set", 'measurement.exports=["json"]',
+               "--set", 'measurement.interval_calibration="none"', "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 0 and err.count("The declared field F = 38 uT is 0.7") == 1, err
+    warn = json.loads((tmp_path / "o" / "metrics.json").read_text())["warnings"]
+    assert any(w.startswith("The declared field F = 38 uT") and "horizontal intensity H" in w for w in warn)
+    assert "The declared field F = 38 uT" in (tmp_path / "o" / "report.md").read_text()

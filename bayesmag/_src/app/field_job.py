@@ -267,7 +267,9 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
               f"[{nuts['sd_ratio_min']:.2f}, {nuts['sd_ratio_max']:.2f}] (parameters).",
               f"- {nuts['verdict']} (parameters and identified invariants; nuts_summary.md, nuts_summary.csv, nuts.nc)."]
     if f.get("exports"):
-        L += ["", "### Exports", "", "Written: " + ", ".join(f["exports"]) + " (coefficients in the gauge frame)."]
+        L += ["", "### Exports", "", "Written: " + ", ".join(f["exports"])
+              + " (coefficients in the symmetric frame: the gauge frame rotated by R^T, R the rotation of the polar "
+              "decomposition S = R P at T0, in calibration.export.json's field_frame; |B| unchanged; docs/field.md)."]
     return L
 
 
@@ -293,6 +295,30 @@ def _domain_warning(dom, n) -> list[str]:
     why = ", ".join(f"{k} ({v} rows)" for k, v in dom["by_reason"].items())
     return [f"{dom['n_outside']} of {n} held-out rows lie outside the training domain ({why}; in_domain=false in "
             "predictions.csv): their predictions are extrapolation and their intervals may be too narrow."]
+
+
+def _not_converged_message(meas, train, f_ref_train, mc) -> str:
+    """The job's one line when the field fit did not converge: the declared field (or the scalar column's level)
+    against the field the readings support (:func:`~bayesmag._src.core.field.supported_field`) first, as a field off
+    by a factor is the likely cause (F = 5 uT for a 49 uT site did not converge), then outliers."""
+    from bayesmag._src.core.field import supported_field
+    from bayesmag._src.core.measurement import Constant
+    f_sup = supported_field(train.b_meas)
+    if isinstance(meas, Constant) and meas.field is not None:
+        declared = f"the declared field ([measurement] field = {meas.field:g} uT"
+    elif isinstance(meas, Constant):
+        declared = None
+    else:
+        ref = (f_ref_train if f_ref_train is not None else
+               np.linalg.norm(train.b_ref, axis=1) if train.b_ref is not None else None)
+        col = f"'{mc.scalar_column}'" if mc.scalar_column else "(|B_ref|)"
+        declared = (None if ref is None else
+                    f"the scalar reference {col} (median {float(np.median(ref)):.4g} uT")
+    if declared is None:
+        return "The field fit did not converge; check the data for outliers."
+    return (f"The field fit did not converge. Likely cause: {declared}, while the readings support about "
+            f"{f_sup:.3g} uT after their hard-iron offset): give the site's total intensity F in uT (not H; IGRF/WMM), "
+            f"or a reference column in uT. Else check the data for outliers.")
 
 
 def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> dict:
@@ -344,7 +370,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     timings.update(fs.timings)
     if not fs.fit.converged:
         from bayesmag._src.pipeline.stages import CalibrationError as JobError
-        raise JobError("The field fit did not converge; check the data for outliers.")
+        raise JobError(_not_converged_message(meas, fs.train, None if f_ref is None else f_ref[split.train], mc))
     nuts = None
     if cfg.nuts.enabled:
         from bayesmag._src.core.field import field_target

@@ -38,7 +38,8 @@ from bayesmag._src.core.measurement import Constant, MeasurementModel, Scalar, V
 
 __all__ = ["FieldModel", "FieldPrior", "FieldFit", "fit_field", "invariants", "INVARIANT_NAMES",
            "IDENTIFIED_RATIO", "wrap_deg", "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty",
-           "gaussian_scores", "field_target", "heading_flagged"]
+           "gaussian_scores", "field_target", "heading_flagged", "field_scale_check", "supported_field", "gain_check",
+           "log_gain_sd"]
 
 AXES = ("x", "y", "z")
 #: posterior sd / prior sd above which an invariant counts as not identified by the recording
@@ -541,6 +542,12 @@ def _check_fit_units(u, t, target, measurement: MeasurementModel, field_unit: st
     if field_unit not in (None, "uT"):
         raise DataError(f"fit_field: field_unit = {field_unit!r}; the arrays must be in uT (convert them), and "
                         f"field_unit = 'uT' declares a genuine low-field recording.")
+    if field_unit is None and isinstance(measurement, Constant) and measurement.field is not None:
+        from bayesmag._src.core.measurement import measurement_from_spec
+        try:                            # the command line's check of [measurement] field (nT or gauss for uT)
+            measurement_from_spec("constant", measurement.field)
+        except ValueError as e:
+            raise DataError(f"fit_field: {e}") from None
     extra = ([("reference (target)", np.asarray(target).reshape(len(u), -1))]
              if isinstance(measurement, (Scalar, Vector)) else [])
     check_units(CalibrationData(u, t, None, field_unit=field_unit), origin="the arrays given to fit_field",
@@ -585,6 +592,183 @@ def planar_spread(u, t, run=None) -> tuple[float, float, float, float]:
     return (sd / noise if noise > 0 else np.inf), sd, noise, aspect
 
 
+#: The declared field against what the readings support. A magnitude fit (constant F, or a scalar column) takes its
+#: scale from the declared field: F given c times too small fits every gain c times too small, and the magnitude
+#: residuals stay as small as before (H = 25 uT typed for F = 48.8 uT: gains 0.52 / 0.49 / 0.50, held-out "RMSE"
+#: 0.026 uT, half the reading noise). So the fitted gain matrix S (readings in uT -> field) is checked against what
+#: a magnetometer is: its singular values (the gains along its principal directions; gauge-free, as magnitudes
+#: determine S only up to a rotation) and their geometric mean k = |det S|^(1/3), the overall scale that the
+#: declared field sets (F over the readings' |B| after the fitted hard-iron offset, which the offset does not enter).
+#: A sensor's factory sensitivity tolerance (a few to about 10 %) and a vehicle's soft iron (a few %, tens of % near
+#: steel), with a site field off its IGRF/WMM value by a few % (crustal anomalies, a building's steel), keep k
+#: within [0.8, 1.25]: outside that the calibration is kept with a warning naming the declared field
+#: (FIELD_SCALE_WARN). Outside [2/3, 3/2] (ArduPilot's CompassCalibrator refuses the same scale correction against
+#: the WMM field beyond COMPASS_MAX_SCALE_FACTOR = 1.5) it is not a sensor but a wrong field: H given for F at an
+#: inclination above 48 deg (H/F = cos I), a digit missing or extra, another unit; refused (FIELD_SCALE_REFUSE). A
+#: single gain outside [0.5, 2] (one direction reading half or twice what a sensor's does) is refused too
+#: (GAIN_REFUSE). These limits are judged on what the data show: a limit counts as crossed only when the estimate lies
+#: beyond it by more than GAIN_Z posterior sds (of the log gain). Where every direction was visited the sds are
+#: ~1e-3 and the limits act as they read; on level turns the vertical gain, and so k, is the prior's answer (sd of
+#: log k 0.05-0.6) and a fit whose vertical drifted (level turns, seed 103: gains 0.52 / 0.51 / 0.24, heading still
+#: covered) is no evidence of a wrong field. Whatever the sds: a non-positive diagonal of S (the fit passed through a
+#: singular M; an exported axis would be mirrored), a gain under GAIN_DEGENERATE (a 20-fold error: F = 500 uT fitted
+#: S_yy 0.0004 and O_y 498 uT) or non-finite values are a degenerate fit, refused. The hard-iron offset (tens of uT on
+#: drones) never enters: the raw |B| is not compared with F.
+FIELD_SCALE_WARN = (0.8, 1.25)
+FIELD_SCALE_REFUSE = (2.0 / 3.0, 1.5)
+GAIN_REFUSE = (0.5, 2.0)
+GAIN_DEGENERATE = 0.05
+GAIN_Z = 3.0
+
+
+def supported_field(u) -> float:
+    """The field magnitude (uT) the readings ``u`` (n, 3) support if their gains average 1: an algebraic ellipsoid fit
+    ``|U u + c| = 1`` (the fit's start, hard-iron offset removed, no temperature terms) and its geometric-mean radius
+    ``det(U)^(-1/3)``. Independent of any declared field; used to name the likely field in messages.
+
+    Example:
+      >>> rng = np.random.default_rng(0); d = rng.normal(size=(400, 3)); d /= np.linalg.norm(d, axis=1)[:, None]
+      >>> round(supported_field(48.0 * d + [30.0, -20.0, 25.0]), 3)
+      48.0
+    """
+    u = np.asarray(u, np.float64)
+    model = FieldModel(Constant(None), t0=0.0, temperature=False)
+    th = _init(model, u, np.zeros(len(u)), np.ones(len(u)))
+    S, _, O, _, extra = (np.asarray(a) for a in model.unpack(jnp.asarray(th)))
+    det = abs(float(np.linalg.det(S)))
+    if not (det > 0 and np.isfinite(det)):
+        return float(np.median(np.linalg.norm(u - np.mean(u, axis=0), axis=1)))
+    return float(np.median(np.linalg.norm(u @ S.T + O, axis=1)) / det ** (1.0 / 3.0))
+
+
+def gain_check(S, measurement: MeasurementModel, sd_log=None) -> dict:
+    """The gain matrix S (T0) of a magnitude fit against a magnetometer's, without the readings.
+
+    ``sd_log``: posterior sds of the log singular values and of log k (4,), :func:`log_gain_sd`; None: 0 (the point
+    estimate judged as it is). Returns ``verdict`` (``"ok"``, ``"warn"``, ``"refuse"``), ``gains`` (singular values
+    of S), ``overall`` (k, their geometric mean), ``degenerate`` (non-finite, a non-positive diagonal, a gain under
+    :data:`GAIN_DEGENERATE`, or a gain beyond :data:`GAIN_REFUSE` by more than :data:`GAIN_Z` sds), ``scale_bad``
+    (k beyond :data:`FIELD_SCALE_REFUSE` by more than :data:`GAIN_Z` sds; never for a fitted field, whose scale is a
+    gauge), ``scale_warn`` (the same for :data:`FIELD_SCALE_WARN`). A vector measurement is always ``"ok"``.
+
+    Example:
+      >>> gain_check(0.5 * np.eye(3), Constant(25.0))["verdict"], gain_check(np.eye(3), Constant(50.0))["verdict"]
+      ('refuse', 'ok')
+      >>> S = 0.75 * np.eye(3)        # F = 37 uT at a 49 uT site; then the same gains, each known to 10 % only
+      >>> gain_check(S, Constant(37.0))["verdict"], gain_check(S, Constant(37.0), [0.1] * 4)["verdict"]
+      ('warn', 'ok')
+    """
+    S = np.asarray(S, np.float64)
+    finite = bool(np.all(np.isfinite(S)))
+    sv = np.linalg.svd(S, compute_uv=False) if finite else np.full(3, np.nan)
+    k = abs(float(np.linalg.det(S))) ** (1.0 / 3.0) if finite else float("nan")
+    z = np.zeros(4) if sd_log is None else GAIN_Z * np.nan_to_num(np.asarray(sd_log, np.float64), nan=np.inf)
+    out = {"S": S, "gains": sv, "overall": k, "finite": finite, "degenerate": False, "scale_bad": False,
+           "scale_warn": False, "verdict": "ok"}
+    if measurement.per_row > 1:
+        return out
+
+    def beyond(v, lim, zz):                 # log v beyond [log lo, log hi] by more than zz
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lv = np.log(np.asarray(v, np.float64))
+        return bool(np.any((lv + zz < math.log(lim[0])) | (lv - zz > math.log(lim[1]))))
+
+    free = isinstance(measurement, Constant) and measurement.field is None
+    degenerate = not finite or bool(np.any(np.diag(S) <= 0) or sv.min() < GAIN_DEGENERATE
+                                    or beyond(sv, GAIN_REFUSE, z[:3]))
+    scale_bad = finite and not free and beyond(k, FIELD_SCALE_REFUSE, z[3])
+    scale_warn = finite and not free and beyond(k, FIELD_SCALE_WARN, z[3])
+    out.update(degenerate=degenerate, scale_bad=scale_bad, scale_warn=scale_warn,
+               verdict="refuse" if degenerate or scale_bad else "warn" if scale_warn else "ok")
+    return out
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _log_gains_jac(model: FieldModel, theta):
+    def g(th):
+        S = model.unpack(th)[0]
+        ls = jnp.log(jnp.abs(jnp.linalg.svd(S, compute_uv=False)))
+        return jnp.concatenate([ls, jnp.mean(ls)[None]])         # log k = mean of the log singular values
+    return jax.jacfwd(g)(theta)
+
+
+def log_gain_sd(fit: "FieldFit") -> np.ndarray:
+    """Posterior sds (delta method, the fit's covariance) of the log singular values of S and of log k (4,); inf
+    where they cannot be computed (a degenerate S)."""
+    try:
+        G = np.asarray(_log_gains_jac(_static(fit.model), jnp.asarray(fit.theta)))
+        sd = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", G, np.asarray(fit.cov), G), 0, None))
+    except (ValueError, np.linalg.LinAlgError):
+        return np.full(4, np.inf)
+    return np.where(np.isfinite(sd), sd, np.inf)
+
+
+def field_scale_check(fit: "FieldFit", u, target=None) -> tuple[str, str]:
+    """``(verdict, message)`` of a magnitude fit's gains against a magnetometer's (:data:`FIELD_SCALE_WARN`,
+    :data:`FIELD_SCALE_REFUSE`, :data:`GAIN_REFUSE`): ``"ok"`` (message ''), ``"warn"`` or ``"refuse"``, the message
+    naming the declared field (a scalar ``target``: its median level), the gains found, the field the readings ``u``
+    support (:func:`supported_field`), the likely cause and the fix. A vector fit is ``"ok"`` (its reference fixes
+    every gain); with a fitted field (``Constant(None)``, trace(S) = 3) only a degenerate fit is refused.
+    """
+    meas = fit.model.measurement
+    g = gain_check(fit.matrices()[0], meas)          # the point estimate: "ok" there is "ok" at any sd
+    if g["verdict"] != "ok":
+        g = gain_check(fit.matrices()[0], meas, log_gain_sd(fit))
+    if g["verdict"] == "ok":
+        return "ok", ""
+    S, sv, k, finite = g["S"], g["gains"], g["overall"], g["finite"]
+    degenerate, scale_bad = g["degenerate"], g["scale_bad"]
+    free = isinstance(meas, Constant) and meas.field is None
+    gains = (f"{', '.join(f'{v:.3g}' for v in sv)} (overall {k:.3g}; diagonal "
+             f"{' / '.join(f'{v:.3g}' for v in np.diag(S))})") if finite else "not finite"
+    conv = "" if fit.converged else " (and the fit did not converge)"
+    sensor = ("an uncalibrated magnetometer's are within tens of percent of 1 (overall "
+              f"{FIELD_SCALE_WARN[0]:g}-{FIELD_SCALE_WARN[1]:g}, each {GAIN_REFUSE[0]:g}-{GAIN_REFUSE[1]:g}, "
+              "diagonal positive)")
+    if free:
+        return "refuse", (f"The field fit is degenerate{conv}: its gains (singular values of S) are {gains}, where "
+                          f"{sensor}. Check the data for outliers and the motion (tilt or tumble so the field sweeps "
+                          f"every direction); docs/field.md.")
+    f_sup = supported_field(u)
+    f_val = (float(meas.field) if isinstance(meas, Constant) else
+             float(np.median(np.asarray(target, np.float64))) if target is not None else float("nan"))
+    r = f_val / f_sup if f_sup > 0 else float("nan")
+    if isinstance(meas, Constant):
+        what = f"The declared field F = {f_val:.4g} uT"
+        if r < 1:
+            cause = ("the horizontal intensity H given for the total intensity F (H = F cos(inclination): 0.5 F at 60 "
+                     "deg) or the vertical component Z" + (", or a typo (a missing digit is /10)" if r < 0.3 else ""))
+        else:
+            cause = ("a typo (an extra digit is x10) or a field in another unit" if r > 3
+                     else "a typo or another site's field")
+        fix = (f"Set [measurement] field (fit_field: Constant(F)) to the site's total intensity F in uT (IGRF/WMM "
+               f"'F'; these readings support about {f_sup:.3g} uT if their gains average 1), or field = \"free\" for "
+               f"a relative calibration")
+    else:
+        what = f"The scalar reference (median {f_val:.4g} uT)"
+        cause = ("a reference column in another unit or scaled (a unit or gain factor in the scalar magnetometer's "
+                 "output), or a column that is not the total field (a component, H)")
+        fix = (f"Convert or correct the reference column (these readings support about {f_sup:.3g} uT if their "
+               f"gains average 1)")
+    ratio = f"{r:.3g}x" if np.isfinite(r) else "not"
+    head = f"{what} is {ratio} the field the readings support ({f_sup:.3g} uT after the fitted hard-iron offset)"
+    field_off = not FIELD_SCALE_REFUSE[0] <= r <= FIELD_SCALE_REFUSE[1]
+    if scale_bad or (degenerate and field_off):
+        kind = "" if scale_bad else " degenerate"
+        return "refuse", (f"{head}: the{kind} calibration it implies has gains (singular values of S) {gains}{conv}, "
+                          f"where {sensor}; that is not a sensor but a wrong field. Likely cause: {cause}. {fix}. "
+                          f"Refused: no calibration is kept (docs/field.md, the declared field).")
+    if degenerate:
+        return "refuse", (f"The field fit is degenerate{conv}: its gains (singular values of S) are {gains}, where "
+                          f"{sensor}. {head}, so the field is not the likely cause; check the data for outliers and "
+                          f"the motion (tilt or tumble so the field sweeps every direction); docs/field.md.")
+    return "warn", (f"{head}: the calibration it implies has gains (singular values of S) {gains}, the overall "
+                    f"gain outside the {FIELD_SCALE_WARN[0]:g}-{FIELD_SCALE_WARN[1]:g} a magnetometer's sensitivity "
+                    f"tolerance and a vehicle's soft iron usually give. Check the declared field: likely cause {cause}; "
+                    f"a local anomaly or a building's steel can also move the site's field. Kept; if the field is wrong "
+                    f"every gain, offset and export is wrong by the same factor. {fix}.")
+
+
 def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = "mean",
               temperature_terms: bool | str = "auto", covariance: str = "white", run=None,
               prior: FieldPrior = FieldPrior(), keep=None, start: "FieldFit | None" = None,
@@ -610,6 +794,12 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
       With ``Scalar(ref_sd > 0)``: the 1/g fit is a pilot, then one solve weighted by 1/sqrt(g^2 + kappa^2) with the
       pilot's noise level, the sandwich covariance, kept unless a gain S_ii leaves 1 +- 3.29 prior sd
       (``FieldFit.weighting`` says which; docs/field.md).
+      With ``diagnostics``, the fitted gains are checked against a magnetometer's (:func:`field_scale_check`): a
+      declared field (``Constant(F)``) or scalar reference that implies an overall gain outside
+      :data:`FIELD_SCALE_REFUSE`, a gain outside :data:`GAIN_REFUSE` or a non-positive diagonal raises ``DataError``
+      naming the declared field and the likely cause (H for F, a unit); outside :data:`FIELD_SCALE_WARN` the fit is
+      returned with a :class:`~bayesmag.CalibrationWarning` (and the same text in ``notes``). ``Constant(F)`` with F
+      outside 1-2000 uT is refused before fitting, as the command line does (unless ``field_unit="uT"``).
     Returns:
       :class:`FieldFit`.
 
@@ -718,9 +908,21 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
                     kappa2, weighting)
     if not diagnostics:
         return fit0
+    # the declared field (or the scalar column's level) against what the readings support: FIELD_SCALE_REFUSE
+    verdict, why = field_scale_check(fit0, u[kp], target[kp])
+    if verdict == "refuse":
+        from bayesmag._src.core.data import DataError
+        raise DataError(why)
     cov_diag = direction_coverage(fit0.calibrate(u[kp], t[kp]), t[kp])
     fit1 = dataclasses.replace(fit0, coverage=cov_diag)
-    return dataclasses.replace(fit1, notes=tuple(identifiability_notes(fit1, cov_diag)))
+    notes = identifiability_notes(fit1, cov_diag)
+    if verdict == "warn":
+        import warnings
+
+        from bayesmag._src.core.data import CalibrationWarning, user_stacklevel
+        warnings.warn(why, CalibrationWarning, stacklevel=user_stacklevel())
+        notes = [why] + notes
+    return dataclasses.replace(fit1, notes=tuple(notes))
 
 
 # --------------------------------------------------------------------------- diagnostics

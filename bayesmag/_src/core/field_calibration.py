@@ -160,4 +160,20 @@ class FieldCalibration:
         if bad:
             raise ValueError(f"field_params.json: domain_ranges {bad} must be finite [low, high] with low < high")
         column = p.get("scalar_column")
+        # the gains fit_field now refuses (a declared field off by a factor: H for F, a unit; or a degenerate fit) in
+        # a file written before that check: applying it would scale every field by the same wrong factor
+        from bayesmag._src.core.field import FIELD_SCALE_REFUSE, GAIN_REFUSE, gain_check, log_gain_sd
+        meas = fit.model.measurement
+        g = gain_check(fit.matrices()[0], meas)      # the point estimate first: "ok" there is "ok" at any sd
+        if g["verdict"] == "refuse":
+            g = gain_check(fit.matrices()[0], meas, log_gain_sd(fit))
+        if g["verdict"] == "refuse":
+            declared = (f"field F = {meas.field:g} uT" if getattr(meas, "field", None) is not None else
+                        "scalar reference" if meas.name == "scalar" else "field (fitted)")
+            raise ValueError(f"field_params.json: the gains (singular values of S) "
+                             f"{', '.join(f'{v:.3g}' for v in g['gains'])} (overall {g['overall']:.3g}) are not a "
+                             f"magnetometer's (overall {FIELD_SCALE_REFUSE[0]:.3g}-{FIELD_SCALE_REFUSE[1]:g}, each "
+                             f"{GAIN_REFUSE[0]:g}-{GAIN_REFUSE[1]:g}, diagonal positive): the run's declared {declared} "
+                             f"was probably wrong (H given for the total intensity F, or another unit) or its fit "
+                             f"degenerate; re-run `bayesmag run` with the site's total intensity F in uT")
         return cls(fit, scale, level, ranges, column if isinstance(column, str) and column else None)
