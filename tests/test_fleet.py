@@ -547,22 +547,29 @@ def test_a_coverage_limit_in_percent_is_refused():
     assert cfg.limits.min_coverage == 1
 
 
+def _write_recordings(tmp_path, prefix, recs, column, change, rename=None):
+    """``recs/<prefix><k>.csv`` for each recording, ``column``'s values passed through ``change`` and the header
+    renamed by ``rename`` (a logger's own units and names)."""
+    import csv
+    from bayesmag._src.core.data import write_csv
+    (tmp_path / "recs").mkdir()
+    for k, r in enumerate(recs):
+        path = tmp_path / "recs" / f"{prefix}{k}.csv"
+        write_csv(r, path)
+        rows = list(csv.reader(open(path)))
+        c = rows[0].index(column)
+        for row in rows[1:]:
+            row[c] = repr(change(float(row[c])))
+        rows[0] = [(rename or {}).get(h, h) for h in rows[0]]
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows(rows)
+
+
 def test_fleet_data_table_reads_kelvin_and_mapped_columns(tmp_path, capsys):
     """The kelvin error said 'Set [data] temperature_unit = "K"' and a missing column suggested [data.columns], and
     the fleet config refused key 'data': both now apply to every recording (and to export's reload)."""
-    import csv
-    from bayesmag._src.core.data import write_csv
-    recs, _ = simulate_fleet(2, 700, seed=2, n_defective=0)
-    (tmp_path / "recs").mkdir()
-    for k, r in enumerate(recs):
-        write_csv(r, tmp_path / "recs" / f"K{k}.csv")
-        rows = list(csv.reader(open(tmp_path / "recs" / f"K{k}.csv")))
-        t = rows[0].index("temperature")
-        rows[0][rows[0].index("bx_meas")] = "Bx"
-        for row in rows[1:]:
-            row[t] = repr(float(row[t]) + 273.15)
-        with open(tmp_path / "recs" / f"K{k}.csv", "w", newline="") as f:
-            csv.writer(f).writerows(rows)
+    _write_recordings(tmp_path, "K", simulate_fleet(2, 700, seed=2, n_defective=0)[0], "temperature",
+                      lambda v: v + 273.15, rename={"bx_meas": "Bx"})
     cfg = tmp_path / "f.toml"
     cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\n')
     capsys.readouterr()
@@ -587,18 +594,8 @@ def test_fleet_data_time_unit_reads_millisecond_stamps(tmp_path):
     """A fleet's recordings stamped in ms: `[data] time_unit = "ms"` converts them to seconds, as a run's does
     (the fleet config refused the key); the sensor folder's predictions carry seconds; a unit outside the set is
     refused naming it."""
-    import csv
-    from bayesmag._src.core.data import write_csv
     recs, _ = simulate_fleet(2, 700, seed=4, n_defective=0)
-    (tmp_path / "recs").mkdir()
-    for k, r in enumerate(recs):
-        write_csv(r, tmp_path / "recs" / f"M{k}.csv")
-        rows = list(csv.reader(open(tmp_path / "recs" / f"M{k}.csv")))
-        t = rows[0].index("time")
-        for row in rows[1:]:
-            row[t] = repr(float(row[t]) * 1000.0)
-        with open(tmp_path / "recs" / f"M{k}.csv", "w", newline="") as f:
-            csv.writer(f).writerows(rows)
+    _write_recordings(tmp_path, "M", recs, "time", lambda v: v * 1000.0)
     cfg = tmp_path / "f.toml"
     cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\n[data]\ntime_unit = "ms"\n')
     assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
