@@ -278,3 +278,20 @@ def test_vector_only_options_and_a_missing_field_params_file_are_named(field_run
                  "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "field_params.json is missing from this field-calibration run" in err, err
+
+
+def test_another_sites_field_is_named_as_such_not_as_extrapolation(tmp_path):
+    """A flight of the same sensor at a site whose field is 48 uT (training: 50 uT): every row was flagged
+    `magnitude` with "their values are extrapolation and their intervals may be far too narrow", while the
+    magnitude intervals covered 95 % there. The flag stays; the warning now says what a whole recording flagged
+    only for its magnitude usually is."""
+    from bayesmag._src.app.apply import apply_calibration
+    from bayesmag.simulate import simulate_field
+    train = simulate_field("two_temperature", n=2000, sensor_seed=7, seed=1)
+    site = simulate_field("two_temperature", n=1000, sensor_seed=7, seed=9, field=48.0)
+    bayesmag.run_job(_cfg(_write(tmp_path / "train.csv", train, range(2000))), tmp_path / "run")
+    s = apply_calibration(tmp_path / "run", _write(tmp_path / "site.csv", site, range(1000)), tmp_path / "o.csv")
+    assert s["outside_domain_by_reason"] == {"magnitude": s["n_outside_domain"]} and s["n_outside_domain"] > 900
+    msg = next(w for w in s["warnings"] if "in_domain=false" in w)
+    assert "flagged magnitude (in_domain=false) only" in msg and "another site" in msg and "extrapolation" not in msg
+    assert s["magnitude_metrics"]["coverage"] >= 0.9                     # the calibration holds there

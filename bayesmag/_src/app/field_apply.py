@@ -70,6 +70,23 @@ def _unit_mismatch(ref, magnitude, origin) -> str | None:
             f"unit (--field-unit converts both).")
 
 
+def _domain_warning(pred, ok, n_out: int, n: int, trained) -> str:
+    """The out-of-domain warning; when only the predicted magnitude is outside training's (readings and temperature
+    inside), it says what that usually is -- another site's field or a local disturbance -- rather than that the
+    rows are extrapolated (every row of a flight 4 % away from a constant-F site was flagged so, while its magnitude
+    intervals covered 95 %)."""
+    reasons = np.asarray(pred["in_domain_reason"]).astype(str)[~np.asarray(pred["in_domain"]) & ok]
+    if trained is not None and reasons.size and np.all(reasons == "magnitude"):
+        mag = float(np.median(np.asarray(pred["magnitude"])[~np.asarray(pred["in_domain"]) & ok]))
+        return (f"{n_out} of {n} rows are flagged magnitude (in_domain=false) only: their calibrated |B| (median "
+                f"{mag:.4g} uT) lies outside the magnitudes training saw ({trained[0]:.4g} to {trained[1]:.4g} uT) "
+                f"while their readings and temperatures lie inside. A whole recording so is usually another site's "
+                f"field (IGRF/WMM differ by site) and the calibration holds; scattered rows are a local disturbance "
+                f"(steel, currents), which the calibration cannot remove.")
+    return (f"{n_out} of {n} rows lie outside the field calibration's training domain (in_domain=false): their "
+            f"values are extrapolation and their intervals may be far too narrow.")
+
+
 def apply_field_calibration(model_dir, data_path, out_path, *, level=None, temperature_unit="C", field_unit=None,
                             time_unit="s",
                             columns=None, force: bool = False, method: str = "auto", n_params: int = 100,
@@ -123,8 +140,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     ok = pred["valid"]
     n_out = int((~pred["in_domain"] & ok).sum())
     if n_out:
-        warnings.append(f"{n_out} of {data.n} rows lie outside the field calibration's training domain "
-                        f"(in_domain=false): their values are extrapolation and their intervals may be far too narrow.")
+        warnings.append(_domain_warning(pred, ok, n_out, data.n, cal.ranges.get("magnitude") if cal.ranges else None))
     meas = cal.fit.model.measurement
     relative = bool(getattr(meas, "scale_gauge", False))
     if relative:
