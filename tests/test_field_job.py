@@ -20,13 +20,14 @@ def test_field_simulated_config_end_to_end(tmp_path):
     res = bayesmag.run_job(cfg, tmp_path / "f")
     m = res["metrics"]["field"]
     names = {p.name for p in (tmp_path / "f").iterdir()}
-    assert {"field_params.json", "metrics.json", "predictions.csv", "report.md", "calibration.h",
+    assert {"field_params.json", "metrics.json", "predictions.csv", "report.md", "report.html", "calibration.h",
             "calibration.parm", "calibration.params", "calibration.magcal.json", "calibration.export.json"} <= names
     assert m["scores"]["rmse"] < 0.1 and 0.85 <= m["scores"]["coverage"] <= 1.0
     assert m["heading"]["rmse_deg"] < 0.5 and m["heading"]["coverage"] >= 0.85
     assert m["truth_check"]["identified"] == 18
     report = (tmp_path / "f" / "report.md").read_text()
     assert "## Field calibration" in report and "Gauge" in report and "Heading check" in report
+    assert "Field calibration</h2>" in (tmp_path / "f" / "report.html").read_text()     # the HTML copy a run has
 
 
 def test_field_export_reproduces_the_fit_at_tref(tmp_path):
