@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import bayesmag
+from bayesmag._src.app.apply import apply_calibration
 from bayesmag._src.app.cli import main
 from bayesmag._src.core.field_calibration import DOMAIN_KEYS, FieldCalibration
 
@@ -78,7 +79,7 @@ def test_a_new_recording_of_the_same_sensor_is_calibrated_to_the_truth(field_run
     vector equal to the true field up to one rotation (the gauge; Procrustes), rows above training's temperature
     flagged with code 2."""
     c, tmp = field_run["c"], field_run["tmp"]
-    s = bayesmag._src.app.apply.apply_calibration(field_run["run"], field_run["new"], tmp / "b.csv")
+    s = apply_calibration(field_run["run"], field_run["new"], tmp / "b.csv")
     head, a = _read(tmp / "b.csv")
     col = {h: a[:, j] for j, h in enumerate(head)}
     idx = np.arange(1500, 2100)
@@ -178,7 +179,6 @@ def test_a_field_run_on_dask_says_what_to_do(field_run, tmp_path, capsys):
 
 
 def test_a_free_field_calibration_says_its_magnitudes_are_relative(tmp_path):
-    from bayesmag._src.app.apply import apply_calibration
     from bayesmag._src.app.config import config_from_dict
     from bayesmag.simulate import simulate_field
     c = simulate_field("dance", n=900, seed=1, temperature=(15.0, 35.0))
@@ -268,7 +268,7 @@ def test_the_reference_column_is_scored_where_it_can_be_and_said_where_not(field
 
 def test_vector_only_options_and_a_missing_field_params_file_are_named(field_run, tmp_path, capsys):
     import shutil
-    s = bayesmag._src.app.apply.apply_calibration(field_run["run"], field_run["new"], tmp_path / "o.csv",
+    s = apply_calibration(field_run["run"], field_run["new"], tmp_path / "o.csv",
                                                   method="psqmc", n_qmc=10)
     assert any("--uq, --n-qmc" in w and "ignored" in w for w in s["warnings"]), s["warnings"]
     run = tmp_path / "run"
@@ -285,7 +285,6 @@ def test_another_sites_field_is_named_as_such_not_as_extrapolation(tmp_path):
     `magnitude` with "their values are extrapolation and their intervals may be far too narrow", while the
     magnitude intervals covered 95 % there. The flag stays; the warning now says what a whole recording flagged
     only for its magnitude usually is."""
-    from bayesmag._src.app.apply import apply_calibration
     from bayesmag.simulate import simulate_field
     train = simulate_field("two_temperature", n=2000, sensor_seed=7, seed=1)
     site = simulate_field("two_temperature", n=1000, sensor_seed=7, seed=9, field=48.0)
