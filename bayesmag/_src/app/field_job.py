@@ -430,7 +430,8 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                  f"Data: {data.source} ({data.n} rows). Gauge: {gauge_text(meas)}.", ""]
         lines += field_report_lines(metrics, params)
         lines += [""] + [f"![{Path(p).stem}]({p})" for p in figures]
-        (tmp / "report.md").write_text("\n".join(lines) + "\n")
-        from bayesmag._src.app.report import render_html       # the same content, figures embedded, to hand over
-        (tmp / "report.html").write_text(render_html("\n".join(lines) + "\n", tmp))
+        from bayesmag._src.app.report import render_html
+        text = "\n".join(lines) + "\n"
+        (tmp / "report.md").write_text(text)
+        (tmp / "report.html").write_text(render_html(text, tmp))      # the same content, figures embedded
     return {"config": cfg, "stage": fs, "metrics": metrics, "params": params, "campaign": campaign}

@@ -39,7 +39,7 @@ from bayesmag._src.core.measurement import Constant, MeasurementModel, Scalar, V
 __all__ = ["FieldModel", "FieldPrior", "FieldFit", "fit_field", "invariants", "INVARIANT_NAMES",
            "IDENTIFIED_RATIO", "wrap_deg", "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty",
            "gaussian_scores", "field_target", "heading_flagged", "field_scale_check", "supported_field", "gain_check",
-           "log_gain_sd"]
+           "log_gain_sd", "judge_gains"]
 
 AXES = ("x", "y", "z")
 #: posterior sd / prior sd above which an invariant counts as not identified by the recording
@@ -703,6 +703,14 @@ def log_gain_sd(fit: "FieldFit") -> np.ndarray:
     return np.where(np.isfinite(sd), sd, np.inf)
 
 
+def judge_gains(fit: "FieldFit") -> dict:
+    """:func:`gain_check` of a fit's S (T0) as the data show it: the point estimate first ("ok" there is "ok" at any
+    sd), else again with the posterior sds (:func:`log_gain_sd`), which can only soften the verdict."""
+    S, meas = fit.matrices()[0], fit.model.measurement
+    g = gain_check(S, meas)
+    return g if g["verdict"] == "ok" else gain_check(S, meas, log_gain_sd(fit))
+
+
 def field_scale_check(fit: "FieldFit", u, target=None) -> tuple[str, str]:
     """``(verdict, message)`` of a magnitude fit's gains against a magnetometer's (:data:`FIELD_SCALE_WARN`,
     :data:`FIELD_SCALE_REFUSE`, :data:`GAIN_REFUSE`): ``"ok"`` (message ''), ``"warn"`` or ``"refuse"``, the message
@@ -711,9 +719,7 @@ def field_scale_check(fit: "FieldFit", u, target=None) -> tuple[str, str]:
     every gain); with a fitted field (``Constant(None)``, trace(S) = 3) only a degenerate fit is refused.
     """
     meas = fit.model.measurement
-    g = gain_check(fit.matrices()[0], meas)          # the point estimate: "ok" there is "ok" at any sd
-    if g["verdict"] != "ok":
-        g = gain_check(fit.matrices()[0], meas, log_gain_sd(fit))
+    g = judge_gains(fit)
     if g["verdict"] == "ok":
         return "ok", ""
     S, sv, k, finite = g["S"], g["gains"], g["overall"], g["finite"]
@@ -725,10 +731,13 @@ def field_scale_check(fit: "FieldFit", u, target=None) -> tuple[str, str]:
     sensor = ("an uncalibrated magnetometer's are within tens of percent of 1 (overall "
               f"{FIELD_SCALE_WARN[0]:g}-{FIELD_SCALE_WARN[1]:g}, each {GAIN_REFUSE[0]:g}-{GAIN_REFUSE[1]:g}, "
               "diagonal positive)")
-    if free:
+
+    def degenerate_fit(why: str = "") -> tuple[str, str]:
         return "refuse", (f"The field fit is degenerate{conv}: its gains (singular values of S) are {gains}, where "
-                          f"{sensor}. Check the data for outliers and the motion (tilt or tumble so the field sweeps "
-                          f"every direction); docs/field.md.")
+                          f"{sensor}.{why} Check the data for outliers and the motion (tilt or tumble so the field "
+                          f"sweeps every direction); docs/field.md.")
+    if free:
+        return degenerate_fit()
     f_sup = supported_field(u)
     f_val = (float(meas.field) if isinstance(meas, Constant) else
              float(np.median(np.asarray(target, np.float64))) if target is not None else float("nan"))
@@ -759,9 +768,7 @@ def field_scale_check(fit: "FieldFit", u, target=None) -> tuple[str, str]:
                           f"where {sensor}; that is not a sensor but a wrong field. Likely cause: {cause}. {fix}. "
                           f"Refused: no calibration is kept (docs/field.md, the declared field).")
     if degenerate:
-        return "refuse", (f"The field fit is degenerate{conv}: its gains (singular values of S) are {gains}, where "
-                          f"{sensor}. {head}, so the field is not the likely cause; check the data for outliers and "
-                          f"the motion (tilt or tumble so the field sweeps every direction); docs/field.md.")
+        return degenerate_fit(f" {head}, so the field is not the likely cause.")
     return "warn", (f"{head}: the calibration it implies has gains (singular values of S) {gains}, the overall "
                     f"gain outside the {FIELD_SCALE_WARN[0]:g}-{FIELD_SCALE_WARN[1]:g} a magnetometer's sensitivity "
                     f"tolerance and a vehicle's soft iron usually give. Check the declared field: likely cause {cause}; "

@@ -162,11 +162,9 @@ class FieldCalibration:
         column = p.get("scalar_column")
         # the gains fit_field now refuses (a declared field off by a factor: H for F, a unit; or a degenerate fit) in
         # a file written before that check: applying it would scale every field by the same wrong factor
-        from bayesmag._src.core.field import FIELD_SCALE_REFUSE, GAIN_REFUSE, gain_check, log_gain_sd
+        from bayesmag._src.core.field import FIELD_SCALE_REFUSE, GAIN_REFUSE, judge_gains
         meas = fit.model.measurement
-        g = gain_check(fit.matrices()[0], meas)      # the point estimate first: "ok" there is "ok" at any sd
-        if g["verdict"] == "refuse":
-            g = gain_check(fit.matrices()[0], meas, log_gain_sd(fit))
+        g = judge_gains(fit)
         if g["verdict"] == "refuse":
             declared = (f"field F = {meas.field:g} uT" if getattr(meas, "field", None) is not None else
                         "scalar reference" if meas.name == "scalar" else "field (fitted)")
