@@ -69,6 +69,7 @@ def in_process(cal_dir, archive):
 
 
 @pytest.mark.parametrize("source, blocksize", [("pq", 0), ("csv/*.csv", 9000)])
+@pytest.mark.extended
 def test_dask_apply_equals_in_process_apply(cal_dir, archive, cluster, in_process, tmp_path, source, blocksize):
     kw = {"blocksize": blocksize} if blocksize else {}
     s = apply_dask(cal_dir, str(archive / source), tmp_path / "out", scheduler=cluster, **kw)
@@ -85,6 +86,7 @@ def test_dask_apply_equals_in_process_apply(cal_dir, archive, cluster, in_proces
 
 
 @pytest.mark.parametrize("fmt", ["parquet", "csv"])
+@pytest.mark.extended
 def test_rate_flags_at_partition_boundaries_equal_the_whole_file(cal_dir, cluster, tmp_path, fmt):
     """Field spikes make the neighbours' rates out of domain; with many partitions, rows at the boundaries still get
     the whole-file apply's flags (each partition is predicted with the file rows just before and after it)."""
@@ -219,6 +221,7 @@ def hysteresis_cal(tmp_path_factory):
 
 
 @pytest.mark.parametrize("case", ["hysteresis", "thermal_lag"])
+@pytest.mark.extended
 def test_rows_that_depend_on_neighbours_equal_the_whole_file(cluster, tmp_path, hysteresis_cal, case):
     """A hysteresis state (set by earlier rows) and a thermal lag (remembering about 45 tau of rows on each side)
     span partitions: each partition is predicted with the neighbouring partitions these need, so 100-row (250 for
@@ -272,6 +275,7 @@ def test_an_unset_hysteresis_state_is_a_warning(hysteresis_cal, tmp_path, monkey
     assert near["warnings"][0] == ""
 
 
+@pytest.mark.extended
 def test_a_hierarchical_calibration_keeps_its_row_wise_transfer_column(cluster, tmp_path):
     """The hierarchical session model's transfer sd depends on the row: the archive apply writes it as the
     in-process apply does (before, its columns were chosen from the saved constant transfer sd, which such a

@@ -70,6 +70,7 @@ def test_a_hysteresis_calibration_runs_and_applies_in_chunks_as_one_piece(tmp_pa
         np.testing.assert_allclose(chunked[k], whole[k], rtol=1e-12, atol=0, err_msg=k)
 
 
+@pytest.mark.extended
 def test_a_thermal_lag_calibration_applies_in_chunks_as_one_piece(tmp_path):
     """The input transforms see a series: applied in 700-row chunks, each chunk is predicted with the rows its
     thermal lag remembers on both sides (45 tau; here tau about 70 s at 1 s steps), so the result is that of one
@@ -195,6 +196,7 @@ def test_report_written_and_regenerated(tmp_path, capsys):
 @pytest.mark.parametrize("likelihood,fourier,extra", [
     ("gaussian", 0, {}), ("student_t", 0, {}),
     ("gaussian", 8, {"validation": "time_blocks", "recalibrate": True})])
+@pytest.mark.extended
 def test_hybrid_calibration_round_trip(tmp_path, likelihood, fourier, extra):
     """A run with the residual network: save -> load -> apply reproduces the run's hybrid predictions."""
     net = {"enabled": True, "likelihoods": [likelihood], "hidden_layers": 2, "width": 16, "batch_size": 128,
@@ -362,6 +364,7 @@ def test_tampered_ensemble_is_refused_naming_the_field(ensemble_run, tmp_path, c
         load(run)
 
 
+@pytest.mark.extended
 def test_a_thermal_lag_job_is_fitted_and_scored_within_the_recording(tmp_path):
     """The held-out time blocks of a split are rows of the recording: a model with a thermal lag is fitted on the
     training rows within it and predicts the test rows within it, i.e. as the saved calibration predicts the whole

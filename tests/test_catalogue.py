@@ -69,6 +69,7 @@ def test_config_spec_with_parameters():
         make_extra({"name": "cubic_nonlinearity", "power": 3})
 
 
+@pytest.mark.extended
 def test_timing_and_lag_recovered_by_lm():
     d = simulate(2000, design="campaign", seed=2, effects=[get_effect("thermal_lag", tau=30.0),
                                                            get_effect("timing_offset", delta=0.5)])
@@ -204,6 +205,7 @@ def test_t0_is_the_models_one_source():
 
 @pytest.mark.parametrize("mode", ["excursion", "direction"])
 @pytest.mark.parametrize("across_runs", [False, True])
+@pytest.mark.extended
 def test_hysteresis_settled_piece_gives_the_whole_series_state(mode, across_runs):
     """``history_settled(piece)`` promises that the state at the piece's last row is the whole series' state there
     (a piece of a recording then needs no earlier rows: apply on Dask relies on it). Checked on every (start, end)

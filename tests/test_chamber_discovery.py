@@ -21,6 +21,7 @@ def _lag_finding(kind, seed):
 
 @pytest.mark.parametrize("kind,seed", [("lag_first_order", 8),
                                        pytest.param("lag_two_node", 4, marks=pytest.mark.slow)])  # 230 s on 2 busy cores
+@pytest.mark.extended
 def test_minute_lag_named_with_tau_in_its_interval(kind, seed):
     """Seed 8: tau 583 s, runs with a median of 392 s (short check runs): the rule of commit
     b64e352 (reject tau > 2x the median run) threw this lag away; seed 4: a two-node heat path
@@ -37,6 +38,7 @@ def test_minute_lag_named_with_tau_in_its_interval(kind, seed):
     assert not r.unexplained, r.unexplained
 
 
+@pytest.mark.extended
 def test_clean_chamber_campaign_has_no_finding():
     d, p = campaign("clean", 0)
     r = discover(d, figures=False)
@@ -87,6 +89,7 @@ def test_lag_grid_and_plausibility_follow_the_longest_heated_run():
     assert np.exp(ThermalLag.grid(short, None)[-1].nl) == pytest.approx(200.0)
 
 
+@pytest.mark.extended
 def test_lag_longer_than_every_run_is_kept_when_the_runs_start_in_equilibrium():
     """Issue #25's first rule ("not identified" beyond the longest heated run) threw away a lag
     b64e352's rule (2x the median run) kept: independent_campaigns thermal_lag seed 7 has runs of

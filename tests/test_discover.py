@@ -29,6 +29,7 @@ def _indep(kind, seed=0, n=N, **kw):
     return d, p, discover(d, figures=False, seed=seed, **kw)
 
 
+@pytest.mark.extended
 def test_clean_data_no_missing_physics_both_generators():
     for d in (simulate(N, design="campaign", seed=0), campaign("clean", 0, n=N)[0]):
         r = discover(d, figures=False)
@@ -36,6 +37,7 @@ def test_clean_data_no_missing_physics_both_generators():
         assert r.to_json()["no_missing_physics"] is True
 
 
+@pytest.mark.extended
 def test_one_channel_distortion_is_one_finding_on_its_channel():
     """z reading gains a*B_j^2: one finding, channel z, seen in the outputs through S."""
     d, p, r = _indep("axis_quadratic", seed=0)
@@ -70,6 +72,7 @@ def test_periodic_interference_is_unexplained_on_its_channel_with_time_scale():
     assert {x["channel"] for x in r.unexplained} == {p.channel}
 
 
+@pytest.mark.extended
 def test_per_run_offset_is_named():
     d, p, r = _indep("run_offset", seed=0)
     assert [(f["effect"], f["channel"]) for f in r.findings] == [("run_offset", p.channel)], r.findings
@@ -86,6 +89,7 @@ def _step_in_one_run(seed, run_k=2, factor=8.0):
     return bayesmag.CalibrationData(u, d.temperature, d.b_ref, d.time, d.run, "step in one run"), "xyz"[ch], step
 
 
+@pytest.mark.extended
 def test_step_inside_a_run_is_located_sized_and_named():
     """A clean independent campaign whose channel-0 reading steps by 10 x its noise sd 40 % of
     the way through run 1 and stays stepped to the run's end (a set/reset flip): named run_step
@@ -139,6 +143,7 @@ def test_step_confined_to_one_run_is_named_on_its_channel():
     assert name == "o_2" and abs(par["value"] - step) <= N_SE * par["se"], (par, step)
 
 
+@pytest.mark.extended
 def test_thermal_lag_longer_than_the_grid_brings_no_run_offsets():
     """Seed 2: tau 110 s beyond the grid's top (runs of ~100 s): the refinement brackets it, so
     no per-run offsets take up a misfit of the lag (they did before: 3 run_offset findings)."""
@@ -158,6 +163,7 @@ def test_thermal_lag_is_whole_sensor_and_plausible():
     assert abs(np.log(tau["value"] / p.params["tau"])) <= 0.5, (tau, p.params)
 
 
+@pytest.mark.extended
 def test_no_time_column_skips_time_domain_candidates():
     d, p = campaign("axis_quadratic", 3, n=N)
     d = bayesmag.CalibrationData(d.b_meas, d.temperature, d.b_ref, None, d.run, "no time")
@@ -167,6 +173,7 @@ def test_no_time_column_skips_time_domain_candidates():
     assert any(f["effect"] == "axis_quadratic" and f["channel"] == p.channel for f in r.findings), r.findings
 
 
+@pytest.mark.extended
 def test_single_run_by_run_falls_back_and_few_rows_skip():
     d = simulate(400, design="campaign", seed=4, n_runs=1)
     r = discover(d, figures=False, cv="by_run")
@@ -185,6 +192,7 @@ def test_bad_options_name_the_valid_set():
         DiscoverOptions(cv="random")
 
 
+@pytest.mark.extended
 def test_a_hysteresis_threshold_between_the_coarse_grid_values_is_found():
     """A 0.5 uT hysteresis on y switching at excursions beyond +-20 uT (noise 0.05 uT). The search's thresholds were
     0.3 / 0.5 / 0.7 of the field's reach (14.5 / 24.2 / 33.9 uT here): the closest flipped the modelled state at the
@@ -222,6 +230,7 @@ def test_cli_data_takes_set_overrides_and_refuses_unknown_keys(tmp_path, monkeyp
     np.testing.assert_allclose(seen["data"].temperature, d.temperature, atol=1e-9)
 
 
+@pytest.mark.extended
 def test_cli_writes_folder_atomically(tmp_path):
     d = simulate(N, design="campaign", seed=5, effects=[get_effect("hysteresis", axis="x", h=0.6)])
     csv = tmp_path / "rec.csv"
@@ -300,6 +309,7 @@ def test_belsten_reports_only_identified_coefficients_and_admits_structure(belst
                                            and "run 2" in z[0]["furthest_run_not_stated"]), z[0]
 
 
+@pytest.mark.extended
 def test_noisy_temperature_log_is_not_called_a_thermal_lag():
     """Heavy noise on the logged temperature: a lag of a few samples would smooth it; that is
     said in a note, never reported as the thermal_lag effect."""

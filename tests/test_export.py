@@ -195,6 +195,7 @@ def run_dir(tmp_path_factory):
     return out
 
 
+@pytest.mark.extended
 def test_export_cli_on_a_run_measures_the_loss_on_held_out_rows(run_dir, capsys):
     out = run_dir
     for fmt in E.FORMATS:
@@ -375,6 +376,7 @@ def test_export_says_training_rows_without_a_split_and_skips_a_changed_recording
         E.export_run(run, "px4", tmp_path / "c.params")
 
 
+@pytest.mark.extended
 def test_export_from_another_folder_finds_a_relative_recording(tmp_path, monkeypatch):
     """A run given a relative ``[data] path`` and exported from another folder: the recording is found from the
     folder the run started in (before: not found, and the PX4 form was fitted on a grid over the training box:

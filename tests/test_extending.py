@@ -108,6 +108,7 @@ def test_fit_recovers_the_toy_coefficient():
     assert np.all(np.abs(fit.theta[:2, i]) < 5 * se[:2])        # no |Bx| on x and y
 
 
+@pytest.mark.extended
 def test_discover_names_the_toy_term_on_its_channel():
     """The toy distortion planted on the y reading of a campaign: discover finds it (only through
     the registry) on channel y, input Bx, with its coefficient."""
@@ -125,6 +126,7 @@ def test_discover_names_the_toy_term_on_its_channel():
     assert f["config"]["name"] == "toy_abs_field" and f["explanation"] == AbsField.explanation
 
 
+@pytest.mark.extended
 def test_nuts_with_the_toy_family_and_term():
     """NUTS (2 chains x 200 draws) with the toy family as observation model and the toy term in the
     mean function: converged, and the posterior of the toy coefficient covers the truth (4 sd)."""
@@ -142,6 +144,7 @@ def test_nuts_with_the_toy_family_and_term():
     assert abs(a.mean() - A_TRUE) < 4 * a.std(), (a.mean(), a.std())
 
 
+@pytest.mark.extended
 def test_a_job_with_the_toy_term_and_family_round_trips(tmp_path):
     """``[physics] extra_terms = ["toy_abs_field"]`` with the toy family as the network likelihood:
     the saved calibration rebuilds the term by name and reproduces the run's predictions."""

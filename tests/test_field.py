@@ -85,6 +85,7 @@ def test_magnitude_fit_is_in_the_gauge_and_ignores_a_rotated_reference():
 
 
 @pytest.mark.parametrize("meas", [Constant(50.0), Scalar()], ids=["constant", "scalar"])
+@pytest.mark.extended
 def test_dance_with_temperature_ramp_recovers_every_invariant(meas):
     c = simulate_field("dance", n=2000, seed=11, temperature=(15.0, 40.0))
     d = c.data
@@ -170,6 +171,7 @@ def _coverage(kind, seeds, meas, n=1500, **kw):
 
 @pytest.mark.parametrize("kind, meas, cov", [("two_temperature", Constant(50.0), "white"),
                                              ("few_orientations", Scalar(), "ar1")])
+@pytest.mark.extended
 def test_estimate_is_the_posterior_mode(kind, meas, cov):
     """The returned theta is a stationary point of the posterior it reports (noise level and priors as stored):
     the gradient of the negative log posterior, times the posterior sd, is ~0 (a Newton step of < 0.01 sd).
@@ -250,6 +252,7 @@ def test_conformal_scale_is_one_when_the_noise_model_is_right():
     assert white["n"] == int(np.sum(conformal_folds(d.run, fraction=0.08, folds=5, seed=0) >= 0)) == 400
 
 
+@pytest.mark.extended
 def test_fit_with_keep_equals_the_fit_of_the_kept_rows():
     """``keep`` (rows carried with weight 0) gives the same fit as the subset (one compiled solver for all folds)."""
     c = simulate_field("dance", n=800, seed=6, temperature=(15.0, 35.0))
@@ -302,6 +305,7 @@ def _level_turn_heading_coverage(seed, ref_sd):
     return np.abs(e) <= scipy.stats.norm.ppf(0.975) * h["sd"], f, h
 
 
+@pytest.mark.extended
 def test_noisy_scalar_reference_heading_intervals_cover_on_level_turns():
     """Level turns, scalar reference with 0.01 uT noise (its sd given): heading intervals pooled over 6 seeds not
     used to develop the weight (200-205) cover >= 0.85 (declared; measured 0.937). The old 1/g weight (ref_sd
@@ -421,6 +425,7 @@ def two_temperature_50():
     (500.0, r"F = 500 uT is 10\.\dx the field .*Likely cause: a typo \(an extra digit is x10\)"),
     (50000.0, r"fit_field: constant field 50000\.0 is not a magnitude in uT .* looks like nT \(x1000\)"),
 ])
+@pytest.mark.extended
 def test_fit_field_refuses_a_declared_field_off_by_a_factor(two_temperature_50, field, match):
     """From Python: Constant(5.0) converged to S_xx = -0.105 with no note, Constant(25.0) (H typed for F) to gains
     0.52 / 0.49 / 0.50 with a magnitude RMSE half the reading noise, Constant(500.0) to S_yy 0.0004, O_y 498 uT,
@@ -444,6 +449,7 @@ def test_a_declared_field_in_the_warning_band_warns_and_notes(two_temperature_50
 
 
 @pytest.mark.parametrize("meas", [Constant(50.0), Scalar()], ids=["constant", "scalar"])
+@pytest.mark.extended
 def test_a_large_hard_iron_offset_and_10_percent_gains_do_not_warn(meas):
     """Against false alarms (an independent check): the right field, readings with a 30-40 uT hard-iron offset and
     gains 10 % off (diag 1.1, 0.9, 1.1). The raw |B| median is far from 50 uT (a naive comparison would cry wolf);

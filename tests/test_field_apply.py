@@ -178,6 +178,7 @@ def test_a_field_run_on_dask_says_what_to_do(field_run, tmp_path, capsys):
     assert "field-calibration run" in capsys.readouterr().err
 
 
+@pytest.mark.extended
 def test_a_free_field_calibration_says_its_magnitudes_are_relative(tmp_path):
     from bayesmag._src.app.config import config_from_dict
     from bayesmag.simulate import simulate_field

@@ -83,6 +83,7 @@ def run20(request, tmp_path_factory):
             "t": x.temperature[rows]}
 
 
+@pytest.mark.extended
 def test_px4_ardupilot_magnitude_matches_the_full_model_at_constant_temperature(run20):
     """(a) On the held-out rows, |B| RMSE against the true field: PX4 and ArduPilot (read back from the files and
     applied by the firmware formulas) within REL_TOL of the full model and of magcal (before the symmetric frame:

@@ -14,6 +14,7 @@ from bayesmag._src.app.config import ConfigError, load_config
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
+@pytest.mark.extended
 def test_field_simulated_config_end_to_end(tmp_path):
     cfg = load_config(CONFIGS / "field_simulated.toml", ["measurement.simulate.n=1200", "output.figures=false",
                                                          "output.progress=false"])
@@ -30,6 +31,7 @@ def test_field_simulated_config_end_to_end(tmp_path):
     assert "Field calibration</h2>" in (tmp_path / "f" / "report.html").read_text()     # the HTML copy a run has
 
 
+@pytest.mark.extended
 def test_field_export_reproduces_the_fit_at_tref(tmp_path):
     from bayesmag._src.app.export import apply_magcal
     cfg = load_config(CONFIGS / "field_simulated.toml", ["measurement.simulate.n=1000", "output.figures=false",
@@ -121,6 +123,7 @@ def _scalar_cfg(path, column="F_ovh", **meas):
                              "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}})
 
 
+@pytest.mark.extended
 def test_scalar_column_is_the_reference(tmp_path):
     """The fit sees the CSV's magnitude column (no vector reference in the file): it equals fit_field on that
     column's training rows, and scaling the column by k scales Q = S^T S by k^2 (closed form)."""
@@ -186,6 +189,7 @@ def test_scalar_column_config_errors(raw, match):
 # --------------------------------------------------------------------------- the NUTS cross-check as a job stage
 
 
+@pytest.mark.extended
 def test_field_run_with_nuts_writes_the_outputs_quick(tmp_path, capsys):
     """The quick version of the NUTS cross-check job (the full one is slow): a 300-row campaign, 1 chain x 30
     draws (60 warm-up), no statistics judged (too few draws), only what is written: the summary's rows name every parameter
@@ -422,6 +426,7 @@ def _constant_cfg(tmp_path, n=1000):
     (500, r"The declared field F = 500 uT is 10\.\dx the field .*Likely cause: a typo \(an extra digit is x10\)"),
     (5, r"The declared field F = 5 uT is 0\.1\d*x the field .*a typo \(a missing digit is /10\)"),
 ])
+@pytest.mark.extended
 def test_a_declared_field_off_by_a_factor_is_refused_and_nothing_is_written(tmp_path, capsys, field, match):
     """field = 25 (H typed for F; |B| 48.8 uT): it ran, exit 0, gains 0.52 / 0.49 / 0.50 and a held-out RMSE half the
     reading noise; field = 500: exit 0, S_yy -0.001, O_y 498 uT, COMPASS_OFS_Y = -1132039 exported; field = 5: 'did
@@ -468,6 +473,7 @@ def test_a_field_fit_that_does_not_converge_names_the_declared_field(tmp_path):
     assert _not_converged_message(Constant(None), d, None, mc).endswith("check the data for outliers.")
 
 
+@pytest.mark.extended
 def test_a_declared_field_in_the_warning_band_is_kept_with_a_note(tmp_path, capsys):
     """field = 38 for a site whose readings support 49.4 uT (overall gain 0.77: between the warning and refusal
     limits): the run is written, and the warning is on stderr, in metrics.json and in the report."""

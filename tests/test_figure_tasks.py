@@ -39,6 +39,7 @@ def _pixels(path):
     return np.asarray(Image.open(path).convert("RGBA"))
 
 
+@pytest.mark.extended
 def test_worker_and_in_process_draw_the_same_figures_pixel_for_pixel(tmp_path):
     """The job's twelve figures, shared with the worker process (command line) or drawn here (library):
     the same files with identical pixels, and the same metrics."""

@@ -58,6 +58,7 @@ def test_fit_matches_closed_form_and_scipy(seed):
 
 
 @pytest.mark.parametrize("t0", [0.0, 27.5])
+@pytest.mark.extended
 def test_nonlinear_thermal_lag_recovered(t0):
     """A model nonlinear in tau: LM recovers tau and agrees with scipy; at T0 = 27.5 the fit runs on the
     centred model (physics.centred), so this is also that path against scipy on the model as written."""
@@ -281,6 +282,7 @@ def test_a_thermal_lag_the_data_do_not_hold_is_refused():
     assert lag.unsupported(np.log([30.0]), np.array([2.2]), 1.0) is None
 
 
+@pytest.mark.extended
 def test_held_out_rows_stay_in_the_lag_series():
     """``keep``: the fit uses the kept rows, the lag sees the whole recording. All rows kept, it is the plain fit
     (to the LM's stopping tolerance, 1e-8); with a split's test blocks held out it recovers the simulated 90 s lag

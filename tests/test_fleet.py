@@ -32,6 +32,7 @@ def three():
 
 
 @pytest.mark.parametrize("method", ["white", "ar1"])
+@pytest.mark.extended
 def test_batched_fit_equals_per_sensor_fit(three, method):
     ff = fit_fleet(FleetData.from_recordings(three), MODEL, covariance_method=method, batch_size=4)
     assert ff.converged.all() and ff.identifiable.all()
@@ -313,6 +314,7 @@ def test_apply_and_export_take_a_sensor_folder(small_fleet, tmp_path, capsys):
     check_out(out)                                                  # not refused: every file is the fleet's
 
 
+@pytest.mark.extended
 def test_fleet_network_batched_equals_single_sensor_training(tmp_path):
     """[network] enabled: each sensor's network is the single-sensor training of its residuals with the same seed
     (tolerance of tests/test_network_batch.py), fused into its predictions, saved with its calibration."""

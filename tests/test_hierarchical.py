@@ -74,6 +74,7 @@ def test_transfer_grows_with_the_field_when_gains_move():
     np.testing.assert_allclose(sd[:, 0], np.sqrt([0.01, 0.01 + 0.04 * 4]), rtol=1e-3)   # df -> large: Gaussian
 
 
+@pytest.mark.extended
 def test_recovers_a_simulated_between_session_sd():
     """30 simulated sessions (offsets N(0, 0.3) uT, cross-axis N(0, 0.003)): the posterior rms offset sd
     within 0.18-0.45 uT on every axis (30 groups: the sd of an sd estimate is ~13 %, three axes, so a
@@ -116,6 +117,7 @@ def test_laplace_agrees_with_nuts_on_a_small_case():
     np.testing.assert_allclose(lap.w_mean[:, -1], nuts.w_mean[:, -1], rtol=0.02)
 
 
+@pytest.mark.extended
 def test_config_option_end_to_end(tmp_path):
     """`[uq] transfer = "hierarchical"`: the job fits it, saves it in the calibration, and apply gives the
     same row-dependent transfer column as the job's predictor; a damaged saved array is refused."""
@@ -149,6 +151,7 @@ def test_config_option_end_to_end(tmp_path):
         load(tmp_path / "out")
 
 
+@pytest.mark.extended
 def test_hybrid_predictor_carries_the_session_model(tmp_path):
     """Network enabled with `transfer = "hierarchical"`: the hybrid predictor keeps the session posterior,
     its new-session variance is the within-session hybrid variance plus the row-dependent transfer sd
@@ -247,6 +250,7 @@ def test_student_t_run_density_equals_scipy_multivariate_t(rho, df):
     np.testing.assert_allclose(got, want, rtol=1e-8)
 
 
+@pytest.mark.extended
 def test_student_t_collapsed_posterior_is_the_profile_at_the_mode():
     """``_collapsed_t`` (profile over mu by reweighted GLS): its log posterior minus the priors equals the sum of
     the runs' multivariate-t densities at its mu (1e-9), and that mu is the maximum (gradient ~ 0)."""
@@ -276,6 +280,7 @@ def _heavy_params(rng):
     return _shifted_params(rng, lambda g: 0.3 * g.standard_t(2.5, 3) / np.sqrt(5.0))
 
 
+@pytest.mark.extended
 def test_student_t_transfer_from_the_config(tmp_path):
     """`[uq] transfer_likelihood = "student_t"`, `transfer_df = 5`: the job's session posterior is the Student-t
     one, saved and reloaded (same transfer column), its row-wise predictive dof at most 5 (the likelihood's
@@ -535,6 +540,7 @@ def test_rho_start_is_the_within_run_lag_one_autocorrelation(rho):
     assert H.rho_start(st, 0) == pytest.approx(rho, abs=4 * np.sqrt((1 - rho**2) / (R * n)) + 0.02)
 
 
+@pytest.mark.extended
 def test_the_first_mode_is_the_higher_of_two_rho_starts():
     """12 sessions x 100 rows, white reading noise 0.1 uT (seed 7; ``bench_short_campaigns.py --runs 12 --noise
     0.1``). BFGS from ``rho`` 0.8 alone stops on z at ``rho`` 0.997 with between-session sds of 0.4-1.2 uT, 96
@@ -561,6 +567,7 @@ def test_the_first_mode_is_the_higher_of_two_rho_starts():
     assert tr.warning is None or "leave-one-run-out's" not in tr.warning, tr.warning
 
 
+@pytest.mark.extended
 def test_a_shared_column_takes_a_common_distortion_out_of_the_session_spread():
     """``fit_sessions(shared=...)``: a distortion every session shares (the DUT's y reading gains 0.001 x^2, which
     the affine model lacks) is read as session change by the random slopes, because each run sweeps x over its

@@ -110,6 +110,7 @@ def _grid_log_evidence(st, a, n=17, half=8.0):
     return out
 
 
+@pytest.mark.extended
 def test_each_dofs_evidence_matches_numerical_integration():
     """Each dof's log marginal likelihood (importance sampled, :func:`_fit_learned_df`) against a 17^3-point
     trapezoid integral of the same collapsed posterior over the three hyperparameters (one random effect), on

@@ -78,6 +78,7 @@ def test_uninformed_within_lists_the_runs_that_do_not_inform_a_dropped_candidate
 
 
 @pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.extended
 def test_decoupled_within_run_variation_recovers_the_between_session_sd(seed):
     """y axis: with the uninformed x term shared inside the runs (the old model) the posterior rms offset sd is
     spuriously large (declared: > 3 TAU; measured 1.08 / 1.10 uT against the true 0.1, the y-from-x term 0.002 /
@@ -202,6 +203,7 @@ def test_weak_directions_are_the_runs_unswept_field_directions(seed):
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.extended
 def test_noise_only_directions_no_longer_inflate_short_campaigns(seed):
     """Clean 8-session campaigns of 100-row runs (no distortion; ``tests/test_transfer.py::_session``, reading noise
     0.05 uT): several runs hold the field still or sweep it along a line, and their reading noise along the unswept

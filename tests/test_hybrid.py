@@ -100,6 +100,7 @@ def test_network_too_large_or_validation_too_small_stop_the_job(tmp_path):
     assert not (tmp_path / "big").exists() and not (tmp_path / "val").exists()
 
 
+@pytest.mark.extended
 def test_nan_loss_warns_with_the_epoch_and_the_job_finishes(tmp_path):
     raw = copy.deepcopy(SIMULATED)
     raw["data"]["simulate"]["n"] = 1000
@@ -134,6 +135,7 @@ def test_a_network_stopped_by_max_epochs_while_improving_is_warned_about(tmp_pat
 # --------------------------------------------------------------------------- end to end
 
 
+@pytest.mark.extended
 def test_simulated_job_hybrid_beats_physics_and_compares_likelihoods(tmp_path):
     out = tmp_path / "sim"
     result = run_job(_config(conformal_folds=2), out)     # 2 cross-conformal folds: the default 5 trains 5 networks
@@ -215,6 +217,7 @@ def test_conformal_folds_are_one_block_per_run_in_their_own_stretch():
     np.testing.assert_array_equal(fold, conformal_folds(run, fraction=0.1, folds=5, seed=1))   # seeded
 
 
+@pytest.mark.extended
 def test_each_conformal_fold_is_scored_by_a_network_that_never_saw_it(tmp_path, monkeypatch):
     """Cross-conformal in the job: K networks, network k trained without fold k's rows; no fold row is a test row."""
     from bayesmag._src.pipeline import hybrid

@@ -26,6 +26,7 @@ def _cfg(**over):
     return config_from_dict(raw)
 
 
+@pytest.mark.extended
 def test_job_writes_outputs(tmp_path):
     out = tmp_path / "run"
     res = bayesmag.run_job(_cfg(output={"figures": True, "progress": False}), out)

@@ -61,6 +61,7 @@ def _run(setting: str, op: str = "triangular_solve", runs: int = 300, *, before:
 # 2 cores) are the same guard, whose lowering of every op is checked by test_a_batched_call_is_a_loop... below.
 @pytest.mark.parametrize("op", ["triangular_solve", pytest.param("cholesky", marks=pytest.mark.slow),
                                 pytest.param("lu_solve", marks=pytest.mark.slow)])
+@pytest.mark.extended
 def test_concurrent_batched_lapack_finishes_after_import(op):
     """The default (BAYESMAG_CPU_THREADS unset): JAX keeps its thread pool, batched calls are lowered one matrix at
     a time; the program of four concurrent batched solves runs 300 times (about 4-9 s)."""
@@ -86,6 +87,7 @@ def test_without_the_guard_the_same_program_hangs():
         _run("default", timeout=20)
 
 
+@pytest.mark.extended
 def test_guard_is_installed_after_jax_already_ran():
     """JAX computed before `import bayesmag`: the guard still covers what is compiled after (no warning); with
     BAYESMAG_CPU_THREADS=one it is too late to size the pool, and bayesmag says so."""

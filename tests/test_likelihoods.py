@@ -84,6 +84,7 @@ QS = np.array([1e-6, 0.025, 0.3, 0.5, 0.8, 0.975, 1.0 - 1e-5])
 @pytest.mark.parametrize("jit", [False, True])
 @pytest.mark.parametrize("shape,dtype", SHAPES_DTYPES)
 @pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.extended
 def test_nll_cdf_icdf_match_scipy(family, shape, dtype, jit):
     dist = get_likelihood(family)(**_params(family, shape, dtype))
     sdist = _scipy(dist)
@@ -423,6 +424,7 @@ def _toy_config(nuts: bool):
     })
 
 
+@pytest.mark.extended
 def test_a_registered_family_runs_the_network_fusion_and_apply(tmp_path):
     """The toy family end to end with no edit outside its class: hybrid network training, fusion,
     the saved calibration and ``apply``, whose intervals are the family's (moment-matched)."""

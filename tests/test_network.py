@@ -165,6 +165,7 @@ def test_nan_loss_stops_training_and_reports_the_epoch():
         not np.isfinite(np.asarray(net.info.train_loss[0])[info["nan_epoch"]])
 
 
+@pytest.mark.extended
 def test_vmap_over_axes_equals_one_axis_alone():
     x, r1, _ = _hetero_problem(800, 2)
     r = np.column_stack([r1[:, 0], -2 * r1[:, 0] + 1, np.cos(3 * x[:, 2])])
@@ -182,6 +183,7 @@ def test_vmap_over_axes_equals_one_axis_alone():
         np.testing.assert_allclose(info3.val_loss[a], info1.val_loss[0], rtol=1e-4)
 
 
+@pytest.mark.extended
 def test_chunked_training_is_the_one_loop_and_reports_progress():
     """Training in compiled chunks (for progress), with the last axis continuing alone once the
     others stopped, runs the same epochs as build_trainer's single vmapped while_loop: the same
@@ -272,6 +274,7 @@ def test_merged_progress_counts_waiting_trainings_at_zero_and_stopped_ones_as_fi
 
 
 @pytest.mark.parametrize("likelihood,df", [("gaussian", 4.0), ("student_t", None)])
+@pytest.mark.extended
 def test_mc_inference_matches_a_loop_over_passes(likelihood, df):
     x, r, _ = _hetero_problem(600, 3)
     spec = small_spec(likelihood=likelihood, student_t_df=df, dropconnect=0.2)
@@ -385,6 +388,7 @@ def test_fourier_embedding_is_the_closed_form(jit):
     assert spec.n_params == N.count_params(804, 2, hidden_layers=2, width=16)
 
 
+@pytest.mark.extended
 def test_fourier_features_fit_structure_a_plain_mlp_smooths_over():
     """A residual with 3 cycles across the standardised input range: the same small ReLU MLP
     leaves most of it unfitted, with 16 Fourier features (scale 1) it fits to near the noise."""
@@ -429,6 +433,7 @@ RECAL_RTOL = 0.012           # the grid step is log(400)/600 = 0.010 in log c
 
 
 @pytest.mark.parametrize("likelihood", ["gaussian", "laplace", "student_t"])
+@pytest.mark.extended
 def test_recalibration_minimises_the_validation_nll(likelihood):
     """The fitted factor equals scipy's 1-D minimiser of the same NLL (Gaussian: the closed form)."""
     from scipy import optimize, stats

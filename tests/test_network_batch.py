@@ -49,6 +49,7 @@ def batched(problems):
     return fit_residual_networks(xs, rs, SPEC, seed=3, groups=gs, batch_size=2)   # 2 batches, one filler copy
 
 
+@pytest.mark.extended
 def test_batched_networks_equal_single_trainings(problems, batched):
     xs, rs, gs = problems
     spec, nets = SPEC, batched

@@ -51,6 +51,7 @@ def runs():
     return data, test, on, off
 
 
+@pytest.mark.extended
 def test_out_of_fold_residuals_come_from_networks_that_did_not_see_the_run(runs):
     data, _, on, _ = runs
     nt = on.hybrid.network_transfer["gaussian"]
@@ -310,6 +311,7 @@ def test_the_out_of_fold_refit_needs_every_training_run():
     assert hybrid_residual_rows(d, SimpleNamespace(rows={"inside": inside, "nn_oof": nn})) is None
 
 
+@pytest.mark.extended
 def test_the_hybrid_session_model_of_a_thermal_lag_is_fitted_within_the_recording():
     """``hybrid_session_model(series=)`` linearises a thermal lag and refits its folds on the training rows within the
     recording (the held-out blocks stay in the series), as the physics stage's session model does. With zero fold

@@ -169,6 +169,7 @@ def test_crosscheck_verdicts_follow_the_draws():
 # --------------------------------------------------------------------------- known truth
 
 
+@pytest.mark.extended
 def test_agrees_with_exact_posterior_and_covers_truth():
     """20 simulations, axis x, n = 120: NUTS vs the exact multivariate-t posterior and interval coverage.
 
@@ -229,6 +230,7 @@ def test_belsten_short_run_matches_lm(belsten):
 # --------------------------------------------------------------------------- job stage, files, LOO
 
 
+@pytest.mark.extended
 def test_job_stage_writes_outputs_and_loo_compares_models(tmp_path):
     """[nuts] enabled = true: metrics.json block, nuts.nc/summary/figures; then LOO prefers the true model."""
     az = pytest.importorskip("arviz")
@@ -339,6 +341,7 @@ def test_thermal_lag_model():
     assert "log_tau" in list(res.idata.posterior.parameter.values)
 
 
+@pytest.mark.extended
 def test_a_thermal_lag_posterior_is_sampled_within_the_recording():
     """The NUTS cross-check of a thermal-lag fit made with a split's test blocks held out evaluates the lag on the
     whole recording and observes the training rows, as ``fit_physics(keep=)`` fitted it. On the job's 90 s lag

@@ -114,6 +114,7 @@ def _small_nets(k: int, likelihood: str = "gaussian"):
 
 
 @pytest.mark.parametrize("passes", [9, 12])
+@pytest.mark.extended
 def test_ensemble_pools_every_pass_exactly(passes):
     """Deep ensemble x MC DropConnect: the pooled moments are those of all raw passes of all members together."""
     from bayesmag._src.core.network import NetworkEnsemble, ensemble_passes, mc_predict, mc_samples

@@ -34,6 +34,7 @@ def _leaves(run):
     return [np.asarray(x) for name in run.hybrid.networks for x in jax.tree.leaves(run.hybrid.networks[name].params)]
 
 
+@pytest.mark.extended
 def test_networks_trained_during_the_physics_stage_are_the_ones_trained_after_it(split, monkeypatch):
     """Bit-identical weights, predictions and training records with the prefetch on and off (same programs)."""
     train, test = split

@@ -45,6 +45,7 @@ def test_discover_refuses_a_field_config(name, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("kind", ["vector", "field"])
+@pytest.mark.extended
 def test_a_kelvin_reference_temperature_is_refused(kind, tmp_path, capsys):
     """`physics.t0 = 298.15` beside kelvin data (converted to C) gave a certificate at "T0 = 298.1 C" with parameters
     extrapolated 270 C and correlation notes blaming the motion; now refused naming the key, the gap and kelvin."""

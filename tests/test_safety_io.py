@@ -509,6 +509,7 @@ def _fake_old_run(out: Path) -> dict:
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+@pytest.mark.extended
 def test_interrupt_is_one_line_exit_status_and_a_safe_folder(tmp_path, sig, code):
     out = tmp_path / "out"
     before = _fake_old_run(out)

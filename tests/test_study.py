@@ -13,6 +13,7 @@ from bayesmag._src.pipeline.hybrid import still_improving
 CFG = Path(__file__).resolve().parents[1] / "configs/paper_simulation.toml"
 
 
+@pytest.mark.extended
 def test_small_study(tmp_path):
     cfg = load_config(CFG, ["study.sizes=[4000, 6000]", "network.hidden_layers=2", "network.width=32",
                             "network.max_epochs=40", "network.batch_size=128", "network.mc_passes=10",

@@ -85,6 +85,7 @@ def _calibrate(train: CalibrationData) -> Predictor:
                      uq=UQOptions(method="analytic"))
 
 
+@pytest.mark.extended
 def test_session_shift_is_covered_or_flagged():
     """Fit on 30 simulated sessions (one run each), apply to 40 new sessions with shifted offsets and
     cross-axis terms; repeated for 20 training draws, each with its own new sessions.
@@ -232,6 +233,7 @@ def test_transfer_sd_is_the_chi_square_bound_on_the_whole_new_session_variance()
 
 
 @pytest.mark.parametrize("method", ["analytic", "psqmc"])
+@pytest.mark.extended
 def test_run_offsets_are_not_carried_to_a_new_session(method):
     """``run_offset`` fits an offset for each training run (fixed parameters of those runs). A new session whose
     run ids happen to equal training ids is predicted as under fresh ids (before: its run 2 got training run 2's
