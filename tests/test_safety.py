@@ -608,6 +608,10 @@ def _dup_far(b, t, ref, time):
     time[30] = time[3]
 
 
+def _dup_adjacent(b, t, ref, time):
+    time[11] = time[10]
+
+
 def _unsorted(b, t, ref, time):
     time[[10, 11]] = time[[11, 10]]
 
@@ -631,6 +635,9 @@ DATA_CASES = {
     "kelvin": (_data_case(_kelvin), {c: "'temperature'.*kelvin" for c in ("run", "apply", "discover")}),
     "duplicate_times_far_apart": (_data_case(_dup_far), {"run": r"duplicated timestamps within run 1 at data row\(s\) 31",
                                                          "discover": r"not sorted within run 1: data row 31 "}),
+    # discover accepted this (sorted, one stamp twice) until the fifth pass's found-not-fixed list was worked off
+    "duplicate_times_adjacent": (_data_case(_dup_adjacent), {c: r"duplicated timestamps within run 1 at data row\(s\) 12"
+                                                             for c in ("run", "discover")}),
     "rows_not_sorted": (_data_case(_unsorted), {"discover": r"not sorted within run 1: data row 12 "}),
     "missing_column": (_edit_text(lambda s: s.replace("bz_meas", "bz")),
                        {c: "no column 'bz_meas'" for c in ("run", "apply", "discover")}),

@@ -528,14 +528,16 @@ def check_time_order(data: CalibrationData, reasons, *, origin: str = "") -> Non
         raise DataError(f"{e} (Needed in time order by: {'; '.join(reasons)}.)") from None
 
 
-def validate_for_discover(data: CalibrationData, *, origin: str = "") -> None:
+def validate_for_discover(data: CalibrationData, *, origin: str = "", time_available: bool | None = None) -> None:
     """The checks ``discover`` needs before it starts: finite, plausible values in uT and Celsius, rows sorted
-    by time within each run. Raises :class:`DataError` naming the row and column."""
+    by time within each run and, unless ``time_available`` is False, no timestamp repeated within a run (the
+    time-domain candidates -- lags, steps, drifts, periodicity -- read the stamps; ``run`` refuses repeats too).
+    Raises :class:`DataError` naming the row and column."""
     origin = origin or data.source
     where = f" in {origin}" if origin else ""
     check_values(data, origin=origin)
     check_units(data, origin=origin, declare="[data] field_unit = \"uT\" (or --field-unit uT)")
-    _check_time(data, where, duplicates=False, order=True)
+    _check_time(data, where, duplicates=time_available is not False, order=True)
 
 
 # --------------------------------------------------------------------------- loaders

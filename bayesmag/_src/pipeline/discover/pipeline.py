@@ -278,7 +278,8 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
     if data.b_ref is None:
         raise ValueError("discovery needs a recording with reference columns (b_ref); this one has none.")
     from bayesmag._src.core.data import validate_for_discover
-    validate_for_discover(data)             # finite, plausible uT/Celsius values, rows sorted by time (issue 11)
+    # finite, plausible uT/Celsius values, rows sorted by time (issue 11), no timestamp repeated within a run
+    validate_for_discover(data, time_available=options.time_available)
     if data.n < 50:
         raise ValueError(f"discovery needs at least 50 rows; the data has {data.n}.")
     notes, skipped, rejected = [], [], []
