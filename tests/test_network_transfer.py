@@ -263,15 +263,17 @@ def test_certificate_new_session_U_is_the_hybrids(hier):
         assert ex["new_session"][ax]["u_c"] == pytest.approx(uc, rel=1e-9)
         assert ex["new_session"][ax]["U"] == pytest.approx(U, rel=1e-9)
         assert ex["transfer_sd"][ax] == pytest.approx(tau[k], rel=1e-9)
-        # the same session stays the physics budget's (no transfer, no network)
+        # the same session: the hybrid's within-session parts (the predictor apply uses); the physics model
+        # alone (what the firmware exports hold) keeps its own budget
+        assert ex["same_session"][ax]["u_c"] == pytest.approx(np.sqrt(np.sum(u[:4] ** 2)), rel=1e-9)
         same = np.sqrt(m["uq"]["mean_aleatoric"][ax] ** 2 + m["uq"]["residual_term"][ax] ** 2
                        + m["uq"]["mean_epistemic"][ax] ** 2 + ref**2)
-        assert ex["same_session"][ax]["u_c"] == pytest.approx(same, rel=1e-9)
+        assert ex["physics"]["same_session"][ax]["u_c"] == pytest.approx(same, rel=1e-9)
     lines = uncertainty_budget(m, params, reference_sd=ref)
     row = next(ln for ln in lines if ln.startswith("| **expanded uncertainty U = k u_c, new session"))
     assert [float(v) for v in row.strip("|").split("|")[3:6]] == pytest.approx(
         [ex["new_session"][a]["U"] for a in "xyz"], rel=0.05)
-    assert any("hybrid: network aleatoric x c (new session)" in ln for ln in lines)
+    assert any(ln.startswith("| hybrid: network aleatoric x c |") for ln in lines)
     # the corner table: the hybrid's transfer sd at the corners, with the same hybrid within-session parts
     table = condition_uncertainties(m, params, reference_sd=ref)
     assert len(table) == 6 and all(r["source"] == "hybrid" for r in table)

@@ -556,3 +556,45 @@ def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, mon
     assert ns["largest"] < 1e-12 and len(ns["cal"].params_) == 24
     for a in "xyz":
         assert ns["cal"].metrics_["physics"]["rmse"][a] == pytest.approx(ns["m"]["physics"]["rmse"][a], rel=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore:Residual network:bayesmag.CalibrationWarning")
+def test_a_hybrid_runs_certificate_states_the_U_of_the_predictor_apply_uses(tmp_path):
+    """Sixth outside pass: on a hybrid run the certificate's U was the physics model's (y: 0.91 uT same session)
+    while `apply` delivers the hybrid's intervals (half-width 0.22 uT). Now U same / new session are the hybrid
+    predictor's -- checked against its own intervals in predictions.csv (Gaussian: half-width 1.96 x total; the
+    budget's root-mean-square parts against the rows' mean: within 15 %) -- and the physics model alone, what the
+    firmware exports hold, keeps its own U (the exports state that one)."""
+    import pandas as pd
+
+    from bayesmag._src.app.config import load_config
+    from bayesmag._src.app.export import run_uncertainty
+
+    cfg = load_config("quickstart", ['data.simulate.n=2400', 'network.max_epochs=40', 'network.mc_passes=20',
+                                     'uq.n_params=100', 'uq.n_qmc=128', 'output.figures=false',
+                                     'output.progress=false'])
+    out = tmp_path / "qs"
+    bayesmag.run_job(cfg, out)
+    m = json.loads((out / "metrics.json").read_text())
+    params = json.loads((out / "params.json").read_text())
+    ex = expanded_uncertainties(m, params)
+    assert ex["source"] == ex["new_session_source"] == "hybrid"
+    pred = pd.read_csv(out / "predictions.csv")
+    z = stats.norm.ppf(0.975)
+    for a in "xyz":
+        half = z * pred[f"{a}_hybrid_total"].to_numpy()
+        assert ex["same_session"][a]["U"] == pytest.approx(half.mean(), rel=0.15)
+        tau = m["transfer"]["sd"][a]
+        new_half = z * np.sqrt(pred[f"{a}_hybrid_total"].to_numpy() ** 2 + tau**2)
+        assert ex["new_session"][a]["U"] == pytest.approx(new_half.mean(), rel=0.15)
+    # the y axis, where the physics misses the quadratic: its U is far above the hybrid's
+    assert ex["physics"]["same_session"]["y"]["U"] > 2 * ex["same_session"]["y"]["U"]
+    exported = run_uncertainty(out)
+    assert exported["source"] == "physics" and "physics" not in exported
+    for a in "xyz":
+        assert exported["same_session"][a]["U"] == pytest.approx(ex["physics"]["same_session"][a]["U"], rel=1e-12)
+    text = (out / "report.md").read_text()
+    row = next(ln for ln in text.splitlines() if ln.startswith("| **expanded uncertainty U = k u_c, same session"))
+    assert [float(c) for c in row.strip("|").split("|")[3:6]] == pytest.approx(
+        [ex["same_session"][a]["U"] for a in "xyz"], rel=0.05)             # two significant figures
+    assert "physics model alone" in text and "This run saved the hybrid predictor" in text

@@ -689,13 +689,14 @@ def training_rows(cal) -> CalibrationData:
 
 
 def run_uncertainty(run_dir: str | Path) -> dict | None:
-    """The run's expanded uncertainties (same / new session) from its metrics.json and params.json, or None."""
+    """The run's expanded uncertainties (same / new session) of its physics model -- what every export holds, even
+    of a hybrid run -- from its metrics.json and params.json, or None."""
     from bayesmag._src.app.report import expanded_uncertainties, run_reference_sd
     run_dir = Path(run_dir)
     try:
         m = json.loads((run_dir / "metrics.json").read_text())
         params = json.loads((run_dir / "params.json").read_text())
-        return expanded_uncertainties(m, params, run_reference_sd(run_dir))
+        return expanded_uncertainties(m, params, run_reference_sd(run_dir), stage="physics")
     except (OSError, ValueError, KeyError):
         return None
 

@@ -26,6 +26,7 @@ import numpy as np
 from bayesmag._src.core import metrics as M
 from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.core.data import AXES, CalibrationData
+from bayesmag._src.core.domain import budget_row_mask, budget_rows_note
 from bayesmag._src.core.physics_uq import PhysicsUQ
 from bayesmag._src.core.predictor import Components, Predictor, TransferEstimate, UQOptions, network_inputs
 
@@ -277,6 +278,7 @@ def write_sensor_folder(d: Path, s: SensorStage, *, cfg, verdict: dict, sigma_in
     lo, hi = interval(pred, level)
     domain = s.predictor.domain
     outside = domain.outside(test, uq.mean)
+    budget = budget_row_mask(outside)
     resid_train = s.train_residual
     phys = score_rows(y, pred.dist, level, mean=pred.mean)
     paper = score_rows(y, s.paper_prediction.dist, level, mean=s.paper_prediction.mean)
@@ -295,9 +297,11 @@ def write_sensor_folder(d: Path, s: SensorStage, *, cfg, verdict: dict, sigma_in
                "sigma_in_sd": dict(zip(["bx", "by", "bz", "T"], map(float, np.sqrt(np.diag(sigma_in))))),
                "sigma_in_source": SIGMA_SOURCE if cfg.sigma_in == "auto" else "config: standard deviations",
                "residual_term": _per_axis(s.predictor.residual_sd),
-               "mean_aleatoric": _per_axis(uq.aleatoric.mean(0)), "mean_epistemic": _per_axis(uq.epistemic.mean(0))},
+               "mean_aleatoric": _per_axis(uq.aleatoric[budget].mean(0)),
+               "mean_epistemic": _per_axis(uq.epistemic[budget].mean(0)), "budget_rows": budget_rows_note(outside)},
         "split": s.split,
-        "data": {"source": source, "n_rows": int(train.n + test.n), "runs": [int(r) for r in runs]},
+        "data": {"source": source, "n_rows": int(train.n + test.n), "runs": [int(r) for r in runs],
+                 "train_runs": [int(r) for r in np.unique(train.run)]},
         "field": {"raw": M.field_metrics(test.b_meas, y, test.run), "physics": M.field_metrics(pred.mean, y, test.run)},
         "certificate": _certificate(conf_toml, s.sid, (train, test), recording),
         "domain": domain.summary(test, uq.mean),

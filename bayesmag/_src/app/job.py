@@ -275,6 +275,9 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
     paper_scores = M.score_per_axis(y, ps.paper_prediction.dist, level, mean=ps.paper_prediction.mean)
     lo, hi = ps.prediction.interval(level)
     resid_train = fit.residuals(train, (data, split.train))      # within the recording for a thermal lag
+    from bayesmag._src.core.domain import budget_row_mask, budget_rows_note
+    outside = domain.outside(test, uq.mean)
+    budget_rows = budget_row_mask(outside)
     metrics = {
         "raw": {"rmse": _per_axis(M.rmse(y, test.b_meas)), "mae": _per_axis(M.mae(y, test.b_meas))},
         "physics": phys_scores,
@@ -287,9 +290,12 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
         "uq": {"method": cfg.uq.method, "n_params": cfg.uq.n_params, "n_qmc": cfg.uq.n_qmc, "level": cfg.uq.level,
                "sigma_in_sd": dict(zip(["bx", "by", "bz", "T"], map(float, np.sqrt(np.diag(ps.sigma_in))))),
                "sigma_in_source": ps.sigma_source, "residual_term": _per_axis(ps.residual_sd),
-               "mean_aleatoric": _per_axis(uq.aleatoric.mean(0)), "mean_epistemic": _per_axis(uq.epistemic.mean(0))},
+               "mean_aleatoric": _per_axis(uq.aleatoric[budget_rows].mean(0)),
+               "mean_epistemic": _per_axis(uq.epistemic[budget_rows].mean(0)),
+               "budget_rows": budget_rows_note(outside)},
         "split": split.as_dict(),
-        "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs]},
+        "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs],
+                 "train_runs": [int(r) for r in np.unique(train.run)]},
     }
     metrics["field"] = {"raw": M.field_metrics(test.b_meas, y, test.run),
                         "physics": M.field_metrics(ps.prediction.mean, y, test.run)}
@@ -301,7 +307,6 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
     metrics["warnings"] = [w for w in [time_step_warning(data), *fit.design_warnings, domain.warning(test, uq.mean),
                                        ps.transfer.warning, input_noise_warning(ps.sigma_source, uq.aleatoric, ps.fit)]
                            if w]
-    outside = domain.outside(test, uq.mean)
     columns = {
         "measured": test.b_meas, "reference": y, "predicted": uq.mean,
         "aleatoric_physics": uq.aleatoric, "epistemic_physics": uq.epistemic,

@@ -190,13 +190,16 @@ def transfer_missing(m: dict) -> str | None:
 
 
 def hybrid_new_session(m: dict) -> dict | None:
-    """The hybrid's new-session budget (``metrics["network"]["training"][primary]["transfer_network"]["new_session"]``,
-    written where ``[uq] transfer_networks`` estimated the network's own new-session part), or None."""
+    """The hybrid predictor's budget: its within-session parts over the test rows, interval scale and the transfer
+    sd it adds to a new session (``metrics["network"]["training"][primary]["budget"]``; runs before that key have it
+    only with ``[uq] transfer_networks``, under ``transfer_network.new_session``), or None (no network)."""
     net = m.get("network") or {}
     training = net.get("training") or {}
     tr = training.get(net.get("primary")) or next(iter(training.values()), None)
-    nt = tr.get("transfer_network") if isinstance(tr, dict) else None
-    block = nt.get("new_session") if isinstance(nt, dict) else None
+    if not isinstance(tr, dict):
+        return None
+    nt = tr.get("transfer_network")
+    block = tr.get("budget") or (nt.get("new_session") if isinstance(nt, dict) else None)
     return block if isinstance(block, dict) and block.get("parts") else None
 
 
@@ -216,38 +219,71 @@ def _hybrid_components(m: dict, params: dict, reference_sd, block: dict) -> list
     return out + [("reference magnetometer", _per_axis_sd(reference_sd), math.inf)]
 
 
-def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0) -> dict:
+def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0, *, stage: str = "calibration") -> dict:
     """Combined ``u_c``, ``nu_eff``, ``k`` and ``U = k u_c`` per axis for a same-session and a new-session
     recording (the latter with the between-session transfer sd in quadrature, counted with infinite dof:
     it is already an upper confidence bound over the training runs, ``core/predictor.estimate_transfer``).
 
-    Where the run holds the hybrid's new-session budget (:func:`hybrid_new_session`: ``[uq] transfer_networks``,
-    the network's own new-session part estimated), U for a new session is the *hybrid's*, the predictor that
-    ``bayesmag apply`` uses: its within-session parts (:func:`_hybrid_components`) and the transfer sd it adds
-    to a new session (network part included), ``new_session_source`` ``"hybrid"`` (else ``"physics"``).
+    ``stage``: ``"calibration"`` (default), the predictor the run saved, which ``bayesmag apply`` and
+    :func:`bayesmag.load` use; or ``"physics"``, the physics model alone (what the firmware exports hold).
+    Where the run saved a hybrid predictor (:func:`hybrid_new_session`), the calibration's U is the *hybrid's*:
+    its within-session parts (:func:`_hybrid_components`) and, for a new session, the transfer sd it adds (the
+    network's own new-session part included with ``[uq] transfer_networks``); ``source`` is then ``"hybrid"`` and
+    ``physics`` holds the physics model's own result (same keys). Else ``source`` is ``"physics"``.
 
     Returns ``{"level", "same_session": {axis: {u_c, nu_eff, k, U}}, "new_session": {...}, "transfer_sd",
-    "new_session_missing", "new_session_source"}``; ``new_session_missing`` (:func:`transfer_missing`) is None,
-    or why the transfer term was not estimated: then ``new_session`` lacks it and understates U for a new session.
+    "new_session_missing", "source", "new_session_source"}``; ``new_session_missing`` (:func:`transfer_missing`) is
+    None, or why the transfer term was not estimated: then ``new_session`` lacks it and understates U for a new
+    session.
     """
+    if stage not in ("calibration", "physics"):
+        raise ValueError(f"stage = {stage!r} must be 'calibration' or 'physics'.")
     level = m["uq"]["level"]
     comps = _components(m, params, reference_sd)
     tau = _transfer_sd(m)
     out = {"level": level, "transfer_sd": tau, "same_session": {}, "new_session": {},
-           "new_session_missing": transfer_missing(m), "new_session_source": "physics"}
+           "new_session_missing": transfer_missing(m), "source": "physics", "new_session_source": "physics"}
     for a in AXES:
         us, nus = [c[1][a] for c in comps], [c[3] for c in comps]
         for key, extra_u in (("same_session", []), ("new_session", [tau[a]])):
             out[key][a] = _combine(us + extra_u, nus + [math.inf] * len(extra_u), level)
-    block = hybrid_new_session(m)
-    if block is not None and out["new_session_missing"] is None:
+    block = hybrid_new_session(m) if stage == "calibration" else None
+    if block is not None:
+        out["physics"] = {k: (dict(v) if isinstance(v, dict) else v) for k, v in out.items()}
         hc = _hybrid_components(m, params, reference_sd, block)
-        out["transfer_sd"] = {a: float(block["transfer_sd"][a]) for a in AXES}
-        out["new_session_source"] = "hybrid"
+        out["source"] = out["new_session_source"] = "hybrid"
+        if out["new_session_missing"] is None:
+            out["transfer_sd"] = {a: float(block["transfer_sd"][a]) for a in AXES}
         for a in AXES:
-            out["new_session"][a] = _combine([c[1][a] for c in hc] + [out["transfer_sd"][a]],
-                                             [c[2] for c in hc] + [math.inf], level)
+            out["same_session"][a] = _combine([c[1][a] for c in hc], [c[2] for c in hc], level)
+            if out["new_session_missing"] is None:
+                out["new_session"][a] = _combine([c[1][a] for c in hc] + [out["transfer_sd"][a]],
+                                                 [c[2] for c in hc] + [math.inf], level)
+            else:
+                out["new_session"][a] = out["same_session"][a]
     return out
+
+
+def _network_transfer_sd(m: dict) -> bool:
+    """The hybrid's network part of the new-session error was estimated (``[uq] transfer_networks``)."""
+    net = m.get("network") or {}
+    return any(isinstance(t, dict) and (t.get("transfer_network") or {}).get("sd")
+               for t in (net.get("training") or {}).values())
+
+
+def _hybrid_applies(ex: dict, hybrid: bool) -> str:
+    """The sentence saying which predictor the budget's U belong to, for a run that saved a hybrid predictor."""
+    if not hybrid:
+        return ""
+    phys = ex["physics"]
+    new = ("" if ex["new_session_missing"] else " and " + " / ".join(_u2(phys["new_session"][a]["U"]) for a in AXES)
+           + " uT for a new session")
+    return (" This run saved the hybrid predictor (physics model and residual network): `bayesmag apply` and "
+            "`bayesmag.load(...).predict` use it, and U same session and U new session above are its (its "
+            "within-session parts, rows `hybrid: ...`, and the transfer part it adds). The physics model alone -- "
+            "what `bayesmag export`'s firmware formats hold -- has U " + " / ".join(
+                _u2(phys["same_session"][a]["U"]) for a in AXES) + " uT for the same session" + new
+            + " (rows `physics model alone`).")
 
 
 def _combine(uu: list, nn: list, level: float) -> dict:
@@ -272,7 +308,9 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     comps = _components(m, params, reference_sd)
     ex = expanded_uncertainties(m, params, reference_sd)
     tr = m.get("transfer") or {}
-    lines = ["## Uncertainty budget (standard uncertainties, mean over test rows, uT)", "",
+    rows = m["uq"].get("budget_rows")
+    lines = ["## Uncertainty budget (standard uncertainties, mean over "
+             + (f"{rows}" if rows else "test rows") + ", uT)", "",
              "| component | type | dof | x | y | z | evaluation |", "|---|---|---|---|---|---|---|"]
     dof = lambda v: "inf" if not math.isfinite(v) else f"{v:.0f}"  # noqa: E731
     for label, vals, typ, nu, how in comps:
@@ -288,6 +326,16 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                 + " | Student t(nu_eff) |",
                 f"| **expanded uncertainty U = k u_c, {name}** | | | " + " | ".join(_u2(c[a]["U"]) for a in AXES)
                 + " | |"]
+    hybrid = ex.get("source") == "hybrid"
+    if hybrid:                  # the saved predictor is the hybrid: its own within-session parts, then its U
+        phys = ex["physics"]
+        lines += ["| expanded uncertainty U, same session, physics model alone | | | "
+                  + " | ".join(_u2(phys["same_session"][a]["U"]) for a in AXES)
+                  + " | what the firmware exports hold (the parts above) |"]
+        for label, vals, nu in _hybrid_components(m, params, reference_sd, hybrid_new_session(m))[:-1]:
+            lines.append(f"| {label} | A | {dof(nu)} | " + " | ".join(_u2(vals[a]) for a in AXES)
+                         + " | the hybrid predictor's within-session part (mean over the test rows the budget uses; "
+                           "c the interval scale) |")
     lines += block("same_session", "same session")
     tau = ex["transfer_sd"]
     if tr.get("method") in (None, "off"):
@@ -305,7 +353,8 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     missing = ex["new_session_missing"]
     dom = {a: max(comps, key=lambda c: c[1][a])[0].split(" (")[0] for a in AXES}
     same, new = ex["same_session"], ex["new_session"]
-    n_runs = len((m.get("data") or {}).get("runs") or [])
+    d = m.get("data") or {}
+    n_runs = len(d["train_runs"] if "train_runs" in d else d.get("runs") or [])   # runs before this key: all
     same_applies = (f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
                     "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
                     "power-up, the conditions of the test rows above)"
@@ -323,20 +372,21 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                   "set `[uq] transfer = \"loro\"` (the default). Inside the calibration domain only (section "
                   "Calibration domain)."]
     else:
-        hybrid = ex.get("new_session_source") == "hybrid"
-        if hybrid:              # the new-session U is the hybrid predictor's: its own within-session parts
-            for label, vals, nu in _hybrid_components(m, params, reference_sd, hybrid_new_session(m))[:-1]:
-                lines.append(f"| {label} (new session) | A | {dof(nu)} | " + " | ".join(_u2(vals[a]) for a in AXES)
-                             + " | the hybrid predictor's within-session part (mean over the test rows; c the "
-                               "interval scale) |")
+        if hybrid:              # the new-session U is the hybrid predictor's: its within-session parts + its transfer
+            nt_sd = _network_transfer_sd(m)
             how = ("the hybrid's: " + ("hierarchical session model on the out-of-fold hybrid residuals (the "
-                                       "network's own new-session error inside it)"
-                                       if _network_combined(m) else "physics transfer part and the network's own "
-                                       "new-session error in quadrature")
+                                       "network's own new-session error inside it)" if _network_combined(m) else
+                                       "physics transfer part and the network's own new-session error in quadrature"
+                                       if nt_sd else "the physics transfer part (the network's own new-session error "
+                                       "not estimated: `[uq] transfer_networks = true` estimates it)")
                    + "; root mean square over the training rows, counted with infinite dof")
         lines.append("| transfer (between sessions; new session only) | A | inf | "
                      + " | ".join(_u2(tau[a]) for a in AXES) + f" | {how} |")
         lines += block("new_session", "new session")
+        if hybrid:
+            lines.append("| expanded uncertainty U, new session, physics model alone | | | "
+                         + " | ".join(_u2(ex["physics"]["new_session"][a]["U"]) for a in AXES)
+                         + " | the physics parts and the physics transfer sd: what the firmware exports hold |")
         lines += ["", same_applies + "; **U new session** "
                   f"({' / '.join(_u2(new[a]['U']) for a in AXES)} uT) holds for any later recording, i.e. in the "
                   "field (`bayesmag apply` adds the transfer term to every row of a new recording; column "
@@ -345,9 +395,9 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                      "temperature: the U here uses its root mean square over the training rows, and the table of "
                      "U at the corners of the training domain below shows its range."
                      if str(tr.get("method", "")).startswith("hierarchical") else "")
-                  + (" U new session is the hybrid predictor's (the one `bayesmag apply` uses): its within-session "
-                     "parts and the transfer part it adds, the residual network's own new-session error included "
-                     "(`[uq] transfer_networks`); U same session is the physics budget's." if hybrid else "")]
+                  + _hybrid_applies(ex, hybrid)]
+    if missing and hybrid:
+        lines[-1] += _hybrid_applies(ex, hybrid)
     if network_parts:
         lines += ["", "Hybrid stage (residual network), for comparison:", "",
                   "| component | type | x | y | z |", "|---|---|---|---|---|"]

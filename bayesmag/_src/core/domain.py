@@ -18,7 +18,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["Domain", "rates", "REASONS", "REASON_CODES"]
+__all__ = ["Domain", "rates", "REASONS", "REASON_CODES", "budget_row_mask", "budget_rows_note"]
 
 _NAMES = ("bx_meas", "by_meas", "bz_meas", "temperature")
 _RATE_NAMES = ("dbx_dt", "dby_dt", "dbz_dt", "dT_dt")
@@ -170,3 +170,23 @@ def sampling_step(data) -> float | None:
     """The median positive time step between consecutive rows of the same run (s); None without one."""
     from bayesmag._src.core.physics import median_step
     return median_step(data.time, data.run)
+
+
+def budget_row_mask(outside: np.ndarray) -> np.ndarray:
+    """The test rows the certificate's budget averages over: those inside the calibration domain (its U is stated
+    for them only), all rows where none is inside. ``outside``: the (n, k) flags of :meth:`Domain.outside`."""
+    inside = ~np.asarray(outside).any(axis=1)
+    return inside if inside.any() else np.ones_like(inside)
+
+
+def budget_rows_note(outside: np.ndarray) -> str:
+    """Which test rows :func:`budget_row_mask` keeps, in words (``metrics["uq"]["budget_rows"]``; the report says it).
+
+    Example:
+      >>> budget_rows_note(np.array([[False], [True], [False]]))
+      '2 in-domain test rows of 3'
+    """
+    inside = ~np.asarray(outside).any(axis=1)
+    n, k = int(inside.size), int(inside.sum())
+    return (f"all {n} test rows (all in domain)" if k == n else f"{k} in-domain test rows of {n}" if k
+            else f"all {n} test rows (none in domain)")

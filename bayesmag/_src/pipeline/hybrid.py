@@ -417,11 +417,14 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                                                "ensemble_passes": list(ensemble_passes(net_cfg.mc_passes, n_folds))}
                 for a, ax in enumerate(AXES):
                     training[name][ax]["interval_scale"] = float(pr.scale[a])
+            budget = None if test is None else _new_session_budget(pr, preds[name], train,
+                                                                    None if series is None else series[:2], test)
+            if budget is not None:          # the certificate's U of the hybrid predictor (what `apply` uses)
+                training[name]["budget"] = budget
             if nt is not None:
                 training[name]["transfer_network"] = nt.as_dict()
-                if test is not None:
-                    training[name]["transfer_network"]["new_session"] = _new_session_budget(
-                        pr, preds[name], train, None if series is None else series[:2])
+                if budget is not None:
+                    training[name]["transfer_network"]["new_session"] = budget
                 network_transfer[name] = nt
             if net.variance_scale is not None:
                 for a, ax in enumerate(AXES):
@@ -453,14 +456,22 @@ def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarra
                            {"nn_oof": nn_oof, "nn_full": nn_full, "resid": resid, "run": train.run, "inside": inside})
 
 
-def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData, series=None) -> dict:
+def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData, series=None,
+                        test: CalibrationData | None = None) -> dict:
     """The hybrid's new-session budget for the certificate (``app/report.py``): the within-session parts of
     ``pred`` (mean sd over its rows, the test rows), the interval scale, the transfer sd the hybrid adds to a new
     session (root mean square over the training rows) and, with a session model, at the training domain's corners."""
     ax = lambda v: {a: float(x) for a, x in zip(AXES, v)}  # noqa: E731
     names = ["aleatoric_nn", "epistemic_nn", "epistemic_physics"] + (["aleatoric_physics"] if pred.fusion == "paper"
                                                                      else [])
-    out = {"parts": {k: ax(np.mean(np.asarray(pred.parts[k], np.float64), axis=0)) for k in names},
+    # the means over the test rows inside the calibration domain (the certificate's U is stated there only)
+    if test is not None and pr.domain is not None:
+        from bayesmag._src.core.domain import budget_row_mask
+        rows = budget_row_mask(pr.domain.outside(test, pred.mean))
+    else:
+        rows = slice(None)
+    mean = lambda v: np.mean(np.broadcast_to(np.asarray(v, np.float64), pred.mean.shape)[rows], axis=0)  # noqa: E731
+    out = {"parts": {k: ax(mean(pred.parts[k])) for k in names},
            "interval_scale": ax(np.ones(3) if pr.scale is None else pr.scale),
            "transfer_sd": ax(np.sqrt(np.mean(new_session_transfer_rows(pr, train, series) ** 2, axis=0))),
            "family": pred.family}
