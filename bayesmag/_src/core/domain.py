@@ -41,10 +41,13 @@ def rates(data) -> np.ndarray:
     """(n, 4) |dBx/dt|, |dBy/dt|, |dBz/dt| (uT/s) and |dT/dt| (C/s) of the measured inputs.
 
     Within each run, rows in time order; each row gets the larger absolute difference quotient
-    to its two time neighbours (0 for a run of one row; rows at equal times are skipped).
+    to its two time neighbours (0 for a run of one row). Rows of a run that share a timestamp (whole-second stamps
+    of a 4 Hz logger) are first spread evenly up to the next stamp, as :func:`load_belsten` does
+    (:func:`~bayesmag._src.core.data.spread_duplicate_times`): skipped, they made the step across a second
+    boundary a change over 1 s instead of 0.25 s, and the rates up to 4x too low.
     """
     x = np.column_stack([data.b_meas, data.temperature]).astype(np.float64)
-    t = np.asarray(data.time, np.float64)
+    t = np.asarray(_spread(data).time, np.float64)
     out = np.zeros_like(x)
     for r in np.unique(data.run):
         idx = np.flatnonzero(data.run == r)
@@ -101,6 +104,12 @@ class Domain:
         apart) misreads them; None otherwise, or without rate limits or a step."""
         if self.rate_high is None or not self.step or not getattr(data, "time_given", True):
             return None
+        k = repeated_stamps(data)
+        if k:
+            return (f"{k} of {data.n} rows share their timestamp with another row of their run (whole-second stamps "
+                    f"of a faster logger?): the rate checks (in_domain_reason field_rate / temperature_rate) spread "
+                    f"them evenly up to the run's next stamp, as the Belsten loader does. Give each row its own time "
+                    f"to check the rates on the real ones.")
         new = sampling_step(data)
         if not new or 1 / ratio <= new / self.step <= ratio:
             return None
@@ -167,9 +176,26 @@ _rates = rates
 
 
 def sampling_step(data) -> float | None:
-    """The median positive time step between consecutive rows of the same run (s); None without one."""
+    """The median positive time step between consecutive rows of the same run (s), repeated stamps spread
+    (:func:`rates`); None without one."""
     from bayesmag._src.core.physics import median_step
+    data = _spread(data)
     return median_step(data.time, data.run)
+
+
+def repeated_stamps(data) -> int:
+    """How many rows share their timestamp with an earlier row of their run."""
+    t, run = np.asarray(data.time, np.float64), np.asarray(data.run).reshape(-1)
+    o = np.lexsort((t, run))
+    return int(np.sum((np.diff(t[o]) == 0) & (run[o][1:] == run[o][:-1])))
+
+
+def _spread(data):
+    """``data`` with its repeated stamps spread (:func:`~bayesmag._src.core.data.spread_duplicate_times`), or itself."""
+    if data.n < 2 or not repeated_stamps(data):
+        return data
+    from bayesmag._src.core.data import spread_duplicate_times
+    return spread_duplicate_times(data)
 
 
 def budget_row_mask(outside: np.ndarray) -> np.ndarray:

@@ -1,0 +1,46 @@
+"""The training domain's rate checks on recordings whose stamps repeat (core/domain.py)."""
+
+import numpy as np
+import pytest
+
+from bayesmag._src.core.data import CalibrationData
+from bayesmag._src.core.domain import Domain, rates, repeated_stamps
+
+
+def _recording(speed, n=400, dt=0.25, seed=0):
+    """A 4 Hz recording whose field turns at ``speed`` (rad/s) for rows 150-250 and slowly elsewhere."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    w = np.where((np.arange(n) >= 150) & (np.arange(n) < 250), speed, 0.2)
+    phase = np.cumsum(w) * dt
+    b = 40 * np.column_stack([np.cos(phase), np.sin(phase), 0.3 * np.ones(n)]) + rng.normal(0, 0.02, (n, 3))
+    temp = 22 + 0.01 * t
+    return CalibrationData(b, temp, None, time=t, run=np.zeros(n, int))
+
+
+def test_whole_second_stamps_are_checked_as_the_real_4hz_times():
+    """Sixth outside pass: `apply` on Belsten run 4 with its file's whole-second stamps flagged 68 field_rate rows
+    where the run flagged 106: rows at equal times were skipped, so the step across a second boundary was read as a
+    change over 1 s instead of 0.25 s (rates up to 4x too low). Now the stamps are spread as the loader spreads
+    them: the same flags as the true times (up to the rows next to a fast turn's start and end)."""
+    train = _recording(0.4)
+    dom = Domain.from_data(train)
+    new = _recording(1.2, seed=1)                          # turns 3x faster than training in rows 150-250
+    whole = CalibrationData(new.b_meas, new.temperature, None, time=np.floor(new.time), run=new.run)
+    assert repeated_stamps(whole) == 300 and repeated_stamps(new) == 0
+    true_flags = dom.outside(new)[:, 4:7].any(axis=1)
+    got = dom.outside(whole)[:, 4:7].any(axis=1)
+    assert true_flags.sum() >= 90                          # the fast turn is flagged on the true times
+    assert np.sum(got != true_flags) <= 4                  # spread stamps: the same rows, up to the edges
+    np.testing.assert_allclose(rates(whole)[160:240], rates(new)[160:240], rtol=0.05)
+    note = dom.step_note(whole)
+    assert note is not None and note.startswith("300 of 400 rows share their timestamp")
+    assert dom.step_note(new) is None
+
+
+@pytest.mark.parametrize("stamps", [[0, 0, 1, 1, 2, 2], [0, 1, 2, 3, 4, 5]])
+def test_repeated_stamps_counts_within_runs(stamps):
+    d = CalibrationData(np.ones((6, 3)) * 40, np.full(6, 20.0), None, time=np.array(stamps, float),
+                        run=np.array([0, 0, 0, 1, 1, 1]))
+    want = 2 if stamps[0] == stamps[1] else 0         # one in each run ([0, 0, 1] and [1, 2, 2])
+    assert repeated_stamps(d) == want
