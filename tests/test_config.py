@@ -108,3 +108,14 @@ print("ok")
     env = {**os.environ, "BAYESMAG_ENABLE_X64": "0", "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("key, value", [("transfer_likelihood", "laplace"), ("transfer_df", 6.0),
+                                        ("transfer_uninformed", "fixed")])
+def test_session_model_keys_without_the_session_model_are_refused(key, value):
+    """Sixth outside pass: `uq.transfer_likelihood = "laplace"` with the default `transfer = "loro"` ran with no
+    word, and config.resolved.toml kept the key as if it had been used. It is read by the hierarchical model only."""
+    raw = {"name": "t", "data": {"source": "simulated"}, "uq": {key: value}}
+    with pytest.raises(ConfigError, match=rf"\['uq.{key}'\] set the hierarchical session model; uq.transfer = 'loro'"):
+        config_from_dict(raw)
+    assert getattr(config_from_dict({**raw, "uq": {key: value, "transfer": "hierarchical"}}).uq, key) == value

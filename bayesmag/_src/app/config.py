@@ -437,6 +437,13 @@ def _check_semantics(cfg: Config) -> None:
                               f"a field calibration (measurement.kind = {cfg.measurement.kind!r}) has none and does "
                               f"not read them (docs/field.md, \"Not done / limits\"). Remove them.")
         _refuse_vector_keys(cfg)
+    elif not str(cfg.uq.transfer).startswith("hierarchical"):    # read by the session model only: never ignored
+        unused = [f"uq.{k}" for k, default in (("transfer_likelihood", "gaussian"), ("transfer_df", 4.0),
+                                               ("transfer_uninformed", "pooled")) if getattr(cfg.uq, k) != default]
+        if unused:
+            raise ConfigError(f"Config key(s) {unused} set the hierarchical session model; uq.transfer = "
+                              f"{cfg.uq.transfer!r} does not read them (they apply with uq.transfer = \"hierarchical\" "
+                              f"or \"hierarchical_nuts\"). Remove them, or set uq.transfer = \"hierarchical\".")
     d = cfg.data
     if d.source is not None and d.path is not None:
         raise ConfigError("[data] names both 'source' and 'path'; give one.")
