@@ -2,6 +2,7 @@
 uncertainty against the single-sensor code run one sensor at a time; padding; planted defects flagged; verdicts."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -462,13 +463,23 @@ def test_a_fleet_sensors_recording_is_never_overwritten(tmp_path, capsys):
     capsys.readouterr()
     assert main(["apply", "--model", str(out / "sensors" / "U0"), "--data", str(recs / "U1.csv"), "--out",
                  str(recs / "U0.csv"), "--force", "--no-progress"]) == 2
-    assert "is the recording the calibration was trained on" in capsys.readouterr().err
+    assert "is a training recording" in capsys.readouterr().err
     assert main(["export", str(out / "sensors" / "U0"), "--format", "json", "--out", str(recs / "U0.csv"),
                  "--force"]) == 2
     assert "training recording" in capsys.readouterr().err
     assert (recs / "U0.csv").read_bytes() == before
-    from bayesmag._src.app.inputs import recording_paths      # a sensor folder written before [data] path was kept
-    assert [p.resolve() for p in recording_paths(None, out / "sensors" / "U0")] == [(recs / "U0.csv").resolve()]
+    # sixth outside pass: another sensor's recording was replaced with --force (U1's calibration writing U0.csv)
+    for cmd in (["apply", "--model", str(out / "sensors" / "U1"), "--data", str(recs / "U2.csv"), "--out",
+                 str(recs / "U0.csv"), "--force", "--no-progress"],
+                ["export", str(out / "sensors" / "U1"), "--format", "json", "--out", str(recs / "U0.csv"), "--force"]):
+        assert main(cmd) == 2
+        assert "another sensor of its fleet" in capsys.readouterr().err
+    assert (recs / "U0.csv").read_bytes() == before
+    from bayesmag._src.app.inputs import _own_recordings, recording_paths
+    # a sensor folder written before [data] path was kept: the recording its metrics.json names
+    assert [p.resolve() for p in _own_recordings(None, out / "sensors" / "U0")] == [(recs / "U0.csv").resolve()]
+    assert {p.resolve() for p in recording_paths(None, out / "sensors" / "U0")} == {
+        (recs / f"U{i}.csv").resolve() for i in range(3)}
 
 
 def test_fleet_export_refuses_a_changed_recording(tmp_path, capsys):
@@ -608,3 +619,27 @@ def test_fleet_data_time_unit_reads_millisecond_stamps(tmp_path):
     assert saved["time_unit"] == "ms"
     with pytest.raises(ConfigError, match=r"data\.time_unit.*'us'"):
         fleet_config_from_dict({"fleet": {"recordings": "recs"}, "data": {"time_unit": "sec"}})
+
+
+@pytest.mark.parametrize("how", ["manifest", "copy"])
+def test_two_sensors_with_one_recording_are_refused(tmp_path, capsys, how):
+    """Sixth outside pass: a manifest naming one file for two ids, or a copied file, gave both sensors a pass and
+    a certificate (their metrics.json held the same data_sha256)."""
+    from bayesmag._src.core.data import write_csv
+    recs, _ = simulate_fleet(3, 400, seed=4, n_defective=0)
+    (tmp_path / "recs").mkdir()
+    for i in range(3):
+        write_csv(recs[i], tmp_path / "recs" / f"U{i}.csv")
+    if how == "copy":
+        (tmp_path / "recs" / "U2.csv").write_bytes((tmp_path / "recs" / "U0.csv").read_bytes())
+        spec = '[fleet]\nrecordings = "recs"\nfigures = false\n'
+    else:
+        (tmp_path / "man.csv").write_text("id,path\nA1,recs/U0.csv\nA2,recs/U1.csv\nA3,recs/U0.csv\n")
+        spec = '[fleet]\nmanifest = "man.csv"\nfigures = false\n'
+    cfg = tmp_path / "f.toml"
+    cfg.write_text(spec)
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    want = ("sensor U0 .* and sensor U2 " if how == "copy" else "sensor A1 .* and sensor A3 ")
+    assert re.search(want + r".*identical \(same sha256\)", err), err
+    assert not (tmp_path / "out").exists()

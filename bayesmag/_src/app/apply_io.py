@@ -54,12 +54,12 @@ def is_apply_output(path) -> bool:
 
 
 def refuse_training_recording(out, protected) -> None:
-    """:class:`DataError` when ``out`` is one of ``protected`` (the calibration's training recording)."""
+    """:class:`DataError` when ``out`` is one of ``protected`` (the training recordings: :func:`recording_paths`)."""
     from bayesmag._src.app.outdir import same_file
     for p in protected:
         if same_file(out, p):
-            raise DataError(f"--out {out} is the recording the calibration was trained on ({p}); it is never "
-                            f"overwritten. Give a new output file name.")
+            raise DataError(f"--out {out} is a training recording ({p}) of this calibration or, for a fleet sensor, "
+                            f"of another sensor of its fleet; it is never overwritten. Give a new output file name.")
 
 
 def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, protected=()) -> Path:

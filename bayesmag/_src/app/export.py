@@ -769,7 +769,8 @@ def check_export_out(run_dir: str | Path, out: str | Path, *, inputs=(), force: 
         raise ExportError(f"--out {out} is bayesmag's own bookkeeping file name; it is never overwritten. {fix}")
     for p in inputs:
         if _same(out, p):
-            raise ExportError(f"--out {out} is the run's training recording {p}; it would be overwritten. {fix}")
+            raise ExportError(f"--out {out} is a training recording ({p}) of this run or, for a fleet sensor, of "
+                              f"another sensor of its fleet; it would be overwritten. {fix}")
     parent = out.parent if str(out.parent) else Path(".")
     if read_only(out):
         raise ExportError(f"--out {out} is read-only (no write permission); bayesmag never replaces a protected "

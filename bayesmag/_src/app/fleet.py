@@ -411,6 +411,22 @@ def _sensor_warnings(cfg: FleetConfig, model, fit, trains, train_pred, uq, n_tes
     return design, noise
 
 
+def _refuse_shared_recordings(ids, files) -> None:
+    """:class:`DataError` when two sensors' recordings are the same bytes (one file named twice, or a copy): each
+    would get a certificate and firmware parameters fitted on the other unit's data (sixth outside pass: both
+    passed sign-off)."""
+    by_hash: dict = {}
+    for sid, f in zip(ids, files):
+        if f is not None:
+            by_hash.setdefault(f[1], []).append((sid, f[0]))
+    same = [v for v in by_hash.values() if len(v) > 1]
+    if same:
+        groups = "; ".join(" and ".join(f"sensor {sid} ({p})" for sid, p in g) for g in same[:3])
+        raise DataError(f"{groups}: the recordings are identical (same sha256), so one unit would be certified on "
+                        f"another's data. Give each sensor its own recording (check the manifest or the copied "
+                        f"files).")
+
+
 def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
     """Run the fleet job described by ``cfg`` and write its outputs into ``out`` (staged, swapped in whole)."""
     from bayesmag._src.app.outdir import reserve, staging_dir
@@ -426,6 +442,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
         from bayesmag._src.core.datasets import sha256_of     # each sensor's file, as a run records its recording
         files = [None] * len(ids) if cfg.source == "simulated" else [
             (p.resolve(), sha256_of(p)) for _, p in _recording_paths(cfg)]
+        _refuse_shared_recordings(ids, files)
         model = PhysicsModel.paper(t0=cfg.t0, temperature=cfg.temperature_terms)
         trains, tests, test_rows, splits = [], [], [], []
         for sid, d in zip(ids, recs):

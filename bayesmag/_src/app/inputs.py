@@ -58,6 +58,31 @@ def failed_sensor_warning(run_dir) -> str | None:
 
 
 def recording_paths(data, run_dir=None) -> list:
+    """:func:`_own_recordings`, and for a fleet sensor folder the recordings of every other sensor of its fleet
+    (``--force`` replaced another sensor's raw recording: sixth outside pass)."""
+    return _own_recordings(data, run_dir) + (_fleet_recordings(run_dir) if run_dir is not None else [])
+
+
+def _fleet_recordings(run_dir) -> list:
+    """The recordings the other sensor folders of ``run_dir``'s fleet were calibrated on ([] for any other folder)."""
+    import json
+    from pathlib import Path
+    run_dir = Path(run_dir)
+    if _sensor_metrics(run_dir) is None or run_dir.parent.name != "sensors":
+        return []
+    out = []
+    for sib in sorted(run_dir.parent.iterdir()):
+        if sib == run_dir or not (sib / "calibration.json").is_file():
+            continue
+        try:
+            data = (json.loads((sib / "calibration.json").read_text()).get("config") or {}).get("data")
+        except (OSError, ValueError, AttributeError):
+            continue
+        out += _own_recordings(data, sib)
+    return out
+
+
+def _own_recordings(data, run_dir=None) -> list:
     """The files on this machine that a job's ``[data]`` table (a dict, as saved in a calibration) read: its
     ``path``, or the file of its named dataset (``source``) where it is found. A command's ``--out`` never
     replaces them (``apply``, ``export``). A relative ``path`` is taken both from here and from the folder the run
