@@ -348,3 +348,21 @@ def test_rows_not_calibrated_are_named_by_file_and_row(cal_dir, archive, cluster
     assert "d0." not in msg
     out = pd.read_parquet(tmp_path / "out")
     assert np.flatnonzero(~out["valid"].to_numpy()).tolist() == [800 + r for r in bad]
+
+
+def test_a_declared_unit_that_misreads_some_files_is_said(cal_dir, archive, cluster, tmp_path):
+    """Sixth outside pass: `--field-unit nT` on a file in uT gave calibrated values 1000x too small, every row
+    marked in domain, exit 0 and no word (in process and in an archive of uT and nT files). The declared unit is
+    still trusted (a shielded recording is genuinely weak), but the files it makes 50x off the training field are
+    named."""
+    s = apply_calibration(cal_dir, archive / "csv" / "day0.csv", tmp_path / "one.csv", field_unit="nT")
+    assert any("read as 'nT' as declared" in w and "Check the declared field unit" in w for w in s["warnings"])
+    (tmp_path / "mixed").mkdir()
+    pd.read_parquet(archive / "pq" / "day0.parquet").to_parquet(tmp_path / "mixed" / "a.parquet", index=False)
+    nt = pd.read_parquet(archive / "pq" / "day1.parquet")
+    cols = ["bx_meas", "by_meas", "bz_meas", "bx_ref", "by_ref", "bz_ref"]
+    nt[cols] = nt[cols] * 1000.0
+    nt.to_parquet(tmp_path / "mixed" / "b.parquet", index=False)
+    s = apply_dask(cal_dir, str(tmp_path / "mixed"), tmp_path / "out", scheduler=cluster, field_unit="nT")
+    odd = [w for w in s["warnings"] if "declared --field-unit nT" in w]
+    assert len(odd) == 1 and "a.parquet" in odd[0] and "b.parquet" not in odd[0]

@@ -424,6 +424,22 @@ def _check_small_field(table, cal, field_unit) -> None:
                             f"magnetically shielded recording); nothing was written.")
 
 
+def _declared_unit_files(table, pieces, cal, field_unit) -> list[str]:
+    """The files whose every partition's field (99th percentile, uT after the declared ``field_unit``) is over 50x
+    below or above the training field: a declared unit is trusted, but one wrong for some files of an archive gave
+    wrong values marked in domain without a word (sixth outside pass)."""
+    from bayesmag._src.app.apply import train_max_ut
+    top = train_max_ut(cal)
+    if field_unit is None or top <= 10 or "p99_meas" not in table:
+        return []
+    by_file: dict = {}
+    for _, r in table.iterrows():
+        v = float(r["p99_meas"])
+        if np.isfinite(v):
+            by_file.setdefault(str(pieces[int(r["partition"])][1]), []).append(v < top / 50 or v > 50 * top)
+    return sorted(f for f, odd in by_file.items() if all(odd))
+
+
 def _check_paths(model_dir, data, out) -> Path:
     out, model = Path(out), Path(model_dir).resolve()
     if out.suffix.lower() in _PARQUET + (".csv",) and not out.is_dir():
@@ -549,6 +565,12 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
         more = f" and {n_bad - len(shown)} more" if n_bad > len(shown) else ""
         summary["warnings"].append(f"{n_bad} row(s) have non-finite inputs or outputs and were not calibrated "
                                    f"(valid=false)" + (f": {'; '.join(shown)}{more}." if shown else "."))
+    odd = _declared_unit_files(table, pieces, cal, opts["field_unit"])
+    if odd:
+        summary["warnings"].append(f"with the declared --field-unit {opts['field_unit']}, the measured field of "
+                                   f"{', '.join(odd[:5])}{' and more' if len(odd) > 5 else ''} is over 50x smaller "
+                                   f"or larger than the calibration's training field: if those files are in another "
+                                   f"unit (uT already?), their calibrated values are wrong by that factor.")
     note = method_note(cal, method)
     if note:
         summary["notes"] = [note]

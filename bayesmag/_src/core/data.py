@@ -353,8 +353,14 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
         if p99 == 0.0 and not np.any(b[ok]):
             raise DataError(f"The {label}{where} is zero in every row: the sensor recorded no field (or the "
                             f"columns are mapped wrongly). Check the file and the column mapping.")
-        if data.field_unit is not None:
-            continue                        # declared by the user: trusted
+        if data.field_unit is not None:     # declared by the user: trusted, but said when training disagrees
+            if train_max_ut is not None and train_max_ut > 10 and not small_ok and (
+                    p99 < train_max_ut / 50 or p99 > 50 * train_max_ut):
+                warn.append(f"The {label}{where}, read as {data.field_unit!r} as declared, reaches {p99:.4g} uT "
+                            f"(99th percentile) while the calibration was trained on |B| up to {train_max_ut:.3g} "
+                            f"uT: if the file is in another unit (uT already?), the calibrated values are wrong by "
+                            f"that factor. Check the declared field unit.")
+            continue
         if train_max_ut is not None:
             if p99 > 50 * train_max_ut:
                 raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile) but the calibration was "
