@@ -475,11 +475,19 @@ def test_a_fleet_sensors_recording_is_never_overwritten(tmp_path, capsys):
         assert main(cmd) == 2
         assert "another sensor of its fleet" in capsys.readouterr().err
     assert (recs / "U0.csv").read_bytes() == before
-    from bayesmag._src.app.inputs import _own_recordings, recording_paths
+    from bayesmag._src.app.inputs import protected_recordings, recording_paths
     # a sensor folder written before [data] path was kept: the recording its metrics.json names
-    assert [p.resolve() for p in _own_recordings(None, out / "sensors" / "U0")] == [(recs / "U0.csv").resolve()]
-    assert {p.resolve() for p in recording_paths(None, out / "sensors" / "U0")} == {
+    assert [p.resolve() for p in recording_paths(None, out / "sensors" / "U0")] == [(recs / "U0.csv").resolve()]
+    assert {p.resolve() for p in protected_recordings(None, out / "sensors" / "U0")} == {
         (recs / f"U{i}.csv").resolve() for i in range(3)}
+    # export of a sensor whose recording is gone names the file it looked for (it said "could not be reloaded
+    # ('U0')"), and a new recording's apply says fleets estimate no transfer term
+    (recs / "U1.csv").rename(tmp_path / "U1_moved.csv")
+    assert main(["export", str(out / "sensors" / "U1"), "--format", "px4", "--out", str(tmp_path / "u1.px4")]) == 2
+    assert f"not found (looked for {recs / 'U1.csv'}" in capsys.readouterr().err
+    assert main(["apply", "--model", str(out / "sensors" / "U0"), "--data", str(recs / "U2.csv"), "--out",
+                 str(tmp_path / "u2.csv"), "--no-progress"]) == 0
+    assert "a `bayesmag fleet` sensor: fleets do not estimate one" in capsys.readouterr().err
 
 
 def test_fleet_export_refuses_a_changed_recording(tmp_path, capsys):

@@ -43,7 +43,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     file of a run folder or a read-only file, nor (without ``force``) a file ``apply`` did not write
     (:func:`check_apply_paths`); it is written to a temporary sibling first, then renamed into place.
     """
-    from bayesmag._src.app.inputs import recording_paths
+    from bayesmag._src.app.inputs import protected_recordings
 
     from bayesmag._src.app.artifact import is_field_run
     if is_field_run(model_dir):
@@ -55,7 +55,7 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     check_apply_options(level, n_params, n_qmc)
     out_path = check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
     cal = load(model_dir)
-    refuse_training_recording(out_path, recording_paths((cal.config or {}).get("data")
+    refuse_training_recording(out_path, protected_recordings((cal.config or {}).get("data")
                                                         if isinstance(cal.config, dict) else None, model_dir))
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,

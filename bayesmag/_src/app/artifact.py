@@ -297,9 +297,14 @@ def new_session_notes(cal) -> list[str]:
     notes = []
     tsd = getattr(cal, "transfer_sd", None)
     if getattr(cal, "sessions", None) is None and (tsd is None or not np.any(np.asarray(tsd, float) > 0)):
-        notes.append("the calibration holds no between-session (transfer) term (its training data held one run, or "
-                     "[uq] transfer = \"off\"): the intervals of this recording, a new session, cover only the error "
-                     "within a session and can be far too narrow. Calibrate on at least 3 sessions for a transfer term.")
+        fleet = isinstance(getattr(cal, "config", None), dict) and "sensor_id" in cal.config
+        why = ("a `bayesmag fleet` sensor: fleets do not estimate one" if fleet else
+               "its training data held one run, or [uq] transfer = \"off\"")
+        fix = ("For one, calibrate this sensor alone with `bayesmag run` on at least 3 sessions ([uq] transfer = "
+               "\"loro\")." if fleet else "Calibrate on at least 3 sessions for a transfer term.")
+        notes.append(f"the calibration holds no between-session (transfer) term ({why}): the intervals of this "
+                     f"recording, a new session, cover only the error within a session and can be far too narrow. "
+                     + fix)
     bound = [t.name for t in cal.model.terms if t.bound_runs()]
     if not bound:
         return notes

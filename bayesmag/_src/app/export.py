@@ -802,8 +802,9 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
         raise ExportError(f"export format {fmt!r} is not known; it must be one of {list(FORMATS)}.")
     cal = load(run_dir)
     out = Path(out) if out else Path(run_dir) / f"calibration{FORMATS[fmt]}"
-    from bayesmag._src.app.inputs import failed_sensor_warning, fleet_verdict, recording_paths
-    recordings = recording_paths((cal.config or {}).get("data") if isinstance(cal.config, dict) else None, run_dir)
+    from bayesmag._src.app.inputs import failed_sensor_warning, fleet_verdict, protected_recordings, recording_paths
+    data_cfg = (cal.config or {}).get("data") if isinstance(cal.config, dict) else None
+    recordings = protected_recordings(data_cfg, run_dir)
     check_export_out(run_dir, out, inputs=recordings, force=force, suffix=FORMATS[fmt])  # before the slow part
     failed = failed_sensor_warning(run_dir)         # a fleet sensor that failed sign-off
     if failed and "unidentifiable" in (fleet_verdict(run_dir).get("fails_limits") or []) and not force:
@@ -826,7 +827,10 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
                     and not ("sensor_id" in cal.config)):   # no split: the "test" rows are the training rows
                 test, series = None, None
         except Exception as e:  # noqa: BLE001 -- the exact formats are still useful without the rows
-            missing = f"the run's rows could not be reloaded ({' '.join(str(e).split())})"
+            looked = recording_paths(data_cfg, run_dir)
+            missing = (f"the run's recording is not found (looked for {', '.join(map(str, looked))})"
+                       if looked and not any(p.exists() for p in looked) else
+                       f"the run's rows could not be reloaded ({' '.join(str(e).split())})")
     if missing is not None and fmt in LEAST_SQUARES_FORMATS:
         raise ExportError(f"{missing}. The {fmt} parameters are a least-squares fit to the run's training rows, so "
                           f"they cannot be exported without them (a fit on a grid over the training box was far off: a "

@@ -105,7 +105,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     from bayesmag._src.app.apply_io import (check_apply_options, check_apply_paths, check_units_against,
                                             refuse_training_recording, write_apply_csv, _check_magnitudes)
     from bayesmag._src.app.artifact import load_field
-    from bayesmag._src.app.inputs import recording_paths
+    from bayesmag._src.app.inputs import protected_recordings
     from bayesmag._src.core.frames import load_table
 
     t0 = time.perf_counter()
@@ -119,7 +119,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
             data_cfg = tomllib.loads(doc_cfg.read_text()).get("data")
         except (tomllib.TOMLDecodeError, UnicodeDecodeError):
             data_cfg = None
-        refuse_training_recording(out_path, recording_paths(data_cfg, model_dir))
+        refuse_training_recording(out_path, protected_recordings(data_cfg, model_dir))
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False, time_unit=time_unit, mapping_hint="--columns (NAME=COL,...)")
     _check_magnitudes(data)

@@ -57,10 +57,11 @@ def failed_sensor_warning(run_dir) -> str | None:
     return msg + ": its calibration is not signed off; use it only if you accept those reasons."
 
 
-def recording_paths(data, run_dir=None) -> list:
-    """:func:`_own_recordings`, and for a fleet sensor folder the recordings of every other sensor of its fleet
-    (``--force`` replaced another sensor's raw recording: sixth outside pass)."""
-    return _own_recordings(data, run_dir) + (_fleet_recordings(run_dir) if run_dir is not None else [])
+def protected_recordings(data, run_dir=None) -> list:
+    """The files a command's ``--out`` never replaces: :func:`recording_paths`, and for a fleet sensor folder the
+    recordings of every other sensor of its fleet (``--force`` replaced another sensor's raw recording: sixth
+    outside pass)."""
+    return recording_paths(data, run_dir) + (_fleet_recordings(run_dir) if run_dir is not None else [])
 
 
 def _fleet_recordings(run_dir) -> list:
@@ -78,11 +79,11 @@ def _fleet_recordings(run_dir) -> list:
             data = (json.loads((sib / "calibration.json").read_text()).get("config") or {}).get("data")
         except (OSError, ValueError, AttributeError):
             continue
-        out += _own_recordings(data, sib)
+        out += recording_paths(data, sib)
     return out
 
 
-def _own_recordings(data, run_dir=None) -> list:
+def recording_paths(data, run_dir=None) -> list:
     """The files on this machine that a job's ``[data]`` table (a dict, as saved in a calibration) read: its
     ``path``, or the file of its named dataset (``source``) where it is found. A command's ``--out`` never
     replaces them (``apply``, ``export``). A relative ``path`` is taken both from here and from the folder the run

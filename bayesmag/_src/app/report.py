@@ -368,9 +368,11 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                   "transfer term |"]
         lines += ["", same_applies + ". **No U for a new session** (any later recording, "
                   f"in the field) can be stated: the between-session (transfer) term was not estimated ({missing}), "
-                  "and a new session can be off by more than U same session. Record at least 3 sessions (runs) and "
-                  "set `[uq] transfer = \"loro\"` (the default). Inside the calibration domain only (section "
-                  "Calibration domain)."]
+                  "and a new session can be off by more than U same session. "
+                  + ("A `bayesmag fleet` does not estimate it: calibrate this sensor alone with `bayesmag run` on at "
+                     "least 3 sessions (runs), `[uq] transfer = \"loro\"` (the default). " if m.get("fleet") else
+                     "Record at least 3 sessions (runs) and set `[uq] transfer = \"loro\"` (the default). ")
+                  + "Inside the calibration domain only (section Calibration domain)."]
     else:
         if hybrid:              # the new-session U is the hybrid predictor's: its within-session parts + its transfer
             nt_sd = _network_transfer_sd(m)
