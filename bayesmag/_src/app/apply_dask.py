@@ -524,7 +524,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                 warnings.simplefilter("ignore", UserWarning)
                 cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
                                        memory_limit=memory_limit, processes=True, dashboard_address=None,
-                                       silence_logs=logging.ERROR)
+                                       silence_logs=logging.CRITICAL)   # a failed task is reported once, as one line
             client = Client(cluster)
         try:
             with dask.config.set({"dataframe.convert-string": False}):
