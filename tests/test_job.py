@@ -52,9 +52,17 @@ def test_job_writes_outputs(tmp_path):
 
 
 def test_same_config_same_numbers(tmp_path):
-    bayesmag.run_job(_cfg(), tmp_path / "a")
+    res = bayesmag.run_job(_cfg(), tmp_path / "a")
     bayesmag.run_job(_cfg(), tmp_path / "b")
     assert (tmp_path / "a/predictions.csv").read_bytes() == (tmp_path / "b/predictions.csv").read_bytes()
+    # the inputs are written to reproduce the predictions from the file (sixth outside pass: the temperature had 4
+    # decimals, and the rebuilt recording's hybrid predictions moved by up to 4e-4 uT)
+    rows = list(csv.DictReader(open(tmp_path / "a/predictions.csv")))
+    from bayesmag._src.core.simulate import simulate_from_config
+    data = simulate_from_config(SIM)
+    idx = np.array([int(r["row"]) for r in rows])
+    np.testing.assert_allclose([float(r["temperature"]) for r in rows], data.temperature[idx], rtol=1e-9)
+    np.testing.assert_allclose([float(r["x_measured"]) for r in rows], data.b_meas[idx, 0], rtol=1e-7)
 
 
 def test_failed_run_leaves_no_folder(tmp_path):

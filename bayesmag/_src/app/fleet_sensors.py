@@ -216,7 +216,7 @@ def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, colum
 
     out = [[str(int(r)) for r in np.asarray(rows).tolist()], [f"{v:.6f}" for v in np.asarray(data.time).tolist()],
            [str(int(r)) for r in np.asarray(data.run).tolist()],
-           [f"{v:.6g}" for v in np.asarray(data.temperature, np.float64).tolist()]]
+           [f"{v:.10g}" for v in np.asarray(data.temperature, np.float64).tolist()]]
     header = ["row", "time", "run", "temperature"] + [f"{ax}_{c}" for ax in AXES for c in columns]
     for a in range(3):
         for c in columns.values():

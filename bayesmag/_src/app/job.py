@@ -92,7 +92,7 @@ def write_predictions(path: Path, data: CalibrationData, rows: np.ndarray, colum
         w.writerow(header)
         cols = list(columns.values())
         for k in range(data.n):
-            rec = [int(rows[k]), f"{data.time[k]:.6f}", int(data.run[k]), f"{data.temperature[k]:.6g}"]
+            rec = [int(rows[k]), f"{data.time[k]:.6f}", int(data.run[k]), f"{data.temperature[k]:.10g}"]
             for a in range(3):
                 for c in cols:
                     v = c[k, a]
