@@ -5,6 +5,7 @@ import json
 import re
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from bayesmag._src.app.cli import main
@@ -650,4 +651,29 @@ def test_two_sensors_with_one_recording_are_refused(tmp_path, capsys, how):
     err = capsys.readouterr().err
     want = ("sensor U0 .* and sensor U2 " if how == "copy" else "sensor A1 .* and sensor A3 ")
     assert re.search(want + r".*identical \(same sha256\)", err), err
+    assert not (tmp_path / "out").exists()
+
+
+def test_every_bad_recording_is_named_in_one_error(tmp_path, capsys):
+    """Sixth outside pass: with three broken files (a NaN, kelvin, a missing column) the fleet named one, so each
+    took a rerun to find. Now one error names all three sensors and what is wrong with each; nothing is written."""
+    from bayesmag._src.core.data import write_csv
+    recs, _ = simulate_fleet(5, 400, seed=5, n_defective=0)
+    (tmp_path / "recs").mkdir()
+    for i in range(5):
+        write_csv(recs[i], tmp_path / "recs" / f"U{i}.csv")
+    df = pd.read_csv(tmp_path / "recs" / "U1.csv")
+    df.loc[7, "bx_meas"] = np.nan
+    df.to_csv(tmp_path / "recs" / "U1.csv", index=False)
+    df = pd.read_csv(tmp_path / "recs" / "U3.csv")
+    df["temperature"] += 273.15
+    df.to_csv(tmp_path / "recs" / "U3.csv", index=False)
+    pd.read_csv(tmp_path / "recs" / "U4.csv").drop(columns="by_meas").to_csv(tmp_path / "recs" / "U4.csv", index=False)
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('[fleet]\nrecordings = "recs"\nfigures = false\n')
+    assert main(["fleet", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "3 of 5 sensors cannot be calibrated" in err and len(err.strip().splitlines()) == 1, err
+    assert re.search(r"sensor U1: .*'bx_meas'.*row\(s\) 8", err) and re.search(r"sensor U3: .*kelvin", err)
+    assert re.search(r"sensor U4: .*by_meas", err)
     assert not (tmp_path / "out").exists()

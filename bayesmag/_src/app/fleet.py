@@ -331,8 +331,10 @@ def _recording_paths(cfg: FleetConfig) -> list[tuple[str, Path]]:
     return items
 
 
-def load_recordings(cfg: FleetConfig) -> tuple[list[CalibrationData], tuple[str, ...], object]:
-    """The fleet's recordings, ids and (simulated fleets) the ground truth."""
+def load_recordings(cfg: FleetConfig, errors: list | None = None
+                    ) -> tuple[list[CalibrationData], tuple[str, ...], object]:
+    """The fleet's recordings, ids and (simulated fleets) the ground truth. ``errors``: a list to collect the
+    sensors whose file cannot be read into (they are left out); None: the first raises."""
     if cfg.source == "simulated":
         from bayesmag._src.core.simulate_fleet import simulate_fleet
         s = cfg.simulate
@@ -344,9 +346,22 @@ def load_recordings(cfg: FleetConfig) -> tuple[list[CalibrationData], tuple[str,
         try:
             recs.append(_read(cfg, p))
         except DataError as e:
-            raise DataError(f"sensor {sid}: {e}") from None
+            if errors is None:
+                raise DataError(f"sensor {sid}: {e}") from None
+            errors.append(f"sensor {sid}: {' '.join(str(e).split())}")
+            continue
         ids.append(sid)
     return recs, tuple(ids), None
+
+
+def _raise_sensor_errors(errors: list, n: int) -> None:
+    """One :class:`DataError` naming every sensor whose recording cannot be calibrated (the fleet stopped at the
+    first, so a fleet with three bad files took three reruns: sixth outside pass)."""
+    if len(errors) == 1:
+        raise DataError(errors[0])
+    if errors:
+        raise DataError(f"{len(errors)} of {n} sensors cannot be calibrated (nothing was written; fix each, or "
+                        f"leave its recording out, and rerun): " + " | ".join(errors))
 
 
 def sensor_split_rows(saved: dict) -> tuple[CalibrationData, CalibrationData]:
@@ -438,11 +453,8 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
     with reserve(out, inputs=inputs, kind="fleet"):       # an --out holding a recording is refused before any work
         timings = {}
         t_all = t = time.perf_counter()
-        recs, ids, truth = load_recordings(cfg)
-        from bayesmag._src.core.datasets import sha256_of     # each sensor's file, as a run records its recording
-        files = [None] * len(ids) if cfg.source == "simulated" else [
-            (p.resolve(), sha256_of(p)) for _, p in _recording_paths(cfg)]
-        _refuse_shared_recordings(ids, files)
+        errors: list[str] = []
+        recs, ids, truth = load_recordings(cfg, errors)
         model = PhysicsModel.paper(t0=cfg.t0, temperature=cfg.temperature_terms)
         trains, tests, test_rows, splits = [], [], [], []
         for sid, d in zip(ids, recs):
@@ -452,11 +464,17 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
                 sp = make_split(d, kind="time_blocks", test_fraction=cfg.test_fraction, seed=cfg.split_seed,
                                 n_blocks=cfg.n_blocks)
             except ValueError as e:         # DataError is a ValueError
-                raise DataError(f"sensor {sid}: {' '.join(str(e).split())}") from None
+                errors.append(f"sensor {sid}: {' '.join(str(e).split())}")
+                continue
             trains.append(d.subset(sp.train))
             tests.append(d.subset(sp.test))
             test_rows.append(sp.test)
             splits.append(sp.as_dict())
+        _raise_sensor_errors(errors, len(ids) if cfg.source == "simulated" else len(_recording_paths(cfg)))
+        from bayesmag._src.core.datasets import sha256_of     # each sensor's file, as a run records its recording
+        files = [None] * len(ids) if cfg.source == "simulated" else [
+            (p.resolve(), sha256_of(p)) for _, p in _recording_paths(cfg)]
+        _refuse_shared_recordings(ids, files)
         train = FleetData.from_recordings(trains, ids)
         test = FleetData.from_recordings(tests, ids)
         timings["load"] = time.perf_counter() - t
