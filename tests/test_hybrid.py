@@ -1,6 +1,7 @@
 """Hybrid stage: fusion rules, config checks, end-to-end jobs on simulated and real data."""
 
 import copy
+import warnings
 import csv
 import json
 
@@ -298,3 +299,28 @@ def test_fold_networks_trained_together_equal_each_trained_alone():
         for a, b in zip(jax.tree.leaves(net.params), jax.tree.leaves(alone.params)):
             np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(net.info.val_loss, alone.info.val_loss)
+
+
+def test_predictions_name_the_hybrid_family_and_write_its_learned_dof(tmp_path):
+    """Sixth outside pass: with `network.student_t_df = "learn"` the per-row dof was written nowhere (the scores could
+    not be recomputed), and with several families nothing said whose the hybrid columns are. Now `hybrid_family`
+    names it and `hybrid_df` holds each row's dof: the interval is the Student-t's with that dof and the written sd
+    (scipy's quantile, to the file's 8 significant figures)."""
+    import pandas as pd
+    import scipy.stats
+
+    raw = copy.deepcopy(SIMULATED)
+    raw["data"]["simulate"]["n"] = 1000
+    raw["output"]["figures"] = False
+    cfg = _config(raw, likelihoods=["student_t", "gaussian"], student_t_df="learn", max_epochs=15, mc_passes=10,
+                  hidden_layers=2, width=16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)        # 15 epochs: under-trained, said
+        run_job(cfg, tmp_path / "t")
+    p = pd.read_csv(tmp_path / "t" / "predictions.csv")
+    for a in "xyz":
+        assert (p[f"{a}_hybrid_family"] == "student_t").all()
+        df, sd = p[f"{a}_hybrid_df"].to_numpy(), p[f"{a}_hybrid_total"].to_numpy()
+        assert np.all(df > 2) and np.ptp(df) > 0                    # learned: one dof per row
+        half = sd * np.sqrt((df - 2) / df) * scipy.stats.t.ppf(0.975, df)
+        np.testing.assert_allclose(p[f"{a}_hybrid_upper"] - p[f"{a}_hybrid_predicted"], half, rtol=1e-5)  # 8 digits

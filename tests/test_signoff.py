@@ -580,6 +580,7 @@ def test_a_hybrid_runs_certificate_states_the_U_of_the_predictor_apply_uses(tmp_
     ex = expanded_uncertainties(m, params)
     assert ex["source"] == ex["new_session_source"] == "hybrid"
     pred = pd.read_csv(out / "predictions.csv")
+    assert (pred["y_hybrid_family"] == "gaussian").all()       # the file says whose hybrid columns these are
     z = stats.norm.ppf(0.975)
     for a in "xyz":
         half = z * pred[f"{a}_hybrid_total"].to_numpy()

@@ -517,9 +517,14 @@ def hybrid_metrics(hs: HybridStage, y: np.ndarray, physics_mean: np.ndarray, lev
 
 
 def hybrid_columns(hs: HybridStage, y: np.ndarray, level: float) -> dict[str, np.ndarray]:
-    """predictions.csv columns of the primary likelihood's hybrid prediction."""
+    """predictions.csv columns of the primary likelihood's hybrid prediction: its family by name
+    (``hybrid_family``; with several ``network.likelihoods`` the columns are the first's) and its shape parameters
+    per row (``hybrid_df`` of a Student-t, learned or fixed), so that its scores can be recomputed from the file."""
     pred = hs.predictions[hs.primary]
     lo, hi = pred.interval(level)
+    shape = {f"hybrid_{k}": np.broadcast_to(np.asarray(getattr(pred.dist, k), np.float64), pred.mean.shape)
+             for k in type(pred.dist).shape_names()}
     return {"hybrid_predicted": pred.mean, "aleatoric_nn": pred.aleatoric_nn, "epistemic_nn": pred.epistemic_nn,
             "hybrid_total": pred.total, "hybrid_lower": lo, "hybrid_upper": hi,
-            "hybrid_covered": (y >= lo) & (y <= hi)}
+            "hybrid_covered": (y >= lo) & (y <= hi),
+            "hybrid_family": np.full(pred.mean.shape, str(hs.primary), dtype=object), **shape}
