@@ -361,3 +361,19 @@ def test_python_messages_name_no_command_line_option(data, tmp_path):
     assert (mine / "chapter1.tex").read_text() == "keep me"
     with pytest.raises(ArtifactError, match="holds no bayesmag calibration"):
         bayesmag.load(mine)
+
+
+def test_a_weak_field_with_the_sensors_own_noise_is_read_as_uT_and_one_in_mT_is_refused(data):
+    """Sixth outside pass: a calibration's own training rows at near-zero field (Belsten run 1, 99th percentile
+    0.69 uT) were refused by predict as "looks like mT". The rows' noise tells: in uT a weak field keeps the
+    sensor's noise (0.05 uT here), in mT it would be 1000x smaller."""
+    cal = bayesmag.Calibrator().fit(data).calibration_
+    rng = np.random.default_rng(3)
+    n = 400
+    weak = 0.4 * np.column_stack([np.sin(np.arange(n) / 50), np.cos(np.arange(n) / 50), np.ones(n)])
+    rows = CalibrationData(weak + rng.normal(0, 0.05, (n, 3)), np.full(n, 24.0), None, time=np.arange(n) * 0.25)
+    out = cal.predict(rows)                                  # accepted: the sensor's noise, a weak field
+    assert np.isfinite(out["calibrated"]).all()
+    mt = CalibrationData((data.b_meas[:n] + 0.0) / 1000, data.temperature[:n], None, time=data.time[:n])
+    with pytest.raises(DataError, match="looks like mT"):
+        cal.predict(mt)

@@ -25,7 +25,7 @@ def check_units(cal, data, *, small_ok: bool = False) -> list[str]:
     measured and reference columns are both checked against the training range (``small_ok``: not the mT / gauss
     test, for a part of a recording whose whole the caller checks).
     """
-    return check_units_against(data, train_max_ut(cal), small_ok=small_ok)
+    return check_units_against(data, train_max_ut(cal), small_ok=small_ok, train_noise_ut=cal._train_noise())
 
 
 def train_max_ut(cal) -> float:

@@ -16,7 +16,8 @@ __all__ = ["check_apply_options", "check_apply_paths", "check_units_against", "i
            "refuse_training_recording", "write_apply_csv", "APPLY_HEADER_END"]
 
 
-def check_units_against(data, train_max: float, *, small_ok: bool = False) -> list[str]:
+def check_units_against(data, train_max: float, *, small_ok: bool = False,
+                        train_noise_ut: float | None = None) -> list[str]:
     """The unit check of :func:`~bayesmag._src.core.data.check_units` (errors for units that cannot be right,
     warnings for suspicious ones) on the finite rows, against a training domain reaching ``train_max`` uT."""
     finite = np.isfinite(data.b_meas).all(axis=1) & np.isfinite(data.temperature)
@@ -24,7 +25,7 @@ def check_units_against(data, train_max: float, *, small_ok: bool = False) -> li
         raise DataError("No row of the recording has finite bx_meas, by_meas, bz_meas and temperature: no row can be "
                         "calibrated. Check the column mapping (--columns) and the file.")
     return _check_units(data.subset(finite), train_max_ut=train_max, fix="Use --field-unit nT",
-                       temperature_fix="Use --temperature-unit K", small_ok=small_ok)
+                       temperature_fix="Use --temperature-unit K", small_ok=small_ok, train_noise_ut=train_noise_ut)
 
 
 def check_apply_options(level, n_params: int, n_qmc: int) -> None:

@@ -151,6 +151,10 @@ class Calibration:
                           rmse_in_sample=np.full(3, np.nan), result=("converged",) * 3, n_steps=np.zeros(3),
                           covariance_method="", cov_info=empty, diagnostics=empty)
 
+    def _train_noise(self) -> float:
+        """The input-noise sd of the measured field (uT, median over the axes) the calibration was fitted with."""
+        return float(np.median(np.sqrt(np.maximum(np.diag(np.asarray(self.sigma_in))[:3], 0.0))))
+
     def _train_max(self) -> float:
         return float(np.maximum(np.abs(np.asarray(self.domain.low[:3])), np.abs(np.asarray(self.domain.high[:3]))).max())
 
@@ -216,7 +220,8 @@ class Calibration:
                 check_rates = (columns or {}).get("time", "time") in data.columns
             out = self.predict(as_calibration_data(data, columns=columns, field_unit=field_unit,
                                                    temperature_unit=temperature_unit, train_max_ut=self._train_max(),
-                                                   what="the data given to predict"),
+                                                   what="the data given to predict",
+                                                   train_noise_ut=self._train_noise()),
                                level=level, method=method, n_params=n_params, n_qmc=n_qmc, seed=seed,
                                chunk_size=chunk_size, new_session=new_session, progress=progress, check_units=False,
                                check_rates=check_rates, warn=warn)
@@ -225,7 +230,8 @@ class Calibration:
             check_rates = isinstance(data, CalibrationData) and data.time_given
         if check_units or not isinstance(data, CalibrationData):
             data = as_calibration_data(data, columns=columns, field_unit=field_unit, temperature_unit=temperature_unit,
-                                       train_max_ut=self._train_max(), what="the data given to predict")
+                                       train_max_ut=self._train_max(), what="the data given to predict",
+                                       train_noise_ut=self._train_noise())
         level = self.level if level is None else level
         n = data.n
         x = np.column_stack([data.b_meas, data.temperature])

@@ -161,7 +161,8 @@ class Calibrator:
         return config_from_dict(raw)
 
     def _rows(self, X, y=None, *, need_reference: bool = False, field_unit=None, temperature_unit=None,
-              columns=None, train_max_ut: float | None = None) -> tuple[CalibrationData, object]:
+              columns=None, train_max_ut: float | None = None,
+              train_noise_ut: float | None = None) -> tuple[CalibrationData, object]:
         """``X`` (and ``y``) as checked CalibrationData in uT and C (the command line's unit checks,
         :func:`~bayesmag._src.core.frames.as_calibration_data`), and the DataFrame index (or None).
         ``field_unit``, ``temperature_unit``, ``columns``: the caller's (``predict``'s), else the constructor's."""
@@ -208,7 +209,7 @@ class Calibrator:
         rows = as_calibration_data(X, columns=columns, field_unit=field_unit,
                                    temperature_unit=temperature_unit, require_reference=need_reference,
                                    duplicate_times=self.duplicate_times, what="the data given to Calibrator",
-                                   train_max_ut=train_max_ut)
+                                   train_max_ut=train_max_ut, train_noise_ut=train_noise_ut)
         return rows, index
 
     def _split(self, cfg: Config, rows: CalibrationData):
@@ -355,7 +356,8 @@ class Calibrator:
         if isinstance(X, CalibrationData) and not units:
             out = self.calibration_.predict(X, **kwargs)
         else:
-            rows, index = self._rows(X, train_max_ut=self.calibration_._train_max(), **units)
+            rows, index = self._rows(X, train_max_ut=self.calibration_._train_max(),
+                                     train_noise_ut=self.calibration_._train_noise(), **units)
             kwargs.setdefault("check_rates", rows.time_given)
             out = self.calibration_.predict(rows, check_units=False, **kwargs)   # checked by _rows
             if is_frame(X) and self.output == "full":

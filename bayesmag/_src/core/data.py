@@ -322,7 +322,8 @@ def kelvin_to_celsius(t, where: str = "") -> np.ndarray:
 
 def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
                      fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT",
-                     extra_fields: Sequence[tuple[str, np.ndarray]] = (), small_ok: bool = False) -> list[str]:
+                     extra_fields: Sequence[tuple[str, np.ndarray]] = (), small_ok: bool = False,
+                     train_noise_ut: float | None = None) -> list[str]:
     """Refuse a field that is not in microtesla; return warnings for a suspicious one.
 
     With ``train_max_ut`` (the largest |B| a calibration was trained on, ``apply``): a 99th
@@ -335,9 +336,12 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
     ``extra_fields``: more ``(label, (n, k) array)`` groups in the same unit, checked alike (a field
     calibration's scalar reference column). ``small_ok``: skip the mT / gauss test against ``train_max_ut`` (a part
     of a recording, e.g. one Dask partition of a near-zero-field run, says nothing about the whole's unit; the
-    caller checks the whole).
+    caller checks the whole). ``train_noise_ut``: the calibration's input-noise sd (uT); rows whose own
+    row-to-row noise is within 30x of it are in uT whatever their size (in mT or gauss the noise shrinks with the
+    field, 1000x or 100x), so a genuinely weak field (Belsten run 1: 0.69 uT) is not refused as mT.
     """
     where = f" in {origin}" if origin else ""
+    weak_ut = train_noise_ut is not None and _row_noise(data) > train_noise_ut / 30
     groups = [("measured field (bx_meas, by_meas, bz_meas)", data.b_meas)]
     if data.b_ref is not None:
         groups.append(("reference field (bx_ref, by_ref, bz_ref)", data.b_ref))
@@ -365,7 +369,7 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
             if p99 > 50 * train_max_ut:
                 raise DataError(f"The {label}{where} reaches {p99:.4g} (99th percentile) but the calibration was "
                                 f"trained on |B| up to {train_max_ut:.3g} uT: the file looks like nT (x1000). {fix}.")
-            if train_max_ut > 10 and p99 < train_max_ut / 50 and not small_ok:
+            if train_max_ut > 10 and p99 < train_max_ut / 50 and not small_ok and not weak_ut:
                 what = ("its RMSE would be meaningless" if label.startswith("reference") else
                         "every calibrated value would be wrong")
                 raise DataError(f"The {label}{where} is at most {p99:.3g} (99th percentile) while the calibration "
@@ -397,10 +401,25 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
     return warn
 
 
+def _row_noise(data: CalibrationData) -> float:
+    """The measured field's row-to-row noise sd (uT as read): the median over axes of a robust sd (1.4826 MAD) of
+    second differences of consecutive rows of the same run, over sqrt(6); 0 with fewer than 20 such rows."""
+    b, run = np.asarray(data.b_meas, np.float64), np.asarray(data.run).reshape(-1)
+    if b.shape[0] < 22:
+        return 0.0
+    d2 = b[2:] - 2 * b[1:-1] + b[:-2]
+    d2 = d2[(run[2:] == run[:-2]) & np.isfinite(d2).all(axis=1)]
+    if d2.shape[0] < 20:
+        return 0.0
+    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    return float(np.median(1.4826 * mad / np.sqrt(6.0)))
+
+
 def check_units(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",
                 fix: str = "Convert the field columns to uT", declare: str = "--field-unit uT",
                 temperature_fix: str = "Set [data] temperature_unit = \"K\" (or subtract 273.15)",
-                extra_fields: Sequence[tuple[str, np.ndarray]] = (), small_ok: bool = False) -> list[str]:
+                extra_fields: Sequence[tuple[str, np.ndarray]] = (), small_ok: bool = False,
+                train_noise_ut: float | None = None) -> list[str]:
     """The one unit check of every entry point (``run``, ``apply``, ``discover`` and the library's
     ``fit_physics``, ``Calibration.predict``, ``Calibrator``, ``discover``).
 
@@ -411,7 +430,7 @@ def check_units(data: CalibrationData, *, train_max_ut: float | None = None, ori
     """
     where = f" in {origin}" if origin else ""
     warn = check_field_unit(data, train_max_ut=train_max_ut, origin=origin, fix=fix, declare=declare,
-                            extra_fields=extra_fields, small_ok=small_ok)
+                            extra_fields=extra_fields, small_ok=small_ok, train_noise_ut=train_noise_ut)
     t = data.temperature[np.isfinite(data.temperature)]
     if t.size:
         med = float(np.median(t))

@@ -103,7 +103,7 @@ def _from_array(x, *, field_unit: str | None, temperature_unit: str, source: str
 def as_calibration_data(obj, *, columns: Mapping[str, str] | None = None, field_unit: str | None = None,
                         temperature_unit: str = "C", require_reference: bool = False,
                         duplicate_times: str = "ignore", train_max_ut: float | None = None,
-                        what: str = "data") -> CalibrationData:
+                        what: str = "data", train_noise_ut: float | None = None) -> CalibrationData:
     """The library's boundary: a :class:`~bayesmag.CalibrationData`, DataFrame or NumPy array as checked
     CalibrationData in uT and Celsius (the command line's checks, :func:`~bayesmag._src.data.check_units`).
 
@@ -118,6 +118,7 @@ def as_calibration_data(obj, *, columns: Mapping[str, str] | None = None, field_
       require_reference: refuse data without the reference field, or with a non-finite value (a fit's rows).
       duplicate_times: one of :data:`DUPLICATE_TIMES`.
       train_max_ut: the calibration's largest training |B| (``predict``: the field is checked against it).
+      train_noise_ut: its input-noise sd (uT): a weak field whose row noise matches it is uT, not mT.
       what: how messages name ``obj`` (e.g. ``"the data given to fit_physics"``).
 
     Example:
@@ -157,6 +158,7 @@ def as_calibration_data(obj, *, columns: Mapping[str, str] | None = None, field_
 
         from bayesmag._src.core.data import DataNote
         for w in check_units(data.subset(finite), train_max_ut=train_max_ut, origin=what, fix=arg_fix,
+                             train_noise_ut=train_noise_ut,
                              declare="field_unit='uT'",
                              temperature_fix="Pass temperature_unit='K' (or subtract 273.15)"):
             warnings.warn(DataNote(w), stacklevel=3)
