@@ -381,7 +381,9 @@ def limitations(fmt: str, ex: Export) -> list[str]:
                      f"{fmt3(f['vs_full_model'])}"
                      + (f" (|B|: {f['magnitude_vs_full_model']:.4g})" if "magnitude_vs_full_model" in f else "")
                      + (f"; vs the reference: {fmt3(f['vs_reference'])} (full model: "
-                        f"{fmt3(acc['full_model_vs_reference'])})" if f["vs_reference"] else "") + ".")
+                        f"{fmt3(acc['full_model_vs_reference'])}, its mean as `bayesmag apply` computes it; a run with "
+                        f"uq.method = \"psqmc\" scores a Monte-Carlo mean in metrics.json, a little different)" if f["vs_reference"] else "")
+                     + ".")
     return lines
 
 
