@@ -170,3 +170,20 @@ def test_a_job_with_the_toy_term_and_family_round_trips(tmp_path):
         for col, key in (("hybrid_predicted", "calibrated"), ("hybrid_total", "total"), ("hybrid_upper", "upper")):
             np.testing.assert_allclose(pred[key][:, a], [float(r[f"{ax}_{col}"]) for r in rows], rtol=1e-6,
                                        atol=1e-9)                # the CSV keeps 8 digits
+
+
+def test_a_term_whose_features_miss_a_parameter_is_named_when_the_model_is_built():
+    """Sixth outside pass: a term with 2 feature columns for 3 parameter names registered, and the job failed
+    inside JAX ("dot_general requires contracting dimensions to have the same shape"), naming no term."""
+
+    @dataclasses.dataclass(frozen=True)
+    class TwoColumns(AbsField):
+        name: ClassVar[str] = "toy_two_columns"
+
+        def features(self, inputs):
+            return jnp.abs(inputs.b[..., :2])
+
+    with pytest.raises(ValueError, match=r"'toy_two_columns' \(TwoColumns\): features gives 2 column\(s\) for its 3 "
+                                         r"parameter\(s\) \['a_x', 'a_y', 'a_z'\]"):
+        PhysicsModel.paper(t0=25.0, extra=(TwoColumns(),))
+    PhysicsModel.paper(t0=25.0, extra=(AbsField(),))        # the right one builds

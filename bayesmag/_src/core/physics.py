@@ -280,6 +280,34 @@ class ThermalLag(InputTransform):
         return inputs._replace(t=ts)
 
 
+_CHECKED_TERMS: set = set()
+
+
+def _check_feature_columns(term) -> None:
+    """A linear term's ``features`` give one column per parameter (checked once per term on two rows): a term with
+    2 columns for 3 ``param_names`` registered, and the job failed inside JAX with "dot_general requires contracting
+    dimensions to have the same shape", naming no term (sixth outside pass)."""
+    try:
+        key = (type(term), term)
+        if key in _CHECKED_TERMS or not term.linear_in_params() or getattr(term, "history", False):
+            return
+    except TypeError:                   # an unhashable term: check it every time
+        key = None
+    names = tuple(term.param_names())
+    rows = Inputs(jnp.asarray([[20.0, 5.0, -40.0], [25.0, -3.0, 38.0]]), jnp.asarray([20.0, 25.0]),
+                  jnp.asarray([0.0, 1.0]), jnp.asarray([0, 0]))
+    try:
+        k = np.shape(term.features(rows))[-1]
+    except Exception:  # noqa: BLE001 -- a term that needs other rows fails, if at all, where it is used
+        return
+    if k != len(names):
+        raise ValueError(f"physics term {term.name!r} ({type(term).__name__}): features gives {k} column(s) for its "
+                         f"{len(names)} parameter(s) {list(names)}; a linear term needs one column per parameter "
+                         f"(docs/extending.md).")
+    if key is not None:
+        _CHECKED_TERMS.add(key)
+
+
 @dataclasses.dataclass(frozen=True)
 class PhysicsModel:
     """A calibration model for one output axis: terms summed on transformed inputs.
@@ -301,6 +329,8 @@ class PhysicsModel:
         fix = lambda c: dataclasses.replace(c, t0=t0) if _has_t0(c) and c.t0 != t0 else c  # noqa: E731
         object.__setattr__(self, "terms", tuple(fix(c) for c in self.terms))
         object.__setattr__(self, "transforms", tuple(fix(c) for c in self.transforms))
+        for c in self.terms:
+            _check_feature_columns(c)
 
     @property
     def t0(self) -> float:
