@@ -437,7 +437,7 @@ def fit_statistics(m: dict, params: dict, reference_sd=0.0) -> list[str]:
     p = len(params["model"]["param_names"])
     ref = _per_axis_sd(reference_sd)
     lines = ["## Fit statistics (training rows)", "",
-             "| axis | n | p | dof | RSS (uT^2) | sigma (uT) | chi^2 | chi^2/dof | AIC | BIC | LM iterations | result |",
+             "| axis | n | p | dof | RSS (uT^2) | noise sigma (uT) | chi^2 | chi^2/dof | AIC | BIC | LM iterations | result |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for a in AXES:
         ax = params["axes"][a]
@@ -449,7 +449,8 @@ def fit_statistics(m: dict, params: dict, reference_sd=0.0) -> list[str]:
         sol = ax.get("solver", {})
         lines.append(f"| {a} | {n} | {p} | {n - p} | {rss:.5g} | {sigma:.4g} | {chi2:.5g} | {chi2 / (n - p):.4g} | "
                      f"{aic:.2f} | {bic:.2f} | {sol.get('steps', '-')} | {sol.get('result', '-')} |")
-    lines += ["", "chi^2 = RSS / sigma^2 with sigma^2 the propagated input-noise variance (its mean over the test rows, "
+    lines += ["", "chi^2 = RSS / sigma^2 with sigma^2 the propagated input-noise variance (noise sigma: not the fit's "
+              "residual sd; its mean over the test rows the budget uses, "
               "where the job propagates it; it changes little from row to row) (+ reference variance): "
               "chi^2/dof near 1 means the model explains the data down to the known noise. AIC = n ln(RSS/n) + 2(p+1), "
               "BIC = n ln(RSS/n) + (p+1) ln n (Gaussian likelihood, noise variance counted as a parameter).", ""]
