@@ -395,5 +395,6 @@ def test_export_from_another_folder_finds_a_relative_recording(tmp_path, monkeyp
     for k in here.px4:
         np.testing.assert_array_equal(np.asarray(there.px4[k]), np.asarray(here.px4[k]))
     (home / "rec.csv").rename(home / "moved.csv")
-    with pytest.raises(E.ExportError, match="could not be reloaded.*least-squares"):
+    with pytest.raises(E.ExportError, match=r"recording is not found \(looked for rec.csv, .*home/rec.csv\).*"
+                                            r"least-squares"):     # the files it looked for, named
         E.export_run(home / "run", "px4", tmp_path / "gone.params")

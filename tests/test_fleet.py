@@ -464,7 +464,7 @@ def test_a_fleet_sensors_recording_is_never_overwritten(tmp_path, capsys):
     capsys.readouterr()
     assert main(["apply", "--model", str(out / "sensors" / "U0"), "--data", str(recs / "U1.csv"), "--out",
                  str(recs / "U0.csv"), "--force", "--no-progress"]) == 2
-    assert "is a training recording" in capsys.readouterr().err
+    assert "was trained on" in capsys.readouterr().err
     assert main(["export", str(out / "sensors" / "U0"), "--format", "json", "--out", str(recs / "U0.csv"),
                  "--force"]) == 2
     assert "training recording" in capsys.readouterr().err

@@ -59,8 +59,8 @@ def refuse_training_recording(out, protected) -> None:
     from bayesmag._src.app.outdir import same_file
     for p in protected:
         if same_file(out, p):
-            raise DataError(f"--out {out} is a training recording ({p}) of this calibration or, for a fleet sensor, "
-                            f"of another sensor of its fleet; it is never overwritten. Give a new output file name.")
+            raise DataError(f"--out {out} is a recording ({p}) this calibration, or another sensor of its fleet, "
+                            f"was trained on; it is never overwritten. Give a new output file name.")
 
 
 def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, protected=()) -> Path:
