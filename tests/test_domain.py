@@ -57,3 +57,19 @@ def test_the_budget_averages_over_the_in_domain_test_rows():
     np.testing.assert_array_equal(budget_row_mask(none), [True, True, True])     # none inside: all, said so
     assert budget_rows_note(none) == "all 3 test rows (none in domain)"
     assert budget_rows_note(np.zeros((5, 2), bool)) == "all 5 test rows (all in domain)"
+
+
+def test_predict_warns_of_repeated_stamps_as_apply_does():
+    """Python's predict raised only the out-of-domain warning where apply also printed the repeated-stamps note."""
+    import warnings
+
+    import bayesmag
+    from bayesmag import CalibrationWarning
+    d = bayesmag.simulate.simulate(900, design="campaign", seed=0, noise_sd=0.05)
+    cal = bayesmag.Calibrator().fit(d).calibration_
+    new = bayesmag.simulate.simulate(300, design="campaign", seed=7, noise_sd=0.05)
+    whole = CalibrationData(new.b_meas, new.temperature, None, time=np.floor(new.time), run=new.run)
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always", CalibrationWarning)
+        cal.predict(whole)
+    assert any("share their timestamp" in str(w.message) for w in got)

@@ -291,7 +291,8 @@ class Calibration:
 
             from bayesmag._src.core.data import CalibrationWarning, user_stacklevel
             n_out = int((~in_dom & valid).sum())
-            for w in [*(new_session_notes(self) if new_session else []), n_out and out_of_domain_note(n_out, n)]:
+            step = self.domain.step_note(data) if check_rates and self.domain is not None else None
+            for w in [*(new_session_notes(self) if new_session else []), step, n_out and out_of_domain_note(n_out, n)]:
                 if w:
                     warnings.warn(w[0].upper() + w[1:], CalibrationWarning, stacklevel=user_stacklevel())
         return out
