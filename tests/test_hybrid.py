@@ -301,6 +301,7 @@ def test_fold_networks_trained_together_equal_each_trained_alone():
         np.testing.assert_array_equal(net.info.val_loss, alone.info.val_loss)
 
 
+@pytest.mark.extended
 def test_predictions_name_the_hybrid_family_and_write_its_learned_dof(tmp_path):
     """Sixth outside pass: with `network.student_t_df = "learn"` the per-row dof was written nowhere (the scores could
     not be recomputed), and with several families nothing said whose the hybrid columns are. Now `hybrid_family`

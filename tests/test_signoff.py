@@ -559,6 +559,7 @@ def test_notebook_walkthrough_runs_on_the_real_recordings(belsten, tmp_path, mon
 
 
 @pytest.mark.filterwarnings("ignore:Residual network:bayesmag.CalibrationWarning")
+@pytest.mark.extended
 def test_a_hybrid_runs_certificate_states_the_U_of_the_predictor_apply_uses(tmp_path):
     """Sixth outside pass: on a hybrid run the certificate's U was the physics model's (y: 0.91 uT same session)
     while `apply` delivers the hybrid's intervals (half-width 0.22 uT). Now U same / new session are the hybrid
