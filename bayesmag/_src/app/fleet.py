@@ -447,7 +447,8 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
     from bayesmag._src.app.outdir import reserve, staging_dir
 
     out = Path(out)
-    inputs = [] if cfg.source == "simulated" else [p for _, p in _recording_paths(cfg)]
+    paths = [] if cfg.source == "simulated" else _recording_paths(cfg)
+    inputs = [p for _, p in paths]
     if cfg.manifest is not None:
         inputs.append(_resolve(cfg, cfg.manifest))
     with reserve(out, inputs=inputs, kind="fleet"):       # an --out holding a recording is refused before any work
@@ -470,10 +471,9 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
             tests.append(d.subset(sp.test))
             test_rows.append(sp.test)
             splits.append(sp.as_dict())
-        _raise_sensor_errors(errors, len(ids) if cfg.source == "simulated" else len(_recording_paths(cfg)))
+        _raise_sensor_errors(errors, len(paths) or len(ids))
         from bayesmag._src.core.datasets import sha256_of     # each sensor's file, as a run records its recording
-        files = [None] * len(ids) if cfg.source == "simulated" else [
-            (p.resolve(), sha256_of(p)) for _, p in _recording_paths(cfg)]
+        files = [(p.resolve(), sha256_of(p)) for _, p in paths] or [None] * len(ids)
         _refuse_shared_recordings(ids, files)
         train = FleetData.from_recordings(trains, ids)
         test = FleetData.from_recordings(tests, ids)

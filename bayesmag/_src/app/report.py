@@ -266,9 +266,14 @@ def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0, *, stage: st
 
 def _network_transfer_sd(m: dict) -> bool:
     """The hybrid's network part of the new-session error was estimated (``[uq] transfer_networks``)."""
-    net = m.get("network") or {}
-    return any(isinstance(t, dict) and (t.get("transfer_network") or {}).get("sd")
-               for t in (net.get("training") or {}).values())
+    return any(nt.get("sd") for nt in _transfer_networks(m))
+
+
+def _transfer_networks(m: dict) -> list[dict]:
+    """The ``transfer_network`` blocks of the run's networks (``[uq] transfer_networks``; none without)."""
+    training = (m.get("network") or {}).get("training") or {}
+    return [t["transfer_network"] for t in training.values()
+            if isinstance(t, dict) and isinstance(t.get("transfer_network"), dict)]
 
 
 def _hybrid_applies(ex: dict, hybrid: bool) -> str:
@@ -296,9 +301,7 @@ def _combine(uu: list, nn: list, level: float) -> dict:
 
 def _network_combined(m: dict) -> bool:
     """The hybrid's session model was fitted on the out-of-fold hybrid residuals (``network_transfer``)."""
-    net = m.get("network") or {}
-    return any(isinstance(t, dict) and (t.get("transfer_network") or {}).get("combined")
-               for t in (net.get("training") or {}).values())
+    return any(nt.get("combined") for nt in _transfer_networks(m))
 
 
 def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None, reference_sd=0.0) -> list[str]:

@@ -401,18 +401,27 @@ def check_field_unit(data: CalibrationData, *, train_max_ut: float | None = None
     return warn
 
 
+def second_difference_sd(x, run, min_rows: int = 1) -> np.ndarray | None:
+    """Per column of ``x`` (n, k), the white-noise sd from second differences of consecutive rows of one run:
+    ``1.4826 * MAD(d2) / sqrt(6)`` (``Var(x[t+1] - 2x[t] + x[t-1]) = 6 s^2`` for white noise); rows with a non-finite
+    value are left out. None with fewer than ``min_rows`` differences."""
+    x, run = np.asarray(x, np.float64), np.asarray(run).reshape(-1)
+    if x.shape[0] < 3:
+        return None
+    same = (run[2:] == run[1:-1]) & (run[1:-1] == run[:-2])
+    d2 = (x[2:] - 2 * x[1:-1] + x[:-2])[same]
+    d2 = d2[np.isfinite(d2).all(axis=1)]
+    if d2.shape[0] < max(min_rows, 1):
+        return None
+    med = np.median(d2, axis=0)
+    return 1.4826 * np.median(np.abs(d2 - med), axis=0) / np.sqrt(6.0)
+
+
 def _row_noise(data: CalibrationData) -> float:
-    """The measured field's row-to-row noise sd (uT as read): the median over axes of a robust sd (1.4826 MAD) of
-    second differences of consecutive rows of the same run, over sqrt(6); 0 with fewer than 20 such rows."""
-    b, run = np.asarray(data.b_meas, np.float64), np.asarray(data.run).reshape(-1)
-    if b.shape[0] < 22:
-        return 0.0
-    d2 = b[2:] - 2 * b[1:-1] + b[:-2]
-    d2 = d2[(run[2:] == run[:-2]) & np.isfinite(d2).all(axis=1)]
-    if d2.shape[0] < 20:
-        return 0.0
-    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
-    return float(np.median(1.4826 * mad / np.sqrt(6.0)))
+    """The measured field's row-to-row noise sd (uT as read), median over the axes (:func:`second_difference_sd`);
+    0 with fewer than 20 second differences."""
+    sd = second_difference_sd(data.b_meas, data.run, min_rows=20)
+    return 0.0 if sd is None else float(np.median(sd))
 
 
 def check_units(data: CalibrationData, *, train_max_ut: float | None = None, origin: str = "",

@@ -112,12 +112,9 @@ def estimate_input_noise(data) -> np.ndarray:
     few large values at field steps. Right when the noise is white and the signal is
     piecewise smooth; biased for strongly coloured noise (then give ``sigma_in``).
     """
-    cols = np.column_stack([data.b_meas, data.temperature])
-    same = (data.run[2:] == data.run[1:-1]) & (data.run[1:-1] == data.run[:-2])
-    d2 = (cols[2:] - 2 * cols[1:-1] + cols[:-2])[same]
-    med = np.median(d2, axis=0)
-    sd = 1.4826 * np.median(np.abs(d2 - med), axis=0) / np.sqrt(6.0)
-    return np.diag(sd**2)
+    from bayesmag._src.core.data import second_difference_sd
+    sd = second_difference_sd(np.column_stack([data.b_meas, data.temperature]), data.run)
+    return np.diag((np.full(4, np.nan) if sd is None else sd) ** 2)
 
 
 def _perturbed(inputs: Inputs, eps: jax.Array) -> Inputs:

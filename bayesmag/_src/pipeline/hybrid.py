@@ -423,8 +423,6 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                 training[name]["budget"] = budget
             if nt is not None:
                 training[name]["transfer_network"] = nt.as_dict()
-                if budget is not None:
-                    training[name]["transfer_network"]["new_session"] = budget
                 network_transfer[name] = nt
             if net.variance_scale is not None:
                 for a, ax in enumerate(AXES):
