@@ -23,6 +23,7 @@ cubic_nonlinearity       linear      c_x c_y c_z (1/uT^2)                       
 temperature_quadratic    linear      Ko2 (uT/C^2) [+ Ks2_x Ks2_y Ks2_z (1/C^2)]     temperature_quadratic
 thermal_lag              transform   log_tau (tau in s; nodes = 1 or 2)             thermal_lag
 timing_offset            transform   delta (s)                                      timing_offset
+magnitude_gain           transform   g (1/reading unit)                             magnitude_gain
 hysteresis               linear      h (uT)                                         hysteresis
 offset_drift             linear      drift_rate (uT/s) [+ run_step (uT/run)]        offset_drift
 run_offset               linear      o_<run> per run after the first (uT)           (none)
@@ -49,7 +50,7 @@ from bayesmag._src.core import physics as _physics
 from bayesmag._src.core.physics import EXTRA_TERMS, InputTransform, Inputs, Term
 
 __all__ = ["CATALOGUE", "make_extra", "AxisQuadratic", "CrossAxisQuadratic", "CubicNonlinearity", "TemperatureQuadratic",
-           "ThermalLag", "TimingOffset", "Hysteresis", "OffsetDrift", "RunOffset", "RunStep", "SIMULATOR_NAMES", "explanation",
+           "ThermalLag", "TimingOffset", "MagnitudeGain", "Hysteresis", "OffsetDrift", "RunOffset", "RunStep", "SIMULATOR_NAMES", "explanation",
            "Entry", "Setting", "SearchContext", "register", "unregister"]
 
 _AXES = ("x", "y", "z")
@@ -98,7 +99,8 @@ class SearchContext:
     coefficients of each output (``S_x S_y S_z Ks_x Ks_y Ks_z O Ko``) and ``ref_reach`` the 98th
     percentile of |reference field| per axis (for entries driven by the calibrated field);
     ``heated_span`` the longest run over which the logged temperature changes by >= 1 C (s; the
-    longest run when none does); ``run_bounds`` ``(run, first time, last time)`` per run."""
+    longest run when none does); ``run_bounds`` ``(run, first time, last time)`` per run;
+    ``magnitude_reach`` the 98th percentile of the measured field's magnitude |u|."""
 
     t0: float = 0.0
     dt: float = 1.0
@@ -111,6 +113,7 @@ class SearchContext:
     ref_reach: tuple = ()
     heated_span: float = 1.0
     run_bounds: tuple = ()
+    magnitude_reach: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,7 +144,14 @@ class Entry:
     * ``located``: the name of a field that places the effect in time (a step's ``at``): after
       selection discovery refines it and states it with an interval; :meth:`located_grid` the values tried;
     * :meth:`canonical` the component with its starting values reset (one compiled transform per form);
-    * :meth:`variants` alternative forms tried after selection (e.g. a two-node heat path).
+    * :meth:`variants` alternative forms tried after selection (e.g. a two-node heat path);
+    * ``start_field``: a transform's field holding the starting value of its nonlinear parameter, and
+      :meth:`started` the component started at a fitted value (what findings.json's ``extra_terms`` give);
+    * :meth:`refine_step` the half-width of the first window in which a transform's value is refined;
+    * ``rivals``: entries whose effect this one can take up on a recording (per-run offsets take up a
+      thermal lag on runs with steady temperature ramps, or a drift): when a rival could not be
+      searched (a column it needs is missing, or the time column's unit is suspect) a finding of this
+      entry says so instead of stating its ``explanation`` as the cause.
     """
 
     requires: ClassVar[tuple] = ()
@@ -150,9 +160,19 @@ class Entry:
     simulator_name: ClassVar[str | None] = None
     frames: ClassVar[tuple] = ("sensor", "output")
     located: ClassVar[str | None] = None
+    start_field: ClassVar[str | None] = None
+    rivals: ClassVar[tuple] = ()
 
     def canonical(self):
         return type(self)()
+
+    def started(self, value: float):
+        """The component with its nonlinear parameter starting at the fitted ``value`` (unchanged for a linear term)."""
+        return self
+
+    def refine_step(self, value: float) -> float:
+        """Half-width of the first refinement window around a transform's grid value ``value``."""
+        return 0.25 * max(abs(float(value)), 1e-3)
 
     def variants(self) -> tuple:
         return ()
@@ -554,6 +574,9 @@ class RunOffset(Term, Entry):
     degree: ClassVar[int] = 0                        # reads only run ids: no power of a noisy input
     requires: ClassVar[tuple] = ("runs",)
     localised: ClassVar[str | None] = "run"
+    #: a thermal lag on runs with steady ramps (Ko tau dT/dt, a constant per run), a drift, or a step inside a run
+    #: also give each run its own mean offset
+    rivals: ClassVar[tuple] = ("thermal_lag", "offset_drift", "run_step")
     explanation: ClassVar[str] = ("Power cycling and set/reset pulses re-seat the bridge offset, so the offset steps "
                                   "between runs.")
 
@@ -711,8 +734,16 @@ class ThermalLag(_physics.ThermalLag, Entry):
         first = super().__call__(jnp.atleast_1d(tau + jnp.log(self.split)), inputs)
         return super().__call__(jnp.atleast_1d(tau + jnp.log(1.0 - self.split)), first)
 
+    start_field: ClassVar[str] = "tau0"
+
     def canonical(self):
         return ThermalLag(nodes=int(self.nodes), split=float(self.split))
+
+    def started(self, value):
+        return dataclasses.replace(self, tau0=round(float(np.exp(value)), 4))
+
+    def refine_step(self, value):
+        return 0.35                                   # in log tau: the grid is ~1.8x apart
 
     def variants(self):
         return (ThermalLag(tau0=self.tau0, nodes=2, split=0.5),) if int(self.nodes) == 1 else ()
@@ -783,8 +814,13 @@ class TimingOffset(InputTransform, Entry):
             return f"delta = {value:.3g} s is more than 10 samples: not a clock latency"
         return None
 
+    start_field: ClassVar[str] = "delta0"
+
     def canonical(self):
         return TimingOffset()
+
+    def started(self, value):
+        return dataclasses.replace(self, delta0=round(float(value), 4))
 
     def memory_rows(self, params, dt):
         # interpolation between the neighbours of t + delta, clamped to the run's first and last rows
@@ -810,13 +846,98 @@ class TimingOffset(InputTransform, Entry):
         return inputs._replace(b=b, t=t)
 
 
+def magnitude_of_undistorted(m, g):
+    r"""|u0| from |u| = m for a reading :math:`u = (1 + g|u_0|)\,u_0`: the root of
+    :math:`g x^2 + x - m = 0` that tends to ``m`` as ``g -> 0``, :math:`x = 2m / (1 + \sqrt{1 + 4 g m})`
+    (the discriminant clipped at 1e-12 where :math:`g m < -1/4`, beyond which no ``u0`` gives ``u``)."""
+    return 2.0 * m / (1.0 + jnp.sqrt(jnp.maximum(1.0 + 4.0 * g * m, 1e-12)))
+
+
+@dataclasses.dataclass(frozen=True)
+class MagnitudeGain(InputTransform, Entry):
+    r"""The sensor's gain depends on the magnitude of the field: the reading is :math:`u = (1 + g\,|u_0|)\,u_0`.
+
+    :math:`u_0` is the reading the thermo-affine model describes, :math:`B = (S + K_s T_c) u_0 + O + K_o T_c`,
+    so the calibrated field gains :math:`(1 + g|B|)` in the sensor's own gain, on every channel alike. The
+    transform inverts it exactly, :math:`u_0 = u / (1 + g\,x)` with :math:`x = |u_0|` from
+    :func:`magnitude_of_undistorted`, so a campaign simulated with the ``magnitude_gain`` effect
+    (:mod:`bayesmag.simulate`) is fitted with the planted ``g``. Parameter ``g`` in 1 / (reading unit; uT for a
+    reading in uT); ``g0`` its starting value. Distinct from a cubic: on a field of constant magnitude
+    (a tumble) it is a plain gain change, which S absorbs; it shows only between fields of different magnitude.
+
+    Example:
+      >>> import numpy as np; from bayesmag._src.core.physics import Inputs
+      >>> u0 = np.array([[30.0, 40.0, 0.0]]); u = u0 * (1 + 1e-3 * 50.0)
+      >>> x = Inputs(u, np.zeros(1), np.zeros(1), np.zeros(1, int))
+      >>> np.round(np.asarray(MagnitudeGain()(np.array([1e-3]), x).b), 9).tolist()
+      [[30.0, 40.0, 0.0]]
+    """
+
+    g0: float = 0.0
+    name: ClassVar[str] = "magnitude_gain"
+    temperature_centred: ClassVar[bool] = True       # reads only the field
+    explanation: ClassVar[str] = ("The sensor's sensitivity changes with the strength of the field on every axis "
+                                  "alike (a bridge or front end whose gain compresses or expands in strong fields), "
+                                  "so the reading scales by (1 + g |B|).")
+    scope: ClassVar[str] = "sensor"
+    simulator_name: ClassVar[str] = "magnitude_gain"
+    start_field: ClassVar[str] = "g0"
+    #: Grid: relative gain changes at the field's reach (98th percentile of |u|), both signs.
+    FRACTIONS: ClassVar[tuple] = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
+    #: A gain change of this fraction or more across the reach is not a small nonlinearity (for g < 0 the
+    #: inverse stops existing at g |u| = -1/4).
+    MAX_FRACTION: ClassVar[float] = 0.25
+
+    def param_names(self):
+        return ("g",)
+
+    def init_params(self, axis):
+        return np.array([float(self.g0)])
+
+    def memory_rows(self, params, dt):
+        return 0                                       # row by row
+
+    def __call__(self, params, inputs):
+        g = params[0]
+        m = jnp.sqrt(jnp.sum(inputs.b * inputs.b, axis=-1))
+        return inputs._replace(b=inputs.b / (1.0 + g * magnitude_of_undistorted(m, g))[..., None])
+
+    def canonical(self):
+        return MagnitudeGain()
+
+    def started(self, value):
+        return dataclasses.replace(self, g0=float(f"{float(value):.6g}"))
+
+    def refine_step(self, value):
+        return 0.4 * max(abs(float(value)), 1e-12)     # the grid is 2-2.5x apart
+
+    @classmethod
+    def grid(cls, ctx, c):
+        m = max(float(ctx.magnitude_reach), 1e-9)
+        return [Setting(cls(g0=float(sg * f / m)), nl=float(sg * f / m)) for f in cls.FRACTIONS for sg in (-1.0, 1.0)]
+
+    def describe(self, cols):
+        return "gain varies with the field magnitude |B| (the reading scales by 1 + g |B|, on every channel alike)"
+
+    def depends_on(self, cols):
+        return "|B|"
+
+    def implausible(self, value, ctx):
+        change = abs(float(value)) * float(ctx.magnitude_reach)
+        if change >= self.MAX_FRACTION:
+            return (f"g = {value:.3g} changes the gain by {change:.0%} across the field's reach (|u| = "
+                    f"{ctx.magnitude_reach:.3g}): that is saturation or a wrong field unit, not a magnitude-dependent "
+                    f"gain (limit {self.MAX_FRACTION:.0%})")
+        return None
+
+
 for _cls in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, Hysteresis):
     _cls.__doc__ = (_cls.__doc__ or "") + _THERMAL_DOC
 
 #: The discovery catalogue: name -> class (each class carries its own grid, label, requirements, twin).
 CATALOGUE: dict[str, type] = {
     c.name: c for c in (AxisQuadratic, CrossAxisQuadratic, CubicNonlinearity, TemperatureQuadratic, ThermalLag,
-                        TimingOffset, Hysteresis, OffsetDrift, RunOffset, RunStep)
+                        TimingOffset, MagnitudeGain, Hysteresis, OffsetDrift, RunOffset, RunStep)
 }
 
 #: Simulator effect name (:mod:`bayesmag.simulate`) -> catalogue name that represents it.

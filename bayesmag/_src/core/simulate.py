@@ -493,6 +493,28 @@ class Cubic(Effect):
 
 
 @dataclasses.dataclass(frozen=True)
+class MagnitudeGain(Effect):
+    r"""The gain depends on the field's magnitude, on every axis alike: ``B_meas *= 1 + g |B_meas|``.
+
+    Acts on the whole reading (noise included, as the other reading distortions do); its catalogue twin
+    (``magnitude_gain``) inverts it exactly. Field: ``g`` in 1/uT (default 2e-4: +1 % at |B_meas| = 50 uT).
+    """
+
+    g: float = 2e-4
+    name: ClassVar[str] = "magnitude_gain"
+    explanation: ClassVar[str] = ("The sensor's sensitivity changes with the strength of the field on every axis "
+                                  "alike.")
+
+    def __post_init__(self):
+        if not np.isfinite(self.g):
+            raise ValueError(f"g is {self.g!r}; it must be a finite number (1/uT).")
+
+    def apply(self, b_meas, temperature, time, run, b_ref, key, *, measure=None):
+        b = np.asarray(b_meas, dtype=np.float64)
+        return b * (1.0 + self.g * np.linalg.norm(b, axis=1))[:, None], temperature
+
+
+@dataclasses.dataclass(frozen=True)
 class TemperatureQuadratic(Effect):
     r"""Offset curvature ``B_meas[axis] += coeff * (T_sensor - t_ref)^2``.
 

@@ -80,13 +80,14 @@ def _context(data, t0, dt, W0=None) -> C.SearchContext:
                            cal=tuple(tuple(float(v) for v in w) for w in W0) if W0 is not None and W0.shape[1] in (4, 8)
                            else (),
                            ref_reach=tuple(float(np.quantile(np.abs(data.b_ref[:, k]), 0.98)) for k in range(3)),
-                           heated_span=max(heated) if heated else (max(spans) if spans else 1.0), run_bounds=bounds)
+                           heated_span=max(heated) if heated else (max(spans) if spans else 1.0), run_bounds=bounds,
+                           magnitude_reach=float(np.quantile(np.linalg.norm(b, axis=1), 0.98)))
 
 
 def _label(ext) -> str:
     c = ext.component
     fields = {f.name: getattr(c, f.name) for f in dataclasses.fields(c)
-              if f.name not in ("t0", "cal", "tau0", "delta0", "time_ref", "run_ref", "runs")}
+              if f.name not in ("t0", "cal", "time_ref", "run_ref", "runs", getattr(c, "start_field", None))}
     inner = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in fields.items())
     place = "whole sensor" if ext.frame == "whole" else f"{AXES[ext.slot]} {'channel' if ext.frame == 'sensor' else 'output'}"
     cols = f", {'+'.join(ext.param_names)}" if ext.frame != "whole" else ""
@@ -94,16 +95,9 @@ def _label(ext) -> str:
 
 
 def _spec(ext, value) -> dict:
-    c = ext.component
-    d = {"name": c.name}
-    for f in dataclasses.fields(c):
-        if f.name != "t0":
-            d[f.name] = getattr(c, f.name)
-    if c.name == "thermal_lag":
-        d["tau0"] = round(float(math.exp(value)), 4)
-    if c.name == "timing_offset":
-        d["delta0"] = round(float(value), 4)
-    return d
+    """The ``extra_terms`` table of a finding: its fields (a transform started at its fitted ``value``)."""
+    c = ext.component.started(value) if value is not None else ext.component
+    return {"name": c.name, **{f.name: getattr(c, f.name) for f in dataclasses.fields(c) if f.name != "t0"}}
 
 
 def _scores(y, pred, e_oos_w, w, run) -> list:

@@ -341,8 +341,7 @@ def _refine(designs, current, ext, folds3, rounds: int = 3, max_moves: int = 8):
     whose mean differs between runs) that later steps would otherwise take up as per-run offsets.
     Three rounds end on a spacing of 0.55 % in tau (two ended on 2.2 %, coarser than the 0.15 %
     se of independent thermal_lag seed 10, whose 1 % misfit was then taken up as run offsets on z)."""
-    is_log = ext.name == "thermal_lag"
-    step = 0.35 if is_log else 0.25 * max(abs(ext.setting.nl), 1e-3)
+    step = ext.component.refine_step(ext.setting.nl)
     for _ in range(rounds):
         for _ in range(max_moves):
             centre = ext.setting.nl
