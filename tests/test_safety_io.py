@@ -706,3 +706,60 @@ def test_a_field_run_given_to_export_or_report_says_what_it_is(tmp_path, capsys)
                  "--no-progress"]) == 2
     err = _err(capsys)
     assert "field_params.json lacks" in err and not (tmp_path / "o.csv").exists(), err
+
+
+# ---------------------------------------------------------------------------------------------------------- data fetch
+def _unreachable_dataset(monkeypatch, tmp_path, url="http://127.0.0.1:9/full_data.csv"):
+    """belsten2023 pointed at ``url`` (nothing listens on the discard port: refused at once, no real network) and
+    the cache in ``tmp_path``; returns the path ``fetch`` would write."""
+    import dataclasses
+
+    from bayesmag._src.core import datasets
+    monkeypatch.setitem(datasets.DATASETS, "belsten2023",
+                        dataclasses.replace(datasets.DATASETS["belsten2023"], url=url))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    return tmp_path / "cache" / "bayesmag" / "belsten2023" / "full_data.csv"
+
+
+def test_data_fetch_without_network_is_one_line_naming_the_url_the_path_and_the_fixes(tmp_path, monkeypatch, capsys):
+    """Seventh outside pass: it printed only urllib's '<urlopen error [Errno 111] Connection refused>'."""
+    url = "http://127.0.0.1:9/full_data.csv"
+    target = _unreachable_dataset(monkeypatch, tmp_path, url)
+    assert main(["data", "fetch", "belsten2023"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith("bayesmag: error: Could not download dataset 'belsten2023'")
+    assert url in err and "Connection refused" in err and f"nothing was written to {target}" in err
+    assert f"Download {url} by hand to {target}" in err
+    assert "set BAYESMAG_DATA_DIR to a folder holding belsten2023/full_data.csv" in err
+    assert not (tmp_path / "cache" / "bayesmag").exists()         # no partial file, no folder it made
+
+
+def test_data_fetch_dropped_midway_leaves_no_partial_file(tmp_path, monkeypatch, capsys):
+    """A connection that drops after the first megabyte: one line, and neither the file nor its partial sibling."""
+    import urllib.request
+
+    target = _unreachable_dataset(monkeypatch, tmp_path)
+    target.parent.mkdir(parents=True)
+    (target.parent / "notes.txt").write_text("mine\n")            # a folder that existed keeps what it held
+
+    class Dropping:
+        def __init__(self):
+            self.sent = False
+
+        def read(self, n=-1):
+            if self.sent or n is None or n < 0:       # reading to the end runs into the drop
+                raise ConnectionResetError(104, "Connection reset by peer")
+            self.sent = True
+            return b"t" * n
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    monkeypatch.setattr(urllib.request, "urlopen", lambda *a, **k: Dropping())
+    assert main(["data", "fetch", "belsten2023"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "Connection reset by peer" in err and "by hand to" in err
+    assert sorted(p.name for p in target.parent.iterdir()) == ["notes.txt"]

@@ -8,9 +8,12 @@ checks its sha256.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
+import http.client
 import os
+import urllib.error
 import urllib.request
 from pathlib import Path
 from typing import Callable
@@ -89,22 +92,70 @@ def find_dataset(name: str) -> Path:
 
 
 def fetch_dataset(name: str, *, dest: Path | None = None, force: bool = False) -> Path:
-    """Download dataset ``name`` from its pinned URL into the cache and verify its sha256."""
+    """Download dataset ``name`` from its pinned URL into the cache and verify its sha256.
+
+    The file is written to a hidden sibling (``.NAME.partial-PID``) and renamed into place only when it is complete
+    and its sha256 is right, so a failed or interrupted download never leaves a file under the dataset's name (nor
+    the sibling, nor a folder it created). A download that fails (no network, HTTP error, timeout, connection
+    dropped) is a :class:`DataError` naming the URL, the path it would write and the two fixes.
+    """
     ds = _check_name(name)
     target = (dest or cache_dir()) / ds.name / ds.filename
     if target.exists() and not force:
         if sha256_of(target) == ds.sha256:
             return target
+    made = [q for q in (target.parent, *target.parent.parents) if not q.exists()]
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_suffix(target.suffix + ".part")
-    with urllib.request.urlopen(ds.url, timeout=60) as r, open(tmp, "wb") as f:
-        f.write(r.read())
-    got = sha256_of(tmp)
-    if got != ds.sha256:
-        tmp.unlink(missing_ok=True)
-        raise DataError(f"Downloaded {ds.url} has sha256 {got}, expected {ds.sha256}; the file was discarded.")
-    tmp.replace(target)
+    tmp = target.with_name(f".{target.name}.partial-{os.getpid()}")
+    done = False
+    try:
+        with open(tmp, "wb") as f:                  # a write error (read-only cache, full disk) names the file
+            _download(ds, target, f)
+        got = sha256_of(tmp)
+        if got != ds.sha256:
+            raise DataError(f"Downloaded {ds.url} has sha256 {got}, expected {ds.sha256}; the file was discarded "
+                            f"and nothing was written. {_fetch_fix(ds, target)}")
+        tmp.replace(target)
+        done = True
+    finally:
+        if not done:
+            tmp.unlink(missing_ok=True)
+            for q in made:                          # innermost first: only the folders this call created, if empty
+                with contextlib.suppress(OSError):
+                    q.rmdir()
     return target
+
+
+def _fetch_fix(ds: Dataset, target: Path) -> str:
+    return (f"Download {ds.url} by hand to {target} (sha256 {ds.sha256}), or set BAYESMAG_DATA_DIR to a folder "
+            f"holding {ds.name}/{ds.filename}.")
+
+
+def _download(ds: Dataset, target: Path, f) -> None:
+    """Copy ``ds.url`` into the open file ``f``; a failure to read it is a :class:`DataError` with the fixes."""
+    try:
+        r = urllib.request.urlopen(ds.url, timeout=60)
+    except (OSError, ValueError) as e:             # URLError, HTTPError, timeouts are OSErrors
+        raise DataError(_fetch_failed(ds, target, e)) from None
+    with r:
+        while True:
+            try:
+                chunk = r.read(1 << 20)
+            except (OSError, ValueError, http.client.HTTPException) as e:    # the connection dropped midway
+                raise DataError(_fetch_failed(ds, target, e)) from None
+            if not chunk:
+                return
+            f.write(chunk)
+
+
+def _fetch_failed(ds: Dataset, target: Path, e: BaseException) -> str:
+    if isinstance(e, urllib.error.HTTPError):
+        why = f"HTTP {e.code} {e.reason}"
+    else:
+        reason = getattr(e, "reason", None) or e
+        why = " ".join(str(reason).split()) or type(reason).__name__
+    return (f"Could not download dataset {ds.name!r} from {ds.url} ({why}; no network?); nothing was written to "
+            f"{target}. {_fetch_fix(ds, target)}")
 
 
 def load_dataset(name: str) -> CalibrationData:
