@@ -3,6 +3,7 @@ estimator API found each case here silent or wrong; each test fails on the code 
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
@@ -162,3 +163,51 @@ def test_a_parquet_file_missing_a_column_is_named(frame, tmp_path):
     frame.drop(columns=["temperature"]).to_parquet(tmp_path / "r.parquet", index=False)
     with pytest.raises(DataError, match=r"r\.parquet has no column 'temperature'.*--columns"):
         load_table(tmp_path / "r.parquet")
+
+
+def _tree(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_save_never_replaces_a_run_or_a_saved_calibration_unless_overwrite(data, fitted, tmp_path, capsys):
+    """Seventh outside pass: ``Calibrator.save(path)`` into a complete ``bayesmag run`` folder replaced it (report,
+    predictions, metrics gone) without a word. Now the ``--out`` rules: a complete bayesmag result is replaced only
+    with ``overwrite=True`` (a refit with ``out=`` replaces its own earlier save, never a run), a folder with the
+    user's files never, and ``bayesmag run --out`` never replaces a saved calibration."""
+    from helpers import SMALL_JOB_CONFIG
+
+    from bayesmag._src.app.cli import main
+    from bayesmag._src.app.outdir import MARKER, OccupiedError, OutputError
+    rec = tmp_path / "rec.csv"
+    bayesmag.write_csv(data, rec)
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(SMALL_JOB_CONFIG.format(data=rec))
+    run = tmp_path / "out" / "run"
+    assert main(["run", str(cfg), "--out", str(run), "--no-progress"]) == 0
+    before = _tree(run)
+    assert "report.md" in before and "predictions.csv" in before
+    with pytest.raises(OccupiedError) as e:
+        fitted.save(run)
+    msg = str(e.value)
+    assert f"{run} holds a calibration run (`bayesmag run`)" in msg and "overwrite=True" in msg
+    assert "--out" not in msg and f"{run}_2" in msg
+    with pytest.raises(OccupiedError, match="out="):                    # fit(out=) into the run's parent: refused
+        bayesmag.Calibrator(FAST, out=tmp_path / "out").fit(data)
+    assert _tree(run) == before                                          # byte-identical, nothing computed over it
+
+    saved = tmp_path / "saved"
+    fitted.save(saved)
+    with pytest.raises(OccupiedError, match="a calibration saved from Python"):
+        fitted.save(saved)                                               # an earlier save is a complete calibration
+    assert main(["run", str(cfg), "--out", str(saved), "--no-progress"]) == 2   # the CLI never replaces it either
+    assert "holds a calibration saved from Python" in capsys.readouterr().err
+    c = bayesmag.Calibrator(FAST, out=tmp_path / "own").fit(data)
+    c.fit(data)                                                          # a refit replaces its own earlier save
+
+    assert fitted.save(run, overwrite=True) == run                       # asked for: replaced
+    assert "report.md" not in _tree(run) and bayesmag.load(run).theta.shape == fitted.calibration_.theta.shape
+    assert json.loads((run / MARKER).read_text())["kind"] == "calibrator"
+    (saved / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match="notes.txt") as e:
+        fitted.save(saved, overwrite=True)                               # never a file bayesmag did not write
+    assert not isinstance(e.value, OccupiedError) and (saved / "notes.txt").read_text() == "mine"

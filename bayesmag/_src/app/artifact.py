@@ -405,7 +405,7 @@ def check_run_folder(path: str | Path, holds: str = "calibration.json") -> Path:
                             f"`bayesmag run` to write a full calibration.")
     from bayesmag._src.app.outdir import KIND_WORDS, folder_kind
     kind = folder_kind(mark)
-    if kind not in (None, "run"):
+    if kind not in (None, "run", "calibrator"):
         where = " (one of its sensors/<id> folders is)" if kind == "fleet" else ""
         raise ArtifactError(f"{path} holds {KIND_WORDS.get(kind, kind)}, not a calibration{where}; give a run "
                             f"folder that `bayesmag run` wrote (it holds {holds}).")

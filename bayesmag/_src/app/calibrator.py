@@ -278,14 +278,14 @@ class Calibrator:
         self.calibration_ = self._calibration()
         self.params_ = self._params_frame()
         if self.out is not None:
-            self.run_dir_ = self.save(Path(self.out) / "run")
+            self.run_dir_ = self._save(Path(self.out) / "run", replaces="same")
         return self
 
     def _calibration(self):
         """The fitted calibration exactly as saved and loaded (a round trip through a temporary folder)."""
         from bayesmag._src.app.artifact import load
         with tempfile.TemporaryDirectory(prefix="bayesmag-calibrator-") as tmp:
-            return load(self.save(Path(tmp) / "run"))
+            return load(self._save(Path(tmp) / "run", replaces="none"))
 
     def _params_frame(self):
         import pandas as pd
@@ -305,21 +305,37 @@ class Calibrator:
                  "unit": units[j]} for a, ax in enumerate(AXES) for j, name in enumerate(fit.model.param_names)]
         return pd.DataFrame.from_records(recs, columns=["axis", "parameter", "value", "sd", "unit"])
 
-    def save(self, path: str | Path) -> Path:
+    def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
         """Write the fitted calibration into folder ``path`` (atomically): ``calibration.json``/``.npz``
         (``bayesmag apply --model PATH`` and :func:`bayesmag.load` read them), ``params.json``,
-        ``config.resolved.toml`` and, with a holdout, ``metrics.json``. Returns ``path``."""
-        from bayesmag._src.app.outdir import OutputError, staging_dir
+        ``config.resolved.toml`` and, with a holdout, ``metrics.json``. Returns ``path``.
 
+        ``path`` may be new or an empty folder. A folder holding a complete bayesmag result (a ``bayesmag run``, an
+        earlier save, a fleet, ...) is replaced only with ``overwrite=True`` (only the files bayesmag listed in it
+        go); a folder with files bayesmag did not write is never replaced (:mod:`~bayesmag._src.app.outdir`).
+        """
         self._check_fitted("run_")
-        path = Path(path)
+        return self._save(Path(path), replaces="any" if overwrite else "none")
+
+    def _save(self, path: Path, *, replaces: str) -> Path:
+        """:meth:`save` with :func:`~bayesmag._src.app.outdir.check_out`'s ``replaces``: ``"same"`` for ``fit``'s
+        ``out`` (a refit replaces its own earlier save, never a ``bayesmag run``)."""
+        from bayesmag._src.app.outdir import KIND_WORDS, OccupiedError, OutputError, _suggest, staging_dir
+
         config = self._cfg.to_dict()
         # the rows came from fit(), not from a file: no [data] source (the placeholder "simulated" would make
         # `bayesmag run` of this config, and `export`'s refit of a least-squares format, use simulated rows)
         config["data"] = {k: v for k, v in config["data"].items() if k not in ("source", "path", "simulate")}
         try:
-            with staging_dir(path, kind="run") as tmp:
+            with staging_dir(path, kind="calibrator", replaces=replaces) as tmp:
                 self._write(tmp, config)
+        except OccupiedError as e:
+            held = KIND_WORDS.get(e.kind, "a complete bayesmag result")
+            fix = ("Pass overwrite=True to replace it" if replaces == "none" else
+                   "Give the Calibrator another out= folder, or call save(path, overwrite=True) to replace it")
+            raise OccupiedError(f"{path} holds {held}; saving here would replace it with this Calibrator's "
+                                f"calibration (and remove every file bayesmag listed there). {fix}, or save into a "
+                                f"new folder, e.g. {_suggest(path)}.", e.folder, e.kind) from None
         except OutputError as e:                # the command line's words without its option: save(path) has none
             raise OutputError(str(e).replace("--out ", "")) from None
         return path

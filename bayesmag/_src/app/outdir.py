@@ -39,7 +39,7 @@ from bayesmag._src.app import signals
 
 __all__ = ["staging_dir", "reserve", "check_out", "recover", "OutputError", "MARKER", "marker_status",
            "is_staging_name", "marker_problem", "foreign_paths", "remove_listed", "register", "atomic_write_text",
-           "partial_name", "folder_kind"]
+           "partial_name", "folder_kind", "OccupiedError", "REPLACES"]
 
 #: The marker file in every folder bayesmag writes (JSON: tool, version, complete, written, and the files
 #: it wrote once complete).
@@ -50,6 +50,20 @@ _HELD: dict[Path, int] = {}          # locks this process holds -> nesting depth
 
 class OutputError(ValueError):
     """An output target that bayesmag refuses to write; the message names it and the fix."""
+
+
+class OccupiedError(OutputError):
+    """The target holds a complete folder bayesmag wrote that this write may not replace (:func:`check_out`'s
+    ``replaces``): ``folder``, and ``kind``, the command that wrote it (:data:`KIND_WORDS`; None if not known)."""
+
+    def __init__(self, message: str, folder: Path, kind: str | None):
+        super().__init__(message)
+        self.folder, self.kind = folder, kind
+
+
+#: What an existing complete bayesmag folder a write may replace (:func:`check_out`): ``"same"`` one the same command
+#: wrote (a rerun), ``"none"`` none, ``"any"`` one of any command (asked for explicitly, e.g. ``overwrite=True``).
+REPLACES = ("same", "none", "any")
 
 
 def is_staging_name(name: str) -> bool:
@@ -249,7 +263,8 @@ KIND_FILES = (("fleet", "fleet.json"), ("study", "simulation_study.md"), ("disco
               ("run", "calibration.json"), ("run", "field_params.json"))
 KIND_WORDS = {"run": "a calibration run (`bayesmag run`)", "fleet": "a fleet result (`bayesmag fleet`)",
               "study": "a simulation study (`bayesmag study`)", "discover": "a discovery result (`bayesmag discover`)",
-              "apply": "a calibrated recording (`bayesmag apply`)"}
+              "apply": "a calibrated recording (`bayesmag apply`)",
+              "calibrator": "a calibration saved from Python (`Calibrator.save`)"}
 
 
 def folder_kind(mark: dict | None) -> str | None:
@@ -306,16 +321,20 @@ def _suggest(out: Path) -> str:
     return str(out.parent / f"{out.name}_{k}")
 
 
-def check_out(out: str | Path, *, inputs=(), kind: str | None = None) -> Path:
+def check_out(out: str | Path, *, inputs=(), kind: str | None = None, replaces: str = "same") -> Path:
     """Refuse an output folder bayesmag may not replace, and check it can be written; before any work.
 
     Allowed: a path that does not exist, an empty folder, or a folder bayesmag wrote earlier
     (it holds :data:`MARKER`) that contains none of ``inputs``. Everything else raises
-    :class:`OutputError` naming the folder and suggesting a new name. A folder another command wrote (``kind``:
-    the command writing now; :func:`folder_kind`) is refused too: a run never replaces a fleet. The parent folder is
-    created and a probe folder with the longest name the swap uses is made and removed, so an
+    :class:`OutputError` naming the folder and suggesting a new name. ``replaces`` (:data:`REPLACES`) says which
+    of bayesmag's own complete folders may go: by default (``"same"``) one the same command wrote (``kind``: the
+    command writing now; :func:`folder_kind`), so a run never replaces a fleet; a refusal for that reason alone is an
+    :class:`OccupiedError`. Files bayesmag did not write are never replaced, whatever ``replaces`` says. The parent
+    folder is created and a probe folder with the longest name the swap uses is made and removed, so an
     unwritable, read-only or over-long target fails here, not after the computation.
     """
+    if replaces not in REPLACES:
+        raise ValueError(f"replaces = {replaces!r} must be one of {list(REPLACES)}.")
     out = Path(out)
     if out.name in ("", ".", ".."):
         out = out.resolve()
@@ -333,11 +352,6 @@ def check_out(out: str | Path, *, inputs=(), kind: str | None = None) -> Path:
             raise OutputError(f"--out {out}: {problem}, so bayesmag cannot tell which files it wrote and treats the "
                               f"folder as not its own; it will not be replaced. Give a new folder name, e.g. --out "
                               f"{_suggest(out)} (or delete the folder yourself).")
-        had = folder_kind(mark)
-        if kind is not None and had is not None and had != kind:
-            raise OutputError(f"--out {out} holds {KIND_WORDS.get(had, had)}; this command would replace it with "
-                              f"{KIND_WORDS.get(kind, kind)}. Give a new folder name, e.g. --out {_suggest(out)} "
-                              f"(or delete the folder yourself if it is no longer needed).")
         for p in inputs:
             if p is not None and _inside(Path(p), out):
                 raise OutputError(f"--out {out} contains the input {p}; replacing the folder would delete it. "
@@ -348,6 +362,13 @@ def check_out(out: str | Path, *, inputs=(), kind: str | None = None) -> Path:
             raise OutputError(f"--out {out} is a bayesmag run folder, but it also holds files bayesmag did not write "
                               f"({shown}); replacing it would delete them. Move them out, or give a new folder "
                               f"name, e.g. --out {_suggest(out)}.")
+        had = folder_kind(mark) if mark is not None else None
+        other = kind is not None and had is not None and had != kind
+        if mark is not None and (replaces == "none" or (replaces == "same" and other)):
+            raise OccupiedError(f"--out {out} holds {KIND_WORDS.get(had, had or 'a complete bayesmag result')}; this "
+                                f"command would replace it with {KIND_WORDS.get(kind, kind or 'its own result')}. "
+                                f"Give a new folder name, e.g. --out {_suggest(out)} (or delete the folder yourself if "
+                                f"it is no longer needed).", out, had)
     if is_staging_name(out.name):
         raise OutputError(f"--out {out} has the name of a bayesmag temporary folder; choose another name.")
     probe = out.parent / f".{out.name}.partial-{os.getpid()}-probe"
@@ -437,14 +458,14 @@ def _acquire(out: Path) -> None:
 
 
 @contextlib.contextmanager
-def reserve(out: str | Path, *, inputs=(), kind: str | None = None):
+def reserve(out: str | Path, *, inputs=(), kind: str | None = None, replaces: str = "same"):
     """Hold ``out`` for this process for the whole block: recover, check (:func:`check_out`), lock (re-entrant)."""
     out = Path(out)
     if out.name in ("", ".", ".."):
         out = out.resolve()
     key = out.resolve()
     if key in _HELD:
-        check_out(out, inputs=inputs, kind=kind)
+        check_out(out, inputs=inputs, kind=kind, replaces=replaces)
         _HELD[key] += 1
         try:
             yield out
@@ -454,7 +475,7 @@ def reserve(out: str | Path, *, inputs=(), kind: str | None = None):
     recover(out.parent)
     if out.is_dir() and not out.is_symlink() and marker_problem(marker_status(out)) is None:
         recover(out, files_only=True)           # partial files of killed `export`/`report` into the run folder
-    check_out(out, inputs=inputs, kind=kind)
+    check_out(out, inputs=inputs, kind=kind, replaces=replaces)
     _acquire(out)
     _HELD[key] = 1
     lock = _lock_path(out)
@@ -470,16 +491,17 @@ def reserve(out: str | Path, *, inputs=(), kind: str | None = None):
 
 
 @contextlib.contextmanager
-def staging_dir(out: str | Path, *, kind: str | None = None):
+def staging_dir(out: str | Path, *, kind: str | None = None, replaces: str = "same"):
     """Yield a staging folder; on success it replaces ``out`` (two-phase swap), on failure it is removed.
 
     See the module docstring for the scheme. A failed run leaves ``out`` untouched. ``kind``: the command writing
-    (:data:`KIND_WORDS`), kept in the marker; a folder of another kind is not replaced (:func:`check_out`).
+    (:data:`KIND_WORDS`), kept in the marker; ``replaces``: which complete bayesmag folder it may replace
+    (:func:`check_out`; by default one of the same kind).
     """
     out = Path(out)
     if out.name in ("", ".", ".."):
         out = out.resolve()
-    with reserve(out, kind=kind):
+    with reserve(out, kind=kind, replaces=replaces):
         tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
         if tmp.exists():
             if marker_status(tmp) is None:
@@ -491,7 +513,7 @@ def staging_dir(out: str | Path, *, kind: str | None = None):
             _write_marker(tmp, complete=False, kind=kind)
             yield tmp
             _write_marker(tmp, complete=True, kind=kind)
-            check_out(out, kind=kind)           # the target may have changed during the computation
+            check_out(out, kind=kind, replaces=replaces)    # the target may have changed during the computation
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             forget()
