@@ -366,3 +366,72 @@ def test_a_declared_unit_that_misreads_some_files_is_said(cal_dir, archive, clus
     s = apply_dask(cal_dir, str(tmp_path / "mixed"), tmp_path / "out", scheduler=cluster, field_unit="nT")
     odd = [w for w in s["warnings"] if "declared --field-unit nT" in w]
     assert len(odd) == 1 and "a.parquet" in odd[0] and "b.parquet" not in odd[0]
+
+
+def _session_pids(sid: int) -> list[int]:
+    """Live processes of session ``sid`` (zombies not counted)."""
+    import os
+    pids = []
+    for p in os.listdir("/proc"):
+        if not p.isdigit():
+            continue
+        try:
+            fields = open(f"/proc/{p}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":           # fields: state ppid pgrp session ...
+            pids.append(int(p))
+    return pids
+
+
+def _workers(pid: int) -> list[int]:
+    """The multiprocessing children of ``pid`` (a local cluster's worker processes)."""
+    return [k for k in _session_pids(pid) if "spawn_main" in open(f"/proc/{k}/cmdline").read()]
+
+
+@pytest.mark.extended
+@pytest.mark.skipif(not __import__("pathlib").Path("/proc").is_dir(), reason="reads /proc")
+def test_ctrl_c_of_a_local_cluster_apply_is_one_line_and_leaves_nothing(cal_dir, tmp_path):
+    """Seventh outside pass: Ctrl-C of `bayesmag apply` on a local cluster printed the workers' KeyboardInterrupt
+    tracebacks and the scheduler's 'Task exception was never retrieved' (36-80 lines) before the one line. The
+    terminal's SIGINT to the whole process group, sent once the workers are computing: the one line, exit status
+    130, no output folder, staging folder or lock, and no process of the command left (10-20 s: a cluster start)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from bayesmag._src.core.simulate import simulate
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    df = to_frame(simulate(2400, design="campaign", seed=12, noise_sd=0.05))
+    for k in range(16):
+        df.to_csv(logs / f"day{k:02d}.csv", index=False)
+    out = tmp_path / "out"
+    env = {**os.environ, "MPLBACKEND": "Agg", "JAX_PLATFORMS": "cpu"}
+    p = subprocess.Popen([sys.executable, "-m", "bayesmag", "apply", "--model", str(cal_dir), "--data",
+                          str(logs / "*.csv"), "--out", str(out), "--workers", "2", "--uq", "psqmc", "--n-params",
+                          "200", "--n-qmc", "512", "--no-progress"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while len(_workers(p.pid)) < 2 and p.poll() is None:      # the cluster's workers are starting
+            assert time.monotonic() < deadline, "no worker process within 60 s"
+            time.sleep(0.05)
+        time.sleep(1.0)                                          # importing, or computing: both printed tracebacks
+        assert p.poll() is None, p.communicate()[1].decode()
+        t0 = time.monotonic()
+        os.killpg(p.pid, signal.SIGINT)                          # what a terminal's Ctrl-C does
+        _, stderr = p.communicate(timeout=30)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    err = stderr.decode()
+    assert p.returncode == 130, err
+    assert err.splitlines() == ["bayesmag: interrupted by SIGINT; stopped without leaving a partial result."], err
+    assert took < 2.0, took
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["logs"]       # no out/, staging folder or lock
+    time.sleep(0.5)
+    assert _session_pids(p.pid) == []                                   # no worker, nanny or tracker left

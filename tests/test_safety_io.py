@@ -763,3 +763,75 @@ def test_data_fetch_dropped_midway_leaves_no_partial_file(tmp_path, monkeypatch,
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "Connection reset by peer" in err and "by hand to" in err
     assert sorted(p.name for p in target.parent.iterdir()) == ["notes.txt"]
+
+
+# ------------------------------------------------------------------------------- interrupts: children, and the one line
+def _sigint_blocked(status: str) -> bool:
+    """Whether a /proc/<pid>/status text shows SIGINT blocked (SigBlk, bit 2 - 1)."""
+    line = next(x for x in status.splitlines() if x.startswith("SigBlk:"))
+    return bool(int(line.split()[1], 16) & (1 << (signal.SIGINT - 1)))
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask") or not Path("/proc/self/status").exists(),
+                    reason="POSIX signal masks and /proc")
+def test_children_started_under_parent_decides_never_take_sigint():
+    """Seventh outside pass: a Ctrl-C during a Dask apply printed the workers' KeyboardInterrupt tracebacks (36-80
+    lines) before the one line: the terminal sends SIGINT to the whole process group. A child started in the block,
+    or later by a thread started in it (a cluster restarting a worker), has SIGINT blocked; this thread's mask is
+    restored after it, and a SIGINT sent meanwhile is not lost."""
+    import threading
+
+    from bayesmag._src.app.signals import parent_decides
+    probe = [sys.executable, "-c", "print(open('/proc/self/status').read())"]
+    got, go = {}, threading.Event()
+
+    def later():                    # a thread started in the block starts its child after the block ended
+        go.wait(10)
+        got["later"] = subprocess.run(probe, capture_output=True, text=True).stdout
+
+    caught = []
+    old = signal.signal(signal.SIGINT, lambda s, f: caught.append(s))
+    try:
+        with parent_decides():
+            got["inside"] = subprocess.run(probe, capture_output=True, text=True).stdout
+            t = threading.Thread(target=later)
+            t.start()
+            os.kill(os.getpid(), signal.SIGINT)            # taken by another thread, or pending until the block ends
+        go.set()
+        t.join(10)
+        got["after"] = subprocess.run(probe, capture_output=True, text=True).stdout
+        deadline = time.monotonic() + 2
+        while not caught and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        signal.signal(signal.SIGINT, old)
+    assert _sigint_blocked(got["inside"]) and _sigint_blocked(got["later"])
+    assert not _sigint_blocked(got["after"])               # the caller's own mask, as before the block
+    assert caught == [signal.SIGINT]
+
+
+def test_after_an_interrupt_the_one_line_is_all_that_stderr_gets(tmp_path):
+    """What other threads print while the command stops (a Dask scheduler's 'Task exception was never retrieved' as
+    its workers went) came before the one line; from the signal on, stderr is /dev/null but for that line."""
+    script = tmp_path / "stop.py"
+    script.write_text(textwrap.dedent("""
+        import os, signal, sys, threading, time
+        from bayesmag._src.app import signals
+        print("before the signal", file=sys.stderr)
+        with signals.handling():
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(5)
+            except signals.Interrupted as e:
+                t = threading.Thread(target=lambda: print("noise from a thread", file=sys.stderr))
+                t.start()
+                t.join()
+                print("noise from the unwinding", file=sys.stderr)
+                signals.announce(e.signum)
+                sys.stderr.flush()
+                os._exit(e.code)
+    """))
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, env=_env())
+    assert r.returncode == 130, r.stderr
+    assert r.stderr.splitlines() == ["before the signal", "bayesmag: interrupted by SIGINT; stopped without leaving "
+                                     "a partial result."], r.stderr

@@ -440,6 +440,21 @@ def _declared_unit_files(table, pieces, cal, field_unit) -> list[str]:
     return sorted(f for f, odd in by_file.items() if all(odd))
 
 
+def _children() -> set:
+    """This process's multiprocessing children now (a local cluster's workers are such children)."""
+    import multiprocessing
+    return set(multiprocessing.active_children())
+
+
+def _kill_children(before: set) -> None:
+    """SIGKILL the multiprocessing children started since ``before`` (:func:`_children`): an interrupted apply's
+    workers, also one still importing (it would otherwise outlive this process until it noticed)."""
+    import contextlib
+    for p in _children() - before:
+        with contextlib.suppress(Exception):
+            p.kill()
+
+
 def _check_paths(model_dir, data, out) -> Path:
     out, model = Path(out), Path(model_dir).resolve()
     if out.suffix.lower() in _PARQUET + (".csv",) and not out.is_dir():
@@ -482,6 +497,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     from bayesmag._src.app.apply import method_note, run_seed
     from bayesmag._src.app.artifact import load
     from bayesmag._src.app.outdir import reserve, staging_dir
+    from bayesmag._src.app.signals import on_abort, parent_decides
 
     from bayesmag._src.app.artifact import is_field_run
     if is_field_run(model_dir):
@@ -516,17 +532,21 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     memory = {"distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
               "distributed.worker.memory.pause": False}
     with reserve(out, inputs=[], kind="apply"), staging_dir(out, kind="apply") as tmp, dask.config.set(memory):
-        cluster = None
-        if scheduler:
-            client = Client(scheduler, timeout="30s")
-        else:
-            with warnings.catch_warnings():          # "port 8787 is already in use": another cluster's, harmless
-                warnings.simplefilter("ignore", UserWarning)
-                cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
-                                       memory_limit=memory_limit, processes=True, dashboard_address=None,
-                                       silence_logs=logging.CRITICAL)   # a failed task is reported once, as one line
-            client = Client(cluster)
+        cluster = client = None
+        before = _children()
+        forget = on_abort(lambda: _kill_children(before))     # the watchdog's exit takes the workers with it
         try:
+            if scheduler:
+                client = Client(scheduler, timeout="30s")
+            else:
+                # the workers (started by the cluster's threads) leave a Ctrl-C to this process, which stops them:
+                # they printed their KeyboardInterrupt tracebacks (36-80 lines) before the one line (signals)
+                with warnings.catch_warnings(), parent_decides():
+                    warnings.simplefilter("ignore", UserWarning)     # "port 8787 is already in use": harmless
+                    cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
+                                           memory_limit=memory_limit, processes=True, dashboard_address=None,
+                                           silence_logs=logging.CRITICAL)   # a failed task: one line, once
+                    client = Client(cluster)
             with dask.config.set({"dataframe.convert-string": False}):
                 # sent once to every worker, under a key of its own (hash=False): with the default content-hash
                 # key, a second apply of the same calibration on a running cluster reuses the key the previous
@@ -550,8 +570,14 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                     raise DataError(f"a Dask worker died (out of memory?) on {e}: give it more memory (--memory-limit), "
                                     f"or smaller partitions (Parquet row groups, --blocksize-mb).") from None
                 _check_small_field(table, cal, opts["field_unit"])     # inside the staging: a refusal writes nothing
+        except BaseException as e:
+            if not isinstance(e, Exception):          # Ctrl-C: nothing of the workers' is kept; stop them now
+                _kill_children(before)
+            raise
         finally:
-            client.close()
+            forget()
+            if client is not None:
+                client.close()
             if cluster is not None:
                 cluster.close()
     rows_in, rows_out = int(table["rows_in"].sum()), int(table["rows_out"].sum())

@@ -5,7 +5,9 @@ a library caller's own signal handling is left alone. While installed:
 
 * SIGINT / SIGTERM raise :class:`Interrupted` in the main thread. The ``finally`` blocks of the
   output machinery run as for any error: the staging folder is removed, the lock released, the
-  figure process killed; ``main`` prints one line and the process exits with 128 + signal.
+  figure process killed; ``main`` prints one line and the process exits with 128 + signal. From the
+  signal on, that line is all the process prints on stderr: what other threads and libraries would
+  print while stopping (a Dask scheduler's "Task exception was never retrieved") goes to /dev/null.
 * A watchdog thread is woken by the signal itself (``signal.set_wakeup_fd``), also when the main
   thread is busy in compiled code or waits for training threads to finish their batch. If the
   process has not exited after ``grace`` seconds it runs the registered clean-ups
@@ -13,6 +15,8 @@ a library caller's own signal handling is left alone. While installed:
   ``os._exit``. The figure process notices its parent is gone and exits too.
 * :func:`critical` marks the two-phase swap: a signal arriving inside it is acted on after it,
   and the watchdog waits for it, so a folder is never caught half-renamed.
+* :func:`parent_decides` starts child processes (a Dask cluster's workers) that do not take the Ctrl-C a terminal
+  sends to the whole process group, so they print no traceback of their own: the parent stops them.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import sys
 import threading
 from typing import Callable
 
-__all__ = ["Interrupted", "handling", "on_abort", "critical", "announce"]
+__all__ = ["Interrupted", "handling", "on_abort", "critical", "announce", "parent_decides"]
 
 _NAMES = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
 _state = threading.local()
@@ -36,6 +40,7 @@ _active = False
 _depth = 0
 _pending: int | None = None
 _fired: int | None = None
+_stderr: int | None = None          # a copy of fd 2 once muted (:func:`_mute`): where the one line goes
 
 
 class Interrupted(KeyboardInterrupt):
@@ -69,14 +74,85 @@ def critical():
         raise Interrupted(signum)
 
 
+@contextlib.contextmanager
+def parent_decides():
+    """Processes started in the block, or later by threads started in it, never take SIGINT: the parent decides.
+
+    A terminal's Ctrl-C goes to the whole foreground process group. SIGINT is blocked in this thread for the block: a
+    thread started in it inherits the mask, and a child process keeps it through fork and exec (CPython's resource
+    tracker relies on the same). So a Dask cluster's workers, started by its threads, print no ``KeyboardInterrupt``
+    traceback; this process stops them as it unwinds. A SIGINT arriving meanwhile is not lost: a thread that does not
+    block it takes it (the watchdog's), or this one when the block ends. Under :func:`handling` the multiprocessing
+    resource tracker is started first and quietly: started inside, it would unblock SIGINT in the thread that starts it,
+    and after an interrupt (the process ends by ``os._exit``) it reports the semaphores it then removes as leaked.
+    """
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    if _active:
+        _quiet_resource_tracker()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _quiet_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (if not running) with its leak warnings off (its ``-W`` flags come
+    from ``sys.warnoptions``)."""
+    from multiprocessing import resource_tracker
+    flag = "ignore::UserWarning:multiprocessing.resource_tracker"
+    added = flag not in sys.warnoptions
+    if added:
+        sys.warnoptions.append(flag)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        if added:
+            sys.warnoptions.remove(flag)
+
+
 def announce(signum: int) -> None:
     """Print the one line about the interrupt (once per process)."""
     if _said.is_set():
         return
     _said.set()
-    sys.stderr.write(f"bayesmag: interrupted by {_NAMES.get(signum, signum)}; stopped without leaving a partial "
-                     f"result.\n")
+    line = f"bayesmag: interrupted by {_NAMES.get(signum, signum)}; stopped without leaving a partial result.\n"
+    if _stderr is not None:
+        with contextlib.suppress(OSError):
+            os.write(_stderr, line.encode())
+        return
+    sys.stderr.write(line)
     sys.stderr.flush()
+
+
+def _mute() -> None:
+    """Send fd 2 to /dev/null, keeping a copy for :func:`announce`: after an interrupt the one line is all that is
+    printed, whatever other threads (a cluster's teardown, a training thread) write while the process stops."""
+    global _stderr
+    if _stderr is not None:
+        return
+    with contextlib.suppress(OSError, ValueError):
+        sys.stderr.flush()                  # what was written before the signal still shows
+    try:
+        saved = os.dup(2)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+        _stderr = saved
+    except OSError:
+        pass
+
+
+def _unmute() -> None:
+    global _stderr
+    if _stderr is None:
+        return
+    with contextlib.suppress(OSError):
+        os.dup2(_stderr, 2)
+        os.close(_stderr)
+    _stderr = None
 
 
 def _handler(signum, frame):
@@ -84,6 +160,7 @@ def _handler(signum, frame):
     if _fired is not None:              # a second Ctrl-C while stopping: the watchdog finishes the job
         return
     _fired = signum
+    _mute()
     if _depth > 0:
         _pending = signum
         return
@@ -158,6 +235,7 @@ def handling(*, grace: float = 0.6):
             signal.signal(s, h)
         signal.set_wakeup_fd(old_fd)
         sys.unraisablehook = old_hook
+        _unmute()
         w.close()
         r.close()
         _active = False
