@@ -149,7 +149,10 @@ def main(argv: list[str] | None = None) -> int:
             "whole sensor" if f["frame"] == "whole" else f"{f['axis']} output")
         print(f"  {where}: {f['effect']} ({ps})")
     for u in res.unexplained:
-        print(f"  {u['channel']} channel: unexplained, time scale {u['time_scale_s']:.3g} s ({u['basis']})")
+        where = f"{u['axis']} output" if u.get("frame") == "output" else f"{u['channel']} channel"
+        scale = (f"{u['time_scale_s']:.3g} s" if u.get("time_scale_s") is not None
+                 else f"{u['time_scale_rows']:.3g} rows (no time column)")
+        print(f"  {where}: unexplained, time scale {scale} ({u['basis']})")
     for n in res.notes:
         print(f"  note: {n}")
     return 0

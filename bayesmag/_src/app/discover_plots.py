@@ -145,7 +145,7 @@ def discovery_figures(out: Path, res) -> list[str]:
     Each finding is drawn against the variable that dominates its fitted effect (the input of its
     largest column, chosen by discovery; else the variable whose binned means explain most of the
     effect's variance; run and direction of travel as categories), with the linear part removed;
-    unexplained structure per sensor channel against its located variable."""
+    unexplained structure per sensor channel against its located variable (none for an output's)."""
     out = Path(out)
     files = []
     variables = {v.name: v for v in res.arrays["variables"]}
@@ -171,6 +171,8 @@ def discovery_figures(out: Path, res) -> list[str]:
                       title=f"{f['effect']} ({place}): {f['description']}", categorical=v.categorical)
         files.append(name)
     for j, u in enumerate(res.unexplained, 1):
+        if u.get("frame") == "output":
+            continue            # structure of a calibrated output (a per-run term that wandered): no channel residual
         v = variables.get(u["variable"]) or variables["time"]
         a = AXES.index(u["channel"])
         name = f"unexplained{j}_{u['channel']}_{v.name.replace('/', '').replace('|', '')}.png"

@@ -12,6 +12,11 @@
   the temperature log with the same time constant (block z >= Z_DISTINCT). Heat flow delays
   the temperature the die sees; smoothing the log's noise does not delay anything, so when
   the symmetric filter explains as much, the gain is noise reduction, not a lag.
+* :func:`constant_within_runs`: an entry that declares ``localised = "run"`` claims a constant per
+  run (a re-seat of the offset at power-up). When neighbouring blocks of a run are more alike than
+  in random order (serial contrast z >= Z_DISTINCT) *and* the same columns with a coefficient per
+  piece of each run (:class:`RunPieces`) predict better out of sample by >= MIN_GAIN, the structure
+  wanders within runs (a random walk, a drift, a lag) and the per-run term is not the physics.
 * :func:`implausible`: a fitted nonlinear parameter outside the entry's physical range
   (:meth:`~bayesmag._src.core.catalogue.Entry.implausible`) removes the named effect.
 """
@@ -25,13 +30,16 @@ import numpy as np
 
 from bayesmag._src.core.catalogue import Setting, ThermalLag
 from bayesmag._src.core.fit import covariance
-from bayesmag._src.core.physics import InputTransform
-from bayesmag._src.pipeline.discover.diagnostics import block_z
-from bayesmag._src.pipeline.discover.frame import Extension, lstsq
-from bayesmag._src.pipeline.discover.options import T_IDENT
-from bayesmag._src.pipeline.discover.search import cv_residuals, row_loss, compare
+import jax.numpy as jnp
 
-__all__ = ["drop_one", "identified", "implausible", "ZeroPhaseSmoothing", "lag_or_smoothing"]
+from bayesmag._src.core.physics import InputTransform, Term
+from bayesmag._src.pipeline.discover.diagnostics import block_z, run_pieces, serial_contrast
+from bayesmag._src.pipeline.discover.frame import Extension, lstsq
+from bayesmag._src.pipeline.discover.options import MIN_GAIN, PIECES, T_IDENT, Z_DISTINCT
+from bayesmag._src.pipeline.discover.search import compare, cv_residuals, place_residual, row_loss
+
+__all__ = ["drop_one", "identified", "implausible", "ZeroPhaseSmoothing", "lag_or_smoothing", "RunPieces",
+           "WithinRun", "constant_within_runs"]
 
 
 def drop_one(designs, selected: tuple, folds3, blocks, n_eff_fn, progress=None):
@@ -126,3 +134,83 @@ def lag_or_smoothing(designs, kept: tuple, lag: Extension, folds3, blocks) -> tu
     z = block_z(row_loss(e_sm, designs.n) - row_loss(e_lag, designs.n), blocks)
     return z, float(np.exp(chosen.setting.nl))
 
+
+
+@dataclasses.dataclass(frozen=True)
+class RunPieces(Term):
+    r"""The columns of a run-localised term with a coefficient per *piece* of each run:
+    :math:`F_j(x)\,[\text{piece}(x) = s]` for every used column ``j`` of ``inner`` and piece ``s``.
+
+    ``cuts``: ``(run, time)`` pairs, each starting a new piece of that run (rows at or after the
+    time); a run without cuts is one piece. Not a catalogue term: the rival of a per-run constant
+    in :func:`constant_within_runs`, as :class:`ZeroPhaseSmoothing` is a thermal lag's."""
+
+    inner: object = None
+    cols: tuple | None = None
+    cuts: tuple = ()
+    pieces: int = 1
+    name: ClassVar[str] = "run_pieces"
+    degree: ClassVar[int] = 0
+    temperature_centred: ClassVar[bool] = True
+
+    def param_names(self):
+        names = self.inner.param_names()
+        used = [names[i] for i in (self.cols if self.cols is not None else range(len(names)))]
+        return tuple(f"{n}_piece{s + 1}" for n in used for s in range(self.pieces))
+
+    def features(self, inputs):
+        F = self.inner.features(inputs)
+        if self.cols is not None:
+            F = F[:, list(self.cols)]
+        piece = jnp.zeros(F.shape[0], dtype=jnp.int32)
+        for r, t in self.cuts:
+            piece = piece + ((inputs.run == r) & (inputs.time >= t)).astype(jnp.int32)
+        return jnp.concatenate([F * (piece == s)[:, None] for s in range(self.pieces)], axis=1)
+
+
+@dataclasses.dataclass(frozen=True)
+class WithinRun:
+    """Whether a per-run constant holds within its runs. ``z`` (one-sided ``p``): neighbouring blocks of a run are
+    more alike than in random order (:func:`~.diagnostics.serial_contrast`, on the residual in the term's place of
+    the model with the term); ``gain``: the share of the out-of-sample mean square of the output helped most by
+    which the term's columns with a coefficient per piece of each run (:class:`RunPieces`) predict better than
+    the constant; ``pieces`` the most pieces of any run."""
+
+    z: float
+    p: float
+    gain: float
+    pieces: int
+
+    @property
+    def wanders(self) -> bool:
+        """The offset wanders within runs: ``z >= Z_DISTINCT`` and ``gain >= MIN_GAIN``."""
+        return self.z >= Z_DISTINCT and self.gain >= MIN_GAIN
+
+
+def constant_within_runs(designs, kept: tuple, ext: Extension, folds3, blocks, pieces: int = PIECES,
+                         seed: int = 0) -> WithinRun | None:
+    """Test the per-run constant of a run-localised finding ``ext`` (in the model ``kept``) within its runs;
+    None when no run has 4 CV blocks.
+
+    Significance: the serial contrast of the block means of the place's residual (the sensor channel's, mapped
+    back through S + Ks Tc, or the output's). Size: the term's columns given a coefficient per piece of each run
+    (:func:`~.diagnostics.run_pieces`: up to ``pieces`` pieces of at least 2 whole CV blocks; neighbouring blocks
+    lie in different folds, so every held-out block is predicted from its piece's other blocks) against the
+    constant, out of sample. A constant per run plus noise: neither. An offset that wanders within runs (a random
+    walk, an untested drift or lag): both."""
+    time, run = np.asarray(designs.inputs.time, dtype=float), np.asarray(designs.inputs.run)
+    piece = run_pieces(blocks, run, pieces)
+    if piece.max() == 0:
+        return None
+    start = np.concatenate([[True], (piece[1:] != piece[:-1]) & (run[1:] == run[:-1])])
+    cuts = tuple((int(run[i]), float(time[i])) for i in np.flatnonzero(start & (piece > 0)))
+    rival = Extension(Setting(RunPieces(ext.component, ext.setting.cols, cuts, int(piece.max()) + 1)),
+                      ext.frame, ext.slot)
+    others = tuple(e for e in kept if e != ext)
+    e_const, r_in, _, _ = cv_residuals(designs, kept, [None], folds3)
+    e_piece, _, _, _ = cv_residuals(designs, others + (rival,), [None], folds3)
+    z, p = serial_contrast(place_residual(designs, ext, r_in), blocks, run, seed=seed)
+    n = designs.n
+    per_c = (e_const.reshape(3, n) ** 2).sum(1)
+    gain = float(((per_c - (e_piece.reshape(3, n) ** 2).sum(1)) / np.maximum(per_c, 1e-300)).max())
+    return WithinRun(float(z), float(p), gain, int(piece.max()) + 1)

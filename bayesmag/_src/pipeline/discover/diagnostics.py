@@ -22,7 +22,7 @@ from bayesmag._src.core.fit import lag1_autocorrelation
 from bayesmag._src.pipeline.discover.options import FLOOR_RATIO, LOCATE_FRACTION, LOCATE_P, N_PERM, RHO_STRUCTURE, UNEXPLAINED_FRACTION
 
 __all__ = ["locate", "structure", "make_variables", "block_ids", "block_z", "block_length", "run_starts",
-           "locate_fraction", "describe", "run_contrast"]
+           "locate_fraction", "describe", "run_contrast", "run_pieces", "serial_contrast"]
 
 
 def run_starts(run):
@@ -109,6 +109,49 @@ def run_contrast(r: np.ndarray, blocks: np.ndarray, run: np.ndarray) -> tuple[fl
     rest = (means.sum() - run_mean * m) / (B - m)
     k = int(np.argmax(np.abs(run_mean - rest)))
     return (float(stats.norm.isf(max(p, 1e-300))) if p < 0.5 else 0.0), p, int(runs[k])
+
+
+def run_pieces(blocks: np.ndarray, run: np.ndarray, pieces: int) -> np.ndarray:
+    """(n,) index of each row's piece of its run: the run's CV blocks split into ``min(pieces, blocks // 2)``
+    contiguous pieces of whole blocks (at least 2 blocks each; a run of fewer than 4 blocks is one piece)."""
+    out = np.zeros(blocks.size, dtype=np.int64)
+    for r in np.unique(run):
+        rows = np.flatnonzero(run == r)
+        bl, j = np.unique(blocks[rows], return_inverse=True)
+        k = int(max(1, min(pieces, bl.size // 2)))
+        out[rows] = (j * k) // bl.size
+    return out
+
+
+def serial_contrast(r: np.ndarray, blocks: np.ndarray, run: np.ndarray, *, n_perm: int = N_PERM,
+                    seed: int = 0) -> tuple[float, float]:
+    r"""(z, p): evidence that neighbouring blocks of a run are more alike than the run's blocks in random order.
+
+    The statistic is :math:`S = \sum_\text{runs} \sum_j (m_{j+1} - m_j)^2` over the block means ``m`` of ``r``
+    in time order within each run; its null distribution is that of the blocks permuted within their runs
+    (``n_perm`` permutations, seeded). A constant per run plus noise whose correlation is shorter than a block (what
+    the CV blocks are sized for) makes a run's block means exchangeable; an offset that wanders within runs (a
+    random walk, a drift, a lag's footprint) makes neighbours alike and S small. ``p`` is the share of
+    permutations with S at most the observed one (smallest 1 / (n_perm + 1)), ``z`` its one-sided normal z
+    (0 for p >= 0.5, or with fewer than 4 neighbouring pairs in runs of >= 3 blocks)."""
+    r = np.asarray(r, dtype=np.float64)
+    cnt = np.bincount(blocks)
+    keep = np.flatnonzero(cnt > 0)
+    means = np.bincount(blocks, weights=r)[keep] / cnt[keep]
+    first = np.zeros(blocks.max() + 1, dtype=np.int64)
+    first[blocks[::-1]] = np.arange(blocks.size)[::-1]
+    brun = np.asarray(run)[first[keep]]
+    order = np.argsort(first[keep], kind="stable")
+    means, brun = means[order], brun[order]
+    groups = [means[brun == q] for q in dict.fromkeys(brun.tolist())]
+    groups = [g for g in groups if g.size >= 3]
+    if sum(g.size - 1 for g in groups) < 4:
+        return 0.0, 1.0
+    rng = np.random.default_rng(seed)
+    obs = sum(float((np.diff(g) ** 2).sum()) for g in groups)
+    perm = sum((np.diff(rng.permuted(np.tile(g, (n_perm, 1)), axis=1), axis=1) ** 2).sum(1) for g in groups)
+    p = float((1 + np.sum(perm <= obs * (1 + 1e-12))) / (n_perm + 1))
+    return (float(stats.norm.isf(p)) if p < 0.5 else 0.0), p
 
 
 @dataclasses.dataclass(frozen=True)
@@ -372,15 +415,18 @@ def spectrum_peak(r: np.ndarray, time: np.ndarray, run: np.ndarray, dt: float) -
     return float(periods[k]), float(share[k])
 
 
-def structure(data: CalibrationData, resid: np.ndarray, located: list, *, dt: float, labels=AXES) -> list[dict]:
+def structure(data: CalibrationData, resid: np.ndarray, located: list, *, dt: float, labels=AXES,
+              time_available: bool = True) -> list[dict]:
     """Structure left in residuals ``resid`` (n, 3), one entry per column that holds some.
 
     A column holds structure when its lag-1 autocorrelation >= RHO_STRUCTURE *and* its variance
     exceeds FLOOR_RATIO times the high-frequency noise floor (:func:`noise_floor`), or when
     :func:`locate` (``located``, same columns) found a significant pattern holding at least
     UNEXPLAINED_FRACTION of its variance. Each entry: ``channel``, ``rho1``, ``floor_ratio``,
-    ``time_scale_s`` and its ``basis`` ("spectrum peak" or "correlation time"), the strongest
-    located ``variable``, ``where`` and a ``description``."""
+    ``time_scale_s`` and its ``basis`` ("spectrum peak" or "correlation time"), ``time_scale_rows``
+    (the same in rows), the strongest located ``variable``, ``where`` and a ``description``. Without
+    real time stamps (``time_available`` False: time is the row index) the scale is a correlation time in
+    rows, ``time_scale_s`` None, and no spectrum peak is looked for (a period in rows is no period)."""
     out = []
     for a, lab in enumerate(labels):
         r = resid[:, a] - resid[:, a].mean()
@@ -392,18 +438,21 @@ def structure(data: CalibrationData, resid: np.ndarray, located: list, *, dt: fl
         slow = rho >= RHO_STRUCTURE and ratio >= FLOOR_RATIO
         if not (slow or big):
             continue
-        peak = spectrum_peak(r, data.time, data.run, dt)
+        peak = spectrum_peak(r, data.time, data.run, dt) if time_available else None
         if peak is not None:
             scale, basis = peak[0], "spectrum peak"
         else:
             scale, basis = correlation_time(r, dt), "correlation time"
         best = max(big or mine, key=lambda l: l["fraction"]) if (big or mine) else None
+        shown = f"{scale:.3g} s ({basis})" if time_available else \
+            f"{scale / max(dt, 1e-12):.3g} rows ({basis}; no time column)"
         text = (f"residual lag-1 autocorrelation {rho:.2f}, variance {ratio:.1f} x the high-frequency noise floor "
-                f"({floor:.3g}); time scale {scale:.3g} s ({basis})")
+                f"({floor:.3g}); time scale {shown}")
         if best is not None:
             text += "; " + describe(best).rstrip(".")
         out.append({"channel": lab, "axis": lab, "rho1": float(rho), "floor_ratio": ratio, "noise_floor": floor,
-                    "time_scale_s": scale, "basis": basis,
+                    "time_scale_s": scale if time_available else None, "time_scale_rows": scale / max(dt, 1e-12),
+                    "basis": basis,
                     "variable": best["variable"] if best else "time",
                     "where": best["where"] if best else f"time scale {scale:.3g} s",
                     "fraction": best["fraction"] if best else None,

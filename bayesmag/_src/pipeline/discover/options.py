@@ -33,6 +33,12 @@ MIN_GAIN = 0.01
 DBIC_MIN = 10.0
 #: An output-frame term is kept only if it beats the sensor-frame form by this block z.
 Z_DISTINCT = 2.0
+#: A run-localised finding (a constant per run) is tested within its runs
+#: (:func:`~bayesmag._src.pipeline.discover.checks.constant_within_runs`): its columns get a coefficient for each
+#: of up to this many pieces of a run (at least 2 CV blocks each); when neighbouring blocks of a run are more alike
+#: than in random order (serial contrast z >= Z_DISTINCT) and the pieces predict better out of sample by >=
+#: MIN_GAIN, the offset wanders within runs and is reported as unexplained, not named.
+PIECES = 8
 #: Most extensions in the joint model.
 MAX_TERMS = 4
 #: A coefficient is reported only if |value| >= T_IDENT standard errors (the rest are not identified).

@@ -29,13 +29,14 @@ from bayesmag._src.core import catalogue as C
 from bayesmag._src.core.data import AXES, CalibrationData
 from bayesmag._src.core.fit import covariance, lag1_autocorrelation
 from bayesmag._src.core.physics import ThermoAffine, inputs_from_data
-from bayesmag._src.pipeline.discover.checks import drop_one, identified, lag_or_smoothing
-from bayesmag._src.pipeline.discover.diagnostics import block_z, block_ids, block_length, locate, make_variables, noise_floor, run_starts, structure
+from bayesmag._src.pipeline.discover.checks import constant_within_runs, drop_one, identified, lag_or_smoothing
+from bayesmag._src.pipeline.discover.diagnostics import block_z, block_ids, block_length, correlation_time, locate, \
+    make_variables, noise_floor, run_starts, structure
 from bayesmag._src.pipeline.discover.frame import Designs, Extension, JointModel, gain_matrix, log_noise_se, lstsq, \
     refit, temperature_log_sd
 from bayesmag._src.pipeline.discover.intervals import profile_interval, profile_minimiser, step_interval
-from bayesmag._src.pipeline.discover.options import DELTA_SYS_FRACTION, N_BOOT_LAG, ROWS_PER_PARAM, Z_DISTINCT, \
-    Z_MIN, DiscoverOptions
+from bayesmag._src.pipeline.discover.options import DELTA_SYS_FRACTION, MIN_GAIN, N_BOOT_LAG, ROWS_PER_PARAM, \
+    Z_DISTINCT, Z_MIN, DiscoverOptions
 from bayesmag._src.core.physics import resolve_t0
 from bayesmag._src.pipeline.discover.result import DiscoveryResult
 from bayesmag._src.pipeline.discover.search import compare, cv_residuals, forward, groups, relocate, row_loss, \
@@ -128,6 +129,69 @@ def _dominant(ext, theta, sl, inputs) -> str:
     contrib = np.sqrt(np.mean((F * theta[sl[ext]][None, :]) ** 2, axis=0))
     cols = ext.setting.cols if ext.setting.cols is not None else tuple(range(F.shape[1]))
     return ext.component.depends_on((int(cols[int(np.argmax(contrib))]),))
+
+
+def _untested(skipped: list, cands: dict, step_note: str | None) -> dict:
+    """Candidate name -> why it was not (reliably) searched: skipped for a missing requirement, or, when the time
+    column's step suggests ms or us stamps (``step_note``), searched with time read in seconds."""
+    out = {s["candidate"]: s["reason"] for s in skipped}
+    if step_note:
+        for name in dict.fromkeys(k[0] for k in cands):
+            if "time" in C.CATALOGUE[name].requires and name not in out:
+                out[name] = "searched with the time column read in seconds, whose step suggests ms or us stamps"
+    return out
+
+
+def _explanation(comp, untested: dict) -> str:
+    """The entry's explanation, or, when rivals that can give the same pattern were not searched (``untested``),
+    that explanation stated as one possible cause with the rivals, why they were not tested and how to test them."""
+    rv = [r for r in getattr(comp, "rivals", ()) if r in untested]
+    if not rv:
+        return comp.explanation
+    why = "; ".join(sorted({untested[r] for r in rv}))
+    fix = ("declare the time column's unit ([data] time_unit) to test them on their own time scale"
+           if any("seconds" in untested[r] for r in rv) else
+           "a recording with a time column (seconds) can test them")
+    return (f"One possible cause: {comp.explanation[0].lower()}{comp.explanation[1:]} Not established by these data: "
+            f"{', '.join(rv)} can also give this pattern and {'was' if len(rv) == 1 else 'were'} not searched "
+            f"({why}); {fix}.")
+
+
+def _wander_text(w) -> str:
+    return (f"neighbouring blocks of a run are more alike than in random order (serial z = {w.z:.2f} >= "
+            f"{Z_DISTINCT}, p = {w.p:.2g}) and an offset for each of up to {w.pieces} pieces of every run predicts "
+            f"better out of sample (a further {w.gain:.1%} of the out-of-sample mean square, >= {MIN_GAIN:.0%})")
+
+
+def _within_json(w) -> dict:
+    return {"serial_z": w.z, "serial_p": w.p, "pieces": w.pieces, "gain_pieces": w.gain,
+            "wanders": bool(w.wanders)}
+
+
+def _add_wander(unexplained: list, e, w, sc, place: np.ndarray, run: np.ndarray, dt: float, time_ok: bool) -> list:
+    """``unexplained`` with the structure of a run-localised term that was not constant within its runs (``w``,
+    :func:`~.checks.constant_within_runs`) added to its place's entry (a sensor channel's, or a new one for an
+    output): per-run offsets were accepted, pieces of each run predict better still."""
+    label = AXES[e.slot]
+    acc = (f"{sc.decided_by} = {sc.z_decisive:.2f}, gain {sc.gain:.1%}" if sc is not None else "accepted by the search")
+    ct = correlation_time(place - place.mean(), dt)
+    scale = f"{ct:.3g} s" if time_ok else f"{ct / max(dt, 1e-12):.3g} rows (no time column)"
+    text = (f"the offset differs between runs and wanders within them: {e.name} was accepted by the search ({acc}), "
+            f"but {_wander_text(w)}, so it is not a constant per run; correlation time {scale}")
+    rec = {"within_run": _within_json(w), "rejected_term": e.name}
+    for u in unexplained:
+        if u["channel"] == label and e.frame == "sensor":
+            u.update(rec, description=u["description"] + "; " + text)
+            return unexplained
+    floor = noise_floor(place, run)
+    return unexplained + [{
+        "channel": label, "axis": label, "frame": e.frame,
+        "rho1": float(lag1_autocorrelation(place - place.mean(), run)),
+        "floor_ratio": float(np.var(place) / max(floor ** 2, 1e-300)), "noise_floor": floor,
+        "time_scale_s": ct if time_ok else None, "time_scale_rows": ct / max(dt, 1e-12), "basis": "correlation time",
+        "variable": "run", "where": "differs between runs and within them", "fraction": None, "p_value": None,
+        "description": (f"in the {label} calibrated output (an output-frame term): " if e.frame == "output" else "")
+                       + text, **rec}]
 
 
 def _localised_ext(ext) -> bool:
@@ -279,6 +343,7 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
     notes, skipped, rejected = [], [], []
     # ---- baseline
     time_ok = options.time_available
+    step_note = None
     if time_ok is None:
         time_ok = not np.array_equal(data.time, np.arange(data.n, dtype=np.float64))
         if not time_ok:
@@ -341,6 +406,7 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
     cands = {k: v for k, v in cands.items() if k[0] not in too_big}
     for s in skipped:
         notes.append(f"Candidate {s['candidate']} skipped: {s['reason']}.")
+    untested = _untested(skipped, cands, step_note)
 
     def n_eff_fn(r):
         rho = np.mean([max(lag1_autocorrelation(r.reshape(3, -1)[a], run), 0.0) for a in range(3)])
@@ -356,6 +422,21 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
                          "reason": f"does not survive the drop-one check: given the other findings its out-of-sample "
                                    f"gain is {s.gain:.1%} (block z = {s.z:.1f}, BIC_eff change {s.dbic:.1f})"})
     kept, not_ident = identified(designs, kept, run)
+    # a run-localised finding claims a constant per run: its columns split into pieces of each run must
+    # not predict better (a random walk or an untested lag/drift wanders within runs; a re-seat does not)
+    within, wander = {}, []
+    step_score = {st["score"].key: st["score"] for st in steps}
+    for e in [x for x in kept if _localised_ext(x)]:
+        wr = constant_within_runs(designs, kept, e, folds3, blocks, seed=options.seed)
+        if wr is None:
+            continue
+        within[e] = wr
+        if wr.wanders:
+            kept = tuple(x for x in kept if x != e)
+            wander.append((e, wr, step_score.get((e.name, e.frame, e.slot))))
+            rejected.append({"effect": e.name, "where": _label(e),
+                             "reason": f"not constant within its runs: {_wander_text(wr)}; the offset wanders within "
+                                       f"runs, which a per-run re-seat does not do (reported as unexplained)"})
     z_smoothing = {}
     for lag in [e for e in kept if e.name == "thermal_lag"]:
         z_lag, tau_sm = lag_or_smoothing(designs, kept, lag, folds3, blocks)
@@ -472,7 +553,9 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
                          "p_value": float(stats.norm.sf(sc.z_decisive)),
                          "z": float(sc.z), "p_value_block": float(stats.norm.sf(sc.z)),
                          "delta_bic_eff": float(sc.dbic),
-                         "drop_one_z": s.z, "drop_one_gain": s.gain, "cv": cv_desc,
+                         "drop_one_z": s.z, "drop_one_gain": s.gain, "drop_one_decided_by": s.decided_by,
+                         "drop_one_z_decisive": float(s.z_decisive), "cv": cv_desc,
+                         **({"within_run": _within_json(within[e])} if e in within else {}),
                          **({"z_run": float(sc.z_run), "drop_one_z_run": s.z_run,
                              "run_mean_furthest_from_the_others": s.run}
                             if getattr(e.component, "localised", None) == "run" else {}),
@@ -480,7 +563,9 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
                          **({"z_lag_vs_zero_phase_smoothing": z_smoothing[e.setting.component][0],
                              "zero_phase_smoothing_tau": z_smoothing[e.setting.component][1]}
                             if e.setting.component in z_smoothing else {})},
-            "explanation": e.component.explanation,
+            "explanation": _explanation(e.component, untested),
+            **({"untested_rivals": [{"effect": r, "reason": untested[r]} for r in e.component.rivals if r in untested],
+                "cause_established": False} if any(r in untested for r in e.component.rivals) else {}),
             "indistinguishable_from": [{"effect": a.ext.name, "where": _label(a.ext), "oos_gain": a.gain}
                                        for a in (st["alternatives"] if st else [])],
             "config": _spec(e, theta[sl[e][0]] if e.frame == "whole" else None),
@@ -507,7 +592,18 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
     located_final = locate(data, ch_final, time_available=time_ok, seed=options.seed + 1, variables=variables)
     for l in located + located_final:
         l["channel"] = l["axis"]
-    unexplained = structure(data, ch_final, located_final, dt=dt)
+    unexplained = structure(data, ch_final, located_final, dt=dt, time_available=time_ok)
+    for e, wr, sc in wander:
+        place = ch_final[:, e.slot] if e.frame == "sensor" else (y - pred)[:, e.slot]
+        unexplained = _add_wander(unexplained, e, wr, sc, place, run, dt, time_ok)
+    for u in unexplained:
+        u.setdefault("frame", "sensor")
+        if untested:
+            u["not_searched"] = [{"effect": k, "reason": v} for k, v in untested.items()]
+            by = {}
+            for k, v in untested.items():
+                by.setdefault(v, []).append(k)
+            u["description"] += "; not searched: " + "; ".join(f"{', '.join(ks)} ({v})" for v, ks in by.items())
     baseline, final = _axis_dict(base_scores), _axis_dict(final_scores)
     baseline["cv"] = final["cv"] = cv_desc
     arrays = {"variables": variables, "effects": effects, "base_resid": ch_base, "final_resid": ch_final, "X0": X0}
@@ -519,6 +615,6 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
                 "z": float(closest.z), "p_value_block": float(stats.norm.sf(closest.z)),
                 **({"z_run": float(closest.z_run)} if _localised_ext(closest.ext) else {}),
                 "oos_gain": float(closest.gain), "delta_bic_eff": float(closest.dbic),
-                "not_accepted_because": closest.shortfall}
+                "not_accepted_because": closest.shortfall, "short_by": closest.short_by}
     return DiscoveryResult(findings, unexplained, located, baseline, final, extra_terms, notes, skipped, options,
                            data.source, _time.perf_counter() - t_start, rejected, arrays, near)

@@ -12,8 +12,8 @@ import numpy as np
 
 from bayesmag._src.core.jsonio import write_json
 from bayesmag._src.core.data import AXES
-from bayesmag._src.pipeline.discover.options import DBIC_MIN, FLOOR_RATIO, LOCATE_FRACTION, LOCATE_P, MIN_GAIN, N_PERM, RHO_STRUCTURE, T_IDENT, \
-    Z_DISTINCT, Z_MIN, Z_RUN, DiscoverOptions
+from bayesmag._src.pipeline.discover.options import DBIC_MIN, FLOOR_RATIO, LOCATE_FRACTION, LOCATE_P, MIN_GAIN, N_PERM, \
+    PIECES, RHO_STRUCTURE, T_IDENT, UNEXPLAINED_FRACTION, Z_DISTINCT, Z_MIN, Z_RUN, DiscoverOptions
 
 __all__ = ["DiscoveryResult", "report_markdown"]
 
@@ -66,6 +66,7 @@ class DiscoveryResult:
             "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self.options).items()},
             "thresholds": {"z_min": Z_MIN, "min_gain": MIN_GAIN, "dbic_min": DBIC_MIN, "z_distinct": Z_DISTINCT,
                            "t_ident": T_IDENT, "locate_p": LOCATE_P, "locate_fraction": LOCATE_FRACTION,
+                           "unexplained_fraction": UNEXPLAINED_FRACTION, "z_run": Z_RUN, "pieces": PIECES,
                            "n_perm": N_PERM, "rho_structure": RHO_STRUCTURE, "floor_ratio": FLOOR_RATIO},
             "seconds": self.seconds,
         }
@@ -115,11 +116,12 @@ def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
          "B_ref = (S + Ks Tc)(u - d) + O + Ko Tc, fitted jointly over the three outputs. One effect is one finding, "
          "whichever outputs it reaches through the calibration matrix.", ""]
     if res.no_missing_physics:
-        L += ["**No missing physics was found.** No catalogue extension improves the thermo-affine model out of "
-              "sample, and the residual of every sensor channel is close to its high-frequency noise floor "
+        L += ["**No missing physics was found.** " + _no_extension(res.closest_not_accepted)
+              + " The residual of every sensor channel is close to its high-frequency noise floor "
               f"(lag-1 autocorrelation < {RHO_STRUCTURE} or variance < {FLOOR_RATIO} x the floor) with no located "
               f"structure (thresholds: block z >= {Z_MIN}, gain >= {MIN_GAIN:.0%}, BIC_eff drop >= {DBIC_MIN}; "
-              f"located structure needs p <= {LOCATE_P} and >= {LOCATE_FRACTION:.0%} of the residual variance).", ""]
+              f"located structure is reported when it holds >= {UNEXPLAINED_FRACTION:.0%} of the residual variance "
+              f"at block-permutation p <= {LOCATE_P}).", ""]
     L += ["## Before and after, per calibrated output (out of sample unless noted)", "",
           "| output | RMSE before | RMSE after | MAE before | MAE after | lag-1 autocorr. before | after |",
           "|---|---|---|---|---|---|---|"]
@@ -146,8 +148,13 @@ def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
                   + (f", not on the block z = {ev['z']:.2f} (p = {ev['p_value_block']:.2g}), which is below {Z_MIN}"
                      if ev["decided_by"] != "block z" else "")
                   + f"; gain {ev['oos_gain']:.1%} (share of the out-of-sample mean square removed on the output it "
-                    f"helps most); BIC_eff change {ev['delta_bic_eff']:.1f}; drop-one z given the other findings = "
-                    f"{ev['drop_one_z']:.1f}."]
+                    f"helps most); BIC_eff change {ev['delta_bic_eff']:.1f}; {_drop_one(ev)}."]
+            if ev.get("within_run"):
+                w = ev["within_run"]
+                L.append(f"- Constant within its runs (what a per-run term claims): not rejected; neighbouring blocks "
+                         f"of a run against random order, serial z = {w['serial_z']:.2f} (p = {w['serial_p']:.2g}); an "
+                         f"offset per piece of each run (up to {w['pieces']}) gains {w['gain_pieces']:.1%} out of "
+                         f"sample (rejected only with z >= {Z_DISTINCT} and a gain >= {MIN_GAIN:.0%}).")
             if fd.get("location"):
                 loc = fd["location"]
                 L.append(f"- Located at {loc['field']} = {loc['value']:.6g} {loc['unit']}"
@@ -181,7 +188,8 @@ def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
         L += ["## Unexplained structure", "",
               "Nothing in the catalogue explains the following; it is described, not named:", ""]
         for u in res.unexplained:
-            L.append(f"- {u['channel']} sensor channel: {u['description']}.")
+            where = f"{u['axis']} calibrated output" if u.get("frame") == "output" else f"{u['channel']} sensor channel"
+            L.append(f"- {where}: {u['description']}.")
         L.append("")
     if res.rejected:
         L += ["## Rejected", ""] + [f"- {r['effect']} ({r['where']}): {r['reason']}." for r in res.rejected] + [""]
@@ -199,6 +207,34 @@ def report_markdown(res: DiscoveryResult, figures: Sequence[str] = ()) -> str:
     if figures:
         L += ["## Figures", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in figures] + [""]
     return "\n".join(L)
+
+
+def _no_extension(near: dict | None) -> str:
+    """The sentence on the search when nothing was accepted: the closest candidate and by how much it missed."""
+    if not near:
+        return "No catalogue extension improves the thermo-affine model out of sample."
+    miss = near.get("short_by", {})
+    parts = []
+    if "z" in miss:
+        parts.append(f"its {near['decided_by']} = {near['z_decisive']:.2f} is {miss['z']:.2f} short of "
+                     f"{Z_RUN if near['decided_by'].startswith('run') else Z_MIN:.2f}")
+    if "gain" in miss:
+        parts.append(f"its gain {near['oos_gain']:.2%} is {miss['gain']:.2%} short of {MIN_GAIN:.0%}")
+    if "delta_bic_eff" in miss:
+        parts.append(f"its BIC_eff change {near['delta_bic_eff']:.1f} is {miss['delta_bic_eff']:.1f} short of "
+                     f"-{DBIC_MIN:g}")
+    return (f"No catalogue extension passed the acceptance tests; the closest, {near['effect']} ({near['where']}), "
+            f"missed: " + ("; ".join(parts) if parts else near.get("not_accepted_because", "")) + ".")
+
+
+def _drop_one(ev: dict) -> str:
+    """The drop-one statistic that decides (as the acceptance: block z, or the run contrast z_run for a
+    run-localised term whose block z falls short), with the block z beside it when it is not the one."""
+    by = ev.get("drop_one_decided_by", "block z")
+    if by == "block z":
+        return f"drop-one given the other findings: block z = {ev['drop_one_z']:.2f} (threshold {Z_MIN})"
+    return (f"drop-one given the other findings: {by} = {ev['drop_one_z_decisive']:.2f} (threshold {Z_RUN:.2f}; "
+            f"its block z {ev['drop_one_z']:.2f} does not decide)")
 
 
 def _toml_list(specs: list) -> str:

@@ -62,16 +62,30 @@ class Score:
         return self.z_run if self.decided_by.startswith("run") else self.z
 
     @property
+    def short_by(self) -> dict:
+        """How far each failed criterion is from its threshold: ``z`` (of the deciding statistic, against its
+        own threshold), ``gain`` (fraction) and ``delta_bic_eff``; only the criteria that fail."""
+        out = {}
+        if not (self.z >= Z_MIN or self.z_run >= Z_RUN):
+            out["z"] = (Z_RUN if self.decided_by.startswith("run") else Z_MIN) - self.z_decisive
+        if self.gain < MIN_GAIN:
+            out["gain"] = MIN_GAIN - self.gain
+        if self.dbic > -DBIC_MIN:
+            out["delta_bic_eff"] = self.dbic + DBIC_MIN
+        return out
+
+    @property
     def shortfall(self) -> str | None:
-        """Why the group is not accepted (None when it is)."""
+        """Why the group is not accepted, with how far each failed criterion misses (None when it is accepted)."""
         why = []
         if not (self.z >= Z_MIN or self.z_run >= Z_RUN):
-            why.append(f"block z {self.z:.2f} < {Z_MIN}" + (f" and run contrast z_run {self.z_run:.2f} < {Z_RUN:.2f}"
-                                                           if self.z_run > 0 else ""))
+            why.append(f"block z {self.z:.2f} < {Z_MIN} (short by {Z_MIN - self.z:.2f})"
+                       + (f" and run contrast z_run {self.z_run:.2f} < {Z_RUN:.2f} (short by {Z_RUN - self.z_run:.2f})"
+                          if self.z_run > 0 else ""))
         if self.gain < MIN_GAIN:
-            why.append(f"out-of-sample gain {self.gain:.2%} < {MIN_GAIN:.0%}")
+            why.append(f"out-of-sample gain {self.gain:.2%} < {MIN_GAIN:.0%} (short by {MIN_GAIN - self.gain:.2%})")
         if self.dbic > -DBIC_MIN:
-            why.append(f"BIC_eff change {self.dbic:.1f} > -{DBIC_MIN:g}")
+            why.append(f"BIC_eff change {self.dbic:.1f} > -{DBIC_MIN:g} (short by {self.dbic + DBIC_MIN:.1f})")
         return "; ".join(why) or None
 
 
