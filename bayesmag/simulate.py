@@ -15,7 +15,7 @@ from bayesmag._src.core.simulate import (
     simulate,
     simulate_from_config,
 )
-from bayesmag._src.core.field_sim import FieldCampaign, FieldTruth, MOTIONS, simulate_field
+from bayesmag._src.core.field_sim import FieldCampaign, FieldTruth, MOTIONS, simulate_field, simulate_field_sessions
 
 __all__ = [
     "TrueParams",
@@ -28,6 +28,7 @@ __all__ = [
     "get_effect",
     "EFFECTS",
     "simulate_field",
+    "simulate_field_sessions",
     "FieldCampaign",
     "FieldTruth",
     "MOTIONS",

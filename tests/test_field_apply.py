@@ -147,6 +147,10 @@ def test_rows_with_a_non_finite_reading_are_marked_invalid(field_run):
     (lambda d: {**d, "theta": d["theta"][:12] + [1e9] + d["theta"][13:]}, r"offsets O = .* are not a sensor's"),
     (lambda d: {**d, "predictive": {**d["predictive"], "domain_ranges": {
         **d["predictive"]["domain_ranges"], "temperature": [50.0, 10.0]}}}, r"domain_ranges \['temperature'\]"),
+    (lambda d: {**d, "predictive": {**d["predictive"], "transfer": {"sd": -0.2, "method": "leave_one_run_out"}}},
+     r"'predictive.transfer' must be null or .*-0.2"),
+    (lambda d: {**d, "predictive": {**d["predictive"], "transfer": {"sd": float("nan"), "method": "x"}}},
+     r"'predictive.transfer' must be null"),
 ])
 def test_a_damaged_or_old_field_calibration_is_named(field_run, tmp_path, capsys, edit, match):
     import shutil

@@ -394,6 +394,9 @@ def _check_measurement(m: MeasurementConfig) -> None:
 _MAX_SD, _MAX_REFERENCE_SD = S.MAX_SD, S.MAX_REFERENCE_SD        # larger sds are typos
 
 
+#: ``uq.transfer`` of a field calibration: leave one run out on the magnitude, or none.
+FIELD_TRANSFER_METHODS = ("loro", "off")
+
 #: Keys of a vector calibration that a field calibration (``[measurement] kind`` "constant" / "scalar") does not
 #: read, with the key it reads instead (None: nothing does). A value other than the default is refused: it was
 #: silently ignored (``physics.temperature_terms = false`` still fitted thermal terms; ``uq.reference_sd`` left the
@@ -429,13 +432,17 @@ def _check_semantics(cfg: Config) -> None:
                           "column, but [data] names no 'path'; give data.path (a CSV with that column).")
     field_job = cfg.measurement.kind != "vector" or cfg.data.source == "field_simulated"
     if field_job:                           # keys the field job does not read are refused, not silently dropped
-        unused = [f"uq.{k}" for k, default in (("transfer", "loro"), ("transfer_likelihood", "gaussian"),
-                                               ("transfer_networks", "none"))
+        if cfg.uq.transfer not in FIELD_TRANSFER_METHODS:
+            raise ConfigError(f"Config key 'uq.transfer' = {cfg.uq.transfer!r}: a field calibration (measurement.kind "
+                              f"= {cfg.measurement.kind!r}) estimates its between-session term by leave-one-run-out "
+                              f"of the magnitude; valid: {list(FIELD_TRANSFER_METHODS)} (the session model is the "
+                              f"vector calibration's, docs/field.md).")
+        unused = [f"uq.{k}" for k, default in (("transfer_likelihood", "gaussian"), ("transfer_networks", "none"))
                   if getattr(cfg.uq, k) != default]
         if unused:
-            raise ConfigError(f"Config key(s) {unused} set a vector calibration's between-session (transfer) term; "
-                              f"a field calibration (measurement.kind = {cfg.measurement.kind!r}) has none and does "
-                              f"not read them (docs/field.md, \"Not done / limits\"). Remove them.")
+            raise ConfigError(f"Config key(s) {unused} set a vector calibration's between-session (transfer) model; "
+                              f"a field calibration (measurement.kind = {cfg.measurement.kind!r}) does not read them "
+                              f"(its term is uq.transfer = \"loro\" or \"off\", docs/field.md). Remove them.")
         _refuse_vector_keys(cfg)
     elif not str(cfg.uq.transfer).startswith("hierarchical"):    # read by the session model only: never ignored
         unused = [f"uq.{k}" for k, default in (("transfer_likelihood", "gaussian"), ("transfer_df", 4.0),

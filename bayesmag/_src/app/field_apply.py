@@ -14,7 +14,8 @@ __all__ = ["apply_field_calibration", "FIELD_OUTPUT_COLUMNS"]
 
 #: The per-row columns of a field apply's CSV, after ``time,run`` (the domain columns follow).
 FIELD_OUTPUT_COLUMNS = tuple(f"{a}_calibrated" for a in AXES) + (
-    "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_total", "magnitude_lower", "magnitude_upper")
+    "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_transfer", "magnitude_total", "magnitude_lower",
+    "magnitude_upper")
 
 
 def _shown(rows) -> str:
@@ -87,6 +88,20 @@ def _domain_warning(pred, ok, n_out: int, n: int, trained) -> str:
             f"values are extrapolation and their intervals may be far too narrow.")
 
 
+def _no_transfer_warning(cal) -> str:
+    """A field calibration whose magnitude intervals hold no estimated between-session term (a new recording is a new
+    session): none at all (``"off"``, or a file from before the term), or the few-runs stand-in."""
+    if cal.transfer_sd is None:
+        return ("this field calibration holds no between-session (transfer) term (its run set [uq] transfer = \"off\", "
+                "or it was written before field calibrations had one): the magnitude intervals cover only the error "
+                "within the session it was fitted in and can be far too narrow for this recording. Re-run the "
+                "calibration on 3 or more recorded sessions (runs) to estimate it.")
+    return (f"this field calibration's between-session term ({cal.transfer_sd:.3g} uT) is not an estimate: its training "
+            f"data held too few sessions (runs) for leave-one-run-out, so it is the largest change of a run's mean "
+            f"magnitude residual (0 for one run), and the magnitude intervals of this new recording can be too narrow. "
+            f"Calibrate on 3 or more recorded sessions to estimate it.")
+
+
 def apply_field_calibration(model_dir, data_path, out_path, *, level=None, temperature_unit="C", field_unit=None,
                             time_unit="s",
                             columns=None, force: bool = False, method: str = "auto", n_params: int = 100,
@@ -96,7 +111,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     Output columns (after ``time,run``): :data:`FIELD_OUTPUT_COLUMNS`, then ``in_domain_reason`` (bits: 1 a reading
     outside training's range, 2 temperature, 16 the predicted magnitude outside the training reference
     magnitudes), ``in_domain``, ``valid``. The calibrated field is in the calibration's gauge frame (docs/field.md);
-    the interval is the magnitude's: Laplace predictive sd times the run's conformal scale. With a reference in the
+    the interval is the magnitude's: Laplace predictive sd times the run's conformal scale, with the run's
+    between-session sd (``magnitude_transfer``: the recording is a new session) in quadrature. With a reference in the
     recording (``bx_ref, by_ref, bz_ref``, or the run's scalar column) the summary has the magnitude RMSE and
     coverage (rows without a usable reference, or a reference in another unit, are not scored, and a note says so).
     ``method``, ``n_params`` and ``n_qmc`` (the vector apply's) are ignored, with a warning when set. The same
@@ -141,6 +157,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     n_out = int((~pred["in_domain"] & ok).sum())
     if n_out:
         warnings.append(_domain_warning(pred, ok, n_out, data.n, cal.ranges.get("magnitude") if cal.ranges else None))
+    if cal.transfer_sd is None or cal.transfer_method != "leave_one_run_out":
+        warnings.append(_no_transfer_warning(cal))
     meas = cal.fit.model.measurement
     relative = bool(getattr(meas, "scale_gauge", False))
     if relative:
@@ -184,7 +202,7 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     summary = {"n_rows": data.n, "n_valid": int(ok.sum()), "n_outside_domain": n_out,
                "outside_domain_by_reason": {k: int(np.sum(reasons == k)) for k in sorted(set(reasons)) if k},
                "kind": "field", "measurement": meas.name, "interval_scale": cal.interval_scale,
-               "transfer_sd": None, "warnings": warnings, "notes": notes, "level": level,
+               "transfer_sd": cal.transfer_sd, "transfer_method": cal.transfer_method, "warnings": warnings, "notes": notes, "level": level,
                "seconds": time.perf_counter() - t0}
     if metrics is not None:
         summary["magnitude_metrics"] = metrics

@@ -221,6 +221,7 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
               f"{ic['laplace_coverage']:.3f}, CRPS {_fmt(ic['laplace_crps'])} uT.", ""]
     else:
         L += ["Intervals: the Laplace predictive as it is (measurement.interval_calibration = \"none\").", ""]
+    L += _transfer_lines(f["transfer"]) if f.get("transfer") else []
     L += ["### Gauge-free quantities (at T0)", "",
           "Q = S^T S (scale and non-orthogonality), dQ/dT, d = S^-1 O (offset in the sensor frame, uT), dd/dT (uT/C).",
           "", "| quantity | value | sd | prior sd | identified |", "|---|---|---|---|---|"]
@@ -281,12 +282,63 @@ def _write_predictions(path: Path, test, rows, y, pred, level, domain=None):
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["row", "time", "run", "temperature", "reference_magnitude", "predicted_magnitude", "epistemic",
-                    "noise", "total", "lower", "upper", "covered", "in_domain", "in_domain_reason"])
+                    "noise", "transfer", "total", "lower", "upper", "covered", "in_domain", "in_domain_reason"])
         for i in range(test.n):
             w.writerow([int(rows[i]), f"{test.time[i]:.6f}", int(test.run[i]), f"{test.temperature[i]:.6g}",
                         f"{y[i]:.8g}", f"{pred['mean'][i]:.8g}", f"{pred['epistemic'][i]:.6g}", f"{pred['noise'][i]:.6g}",
-                        f"{pred['total'][i]:.6g}", f"{lo[i]:.8g}", f"{hi[i]:.8g}", bool(lo[i] <= y[i] <= hi[i]),
+                        f"{pred['transfer'][i]:.6g}", f"{pred['total'][i]:.6g}", f"{lo[i]:.8g}", f"{hi[i]:.8g}", bool(lo[i] <= y[i] <= hi[i]),
                         bool(inside[i]), reason[i]])
+
+
+def _transfer_block(tr, pred, test, train, level) -> dict:
+    """metrics.json's ``field.transfer``: the between-session sd and how it was found, the held-out rows of new
+    sessions, and the expanded uncertainty of |B| (k = the Gaussian's at ``level``) at the median held-out row,
+    within a training session and for a new one."""
+    k = float(scipy.stats.norm.ppf(0.5 + level / 2))
+    within = np.sqrt(np.maximum(pred["total"] ** 2 - pred["transfer"] ** 2, 0.0))
+    block = {"sd": None, "method": "off", "n_runs": 0, "per_run": {}, "warning": None} if tr is None else dict(tr)
+    block.update(n_train_runs=int(np.unique(train.run).size),
+                 n_test_new_session=int(np.sum(~np.isin(test.run, np.unique(train.run)))), k=k,
+                 U_same_session=float(k * np.median(within)),
+                 U_new_session=None if tr is None else float(k * np.median(np.sqrt(within**2 + tr["sd"] ** 2))))
+    return block
+
+
+def _transfer_lines(tr: dict) -> list[str]:
+    """The certificate's new-session paragraph of a field run."""
+    L = ["### A new session", ""]
+    if tr["method"] == "off":
+        return L + ["No between-session (transfer) term ([uq] transfer = \"off\"): the intervals are for the session the "
+                    f"calibration was fitted in (U = {tr['U_same_session']:.2g} uT at the median held-out row, k = "
+                    f"{tr['k']:.3g}); no U for a new session is stated.", ""]
+    if tr["method"] == "leave_one_run_out":
+        L += [f"Between-session sd of |B|: {tr['sd']:.2g} uT, from leave-one-run-out over {tr['n_runs']} of the "
+              f"{tr['n_train_runs']} training runs (every run a session; each left-out run's rows inside the other runs' "
+              "domain, every run weighted equally, the 95 % quantile bounded at 80 % confidence over the runs; "
+              "docs/field.md).", "",
+              "| left-out run | rows | in the others' domain | RMSE of |B| (uT) | mean error (uT) |", "|---|---|---|---|---|"]
+        L += [f"| {r} | {v['n_rows']} | {v['n_in_domain']} | "
+              + ("-" if v["rmse"] is None else f"{v['rmse']:.3g}") + " | "
+              + ("-" if v["mean_error"] is None else f"{v['mean_error']:+.3g}") + " |" for r, v in tr["per_run"].items()]
+        L.append("")
+    else:
+        L += [tr["warning"], ""]
+    L += [f"Expanded uncertainty of |B| at the median held-out row (k = {tr['k']:.3g}): U same session "
+          f"{tr['U_same_session']:.2g} uT (rows of the training sessions), U new session {tr['U_new_session']:.2g} uT "
+          "(any later flight or campaign: what `bayesmag apply` gives, column magnitude_transfer)."
+          + (f" {tr['n_test_new_session']} held-out rows are of runs the fit did not see and carry it." if
+             tr["n_test_new_session"] else ""), ""]
+    return L
+
+
+def _transfer_warning(tr) -> list[str]:
+    """The run's between-session warning: few runs (``magnitude_transfer``'s), or none estimated (``"off"``)."""
+    if tr is None:
+        return ["[uq] transfer = \"off\": the field calibration holds no between-session (transfer) term, so its "
+                "magnitude intervals for a new session (another flight or campaign of the sensor) cover only the "
+                "error within a session and can be far too narrow. Use transfer = \"loro\" with 3 or more recorded "
+                "sessions."]
+    return [tr["warning"]] if tr.get("warning") else []
 
 
 def _domain_warning(dom, n) -> list[str]:
@@ -366,7 +418,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                          f_ref_test=None if f_ref is None else f_ref[split.test], t0=cfg.physics.t0,
                          temperature_terms=mc.temperature_terms, covariance=mc.covariance, level=cfg.uq.level,
                          heading=heading, compare_vector=mc.compare_vector, seed=cfg.split.seed,
-                         conformal=plan)
+                         conformal=plan, transfer=cfg.uq.transfer)
     timings.update(fs.timings)
     if not fs.fit.converged:
         from bayesmag._src.pipeline.stages import CalibrationError as JobError
@@ -382,14 +434,17 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                           draws=n.draws, seed=n.seed, target_accept=n.target_accept, chain_method=n.chain_method)
         timings["nuts"] = time.perf_counter() - t
     from bayesmag._src.core.field_calibration import FieldCalibration
+    tr = fs.transfer
     saved = FieldCalibration(fs.fit, float(fs.prediction.get("scale", 1.0)), cfg.uq.level,
-                             {k: tuple(v) for k, v in fs.domain["training_ranges"].items()}, mc.scalar_column or None)
+                             {k: tuple(v) for k, v in fs.domain["training_ranges"].items()}, mc.scalar_column or None,
+                             None if tr is None else tr["sd"], None if tr is None else tr["method"])
     params = saved.to_json()      # what `bayesmag apply` reads back (FieldCalibration.from_json)
     field_m = {"n_train": int(train.n), "n_test": int(test.n), "dropped_low_magnitude": dropped,
                "min_magnitude": mc.min_magnitude, "scores": fs.scores,
                "heading": None if fs.heading is None else {k: v for k, v in fs.heading.items()
                                                            if not isinstance(v, np.ndarray)},
                "vector_comparison": fs.vector, "exports": list(mc.exports),
+               "transfer": _transfer_block(tr, fs.prediction, test, train, cfg.uq.level),
                "domain": None if fs.domain is None else {k: v for k, v in fs.domain.items()
                                                          if not isinstance(v, np.ndarray)}}
     if campaign is not None:
@@ -405,7 +460,7 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
     metrics = {"field": field_m, "split": split.as_dict(),
                "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs]},
                "warnings": [n for n in fs.fit.notes] + ([] if nuts is None else list(nuts["warnings"]))
-               + _domain_warning(fs.domain, test.n)}
+               + _domain_warning(fs.domain, test.n) + _transfer_warning(tr)}
     with staging_dir(Path(out), kind="run") as tmp:
         t = time.perf_counter()
         (tmp / "field_params.json").write_text(json.dumps(params, indent=2))

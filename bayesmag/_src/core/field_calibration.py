@@ -24,18 +24,24 @@ FIELD_FORMAT_VERSION = 1
 DOMAIN_KEYS = ("bx_meas", "by_meas", "bz_meas", "temperature", "magnitude")
 
 
-def range_flags(u, t, magnitude, ranges: dict, valid=None) -> tuple[np.ndarray, dict]:
+def range_flags(u, t, magnitude, ranges: dict, valid=None, half_width=None) -> tuple[np.ndarray, dict]:
     """``(reason, hits)`` of every row against the training ``ranges`` (:data:`DOMAIN_KEYS` -> ``(low, high)``,
     already widened): ``hits`` maps ``field_range`` (a reading Bx, By or Bz outside its range), ``temperature`` and
-    ``magnitude`` (the predicted |B|) to boolean rows; ``reason`` joins each row's hits with ``;`` ('' inside).
-    Rows not ``valid`` are never flagged."""
+    ``magnitude`` to boolean rows; ``reason`` joins each row's hits with ``;`` ('' inside). Rows not ``valid`` are
+    never flagged. ``magnitude`` is the predicted |B| and ``half_width`` (n,) its interval's half-width: a row is
+    flagged ``magnitude`` when its whole interval lies outside the training magnitudes (the true |B| is then, at the
+    interval's level, a field training did not see); without ``half_width``, when the predicted |B| does. (A
+    constant-field calibration's training magnitudes are one value: without the interval every row whose error
+    exceeded the 0.5 uT margin was flagged, i.e. exactly its worst-calibrated rows.)"""
     x = np.column_stack([np.asarray(u, np.float64), np.asarray(t, np.float64), np.asarray(magnitude, np.float64)])
     n = x.shape[0]
     valid = np.ones(n, bool) if valid is None else np.asarray(valid, bool)
+    hw = np.zeros(n) if half_width is None else np.nan_to_num(np.asarray(half_width, np.float64).reshape(n))
     hits = {"field_range": np.zeros(n, bool), "temperature": np.zeros(n, bool), "magnitude": np.zeros(n, bool)}
     for j, key in enumerate(DOMAIN_KEYS):
         a, b = ranges[key]
-        hits["field_range" if j < 3 else key] |= valid & ((x[:, j] < a) | (x[:, j] > b))
+        w = hw if key == "magnitude" else 0.0
+        hits["field_range" if j < 3 else key] |= valid & ((x[:, j] + w < a) | (x[:, j] - w > b))
     reason = np.full(n, "", dtype=object)
     for k, h in hits.items():
         reason[h] = np.where(reason[h] == "", k, reason[h] + ";" + k)
@@ -48,7 +54,10 @@ class FieldCalibration:
 
     ``ranges`` maps each of :data:`DOMAIN_KEYS` to ``(low, high)`` (uT, C), already widened by the run's margin;
     ``reference_column`` names the recording's scalar-magnetometer column the fit read (None: a constant field or
-    a vector reference), so a new recording holding it can be scored.
+    a vector reference), so a new recording holding it can be scored. ``transfer_sd`` is the between-session sd of
+    the magnitude (uT; :func:`~bayesmag._src.pipeline.field_stage.magnitude_transfer`) and ``transfer_method`` how
+    it was estimated (``"leave_one_run_out"``, ``"largest_offset_change"``); None: the run estimated none
+    (``[uq] transfer = "off"``, or a file written before field calibrations had one).
 
     Example:
       >>> from bayesmag.simulate import simulate_field
@@ -66,6 +75,8 @@ class FieldCalibration:
     level: float = 0.95
     ranges: dict = dataclasses.field(default_factory=dict)
     reference_column: str | None = None
+    transfer_sd: float | None = None
+    transfer_method: str | None = None
 
     @property
     def train_max_ut(self) -> float:
@@ -74,10 +85,10 @@ class FieldCalibration:
 
     def __repr__(self) -> str:
         return (f"FieldCalibration({self.fit!r}, interval_scale={self.interval_scale:.4g}, level={self.level:g}, "
-                f"reference_column={self.reference_column!r})")
+                f"reference_column={self.reference_column!r}, transfer_sd={self.transfer_sd!r})")
 
     def predict(self, u, t, *, level: float | None = None, chunk_size: int = 200_000,
-                field_unit: str | None = None) -> dict:
+                field_unit: str | None = None, new_session: bool = True) -> dict:
         """Calibrated field (n, 3) in the gauge frame, its magnitude with sd and interval, and the domain flags.
 
         ``u`` (n, 3) readings in uT, ``t`` (n,) temperatures in C. Rows with a non-finite reading or temperature get
@@ -86,6 +97,9 @@ class FieldCalibration:
         outside the training reference magnitudes) with ``;``; '' inside (or invalid). The readings are checked
         against the training field as ``bayesmag apply`` checks them (nT, mT or gauss refused, kelvin refused:
         :class:`~bayesmag.DataError`); ``field_unit="uT"`` declares a genuine field far below the training one.
+        ``new_session`` (default True: a recording given to a saved calibration is a new session) adds the
+        between-session sd :attr:`transfer_sd` to ``magnitude_total`` (``magnitude_transfer``; 0 without one);
+        False predicts rows of the training sessions.
         """
         u, t = np.asarray(u, np.float64), np.asarray(t, np.float64)
         if u.ndim != 2 or u.shape[1] != 3:
@@ -108,22 +122,24 @@ class FieldCalibration:
                         origin="the readings given to FieldCalibration.predict", fix="Convert the readings to uT",
                         declare="field_unit='uT'", temperature_fix="Subtract 273.15")
         out = {k: np.full((n, 3) if k == "calibrated" else n, np.nan) for k in
-               ("calibrated", "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_total",
-                "magnitude_lower", "magnitude_upper")}
+               ("calibrated", "magnitude", "magnitude_epistemic", "magnitude_noise", "magnitude_transfer",
+                "magnitude_total", "magnitude_lower", "magnitude_upper")}
+        tau = float(self.transfer_sd or 0.0) if new_session else 0.0
         z = float(scipy.stats.norm.ppf(0.5 + level / 2))
         rows = np.flatnonzero(valid)
         for lo in range(0, rows.size, chunk_size):
             r = rows[lo:lo + chunk_size]
             pm = self.fit.predict_magnitude(u[r], t[r])
-            total = self.interval_scale * pm["total"]
+            total = np.sqrt((self.interval_scale * pm["total"]) ** 2 + tau**2)
             out["calibrated"][r] = self.fit.calibrate(u[r], t[r])
             out["magnitude"][r] = pm["mean"]
             out["magnitude_epistemic"][r] = pm["epistemic"]
             out["magnitude_noise"][r] = pm["noise"]
+            out["magnitude_transfer"][r] = tau
             out["magnitude_total"][r] = total
             out["magnitude_lower"][r] = np.maximum(pm["mean"] - z * total, 0.0)      # a magnitude is >= 0
             out["magnitude_upper"][r] = pm["mean"] + z * total
-        reason = (range_flags(u, t, out["magnitude"], self.ranges, valid)[0] if self.ranges
+        reason = (range_flags(u, t, out["magnitude"], self.ranges, valid, z * out["magnitude_total"])[0] if self.ranges
                   else np.full(n, "", dtype=object))
         out.update(valid=valid, in_domain=valid & (reason == ""), in_domain_reason=reason, level=level)
         return out
@@ -133,7 +149,9 @@ class FieldCalibration:
         return {"format": FIELD_FORMAT, "format_version": FIELD_FORMAT_VERSION, **self.fit.to_json(),
                 "predictive": {"interval_scale": self.interval_scale, "level": self.level,
                                "domain_ranges": {k: [float(v) for v in self.ranges[k]] for k in self.ranges},
-                               "scalar_column": self.reference_column}}
+                               "scalar_column": self.reference_column,
+                               "transfer": None if self.transfer_sd is None else
+                               {"sd": float(self.transfer_sd), "method": self.transfer_method}}}
 
     @classmethod
     def from_json(cls, doc: dict) -> "FieldCalibration":
@@ -160,6 +178,14 @@ class FieldCalibration:
         if bad:
             raise ValueError(f"field_params.json: domain_ranges {bad} must be finite [low, high] with low < high")
         column = p.get("scalar_column")
+        tr = p.get("transfer")          # absent in files written before the field calibration had one: none
+        if tr is not None:
+            sd = tr.get("sd") if isinstance(tr, dict) else None
+            if (isinstance(sd, bool) or not isinstance(sd, (int, float)) or not np.isfinite(sd) or sd < 0
+                    or not isinstance(tr.get("method"), str)):
+                raise ValueError(f"field_params.json: 'predictive.transfer' must be null or {{\"sd\": a finite number "
+                                 f">= 0 (uT), \"method\": a string}}, got {tr!r}")
+            tr = (float(sd), tr["method"])
         # the gains fit_field now refuses (a declared field off by a factor: H for F, a unit; or a degenerate fit) in
         # a file written before that check: applying it would scale every field by the same wrong factor
         from bayesmag._src.core.field import FIELD_SCALE_REFUSE, GAIN_REFUSE, judge_gains
@@ -174,4 +200,5 @@ class FieldCalibration:
                              f"{GAIN_REFUSE[0]:g}-{GAIN_REFUSE[1]:g}, diagonal positive): the run's declared {declared} "
                              f"was probably wrong (H given for the total intensity F, or another unit) or its fit "
                              f"degenerate; re-run `bayesmag run` with the site's total intensity F in uT")
-        return cls(fit, scale, level, ranges, column if isinstance(column, str) and column else None)
+        return cls(fit, scale, level, ranges, column if isinstance(column, str) and column else None,
+                   *(tr or (None, None)))

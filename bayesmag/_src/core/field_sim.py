@@ -31,7 +31,8 @@ from scipy.spatial.transform import Rotation, Slerp
 from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.core.field import gauge_form, heading, invariants
 
-__all__ = ["FieldTruth", "FieldCampaign", "simulate_field", "MOTIONS", "field_campaign_from_config"]
+__all__ = ["FieldTruth", "FieldCampaign", "simulate_field", "simulate_field_sessions", "MOTIONS",
+           "field_campaign_from_config"]
 
 MOTIONS = ("dance", "level_turns", "two_temperature", "few_orientations")
 
@@ -122,7 +123,8 @@ def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: 
                    ref_sd: float = 0.01, temperature: tuple[float, float] = (20.0, 20.0),
                    temperatures: tuple[float, float] = (15.0, 40.0), t0: float = 25.0, vehicle: bool = True,
                    tilt_deg: float = 3.0, n_orient: int = 12, field_variation: float = 0.0,
-                   sample_rate: float = 10.0, sensor_seed: int | None = None) -> FieldCampaign:
+                   sample_rate: float = 10.0, sensor_seed: int | None = None, hard_iron_shift=None,
+                   soft_iron_shift=None) -> FieldCampaign:
     """One simulated field campaign (all draws from ``seed``).
 
     Args:
@@ -137,6 +139,8 @@ def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: 
       sensor_seed: draw the sensor and vehicle (S, Ks, O, Ko, hard and soft iron) from this seed and the motion
         and noise from ``seed``: campaigns with one ``sensor_seed`` and different ``seed`` are new recordings of
         one sensor (None: everything from ``seed``, as before).
+      hard_iron_shift: (3,) uT added to the vehicle's hard iron (a session's change: a payload, a battery, a power
+        state); soft_iron_shift: (3, 3) added to its soft iron (symmetrised). Both need ``vehicle``.
     """
     rng = np.random.default_rng(seed)
     srng = rng if sensor_seed is None else np.random.default_rng(sensor_seed)
@@ -148,7 +152,14 @@ def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: 
         h = srng.normal(0, 10.0, 3)
         A = srng.normal(0, 0.03, (3, 3))
         Sv = np.eye(3) + 0.5 * (A + A.T)
+        if hard_iron_shift is not None:
+            h = h + np.asarray(hard_iron_shift, np.float64).reshape(3)
+        if soft_iron_shift is not None:
+            d = np.asarray(soft_iron_shift, np.float64).reshape(3, 3)
+            Sv = Sv + 0.5 * (d + d.T)
     else:
+        if hard_iron_shift is not None or soft_iron_shift is not None:
+            raise ValueError("hard_iron_shift and soft_iron_shift change the vehicle: they need vehicle=True")
         h, Sv = np.zeros(3), np.eye(3)
     Svi = np.linalg.inv(Sv)
     S, Ks, O, Ko = Svi @ S_s, Svi @ Ks_s, Svi @ (O_s - h), Svi @ Ko_s
@@ -178,8 +189,52 @@ def simulate_field(kind: str = "dance", *, n: int = 2000, seed: int = 0, field: 
     settings = dict(kind=kind, n=n, seed=seed, field=field, inclination=inclination, declination=declination,
                     noise_sd=noise_sd, ref_sd=ref_sd, temperature=list(temperature), temperatures=list(temperatures),
                     t0=t0, vehicle=vehicle, tilt_deg=tilt_deg, n_orient=n_orient, field_variation=field_variation,
-                    sensor_seed=sensor_seed)
+                    sensor_seed=sensor_seed,
+                    hard_iron_shift=None if hard_iron_shift is None else [float(v) for v in np.ravel(hard_iron_shift)],
+                    soft_iron_shift=None if soft_iron_shift is None else np.asarray(soft_iron_shift).tolist())
     return FieldCampaign(kind, data, f_ref, truth, settings)
+
+
+def simulate_field_sessions(kind: str = "dance", *, sessions: int = 8, n: int = 1000, seed: int = 0,
+                            sensor_seed: int = 0, hard_iron_sd: float = 0.3, soft_iron_sd: float = 0.0,
+                            shift_df: float | None = None, temperature_spread: float = 0.0,
+                            **kw) -> tuple[FieldCampaign, ...]:
+    r"""Several sessions (flights, campaigns) of one sensor on one vehicle whose hard and soft iron change between them.
+
+    Session ``k`` is :func:`simulate_field` with ``sensor_seed`` (the same sensor and vehicle), motion and noise from
+    ``seed * 1000 + k``, the vehicle's hard iron moved by a draw of sd ``hard_iron_sd`` uT per axis and its soft
+    iron by one of sd ``soft_iron_sd`` per element (Gaussian, or Student-t with ``shift_df`` dof scaled to that sd:
+    heavy-tailed changes); with ``temperature_spread`` > 0 its temperature ramp is shifted by a uniform draw in
+    +-``temperature_spread`` C. Every row of session ``k`` has ``run = k``; each campaign's truth is its own.
+
+    Example:
+      >>> s = simulate_field_sessions(sessions=3, n=200, hard_iron_sd=0.5)
+      >>> [int(c.data.run[0]) for c in s], bool(np.ptp([c.truth.vehicle["hard_iron"][0] for c in s]) > 0)
+      ([0, 1, 2], True)
+    """
+    if not (isinstance(sessions, (int, np.integer)) and sessions >= 1):
+        raise ValueError(f"sessions = {sessions!r} must be an integer >= 1")
+    if shift_df is not None and not shift_df > 2:
+        raise ValueError(f"shift_df = {shift_df!r} must be > 2 (a finite variance) or None (Gaussian)")
+    rng = np.random.default_rng([seed, 7919])
+
+    def draw(size):
+        if shift_df is None:
+            return rng.normal(0.0, 1.0, size)
+        return rng.standard_t(shift_df, size) / np.sqrt(shift_df / (shift_df - 2.0))
+
+    out = []
+    for k in range(sessions):
+        kw_k = dict(kw)
+        if temperature_spread > 0:
+            dt = rng.uniform(-temperature_spread, temperature_spread)
+            kw_k["temperature"] = tuple(float(v) + dt for v in kw.get("temperature", (20.0, 20.0)))
+            kw_k["temperatures"] = tuple(float(v) + dt for v in kw.get("temperatures", (15.0, 40.0)))
+        c = simulate_field(kind, n=n, seed=seed * 1000 + k, sensor_seed=sensor_seed,
+                           hard_iron_shift=hard_iron_sd * draw(3), soft_iron_shift=soft_iron_sd * draw((3, 3)), **kw_k)
+        out.append(dataclasses.replace(c, data=dataclasses.replace(c.data, run=np.full(n, k, np.int64),
+                                                                   source=f"{c.data.source}, session {k}")))
+    return tuple(out)
 
 
 def field_campaign_from_config(d: dict) -> FieldCampaign:

@@ -38,7 +38,8 @@ from bayesmag._src.core.likelihoods import Gaussian, Likelihood, get_likelihood,
 from bayesmag._src.core.physics import new_session_runs
 
 __all__ = ["FUSIONS", "UQOptions", "Components", "Prediction", "Predictor", "TransferEstimate", "compose",
-           "estimate_transfer", "network_inputs"]
+           "estimate_transfer", "network_inputs",
+           "session_variance_bound", "few_runs_warning"]
 
 FUSIONS = ("moment_match", "paper")
 
@@ -307,6 +308,32 @@ def _weighted_quantile(v: np.ndarray, w: np.ndarray, q: float) -> float:
     return float(v[order][min(np.searchsorted(cum, q - 1e-12), v.size - 1)])
 
 
+def session_variance_bound(need, weight, within, n_runs: int, level: float = 0.95) -> np.ndarray:
+    r"""Between-session sd from leave-one-run-out rows: the grouped conformal quantile, bounded over the runs.
+
+    ``need`` (n,) or (n, k): each left-out row's :math:`(e_i / z)^2 - s_i^2`, the smallest extra variance that
+    covers it (:math:`z = \Phi^{-1}((1+\mathrm{level})/2)`, :math:`s_i^2` its within-session variance);
+    ``weight`` (n,): ``1 / n_r`` for a row of run ``r`` (every run counts once); ``within``: the within-session
+    variance :math:`s^2` the bound is on (scalar or (k,)); ``n_runs`` = R, the runs the rows come from. The
+    ``level`` quantile :math:`q` of ``need`` makes the new-session variance :math:`s^2 + q`; from R runs it is
+    replaced by its one-sided :data:`TRANSFER_CONFIDENCE` = c upper bound :math:`(s^2 + q)(R-1)/\chi^2_{R-1}(1-c)`,
+    and the sd returned is :math:`\sqrt{\max(\text{that} - s^2, 0)}`: (k,), or a float for a 1-D ``need``.
+
+    Example:
+      >>> import scipy.stats    # three runs, median row need 1.0: x 2 / chi2_2(0.2) = 4.48
+      >>> round(session_variance_bound(np.array([0.0, 1.0, 2.0]), np.ones(3), 0.0, 3, level=0.5) ** 2, 3)
+      4.481
+    """
+    import scipy.stats
+    need = np.asarray(need, np.float64)
+    v = need.reshape(need.shape[0], -1)
+    q = np.array([_weighted_quantile(v[:, a], np.asarray(weight, np.float64), level) for a in range(v.shape[1])])
+    within = np.broadcast_to(np.asarray(within, np.float64), q.shape)
+    inflate = (n_runs - 1) / scipy.stats.chi2.ppf(1 - TRANSFER_CONFIDENCE, n_runs - 1)
+    tau = np.sqrt(np.maximum((q + within) * inflate - within, 0.0))
+    return float(tau[0]) if need.ndim == 1 else tau
+
+
 def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs: int = 3,
                       series=None) -> TransferEstimate:
     r"""Between-session (transfer) sd from the training runs: leave-one-run-out, conformal over runs.
@@ -388,14 +415,11 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
             weight.append(np.full(rows.n, 1.0 / rows.n))
             per_run[str(r)]["rmse"] = {ax: float(v) for ax, v in zip("xyz", np.sqrt(np.mean(e**2, axis=0)))}
     if len(need) >= min_runs:
-        v, w = np.concatenate(need), np.concatenate(weight)
-        tau2 = np.array([_weighted_quantile(v[:, a], w, level) for a in range(3)])
         # few runs estimate the new-session variance poorly: a one-sided upper confidence bound (chi-square,
         # R - 1 dof) on all of it, s^2 + tau^2, not on the excess tau^2 alone (the pooled s^2 already holds
         # part of the between-run scatter, and its share was taken as exact)
-        r = len(need)
-        inflate = (r - 1) / scipy.stats.chi2.ppf(1 - TRANSFER_CONFIDENCE, r - 1)
-        return TransferEstimate(np.sqrt(np.maximum((tau2 + s2) * inflate - s2, 0.0)), "leave_one_run_out", per_run)
+        tau = session_variance_bound(np.concatenate(need), np.concatenate(weight), s2, len(need), level)
+        return TransferEstimate(tau, "leave_one_run_out", per_run)
     usable = len(need)
     # residuals as a new session would see them: without the terms bound to training runs (a run offset would
     # otherwise take the run-to-run change out of the residual means)
@@ -406,11 +430,17 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
     means = np.array([resid[train.run == r].mean(axis=0) for r in runs])
     tau = means.max(axis=0) - means.min(axis=0)
     bound = ", ".join(t.name for t in fit.model.terms if t.bound_runs())
-    warning = (f"The training data hold {len(runs)} run(s) ({usable} usable for leave-one-run-out; at least "
-               f"{min_runs} are needed), so the transfer (between-session) uncertainty cannot be estimated. The "
-               f"intervals for new sessions are widened by the largest run-to-run change of the mean residual, "
-               f"{' / '.join(f'{v:.3g}' for v in tau)} uT (x / y / z)"
-               + (" -- zero with one run: they hold no between-session term at all" if len(runs) < 2 else "")
-               + (f", taken without the model's {bound} (a new session is calibrated without them)" if bound else "")
-               + ". Record at least 3 sessions to estimate it.")
+    warning = few_runs_warning(len(runs), usable, min_runs, f"{' / '.join(f'{v:.3g}' for v in tau)} uT (x / y / z)",
+                               f", taken without the model's {bound} (a new session is calibrated without them)"
+                               if bound else "")
     return TransferEstimate(tau, "largest_offset_change", per_run, warning)
+
+
+def few_runs_warning(n_runs: int, usable: int, min_runs: int, change: str, detail: str = "") -> str:
+    """The warning when fewer than ``min_runs`` training runs are usable for leave-one-run-out: the intervals for
+    new sessions are widened by the largest run-to-run change of the mean residual (``change``, formatted)."""
+    return (f"The training data hold {n_runs} run(s) ({usable} usable for leave-one-run-out; at least {min_runs} are "
+            f"needed), so the transfer (between-session) uncertainty cannot be estimated. The intervals for new "
+            f"sessions are widened by the largest run-to-run change of the mean residual, {change}"
+            + (" -- zero with one run: they hold no between-session term at all" if n_runs < 2 else "")
+            + detail + ". Record at least 3 sessions to estimate it.")

@@ -18,7 +18,7 @@ from bayesmag._src.core.field import (INVARIANT_NAMES, FieldFit, FieldPrior, fit
 from bayesmag._src.core.measurement import MeasurementModel, Vector
 
 __all__ = ["FieldStage", "run_field_stage", "vector_comparison", "heading_check", "conformal_plan",
-           "magnitude_interval_scale", "field_domain_check"]
+           "magnitude_interval_scale", "field_domain_check", "magnitude_transfer"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +35,7 @@ class FieldStage:
     vector: dict | None        # comparison with a vector fit (None without a vector reference)
     timings: dict
     domain: dict | None = None  # training-domain check of the test rows (:func:`field_domain_check`)
+    transfer: dict | None = None  # between-session sd of the magnitude (:func:`magnitude_transfer`; None: "off")
 
 
 def heading_check(fit: FieldFit, data: CalibrationData, rows: np.ndarray, true_heading: np.ndarray,
@@ -58,14 +59,16 @@ def heading_check(fit: FieldFit, data: CalibrationData, rows: np.ndarray, true_h
 
 
 def field_domain_check(train: CalibrationData, y_train_mag, test: CalibrationData, predicted_mag, *,
-                       margin: float = 0.05) -> dict:
+                       margin: float = 0.05, half_width=None) -> dict:
     """Which test rows lie outside the training domain of a field calibration.
 
     The rule of the vector predictor's :class:`~bayesmag._src.core.domain.Domain` (ranges widened by ``margin``
     of their span plus 0.5 uT / 0.5 C): each measured input Bx, By, Bz and the temperature against its
     training range (reasons ``field_range``, ``temperature``), and the predicted field magnitude against the
     training reference magnitudes (``magnitude``: a magnitude calibration is fitted on those magnitudes only;
-    outside them an error that grows with the field is extrapolated). Rates are not checked.
+    outside them an error that grows with the field is extrapolated); with ``half_width`` (n,), the half-width of
+    each row's interval, only a row whose whole interval lies outside them
+    (:func:`~bayesmag._src.core.field_calibration.range_flags`). Rates are not checked.
 
     Returns ``in_domain`` (n,) bool, ``reason`` (n,) strings ('' inside, else reasons joined by ``;``) and the
     ranges and counts.
@@ -83,7 +86,7 @@ def field_domain_check(train: CalibrationData, y_train_mag, test: CalibrationDat
     lo, hi = _box(np.column_stack([train.b_meas, train.temperature,
                                    np.asarray(y_train_mag, np.float64).reshape(-1)]), margin, 0.5)
     ranges = {k: [a, b] for k, a, b in zip(DOMAIN_KEYS, lo, hi)}
-    reason, hits = range_flags(test.b_meas, test.temperature, predicted_mag, ranges)
+    reason, hits = range_flags(test.b_meas, test.temperature, predicted_mag, ranges, half_width=half_width)
     inside = reason == ""
     return {"in_domain": inside, "reason": reason, "margin": margin, "n_outside": int((~inside).sum()),
             "by_reason": {k: int(h.sum()) for k, h in hits.items() if h.any()}, "training_ranges": ranges}
@@ -178,8 +181,7 @@ def magnitude_interval_scale(train: CalibrationData, measurement: MeasurementMod
         f = fit_field(train.b_meas, train.temperature, y_tr, measurement, keep=~held, run=train.run, start=start,
                       diagnostics=False, **fit_kw)
         pr = f.predict_magnitude(train.b_meas, train.temperature)          # all rows: one compiled shape
-        _, _, _, _, extra = f.matrices()
-        y = np.linalg.norm(y_tr, axis=1) if isinstance(measurement, Vector) else np.asarray(measurement.magnitude(y_tr, extra))
+        y = _magnitudes(measurement, y_tr, f)
         ratios.append(np.abs(y[held] - pr["mean"][held]) / (zk * pr["total"][held]))
     r = np.concatenate(ratios)
     c = float(conformal_quantile(r[:, None], level)[0])
@@ -187,18 +189,90 @@ def magnitude_interval_scale(train: CalibrationData, measurement: MeasurementMod
             "fold_coverage_before": float(np.mean(r <= 1.0))}
 
 
+def _magnitudes(measurement: MeasurementModel, y, fit: FieldFit) -> np.ndarray:
+    """The reference magnitudes of target rows ``y`` as ``fit`` reads them (a fitted field for ``"free"``)."""
+    if isinstance(measurement, Vector):
+        return np.linalg.norm(y, axis=1)
+    return np.asarray(measurement.magnitude(y, fit.matrices()[4]))
+
+
+def magnitude_transfer(train: CalibrationData, measurement: MeasurementModel, y_tr, fit: FieldFit, *,
+                       scale: float = 1.0, level: float = 0.95, min_runs: int = 3, **fit_kw) -> dict:
+    r"""Between-session sd of the calibrated magnitude: leave one run out, conformal over runs.
+
+    The field calibration's version of :func:`~bayesmag._src.core.predictor.estimate_transfer`: every training run
+    is a session (a flight, a campaign); for each, a refit without it (warm-started from ``fit``, its T0 and terms)
+    predicts the run's rows that lie inside the other runs' domain (:func:`field_domain_check` on the readings, the
+    temperature and the *reference* magnitude: a predicted magnitude far from the reference is the error measured
+    here, not extrapolation), and row ``i`` is
+    covered by a variance :math:`s_i^2 + \tau^2` (:math:`s_i`: the refit's predictive sd times the run's conformal
+    ``scale``, the within-session part) iff :math:`\tau^2 \ge (e_i/z)^2 - s_i^2`. The grouped ``level`` quantile of
+    that bound, every run weighted equally, bounded over the R usable runs
+    (:func:`~bayesmag._src.core.predictor.session_variance_bound`, on the runs' mean :math:`s_i^2`), is
+    :math:`\tau^2`. A hard-iron change between sessions (a payload, a battery, a power state) moves every
+    magnitude by up to its size: it is what this term measures. With fewer than ``min_runs`` usable runs the sd is
+    the largest change of a run's mean magnitude residual between two runs (0 for one run), with a warning.
+
+    Returns ``{"sd", "method", "n_runs", "per_run", "warning"}`` (``method``: ``"leave_one_run_out"`` or
+    ``"largest_offset_change"``).
+    """
+    import scipy.stats
+
+    from bayesmag._src.core.predictor import few_runs_warning, session_variance_bound
+    fit_kw = {**fit_kw, "t0": fit.model.t0, "temperature_terms": fit.model.temperature}
+    z = scipy.stats.norm.ppf(0.5 + level / 2)
+    runs = [int(r) for r in np.unique(train.run)]
+    per_run, need, weight, within = {}, [], [], []
+    if len(runs) >= min_runs:
+        for r in runs:
+            held = train.run == r
+            f = fit_field(train.b_meas, train.temperature, y_tr, measurement, keep=~held, run=train.run, start=fit,
+                          diagnostics=False, **fit_kw)
+            pr = f.predict_magnitude(train.b_meas, train.temperature)          # all rows: one compiled shape
+            y = _magnitudes(measurement, y_tr, f)
+            other, left = train.subset(np.flatnonzero(~held)), train.subset(np.flatnonzero(held))
+            # the left-out run's reference magnitudes, not its predicted ones, against the others': a predicted
+            # magnitude far from the reference is the session change measured here, not extrapolation
+            inside = field_domain_check(other, y[~held], left, y[held])["in_domain"]
+            per_run[str(r)] = {"n_rows": int(held.sum()), "n_in_domain": int(inside.sum()), "rmse": None,
+                               "mean_error": None, "converged": bool(f.converged)}
+            if inside.sum() < 2 or not f.converged:     # extrapolation only, or an unidentifiable fold: skipped
+                continue
+            e = (y[held] - pr["mean"][held])[inside]
+            s2 = (scale * pr["total"][held][inside]) ** 2
+            need.append((e / z) ** 2 - s2)
+            weight.append(np.full(e.size, 1.0 / e.size))
+            within.append(float(np.mean(s2)))
+            per_run[str(r)].update(rmse=float(np.sqrt(np.mean(e**2))), mean_error=float(np.mean(e)))
+    if len(need) >= min_runs:
+        tau = session_variance_bound(np.concatenate(need), np.concatenate(weight), float(np.mean(within)),
+                                     len(need), level)
+        return {"sd": tau, "method": "leave_one_run_out", "n_runs": len(need), "per_run": per_run, "warning": None}
+    resid = _magnitudes(measurement, y_tr, fit) - fit.predict_magnitude(train.b_meas, train.temperature)["mean"]
+    means = np.array([resid[train.run == r].mean() for r in runs])
+    tau = float(means.max() - means.min())
+    warning = few_runs_warning(len(runs), len(need), min_runs, f"{tau:.3g} uT (of the calibrated magnitude)",
+                               "; a field campaign's runs are its sessions (flights, or campaigns on different days)")
+    return {"sd": tau, "method": "largest_offset_change", "n_runs": len(need), "per_run": per_run,
+            "warning": warning}
+
+
 def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: MeasurementModel, *,
                     f_ref_train=None, f_ref_test=None, t0="mean", temperature_terms="auto", covariance="white",
                     level: float = 0.95, prior: FieldPrior = FieldPrior(), heading: dict | None = None,
                     compare_vector: bool = True, conformal: tuple[float, int] | None = None,
-                    seed: int = 0) -> FieldStage:
+                    seed: int = 0, transfer: str = "loro") -> FieldStage:
     """Fit on ``train`` (the vector reference withheld down to what ``measurement`` sees), score ``test``.
 
     ``heading`` = ``{"rows": bool mask of test rows, "true": degrees, "alignment": (k, 3, 3)}`` when heading
     can be checked (simulated attitudes, or a heading reference). ``conformal`` = ``(fraction, folds)``
     (:func:`conformal_plan`) scales the magnitude intervals by :func:`magnitude_interval_scale`; ``None``
-    keeps the Laplace predictive as it is.
+    keeps the Laplace predictive as it is. ``transfer`` = ``"loro"`` estimates the between-session sd of the
+    magnitude (:func:`magnitude_transfer`); it enters the test rows of runs the fit did not see (a ``by_run``
+    split: new sessions); ``"off"`` leaves it out.
     """
+    import scipy.stats
+
     from bayesmag._src.core.physics import check_t0
     check_t0(t0, train.temperature, "Config key 'physics.t0'")     # a kelvin t0 beside kelvin data: as the vector job
     timings = {}
@@ -214,21 +288,29 @@ def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: 
         cal = magnitude_interval_scale(train, measurement, y_tr, fraction=conformal[0], folds=conformal[1],
                                        level=level, seed=seed, start=fit, **fit_kw)
         timings["conformal"] = time.perf_counter() - t
+    tr = None
+    if transfer == "loro":
+        t = time.perf_counter()
+        tr = magnitude_transfer(train, measurement, y_tr, fit, scale=1.0 if cal is None else cal["scale"],
+                                level=level, **fit_kw)
+        timings["transfer"] = time.perf_counter() - t
+    elif transfer != "off":
+        raise ValueError(f"transfer = {transfer!r}: a field calibration's between-session term is \"loro\" or \"off\"")
     t = time.perf_counter()
     pred = fit.predict_magnitude(test.b_meas, test.temperature)
-    y_te = field_target(measurement, b_ref=test.b_ref, f_ref=f_ref_test, n=test.n)
-    if isinstance(measurement, Vector):
-        y_mag = np.linalg.norm(y_te, axis=1)
-    else:
-        _, _, _, _, extra = fit.matrices()
-        y_mag = np.asarray(measurement.magnitude(y_te, extra))
-    raw = gaussian_scores(y_mag, pred["mean"], pred["total"], level)
+    y_mag = _magnitudes(measurement, field_target(measurement, b_ref=test.b_ref, f_ref=f_ref_test, n=test.n), fit)
+    new = ~np.isin(test.run, np.unique(train.run))          # rows of sessions the fit did not see
+    tau = np.where(new, 0.0 if tr is None else tr["sd"], 0.0)
+    laplace = np.sqrt(pred["total"] ** 2 + tau**2)
+    raw = gaussian_scores(y_mag, pred["mean"], laplace, level)
+    c = 1.0 if cal is None else cal["scale"]
+    pred = {**pred, "transfer": tau, "total": np.sqrt((c * pred["total"]) ** 2 + tau**2)}
     if cal is not None:
-        pred = {**pred, "laplace_total": pred["total"], "scale": cal["scale"], "total": cal["scale"] * pred["total"]}
+        pred.update(laplace_total=laplace, scale=c)
     scores = gaussian_scores(y_mag, pred["mean"], pred["total"], level)
-    y_tr_mag = (np.linalg.norm(y_tr, axis=1) if isinstance(measurement, Vector)
-                else np.asarray(measurement.magnitude(y_tr, fit.matrices()[4])))
-    dom = field_domain_check(train, y_tr_mag, test, pred["mean"])
+    y_tr_mag = _magnitudes(measurement, y_tr, fit)
+    zk = scipy.stats.norm.ppf(0.5 + level / 2)
+    dom = field_domain_check(train, y_tr_mag, test, pred["mean"], half_width=zk * pred["total"])
     scores.update(_domain_scores(y_mag, pred["mean"], pred["total"], dom["in_domain"], level))
     scores["interval_calibration"] = (None if cal is None else
                                       {**cal, "laplace_coverage": raw["coverage"], "laplace_nll": raw["nll"],
@@ -244,7 +326,7 @@ def run_field_stage(train: CalibrationData, test: CalibrationData, measurement: 
         t = time.perf_counter()
         vec = vector_comparison(fit, train, covariance=covariance)
         timings["vector_comparison"] = time.perf_counter() - t
-    return FieldStage(fit, train, test, y_mag, pred, scores, hd, vec, timings, dom)
+    return FieldStage(fit, train, test, y_mag, pred, scores, hd, vec, timings, dom, tr)
 
 
 def _domain_scores(y, mean, sd, inside, level) -> dict:
