@@ -39,7 +39,8 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "uq.chunk_size": ("rows", "rows per compiled chunk of the uncertainty computation"),
     "uq.residual_term": ("", "add the fit's unexplained residual variance (false: the paper's total)"),
     "uq.transfer": ("", 'between-session sd for new recordings: "loro" (leave one run out) | "hierarchical" '
-                        '(random-effects model, Laplace; docs/sessions.md) | "hierarchical_nuts" | "off"'),
+                        '(random-effects model, Laplace; docs/sessions.md) | "hierarchical_nuts" | "off"; a field '
+                        'calibration ([measurement] kind scalar/constant): "loro" (on the magnitude) | "off"'),
     "uq.transfer_likelihood": ("", 'likelihood of the hierarchical transfer model: "gaussian" | "student_t" (every '
                                    'run jointly multivariate t: heavy-tailed sessions) | "laplace" (every run jointly '
                                    'multivariate Laplace; docs/sessions.md)'),
