@@ -435,3 +435,20 @@ def test_ctrl_c_of_a_local_cluster_apply_is_one_line_and_leaves_nothing(cal_dir,
     assert sorted(x.name for x in tmp_path.iterdir()) == ["logs"]       # no out/, staging folder or lock
     time.sleep(0.5)
     assert _session_pids(p.pid) == []                                   # no worker, nanny or tracker left
+
+
+def test_the_dataset_carries_its_unit_file(cal_dir, archive, cluster, tmp_path):
+    """The Dask apply's folder holds the in-process apply's unit file (`_bayesmag_apply.json`: a Parquet reader skips
+    it), swapped in with the parts and listed in the folder's marker; pandas reads the dataset as before."""
+    import json
+
+    from bayesmag._src.app.outdir import MARKER
+    s = apply_dask(cal_dir, str(archive / "pq"), tmp_path / "out", scheduler=cluster)
+    side = tmp_path / "out" / "_bayesmag_apply.json"
+    assert s["units_file"] == str(side)
+    doc = json.loads(side.read_text())
+    df = pd.read_parquet(tmp_path / "out")
+    assert list(doc["units"]) == list(df.columns) and doc["units"]["x_total"] == "uT" and doc["units"]["time"] == "s"
+    assert doc["rows"] == len(df) == 2400 and len(doc["files"]) == s["n_partitions"]
+    assert sum(f["rows"] for f in doc["files"].values()) == 2400 and doc["calibration"]["kind"] == "vector"
+    assert "_bayesmag_apply.json" in json.loads((tmp_path / "out" / MARKER).read_text())["files"]

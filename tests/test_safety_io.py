@@ -835,3 +835,99 @@ def test_after_an_interrupt_the_one_line_is_all_that_stderr_gets(tmp_path):
     assert r.returncode == 130, r.stderr
     assert r.stderr.splitlines() == ["before the signal", "bayesmag: interrupted by SIGINT; stopped without leaving "
                                      "a partial result."], r.stderr
+
+
+# ------------------------------------------------------------------------------------------------ apply's unit file
+def test_apply_writes_a_unit_file_beside_its_csv(tmp_path, capsys, model):
+    """Seventh outside pass: the apply CSV carried no unit. Now ``<out>.json`` beside it: the unit of every column,
+    the calibration (folder, certificate ID, sha256), level, recording, bayesmag version and the CSV's sha256; the
+    CSV reads as before. A rerun replaces it; a user's file of that name is refused (checked before any work) unless
+    --force."""
+    import pandas as pd
+
+    from bayesmag._src.app.apply_io import is_apply_output
+    from bayesmag._src.core.datasets import sha256_of
+    from bayesmag._src.core.version import __version__
+    rec = _recording(tmp_path / "new.csv", n=150, seed=5)
+    out = tmp_path / "calibrated.csv"
+    assert main(["apply", "--model", str(model), "--data", str(rec), "--out", str(out), "--no-progress"]) == 0
+    _err(capsys)
+    df = pd.read_csv(out)                                       # a reader of today's columns: unchanged
+    assert len(df) == 150 and list(df.columns)[:3] == ["time", "run", "x_calibrated"] and is_apply_output(out)
+    doc = json.loads((tmp_path / "calibrated.csv.json").read_text())
+    assert doc["tool"] == "bayesmag" and doc["kind"] == "apply-output" and doc["bayesmag_version"] == __version__
+    assert list(doc["units"]) == list(df.columns)              # every column, in the file's order
+    assert doc["units"]["time"] == "s" and doc["units"]["valid"] == "1"
+    assert {doc["units"][c] for c in df.columns if c[:2] in ("x_", "y_", "z_")} == {"uT"}
+    assert "16 magnitude" in doc["meaning"]["in_domain_reason"]
+    cert = json.loads((model / "metrics.json").read_text())["certificate"]
+    assert doc["calibration"]["calibration_id"] == cert["calibration_id"] and doc["calibration"]["kind"] == "vector"
+    assert doc["calibration"]["folder"] == str(model.resolve())
+    assert doc["calibration"]["sha256"] == sha256_of(model / "calibration.json")
+    assert doc["files"] == {"calibrated.csv": {"rows": 150, "sha256": sha256_of(out)}} and doc["level"] == 0.95
+    assert doc["data"] == str(rec.resolve())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibrated.csv", "calibrated.csv.json", "new.csv"]
+
+    assert main(["apply", "--model", str(model), "--data", str(rec), "--out", str(out), "--level", "0.9"]) == 0
+    assert json.loads((tmp_path / "calibrated.csv.json").read_text())["level"] == 0.9     # its own: replaced
+    _err(capsys)
+
+    mine = tmp_path / "mine.csv.json"
+    mine.write_text('{"my": "notes"}')
+    rc = main(["apply", "--model", str(model), "--data", str(rec), "--out", str(tmp_path / "mine.csv")])
+    err = _err(capsys)
+    assert rc == 2 and len(err.splitlines()) == 1 and f"its unit file {mine}" in err and "--force" in err, err
+    assert mine.read_text() == '{"my": "notes"}' and not (tmp_path / "mine.csv").exists()
+    assert main(["apply", "--model", str(model), "--data", str(rec), "--out", str(tmp_path / "mine.csv"),
+                 "--force"]) == 0
+    assert json.loads(mine.read_text())["kind"] == "apply-output"
+
+
+def test_every_apply_column_has_a_unit():
+    """The vector, field and archive outputs' columns all get a unit from one table (a new column must add one)."""
+    from bayesmag._src.app.apply import OUTPUT_COLUMNS
+    from bayesmag._src.app.apply_io import column_units
+    from bayesmag._src.app.field_apply import FIELD_OUTPUT_COLUMNS
+    vector = [f"{a}_{c}" for a in "xyz" for c in OUTPUT_COLUMNS]
+    units = column_units(["time", "run", *vector, *FIELD_OUTPUT_COLUMNS, "in_domain_reason", "in_domain", "valid"])
+    assert units["time"] == "s" and units["magnitude_total"] == "uT" and units["x_lower"] == "uT"
+    with pytest.raises(ValueError, match="'heading' has no known unit"):
+        column_units(["heading"])
+
+
+@pytest.mark.extended
+def test_a_field_apply_writes_its_unit_file_and_a_stale_one_never_stays(tmp_path, capsys):
+    """The field apply's CSV gets the same unit file (calibration kind 'field'); the CSV writer removes an earlier
+    apply's unit file before the new CSV is renamed into place, so none ever describes another result (15-25 s: a
+    field run)."""
+    import numpy as np
+
+    import bayesmag
+    from bayesmag._src.app.apply_io import write_apply_csv
+    from bayesmag.simulate import simulate_field
+    c = simulate_field("dance", n=900, seed=4, temperature=(15.0, 35.0))
+    rows = {"time": c.data.time, "run": c.data.run, "bx_meas": c.data.b_meas[:, 0], "by_meas": c.data.b_meas[:, 1],
+            "bz_meas": c.data.b_meas[:, 2], "temperature": c.data.temperature, "F_ovh": c.f_ref}
+    import pandas as pd
+    pd.DataFrame(rows).iloc[:700].to_csv(tmp_path / "train.csv", index=False)
+    pd.DataFrame(rows).iloc[700:].to_csv(tmp_path / "new.csv", index=False)
+    from bayesmag._src.app.config import config_from_dict
+    cfg = config_from_dict({"name": "f", "data": {"path": str(tmp_path / "train.csv")},
+                            "measurement": {"kind": "scalar", "scalar_column": "F_ovh", "exports": []},
+                            "split": {"kind": "time_blocks", "test_fraction": 0.2, "n_blocks": 2},
+                            "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}})
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bayesmag.run_job(cfg, tmp_path / "run")
+    out = tmp_path / "f.csv"
+    assert main(["apply", "--model", str(tmp_path / "run"), "--data", str(tmp_path / "new.csv"), "--out",
+                 str(out)]) == 0
+    capsys.readouterr()
+    doc = json.loads((tmp_path / "f.csv.json").read_text())
+    assert doc["calibration"]["kind"] == "field" and doc["calibration"]["file"] == "field_params.json"
+    assert list(doc["units"]) == list(pd.read_csv(out).columns) and doc["units"]["magnitude_upper"] == "uT"
+    data = bayesmag.load_csv(tmp_path / "new.csv", require_reference=False)
+    pred = {"in_domain_reason": [""] * data.n, "in_domain": np.ones(data.n, bool), "valid": np.ones(data.n, bool)}
+    write_apply_csv(out, data, [("x_calibrated", np.zeros(data.n))], pred)
+    assert not (tmp_path / "f.csv.json").exists()               # a CSV without its file, never with another's

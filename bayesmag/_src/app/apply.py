@@ -6,9 +6,10 @@ import time
 
 import numpy as np
 
-from bayesmag._src.app.apply_io import (APPLY_HEADER_END, check_apply_options, check_apply_paths,  # noqa: F401
-                                        check_units_against, is_apply_output, refuse_training_recording,
-                                        write_apply_csv, _check_magnitudes)
+from bayesmag._src.app.apply_io import (APPLY_HEADER_END, apply_about, check_apply_options,  # noqa: F401
+                                        check_apply_paths, check_units_against, is_apply_output,
+                                        refuse_training_recording, sidecar_path, write_apply_csv,
+                                        write_apply_sidecar, _check_magnitudes)
 from bayesmag._src.app.artifact import load, new_session_notes, out_of_domain_note  # noqa: F401 (re-exported)
 from bayesmag._src.core.data import AXES, DataError
 
@@ -41,22 +42,29 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     ``columns`` maps canonical names to the file's columns; ``field_unit`` and ``temperature_unit``
     are converted at load. The output never replaces the recording, the calibration's training recording, a
     file of a run folder or a read-only file, nor (without ``force``) a file ``apply`` did not write
-    (:func:`check_apply_paths`); it is written to a temporary sibling first, then renamed into place.
+    (:func:`check_apply_paths`); it is written to a temporary sibling first, then renamed into place. Its unit file
+    ``<out>.json`` (units per column, the calibration, level and bayesmag version: :mod:`~bayesmag._src.app.apply_io`)
+    follows it, written the same way (the summary's ``units_file``).
     """
     from bayesmag._src.app.inputs import protected_recordings
 
     from bayesmag._src.app.artifact import is_field_run
     if is_field_run(model_dir):
         from bayesmag._src.app.field_apply import apply_field_calibration
-        return apply_field_calibration(model_dir, data_path, out_path, level=level, temperature_unit=temperature_unit,
-                                       field_unit=field_unit, columns=columns, force=force, method=method,
-                                       n_params=n_params, n_qmc=n_qmc, time_unit=time_unit)
+        summary = apply_field_calibration(model_dir, data_path, out_path, level=level,
+                                          temperature_unit=temperature_unit, field_unit=field_unit, columns=columns,
+                                          force=force, method=method, n_params=n_params, n_qmc=n_qmc,
+                                          time_unit=time_unit)
+        side = write_apply_sidecar(out_path, apply_about(model_dir, data_path, summary["level"]))
+        return {**summary, "units_file": str(side)}
     t0 = time.perf_counter()
     check_apply_options(level, n_params, n_qmc)
     out_path = check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
     cal = load(model_dir)
-    refuse_training_recording(out_path, protected_recordings((cal.config or {}).get("data")
-                                                        if isinstance(cal.config, dict) else None, model_dir))
+    protected = protected_recordings((cal.config or {}).get("data") if isinstance(cal.config, dict) else None,
+                                     model_dir)
+    for p in (out_path, sidecar_path(out_path)):
+        refuse_training_recording(p, protected)
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
     data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
                       require_reference=False, time_unit=time_unit, mapping_hint="--columns (NAME=COL,...)")
@@ -91,12 +99,13 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
         warnings.append(out_of_domain_note(n_out, data.n))
     cols = [c for c in OUTPUT_COLUMNS if c in pred]
     write_apply_csv(out_path, data, [(f"{a}_{c}", pred[c][:, i]) for i, a in enumerate(AXES) for c in cols], pred)
+    side = write_apply_sidecar(out_path, apply_about(model_dir, data_path, level))
     summary = {"n_rows": data.n, "n_valid": int(pred["valid"].sum()), "n_outside_domain": n_out,
                "outside_domain_by_reason": {k: int(np.sum(pred["in_domain_reason"][pred["valid"]] == k))
                                             for k in sorted(set(pred["in_domain_reason"][pred["valid"]])) if k},
                "transfer_sd": (None if cal.transfer_sd is None
                                else dict(zip(AXES, np.asarray(cal.transfer_sd, float).tolist()))),
-               "warnings": warnings, "level": level, "seconds": time.perf_counter() - t0}
+               "warnings": warnings, "level": level, "units_file": str(side), "seconds": time.perf_counter() - t0}
     note = method_note(cal, method)
     if note:
         summary["notes"] = [note]

@@ -5,7 +5,8 @@ The calibration is loaded and checked once on the client, sent once to every wor
 :meth:`~bayesmag._src.app.artifact.Calibration.predict` (the in-process ``apply``'s code) and written by
 the worker that computed it as ``part.<k>.parquet`` into a staging folder beside ``--out``; only a
 small per-partition summary returns to the client. The staging folder replaces ``--out`` only when
-every partition is written (``outdir.staging_dir``), so a failed run leaves no half-written dataset.
+every partition is written (``outdir.staging_dir``), so a failed run leaves no half-written dataset; it holds the
+dataset's unit file too (``_bayesmag_apply.json``: :mod:`~bayesmag._src.app.apply_io`).
 
 Partitions (``pieces``): one per Parquet row group, or one per ``blocksize`` bytes of a CSV file
 (a line belongs to the block its first byte lies in), so memory per task is bounded by the
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import glob as globlib
 import io
+import json
 import logging
 import time
 import warnings
@@ -28,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayesmag._src.app.apply_io import DATASET_SIDECAR
 from bayesmag._src.core.data import AXES, DataError, check_values
 from bayesmag._src.core.domain import REASON_CODES
 
@@ -440,6 +443,18 @@ def _declared_unit_files(table, pieces, cal, field_unit) -> list[str]:
     return sorted(f for f, odd in by_file.items() if all(odd))
 
 
+def _write_sidecar(folder: Path, table, opts: dict, about: dict) -> None:
+    """The dataset's unit file (:data:`~bayesmag._src.app.apply_io.DATASET_SIDECAR`): the in-process apply's, for every
+    part (its rows) in the staging ``folder``, so it is swapped in with them."""
+    from bayesmag._src.app.apply_io import sidecar_doc
+    from bayesmag._src.app.outdir import atomic_write_text
+    columns = (["time", "run"] + [f"{ax}_{c}" for ax in AXES for c in opts["columns_out"]]
+               + ["in_domain_reason", "in_domain", "valid"])
+    files = {f"part.{int(r['partition']):06d}.parquet": {"rows": int(r["rows_out"])} for _, r in table.iterrows()}
+    doc = sidecar_doc(about, columns, rows=int(table["rows_out"].sum()), files=dict(sorted(files.items())))
+    atomic_write_text(folder / DATASET_SIDECAR, json.dumps(doc, indent=2) + "\n")
+
+
 def _children() -> set:
     """This process's multiprocessing children now (a local cluster's workers are such children)."""
     import multiprocessing
@@ -495,6 +510,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
         raise DataError(f"applying to an archive needs Dask: pip install 'bayesmag[dask]' ({e}).") from None
     import pandas as pd
     from bayesmag._src.app.apply import method_note, run_seed
+    from bayesmag._src.app.apply_io import apply_about
     from bayesmag._src.app.artifact import load
     from bayesmag._src.app.outdir import reserve, staging_dir
     from bayesmag._src.app.signals import on_abort, parent_decides
@@ -570,6 +586,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                     raise DataError(f"a Dask worker died (out of memory?) on {e}: give it more memory (--memory-limit), "
                                     f"or smaller partitions (Parquet row groups, --blocksize-mb).") from None
                 _check_small_field(table, cal, opts["field_unit"])     # inside the staging: a refusal writes nothing
+                _write_sidecar(Path(tmp), table, opts, apply_about(model_dir, data, level))   # swapped in with them
         except BaseException as e:
             if not isinstance(e, Exception):          # Ctrl-C: nothing of the workers' is kept; stop them now
                 _kill_children(before)
@@ -584,7 +601,8 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     warns = sorted({w for s in table["warnings"] for w in str(s).split(" | ") if w})
     summary = {"n_rows": rows_out, "n_rows_in": rows_in, "n_partitions": len(pieces),
                "n_valid": int(table["valid"].sum()), "n_outside_domain": int(table["outside"].sum()),
-               "warnings": warns, "level": level, "out": str(out), "seconds": time.perf_counter() - t0}
+               "warnings": warns, "level": level, "out": str(out), "units_file": str(Path(out) / DATASET_SIDECAR),
+               "seconds": time.perf_counter() - t0}
     if rows_out - summary["n_valid"]:
         n_bad = rows_out - summary["n_valid"]
         shown = _invalid_rows(table, pieces)

@@ -1,8 +1,16 @@
 """What every apply shares (vector, field, archive): the option and ``--out`` checks, the unit check against a
-training range, and the output CSV written atomically."""
+training range, the output CSV written atomically, and its unit file.
+
+The unit file (:func:`sidecar_path`: ``<out>.json`` beside a CSV, :data:`DATASET_SIDECAR` inside a Dask apply's
+folder) states what the CSV's bare numbers are: the unit of every column (:func:`column_units`), the level of the
+intervals, the calibration they come from (folder, certificate ID, sha256 of its calibration file), the recording,
+the bayesmag version and the CSV's own sha256 and row count (so a unit file that does not belong to the CSV beside
+it can be told). The CSV itself is unchanged: ``pandas.read_csv`` reads it as before."""
 
 from __future__ import annotations
 
+import datetime
+import json
 import os
 from pathlib import Path
 
@@ -13,7 +21,8 @@ from bayesmag._src.core.data import check_units as _check_units
 from bayesmag._src.core.domain import REASON_CODES
 
 __all__ = ["check_apply_options", "check_apply_paths", "check_units_against", "is_apply_output",
-           "refuse_training_recording", "write_apply_csv", "APPLY_HEADER_END"]
+           "refuse_training_recording", "write_apply_csv", "APPLY_HEADER_END", "sidecar_path", "is_apply_sidecar",
+           "column_units", "apply_about", "sidecar_doc", "write_apply_sidecar", "DATASET_SIDECAR", "SIDECAR_KIND"]
 
 
 def check_units_against(data, train_max: float, *, small_ok: bool = False,
@@ -54,6 +63,104 @@ def is_apply_output(path) -> bool:
     return head.startswith("time,run,x_") and head.endswith(APPLY_HEADER_END)
 
 
+#: The ``kind`` of an apply's unit file (with ``tool`` = bayesmag): what :func:`is_apply_sidecar` recognises.
+SIDECAR_KIND = "apply-output"
+#: The unit file inside a Dask apply's Parquet folder (a leading underscore: Parquet readers skip it).
+DATASET_SIDECAR = "_bayesmag_apply.json"
+
+#: Units of the columns that are not field values (every other output column is a field value or sd, in uT).
+_UNITS = {"time": "s", "run": "1", "in_domain_reason": "1", "in_domain": "1", "valid": "1"}
+_MEANING = {
+    "time": "seconds, as in the recording (nan when it had no time column)",
+    "run": "session id, as in the recording",
+    "in_domain_reason": "bit code, the sum of " + ", ".join(f"{v} {k}" for k, v in REASON_CODES.items())
+                        + "; 0 inside the training domain or invalid",
+    "in_domain": "1 inside the calibration's training domain, else 0",
+    "valid": "1 calibrated (finite inputs and outputs), 0 not calibrated (NaN outputs)",
+}
+
+
+def sidecar_path(out) -> Path:
+    """The unit file of apply output ``out``: ``<out>.json`` beside a CSV (``calibrated.csv.json``)."""
+    out = Path(out)
+    return out.with_name(out.name + ".json")
+
+
+def is_apply_sidecar(path) -> bool:
+    """True if ``path`` is a unit file ``bayesmag apply`` wrote (a JSON object, ``tool`` bayesmag, ``kind``
+    :data:`SIDECAR_KIND`)."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_file() or path.stat().st_size > 1 << 20:
+        return False
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("tool") == "bayesmag" and doc.get("kind") == SIDECAR_KIND
+
+
+def column_units(names) -> dict[str, str]:
+    """The unit of every apply output column: ``time`` s; ``run`` and the flags 1 (a number without unit); every
+    field value, sd and interval bound (``x_calibrated``, ``x_total``, ``magnitude_lower``, ...) uT. A name of no
+    known kind raises ``ValueError`` (a new column must say its unit)."""
+    out = {}
+    for n in names:
+        if n in _UNITS:
+            out[n] = _UNITS[n]
+        elif n.startswith(("x_", "y_", "z_", "magnitude")):
+            out[n] = "uT"
+        else:
+            raise ValueError(f"apply output column {n!r} has no known unit; add it to apply_io.column_units.")
+    return out
+
+
+def apply_about(model_dir, data, level: float) -> dict:
+    """What an apply's unit file says about where its numbers come from: the calibration (folder, kind, certificate
+    ID where the run has one, sha256 of its calibration file), the recording, the intervals' level."""
+    from bayesmag._src.core.datasets import sha256_of
+    model = Path(model_dir).resolve()
+    main = next((model / f for f in ("calibration.json", "field_params.json") if (model / f).is_file()), None)
+    cid = None
+    try:
+        cert = json.loads((model / "metrics.json").read_text()).get("certificate") or {}
+        cid = cert.get("calibration_id") if isinstance(cert, dict) else None
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        pass
+    return {"calibration": {"folder": str(model), "kind": "field" if main and main.name == "field_params.json"
+                            else "vector", "calibration_id": cid,
+                            "file": main.name if main else None, "sha256": sha256_of(main) if main else None},
+            "data": str(Path(data).resolve()) if not any(c in str(data) for c in "*?[") else str(data),
+            "level": float(level)}
+
+
+def sidecar_doc(about: dict, columns, *, rows: int, files: dict) -> dict:
+    """The unit file's JSON: ``about`` (:func:`apply_about`), the unit and meaning of each of ``columns``, ``rows``,
+    ``files`` (the files it describes: name -> ``{"rows": n}``, with ``"sha256"`` for a CSV), the bayesmag version
+    and the time it was written."""
+    from bayesmag._src.core.version import __version__
+    units = column_units(columns)
+    return {"tool": "bayesmag", "kind": SIDECAR_KIND, "bayesmag_version": __version__,
+            "written_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "files": files, "rows": int(rows), **about, "units": units,
+            "meaning": {"uT columns": "calibrated field values, their standard deviations (aleatoric, epistemic, "
+                                      "residual, transfer: their parts; total) and the central interval of "
+                                      "probability 'level' (lower, upper)",
+                        **{n: _MEANING[n] for n in units if n in _MEANING}}}
+
+
+def write_apply_sidecar(out_path, about: dict) -> Path:
+    """Write the unit file of the apply CSV ``out_path`` (:func:`sidecar_path`) atomically, after the CSV: it names
+    the CSV's columns (its header), rows and sha256."""
+    from bayesmag._src.app.outdir import atomic_write_text
+    from bayesmag._src.core.datasets import sha256_of
+    out_path = Path(out_path)
+    with open(out_path) as f:
+        header = f.readline().strip().split(",")
+        rows = sum(1 for _ in f)
+    doc = sidecar_doc(about, header, rows=rows, files={out_path.name: {"rows": rows, "sha256": sha256_of(out_path)}})
+    return atomic_write_text(sidecar_path(out_path), json.dumps(doc, indent=2) + "\n")
+
+
 def refuse_training_recording(out, protected) -> None:
     """:class:`DataError` when ``out`` is one of ``protected`` (the training recordings: :func:`recording_paths`)."""
     from bayesmag._src.app.outdir import same_file
@@ -69,7 +176,7 @@ def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, pr
     Never (even with ``force``): a folder, a symbolic link, the input recording, one of ``protected`` (the
     calibration's training recording), a read-only file, a file of a bayesmag run folder (other than an earlier
     apply output). Without ``force``: an existing file that ``bayesmag apply`` did not write
-    (:func:`is_apply_output`).
+    (:func:`is_apply_output`). The unit file ``<out>.json`` (:func:`sidecar_path`) is checked by the same rules.
     """
     from bayesmag._src.app.outdir import read_only, run_file_owner
 
@@ -89,6 +196,7 @@ def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, pr
     if inside:
         raise DataError(f"--out {out} lies inside the calibration folder --model {model}; writing there could "
                         f"overwrite the calibration. Give an output file outside it.")
+    _check_sidecar(sidecar_path(out), out, data, protected, force)
     if out.exists():
         refuse_training_recording(out, protected)
         if read_only(out):
@@ -113,11 +221,37 @@ def check_apply_paths(model_dir, data_path, out_path, *, force: bool = False, pr
     return out
 
 
+def _check_sidecar(side: Path, out: Path, data: Path, protected, force: bool) -> None:
+    """:func:`check_apply_paths`'s rules for the unit file ``side`` of ``--out out``."""
+    from bayesmag._src.app.outdir import read_only, run_file_owner
+    fix = "Give a new output file name."
+    what = f"--out {out}: its unit file {side}"
+    if side.is_dir() or side.is_symlink():
+        raise DataError(f"{what} is a {'folder' if side.is_dir() else 'symbolic link'}; bayesmag does not replace it. "
+                        f"{fix}")
+    if not side.exists():
+        return
+    if data.exists() and side.resolve() == data.resolve():
+        raise DataError(f"{what} is the input recording --data {data}; it would be overwritten. {fix}")
+    refuse_training_recording(side, protected)
+    if read_only(side):
+        raise DataError(f"{what} is read-only (no write permission); bayesmag never replaces a protected file. {fix}")
+    ours = is_apply_sidecar(side)
+    owner = None if ours else run_file_owner(side)
+    if owner is not None:
+        raise DataError(f"{what} is a file of the bayesmag run folder {owner}; it is never overwritten. {fix}")
+    if not force and not ours:
+        raise DataError(f"{what} exists and was not written by `bayesmag apply`; bayesmag does not replace it. {fix} "
+                        f"Or add --force to replace it.")
+
+
 def write_apply_csv(out_path: Path, data, columns, pred) -> None:
     """The apply output: ``time,run``, the ``(name, (n,) values)`` columns, then ``in_domain_reason`` (bit code, sum
     of :data:`REASON_CODES`; 0 inside or invalid), ``in_domain``, ``valid``; written to a temporary sibling and
     renamed into place, so a killed process never leaves a half-written file under the name. Rows read without a time
-    column get ``nan`` times (the row index they are numbered by inside is not a time)."""
+    column get ``nan`` times (the row index they are numbered by inside is not a time). An earlier apply's unit file
+    beside it (:func:`sidecar_path`) is removed before the rename, so none describes another result; the caller
+    writes the new one (:func:`write_apply_sidecar`)."""
     header = ["time", "run"] + [c for c, _ in columns] + ["in_domain_reason", "in_domain", "valid"]
     code = np.array([sum(REASON_CODES[k] for k in w.split(";") if k in REASON_CODES) for w in pred["in_domain_reason"]])
     time = data.time if getattr(data, "time_given", True) else np.full(data.n, np.nan)
@@ -131,6 +265,9 @@ def write_apply_csv(out_path: Path, data, columns, pred) -> None:
             f.write(",".join(header) + "\n")
             for lo in range(0, data.n, 200_000):
                 np.savetxt(f, mat[lo:lo + 200_000], delimiter=",", fmt=fmt)
+        side = sidecar_path(out_path)
+        if is_apply_sidecar(side):                  # an earlier apply's: it would describe another result
+            side.unlink()
         tmp.replace(out_path)
     finally:
         tmp.unlink(missing_ok=True)
