@@ -171,3 +171,37 @@ def test_ensemble_predictor_pools_student_t_shape_and_chunks():
     np.testing.assert_allclose(chunked.epistemic, whole.epistemic, rtol=1e-5)
     p = pr.compose(Components(phys, whole))
     assert p.family == "student_t" and np.all(np.isfinite(p.total))
+
+
+def test_a_prediction_knows_its_calibrations_level(tmp_path):
+    """Seventh outside pass (found in the fifth): ``Prediction.interval`` needed its level, so
+    ``run.predictor.predict(rows).interval()`` raised TypeError and ``interval(95)`` gave NaN bounds without a word.
+    The level lives in the settings (``[uq] level``) and the saved calibration; every Predictor keeps it and every
+    Prediction it makes carries it; an explicit level still wins; one outside (0, 1) is refused, naming it."""
+    import warnings
+    d = bayesmag.simulate.simulate(400, design="campaign", seed=0, noise_sd=0.05)
+    settings = bayesmag.CalibrationSettings(uq=bayesmag.UQSettings(level=0.9, method="analytic"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run = bayesmag.calibrate(d.subset(np.arange(320)), settings, test=d.subset(np.arange(320, 400)))
+    pred = run.predictor.predict(d)
+    assert run.predictor.level == pred.level == run.prediction.level == 0.9
+    lo, hi = pred.interval()
+    np.testing.assert_array_equal(lo, pred.interval(0.9)[0])
+    np.testing.assert_allclose(hi - pred.mean, scipy.stats.norm.ppf(0.95) * pred.total, rtol=1e-10)
+    assert np.all(pred.interval(0.99)[1] > hi)                        # the explicit argument still works
+    for bad in (95, 0.0, 1.0, True, "0.95"):
+        with pytest.raises(ValueError, match=rf"level\) = {bad!r} must be a number in \(0, 1\)"):
+            pred.interval(bad)
+    with pytest.raises(ValueError, match=r"use 0\.95"):
+        pred.interval(95)
+    with pytest.raises(ValueError, match=r"Predictor\.level = 95"):
+        dataclasses.replace(run.predictor, level=95)
+
+    with warnings.catch_warnings():                                    # saved and loaded: the calibration's level
+        warnings.simplefilter("ignore")
+        cal = bayesmag.Calibrator({"uq": {"level": 0.8, "method": "analytic"}}).fit(d)
+        out = cal.predict(d)
+    loaded = cal.calibration_.predictor().predict(d)
+    assert loaded.level == 0.8
+    np.testing.assert_allclose(loaded.interval()[0], out["lower"], rtol=1e-12)

@@ -171,7 +171,7 @@ class Calibration:
                          passes=passes, network_seed=nseed, fusion=fusion, transfer_sd=self.transfer_sd,
                          scale=self.interval_scale, domain=self.domain,
                          uq=UQOptions(method, n_params, n_qmc, seed, chunk_size), sessions=self.sessions,
-                         network_transfer_sd=self.network_transfer_sd)
+                         network_transfer_sd=self.network_transfer_sd, level=self.level)
 
     def predict(self, data, *, level: float | None = None, method: str = "auto",
                 n_params: int = 100, n_qmc: int = 256, seed: int = 0, chunk_size: int = 100_000,
@@ -211,9 +211,9 @@ class Calibration:
         """
         from bayesmag._src.core.frames import as_calibration_data, is_frame, prediction_frame
 
-        if level is not None and (isinstance(level, bool) or not isinstance(level, (int, float))
-                                  or not 0 < level < 1):
-            raise ValueError(f"level = {level!r} must be a number in (0, 1), e.g. 0.95.")
+        if level is not None:
+            from bayesmag._src.core.predictor import check_level
+            level = check_level(level)
         if is_frame(data):
             index = data.index
             if check_rates is None:

@@ -514,7 +514,7 @@ def run_fleet(cfg: FleetConfig, out, *, progress: bool = True) -> dict:
             from bayesmag._src.app.fleet_sensors import fleet_networks, sensor_stages
             t = time.perf_counter()
             stages = sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, residual_sd,
-                                   train_pred, design)
+                                   train_pred, design, level=cfg.level)
             timings["sensor_predictions"] = time.perf_counter() - t
         physics_rmse, physics_cover = rmse, cover
         if cfg.network.enabled:

@@ -54,16 +54,16 @@ class SensorStage:
 
 
 def sensor_stages(ids, trains, tests, test_rows, splits, fit, uq, sigma_in, residual_sd,
-                  train_pred, design=None) -> list[SensorStage]:
+                  train_pred, design=None, *, level: float = 0.95) -> list[SensorStage]:
     """Each sensor's physics :class:`Predictor` and prediction of its test rows, from the batched fit and UQ
     (``train_pred``: :func:`~bayesmag._src.core.fleet_fit.fleet_predict` of the training rows; ``design``: each
-    sensor's design warnings, kept with its fit)."""
+    sensor's design warnings, kept with its fit; ``level``: the fleet's ``[uq] level``)."""
     from bayesmag._src.core.domain import Domain
     out = []
     for i, sid in enumerate(ids):
         pf = sensor_fit(fit, i, () if design is None else tuple(design[i]))
         pr = Predictor(fit=pf, sigma_in=np.asarray(sigma_in[i]), residual_sd=np.asarray(residual_sd[i]),
-                       domain=Domain.from_data(trains[i]), uq=UQOptions(method="analytic"))
+                       domain=Domain.from_data(trains[i]), uq=UQOptions(method="analytic"), level=level)
         k = tests[i].n
         ep = uq.epistemic[i, :k]
         u = PhysicsUQ(uq.mean[i, :k], uq.aleatoric[i, :k], ep, ep, ep)

@@ -227,7 +227,7 @@ def run_size(cfg: Config, size: int, *, progress: bool = False) -> dict:
     t["physics_fit"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sigma_in = np.diag(np.r_[np.full(3, float(sim.get("noise_sd", 0.5))), max(float(sim.get("temp_noise_sd", 0.0)), 1e-3)] ** 2)
-    physics = Predictor(fit=fit, sigma_in=sigma_in, residual_sd=np.zeros(3), uq=uq_options(cfg))
+    physics = Predictor(fit=fit, sigma_in=sigma_in, residual_sd=np.zeros(3), uq=uq_options(cfg), level=cfg.uq.level)
     uq = physics.physics_part(test, progress=progress)
     t["physics_uq"] = time.perf_counter() - t0
 

@@ -82,7 +82,8 @@ class Prediction:
     ``parts``: named sds ``(n, 3)`` -- ``aleatoric_physics``, ``epistemic_physics``, and, where
     they enter the total, ``residual_physics``, ``aleatoric_nn``, ``epistemic_nn``, ``transfer``.
     ``in_domain`` / ``domain_reason``: ``(n,)``, set by :meth:`Predictor.predict` when the
-    predictor knows its training domain, else None.
+    predictor knows its training domain, else None. ``level``: the calibration's interval level (its
+    ``[uq] level``, :attr:`Predictor.level`), what :meth:`interval` gives without an argument.
     """
 
     mean: np.ndarray
@@ -93,9 +94,15 @@ class Prediction:
     family: str = "gaussian"
     in_domain: np.ndarray | None = None
     domain_reason: np.ndarray | None = None
+    level: float = 0.95
 
-    def interval(self, level: float) -> tuple[np.ndarray, np.ndarray]:
-        """Central ``level`` interval of :attr:`dist`, float64 ``(lower, upper)``."""
+    def __post_init__(self):
+        check_level(self.level, "Prediction.level")
+
+    def interval(self, level: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Central interval of :attr:`dist` of probability ``level`` (default: :attr:`level`, the calibration's),
+        float64 ``(lower, upper)``; a level outside (0, 1), such as 95, is a ``ValueError`` naming it."""
+        level = self.level if level is None else check_level(level, "Prediction.interval(level)")
         lo, hi = self.dist.interval(level)
         return np.asarray(lo, np.float64), np.asarray(hi, np.float64)
 
@@ -110,8 +117,17 @@ class Prediction:
     transfer = property(lambda self: self._part("transfer"))
 
 
+def check_level(level, what: str = "level") -> float:
+    """``level`` as a float if it is a number in (0, 1); else a ``ValueError`` naming it (95 for 0.95 among them)."""
+    if isinstance(level, bool) or not isinstance(level, (int, float, np.integer, np.floating)) or not 0 < level < 1:
+        hint = f" (a percentage? use {level / 100:g})" if (isinstance(level, (int, float)) and not isinstance(
+            level, bool) and 1 < level < 100) else ""
+        raise ValueError(f"{what} = {level!r} must be a number in (0, 1), e.g. 0.95 for a 95 % interval{hint}.")
+    return float(level)
+
+
 def compose(physics, nn=None, *, residual_sd=None, fusion: str = "moment_match", family: str = "gaussian",
-            fixed_shape=None, transfer_sd=None, scale=None, new_session=True) -> Prediction:
+            fixed_shape=None, transfer_sd=None, scale=None, new_session=True, level: float = 0.95) -> Prediction:
     """The predictive distribution from its computed parts (rules in the module docstring).
 
     ``physics``: a :class:`~bayesmag.PhysicsUQ`; ``nn``: an MC-DropConnect
@@ -119,7 +135,8 @@ def compose(physics, nn=None, *, residual_sd=None, fusion: str = "moment_match",
     ``(3,)`` or ``(n, 3)`` sds or None; ``fixed_shape``: the family's shape fields held fixed
     (:attr:`NetworkSpec.fixed_shape`, e.g. Student-t ``df``); the others come from the network's
     learned per-row values; ``scale``: ``(3,)`` interval factor or None; ``new_session``:
-    bool or ``(n,)`` mask of the rows the transfer part enters.
+    bool or ``(n,)`` mask of the rows the transfer part enters; ``level``: the prediction's interval level
+    (:attr:`Prediction.level`).
     """
     if fusion not in FUSIONS:
         raise ValueError(f"fusion {fusion!r} is not known; it must be one of {list(FUSIONS)}")
@@ -161,7 +178,7 @@ def compose(physics, nn=None, *, residual_sd=None, fusion: str = "moment_match",
             dist_fam, dist = family, moment_match(family, mean, var, **shape)
     if tau is not None:
         parts["transfer"] = tau
-    return Prediction(mean, dist, np.sqrt(var), parts, fusion, dist_fam)
+    return Prediction(mean, dist, np.sqrt(var), parts, fusion, dist_fam, level=level)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,7 +196,9 @@ class Predictor:
     ``sessions``: a hierarchical session posterior (``transfer_sd(fit, data) -> (n, 3)``, e.g.
     :class:`~bayesmag._src.pipeline.sessions.SessionPosterior`) whose row-dependent transfer sd
     replaces ``transfer_sd``, or None; ``network_transfer_sd``: (3,) sd of the network's own error on a new
-    session (:mod:`~bayesmag._src.pipeline.network_transfer`), added in quadrature to the transfer part, or None.
+    session (:mod:`~bayesmag._src.pipeline.network_transfer`), added in quadrature to the transfer part, or None;
+    ``level``: the calibration's central interval level (``[uq] level``), which every :class:`Prediction` it makes
+    carries (:meth:`Prediction.interval` without an argument).
     """
 
     fit: Any
@@ -195,10 +214,12 @@ class Predictor:
     uq: UQOptions = UQOptions()
     sessions: Any = None
     network_transfer_sd: np.ndarray | None = None    # (3,) the network's own new-session sd ([uq] transfer_networks)
+    level: float = 0.95
 
     def __post_init__(self):
         if self.fusion not in FUSIONS:
             raise ValueError(f"fusion {self.fusion!r} is not known; it must be one of {list(FUSIONS)}")
+        check_level(self.level, "Predictor.level")
 
     def __repr__(self) -> str:
         theta = np.shape(getattr(self.fit, "theta", ()))
@@ -207,7 +228,7 @@ class Predictor:
         opt = lambda v: "none" if v is None else "[" + ", ".join(f"{x:.3g}" for x in np.asarray(v, float).reshape(-1)) + "]"  # noqa: E731
         return (f"Predictor(physics {theta[-1] if theta else '?'} parameters per axis, network={net}, "
                 f"fusion={self.fusion!r}, transfer_sd={opt(self.transfer_sd)}, scale={opt(self.scale)}, "
-                f"uq={self.uq.method!r})")
+                f"uq={self.uq.method!r}, level={self.level:g})")
 
     @property
     def family(self) -> str:
@@ -265,7 +286,7 @@ class Predictor:
             transfer = nts if transfer is None else np.sqrt(np.asarray(transfer, np.float64) ** 2 + nts**2)
         return compose(c.physics, c.nn, residual_sd=self.residual_sd, fusion=fusion or self.fusion,
                        family=self.family, fixed_shape=None if spec is None else spec.fixed_shape, transfer_sd=transfer,
-                       scale=self.scale, new_session=new_session)
+                       scale=self.scale, new_session=new_session, level=self.level)
 
     def predict(self, data, *, new_session=True, progress: bool = False, history: tuple | None = None) -> Prediction:
         """The predictive distribution for every row of ``data`` (no reference needed).

@@ -178,13 +178,14 @@ def train_networks_excluding(x: np.ndarray, r: np.ndarray, spec: NetworkSpec, ne
             bar.close()
 
 
-def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str = "moment_match") -> Prediction:
+def fuse(physics: PhysicsUQ, nn: MCPrediction, spec: NetworkSpec, *, fusion: str = "moment_match",
+         level: float = 0.95) -> Prediction:
     """Combine the physics PS-QMC prediction and the MC-DropConnect residual prediction.
 
     See the module docstring for the two rules (:func:`~bayesmag._src.core.predictor.compose`).
-    ``physics`` and ``nn`` are for the same rows.
+    ``physics`` and ``nn`` are for the same rows; ``level``: the prediction's interval level.
     """
-    return compose(physics, nn, fusion=fusion, family=spec.likelihood, fixed_shape=spec.fixed_shape)
+    return compose(physics, nn, fusion=fusion, family=spec.likelihood, fixed_shape=spec.fixed_shape, level=level)
 
 
 def score(y: np.ndarray, pred: Prediction, level: float) -> tuple[dict, np.ndarray, np.ndarray]:

@@ -126,7 +126,7 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
     resid_var = (residual_variance(uq_settings, fit, train, sigma_in, series=series[:2] if whole else None)
                  if uq_settings.residual_term else np.zeros(3))
     predictor = Predictor(fit=fit, sigma_in=sigma_in, residual_sd=np.sqrt(resid_var), domain=domain,
-                          uq=uq_settings.options())
+                          uq=uq_settings.options(), level=uq_settings.level)
     in_series = test is not None and whole
     if in_series:
         uq = series_rows(predictor.physics_part(series[0], progress=progress), series[2])
