@@ -259,7 +259,7 @@ def test_apply_says_when_a_calibration_has_no_transfer_term():
 
 def test_a_field_job_refuses_the_vector_transfer_keys():
     from bayesmag._src.app.config import ConfigError, config_from_dict
-    with pytest.raises(ConfigError, match=r"\['uq.transfer'\].*field calibration.*has none"):
+    with pytest.raises(ConfigError, match=r"'uq.transfer' = 'hierarchical'.*field calibration.*valid: \['loro', 'off'\]"):
         config_from_dict({"data": {"source": "field_simulated"}, "uq": {"transfer": "hierarchical"}})
     config_from_dict({"data": {"source": "field_simulated"}})                # the defaults pass
 
