@@ -142,19 +142,35 @@ def _untested(skipped: list, cands: dict, step_note: str | None) -> dict:
     return out
 
 
-def _explanation(comp, untested: dict) -> str:
-    """The entry's explanation, or, when rivals that can give the same pattern were not searched (``untested``),
-    that explanation stated as one possible cause with the rivals, why they were not tested and how to test them."""
+def _explanation(comp, untested: dict, within=None) -> str:
+    """The entry's explanation, or that explanation stated as one possible cause when these data cannot support it:
+    rivals that can give the same pattern were not searched (``untested``: they are named with why and how to test
+    them), or a per-run constant is in doubt within its runs (``within``, :class:`~.checks.WithinRun`: offsets per
+    piece of a run predict >= MIN_GAIN better out of sample, though the serial contrast is below Z_DISTINCT)."""
     rv = [r for r in getattr(comp, "rivals", ()) if r in untested]
-    if not rv:
+    doubt = within is not None and within.gain >= MIN_GAIN and not within.wanders
+    if not rv and not doubt:
         return comp.explanation
-    why = "; ".join(sorted({untested[r] for r in rv}))
-    fix = ("declare the time column's unit ([data] time_unit) to test them on their own time scale"
-           if any("seconds" in untested[r] for r in rv) else
-           "a recording with a time column (seconds) can test them")
+    why = []
+    if rv:
+        fix = ("declare the time column's unit ([data] time_unit) to test them on their own time scale"
+               if any("seconds" in untested[r] for r in rv) else
+               "a recording with a time column (seconds) can test them")
+        why.append(f"{', '.join(rv)} can also give this pattern and {'was' if len(rv) == 1 else 'were'} not searched "
+                   f"({'; '.join(sorted({untested[r] for r in rv}))}); {fix}")
+    if doubt:
+        why.append(f"the offset may also wander within runs (an offset for each of up to {within.pieces} pieces of a "
+                   f"run predicts {within.gain:.1%} better out of sample; neighbouring blocks alike at serial z = "
+                   f"{within.z:.2f}, short of {Z_DISTINCT} by {Z_DISTINCT - within.z:.2f})")
     return (f"One possible cause: {comp.explanation[0].lower()}{comp.explanation[1:]} Not established by these data: "
-            f"{', '.join(rv)} can also give this pattern and {'was' if len(rv) == 1 else 'were'} not searched "
-            f"({why}); {fix}.")
+            + "; and ".join(why) + ".")
+
+
+def _established(comp, untested: dict, within=None) -> dict:
+    """``untested_rivals`` and ``cause_established = False`` where :func:`_explanation` qualifies the cause."""
+    rv = [{"effect": r, "reason": untested[r]} for r in getattr(comp, "rivals", ()) if r in untested]
+    doubt = within is not None and within.gain >= MIN_GAIN and not within.wanders
+    return ({**({"untested_rivals": rv} if rv else {}), "cause_established": False} if rv or doubt else {})
 
 
 def _wander_text(w) -> str:
@@ -563,9 +579,8 @@ def discover(data, options: DiscoverOptions | None = None, *, progress=None, col
                          **({"z_lag_vs_zero_phase_smoothing": z_smoothing[e.setting.component][0],
                              "zero_phase_smoothing_tau": z_smoothing[e.setting.component][1]}
                             if e.setting.component in z_smoothing else {})},
-            "explanation": _explanation(e.component, untested),
-            **({"untested_rivals": [{"effect": r, "reason": untested[r]} for r in e.component.rivals if r in untested],
-                "cause_established": False} if any(r in untested for r in e.component.rivals) else {}),
+            "explanation": _explanation(e.component, untested, within.get(e)),
+            **_established(e.component, untested, within.get(e)),
             "indistinguishable_from": [{"effect": a.ext.name, "where": _label(a.ext), "oos_gain": a.gain}
                                        for a in (st["alternatives"] if st else [])],
             "config": _spec(e, theta[sl[e][0]] if e.frame == "whole" else None),
