@@ -110,10 +110,11 @@ def estimate_input_noise(data) -> np.ndarray:
     (``Var(x[t+1] - 2x[t] + x[t-1]) = 6 s^2`` for white noise): second differences remove
     held levels, ramps and slow rotations, and the median absolute deviation ignores the
     few large values at field steps. Right when the noise is white and the signal is
-    piecewise smooth; biased for strongly coloured noise (then give ``sigma_in``).
+    piecewise smooth; biased for strongly coloured noise (then give ``sigma_in``). Only rows adjacent in the
+    recording are differenced (``data.time``): the training rows of a random split skip the test rows.
     """
     from bayesmag._src.core.data import second_difference_sd
-    sd = second_difference_sd(np.column_stack([data.b_meas, data.temperature]), data.run)
+    sd = second_difference_sd(np.column_stack([data.b_meas, data.temperature]), data.run, time=data.time)
     return np.diag((np.full(4, np.nan) if sd is None else sd) ** 2)
 
 
