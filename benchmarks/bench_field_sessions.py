@@ -39,6 +39,8 @@ GENERATORS = {
     "scalar": dict(sessions=6, hard_iron_sd=0.3, measurement="scalar"),
     "none": dict(sessions=6, hard_iron_sd=0.0),
     "large": dict(sessions=6, hard_iron_sd=1.0),
+    "small": dict(sessions=6, hard_iron_sd=0.05),
+    "small_12": dict(sessions=12, hard_iron_sd=0.05),
 }
 NEW_SESSIONS = 20
 

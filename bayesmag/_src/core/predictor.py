@@ -329,7 +329,7 @@ def _weighted_quantile(v: np.ndarray, w: np.ndarray, q: float) -> float:
     return float(v[order][min(np.searchsorted(cum, q - 1e-12), v.size - 1)])
 
 
-def session_variance_bound(need, weight, within, n_runs: int, level: float = 0.95) -> np.ndarray:
+def session_variance_bound(need, weight, within, n_runs: int, level: float = 0.95, exact=0.0) -> np.ndarray:
     r"""Between-session sd from leave-one-run-out rows: the grouped conformal quantile, bounded over the runs.
 
     ``need`` (n,) or (n, k): each left-out row's :math:`(e_i / z)^2 - s_i^2`, the smallest extra variance that
@@ -339,6 +339,8 @@ def session_variance_bound(need, weight, within, n_runs: int, level: float = 0.9
     ``level`` quantile :math:`q` of ``need`` makes the new-session variance :math:`s^2 + q`; from R runs it is
     replaced by its one-sided :data:`TRANSFER_CONFIDENCE` = c upper bound :math:`(s^2 + q)(R-1)/\chi^2_{R-1}(1-c)`,
     and the sd returned is :math:`\sqrt{\max(\text{that} - s^2, 0)}`: (k,), or a float for a 1-D ``need``.
+    ``exact``: a part :math:`w^2 \le s^2` of the within variance known from far more than R samples (white
+    reading noise), held out of the bound: :math:`(s^2 - w^2 + q)(R-1)/\chi^2_{R-1}(1-c) + w^2 - s^2`.
 
     Example:
       >>> import scipy.stats    # three runs, median row need 1.0: x 2 / chi2_2(0.2) = 4.48
@@ -350,8 +352,9 @@ def session_variance_bound(need, weight, within, n_runs: int, level: float = 0.9
     v = need.reshape(need.shape[0], -1)
     q = np.array([_weighted_quantile(v[:, a], np.asarray(weight, np.float64), level) for a in range(v.shape[1])])
     within = np.broadcast_to(np.asarray(within, np.float64), q.shape)
+    exact = np.minimum(np.broadcast_to(np.asarray(exact, np.float64), q.shape), within)
     inflate = (n_runs - 1) / scipy.stats.chi2.ppf(1 - TRANSFER_CONFIDENCE, n_runs - 1)
-    tau = np.sqrt(np.maximum((q + within) * inflate - within, 0.0))
+    tau = np.sqrt(np.maximum((q + within - exact) * inflate + exact - within, 0.0))
     return float(tau[0]) if need.ndim == 1 else tau
 
 
