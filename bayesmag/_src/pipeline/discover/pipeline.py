@@ -6,9 +6,11 @@ r"""Discovery of missing physics: search the catalogue in the sensor's frame, ch
    or the whole sensor, scored out of sample against the current joint model; forward
    selection.
 3. **Checks** (:mod:`.checks`): drop-one refits of the whole finding set; coefficients the
-   data do not identify are removed; the joint model is refitted exactly (:mod:`.frame`, one
+   data do not identify are removed; a per-run term that is not constant within its runs is
+   removed (reported as unexplained); the joint model is refitted exactly (:mod:`.frame`, one
    LM over 24 + k parameters) and nonlinear values outside the entry's physical range
-   remove the effect.
+   remove the effect. A finding whose rivals (``Entry.rivals``) could not be searched states
+   its explanation as one possible cause.
 4. **Describe** (:mod:`.diagnostics`): the final residual, mapped back to the sensor
    channels, is located again; structure left (strong autocorrelation above the noise floor,
    or located patterns) is reported as unexplained with its time scale.
