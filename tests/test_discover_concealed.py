@@ -90,6 +90,22 @@ def test_time_scale_without_a_time_column_is_in_rows():
     assert structure(d, r, [], dt=1.0)[0]["time_scale_s"] is not None
 
 
+def test_correlation_time_is_not_made_white_by_a_few_spikes():
+    """An AR(1) residual of correlation time ~25 rows with 6 spikes of 40 sd (Belsten's z channel, once its offset
+    left the model: 0.25 s, one sample): the correlation time stays within 20 % of the spike-free one."""
+    from bayesmag._src.pipeline.discover.diagnostics import correlation_time
+    rng = np.random.default_rng(3)
+    e = rng.standard_normal(4000)
+    r = np.empty_like(e)
+    r[0] = e[0]
+    for k in range(1, e.size):
+        r[k] = 0.96 * r[k - 1] + 0.28 * e[k]
+    spiky = r.copy()
+    spiky[rng.choice(r.size, 6, replace=False)] += 40 * r.std()
+    clean = correlation_time(r, 1.0)
+    assert clean > 10 and abs(correlation_time(spiky, 1.0) / clean - 1) < 0.2, (clean, correlation_time(spiky, 1.0))
+
+
 @pytest.mark.extended
 @pytest.mark.parametrize("seed", [31, 32])
 def test_thermal_lag_without_time_is_not_given_a_power_cycling_cause(seed):

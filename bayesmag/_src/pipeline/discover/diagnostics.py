@@ -378,7 +378,14 @@ def noise_floor(r: np.ndarray, run: np.ndarray) -> float:
 
 
 def correlation_time(r: np.ndarray, dt: float) -> float:
-    """Seconds until the autocorrelation of ``r`` first falls below 1/e."""
+    """Seconds until the autocorrelation of ``r`` first falls below 1/e; ``r`` clipped at 5 robust sd
+    (1.4826 MAD) about its median first, so a few spikes do not make a slow residual look white (Belsten's z
+    channel: 6 rows of 1.8 uT in a residual of sd 0.046 uT gave 0.25 s, one sample)."""
+    r = np.asarray(r, dtype=np.float64)
+    med = np.median(r)
+    lim = 5.0 * 1.4826 * np.median(np.abs(r - med))
+    if lim > 0:
+        r = np.clip(r, med - lim, med + lim)
     r = r - r.mean()
     n = r.size
     f = np.fft.rfft(r, 2 * n)

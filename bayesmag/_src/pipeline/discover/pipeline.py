@@ -208,8 +208,7 @@ def _add_wander(unexplained: list, e, w, sc, place: np.ndarray, run: np.ndarray,
         "floor_ratio": float(np.var(place) / max(floor ** 2, 1e-300)), "noise_floor": floor,
         "time_scale_s": ct if time_ok else None, "time_scale_rows": ct / max(dt, 1e-12), "basis": "correlation time",
         "variable": "run", "where": "differs between runs and within them", "fraction": None, "p_value": None,
-        "description": (f"in the {label} calibrated output (an output-frame term): " if e.frame == "output" else "")
-                       + text, **rec}]
+        "description": text, **rec}]
 
 
 def _localised_ext(ext) -> bool:
