@@ -250,8 +250,9 @@ def test_certificate_new_session_U_is_the_hybrids(hier):
     ref = 0.01
     pred = on.hybrid.predictions["gaussian"]                       # the hybrid's parts on the test rows
     c = np.ones(3) if on.predictor.scale is None else np.asarray(on.predictor.scale)
-    a_nn, e_nn, e_p = (c * np.mean(pred.parts[k], axis=0) for k in ("aleatoric_nn", "epistemic_nn",
-                                                                      "epistemic_physics"))
+    # root mean squares over the test rows (the parts' squares add up to the rows' mean variance)
+    a_nn, e_nn, e_p = (c * np.sqrt(np.mean(np.asarray(pred.parts[k]) ** 2, axis=0))
+                       for k in ("aleatoric_nn", "epistemic_nn", "epistemic_physics"))
     tau = np.sqrt(np.mean(on.predictor.transfer_part(data) ** 2, axis=0))     # RMS over the training rows
     ex = expanded_uncertainties(m, params, reference_sd=ref)
     assert ex["new_session_source"] == "hybrid"

@@ -68,9 +68,12 @@ def test_budget_combines_with_reference_and_reports_k_and_U():
     text = render_report(m, params, reference_sd=0.05)
     ref = _row(text, "reference magnetometer")
     assert ref[1:6] == ["B", "inf", "0.050", "0.050", "0.050"]                 # two significant figures
-    assert _row(text, "aleatoric")[1:3] == ["A", "999"] and _row(text, "epistemic")[1:3] == ["A", "992"]
+    # the noise sd's dof: a MAD (37 % efficient) of n - 2R overlapping second differences (0.514 of them independent)
+    nu_noise = 0.37 / (1 + 2 * (4 / 9 + 1 / 36)) * (1000 - 2)
+    assert _row(text, "aleatoric")[1:3] == ["A", f"{nu_noise:.0f}"] == ["A", "190"]
+    assert _row(text, "epistemic")[1:3] == ["A", "992"]                  # independent residuals: n - p
     uc = math.sqrt(0.06**2 + 0.08**2 + 0.01**2 + 0.05**2)
-    nu = welch_satterthwaite([0.06, 0.08, 0.01, 0.05], [999, 992, 992, math.inf])
+    nu = welch_satterthwaite([0.06, 0.08, 0.01, 0.05], [nu_noise, 992, 992, math.inf])
     k = stats.t.ppf(0.975, nu)
     ex = expanded_uncertainties(m, params, reference_sd=0.05)["same_session"]["x"]
     assert ex["u_c"] == pytest.approx(uc, rel=1e-12) and ex["U"] == pytest.approx(k * uc, rel=1e-12)
@@ -80,6 +83,42 @@ def test_budget_combines_with_reference_and_reports_k_and_U():
     # without the reference the combined uncertainty is smaller
     assert expanded_uncertainties(m, params)["same_session"]["x"]["u_c"] == pytest.approx(
         math.sqrt(uc**2 - 0.05**2), rel=1e-12)
+
+
+def test_autocorrelated_residuals_count_their_effective_rows():
+    """With lag-1 autocorrelation rho the residual and parameter parts have n (1 - rho) / (1 + rho) - p dof (AR(1)
+    effective sample size), per axis, and the budget prints them x / y / z."""
+    m, params = _metrics_params()
+    params["axes"] = {a: {**params["axes"][a], "lag1_autocorrelation": r} for a, r in zip("xyz", (0.0, 0.5, 0.8))}
+    want = [1000 * (1 - r) / (1 + r) - 8 for r in (0.0, 0.5, 0.8)]
+    assert _row(render_report(m, params), "epistemic")[2] == " / ".join(f"{v:.0f}" for v in want) == "992 / 325 / 103"
+    ex = expanded_uncertainties(m, params)["same_session"]
+    nu_noise = 0.37 / (1 + 2 * (4 / 9 + 1 / 36)) * 998
+    for a, v in zip("xyz", want):
+        assert ex[a]["nu_eff"] == pytest.approx(welch_satterthwaite([0.06, 0.08, 0.01, 0.0], [nu_noise, v, v, math.inf]))
+
+
+def test_a_non_gaussian_hybrid_states_the_U_of_its_own_interval():
+    """A Laplace hybrid's 95 % interval is +-2.12 sd (b ln 20, b = sd / sqrt 2): the certificate's k is that family's
+    factor (recorded per axis by the job as budget.interval_factor) times the t(nu_eff) / z correction, so U is the
+    half-width of the predictor's own interval (with k = 1.96 it was 8 % below it)."""
+    from bayesmag._src.app.report import hybrid_new_session
+    m, params = _metrics_params()
+    factor = np.log(20) / np.sqrt(2)
+    m["network"] = {"primary": "laplace", "training": {"laplace": {"budget": {
+        "parts": {"aleatoric_nn": {a: 0.03 for a in "xyz"}, "epistemic_nn": {a: 0.01 for a in "xyz"},
+                  "epistemic_physics": {a: 0.005 for a in "xyz"}}, "interval_scale": {a: 1.0 for a in "xyz"},
+        "transfer_sd": {a: 0.0 for a in "xyz"}, "family": "laplace", "average": "rms",
+        "interval_factor": {a: factor for a in "xyz"}}}}}
+    assert hybrid_new_session(m) is not None
+    ex = expanded_uncertainties(m, params)
+    uc = math.sqrt(0.03**2 + 0.01**2 + 0.005**2)
+    nu = ex["same_session"]["x"]["nu_eff"]
+    assert ex["same_session"]["x"]["U"] == pytest.approx(factor * stats.t.ppf(0.975, nu) / stats.norm.ppf(0.975) * uc,
+                                                         rel=1e-12)
+    assert factor == pytest.approx(2.1183, abs=1e-4) and ex["family"] == "laplace"
+    text = render_report(m, params)
+    assert "the laplace family's interval half-width in sd" in text
 
 
 def test_fit_statistics_block():

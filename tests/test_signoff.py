@@ -141,11 +141,12 @@ def test_transfer_term_gives_same_and_new_session_U():
     params = {"n_rows": 500, "model": {"param_names": list("abcdefgh")}}
     ex = expanded_uncertainties(m, params)
     same = math.sqrt(0.06**2 + 0.02**2 + 0.01**2)
-    nu = welch_satterthwaite([0.06, 0.02, 0.01], [499, 492, 492])
+    nu_noise = 0.37 / (1 + 2 * (4 / 9 + 1 / 36)) * (500 - 2)      # report.MAD_EFFICIENCY x SECOND_DIFFERENCE_EFFICIENCY
+    nu = welch_satterthwaite([0.06, 0.02, 0.01], [nu_noise, 492, 492])
     assert ex["same_session"]["x"]["U"] == pytest.approx(stats.t.ppf(0.975, nu) * same, rel=1e-12)
     for a, tau in (("x", 0.05), ("y", 0.0), ("z", 0.1)):
         uc = math.sqrt(same**2 + tau**2)
-        nu_new = welch_satterthwaite([0.06, 0.02, 0.01, tau], [499, 492, 492, math.inf])
+        nu_new = welch_satterthwaite([0.06, 0.02, 0.01, tau], [nu_noise, 492, 492, math.inf])
         assert ex["new_session"][a]["U"] == pytest.approx(stats.t.ppf(0.975, nu_new) * uc, rel=1e-12)
     assert ex["new_session"]["y"]["U"] == pytest.approx(ex["same_session"]["y"]["U"], rel=1e-12)
 

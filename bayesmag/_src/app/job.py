@@ -292,7 +292,10 @@ def job_metrics(cfg: Config, run, data: CalibrationData, split, test: Calibratio
                "sigma_in_source": ps.sigma_source, "residual_term": _per_axis(ps.residual_sd),
                "mean_aleatoric": _per_axis(uq.aleatoric[budget_rows].mean(0)),
                "mean_epistemic": _per_axis(uq.epistemic[budget_rows].mean(0)),
-               "budget_rows": budget_rows_note(outside)},
+               # the certificate's budget: root mean square over the rows, so u_c^2 is the rows' mean variance
+               "rms_aleatoric": _per_axis(np.sqrt(np.mean(uq.aleatoric[budget_rows] ** 2, axis=0))),
+               "rms_epistemic": _per_axis(np.sqrt(np.mean(uq.epistemic[budget_rows] ** 2, axis=0))),
+               "budget_rows": budget_rows_note(outside), "budget_rows_in_domain": int((~outside.any(axis=1)).sum())},
         "split": split.as_dict(),
         "data": {"source": data.source, "n_rows": data.n, "runs": [int(r) for r in data.runs],
                  "train_runs": [int(r) for r in np.unique(train.run)]},

@@ -144,6 +144,24 @@ def _param_table(ax: str, p: dict, corr_threshold: float) -> list[str]:
     return lines
 
 
+def white_covariance_note(params: dict) -> str | None:
+    """The certificate's statement when the parameter uncertainties come from the white covariance while the
+    residuals are autocorrelated: the range of Newey-West (autocorrelation-consistent) over white standard
+    uncertainties per axis (``covariance_info.newey_west_sd_ratio``, computed with every white fit); None when the
+    covariance is not white, the ratios are not recorded (older runs) or all are below 1.5."""
+    axes = params.get("axes") or {}
+    ratios = {a: (axes[a].get("covariance_info") or {}).get("newey_west_sd_ratio") for a in AXES if a in axes}
+    if params.get("covariance_method") != "white" or not all(ratios.values()) or max(r[1] for r in ratios.values()) < 1.5:
+        return None
+    rho = " / ".join(f"{axes[a]['lag1_autocorrelation']:.2f}" for a in AXES)
+    return ("The parameters' standard uncertainties u below come from the white covariance, which takes the residuals "
+            f"as independent; their lag-1 autocorrelation is {rho} (x / y / z), and the autocorrelation-consistent "
+            "(Newey-West) covariance of the same fit gives u " + "; ".join(
+                f"{r[0]:.1f}-{r[1]:.1f}x as large on {a}" for a, r in ratios.items())
+            + ". Quote those (`[physics] covariance = \"newey_west\"` puts them in this certificate and in the "
+            "epistemic part of every interval).")
+
+
 #: The one reference-temperature recommendation (also in the fit's design note, core/fit.py).
 T0_ADVICE = 'set [physics] t0 = "mean" (the training mean temperature), which removes the S-Ks and O-Ko correlations'
 
@@ -153,20 +171,49 @@ def _per_axis_sd(reference_sd) -> dict:
     return {a: float(v) for a, v in zip(AXES, r)}
 
 
+#: Efficiency of the MAD as an estimate of a normal sd (Rousseeuw and Croux 1993, JASA 88, 1273: 37 %).
+MAD_EFFICIENCY = 0.37
+#: Second differences of white noise overlap (lag-1 correlation -2/3, lag-2 1/6), so a variance from m of them
+#: counts as m / (1 + 2 (4/9 + 1/36)) = 0.514 m independent values.
+SECOND_DIFFERENCE_EFFICIENCY = 1.0 / (1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0))
+
+
+def effective_dof(params: dict, n: int, p: int) -> dict:
+    """Per axis, the degrees of freedom of the residual variance and the parameter covariance: the training rows'
+    effective number under AR(1) residuals, ``n (1 - rho1) / (1 + rho1)`` (rho1 the residual lag-1
+    autocorrelation in params.json, >= 0), less the ``p`` parameters (at least 1). Independent residuals give
+    ``n - p``; Belsten's (rho1 0.76-0.87) about 200-400, not 3032."""
+    out = {}
+    for a in AXES:
+        rho = float((params.get("axes") or {}).get(a, {}).get("lag1_autocorrelation") or 0.0)
+        rho = min(max(rho, 0.0), 0.99)
+        out[a] = max(n * (1.0 - rho) / (1.0 + rho) - p, 1.0)
+    return out
+
+
 def _components(m: dict, params: dict, reference_sd) -> list[tuple]:
-    """(label, per-axis u, type, dof, evaluation) of the within-session budget."""
+    """(label, per-axis u, type, per-axis dof, evaluation) of the within-session budget. The parts are root mean
+    squares over the budget's rows (``rms_*``; runs before that key: the means), so ``u_c^2`` is the rows' mean
+    variance; dof: :func:`effective_dof` for the residual and the parameters, and for the noise sd estimated from
+    the rows' second differences by a MAD about ``0.37 x 0.514 x (n - 2 R)`` (R the training runs)."""
     u = m["uq"]
     n = int(params.get("n_rows") or m["split"]["n_train"])
     p = len(params["model"]["param_names"])
     auto = str(u.get("sigma_in_source", "")).startswith("auto")
     ref = _per_axis_sd(reference_sd)
+    d = m.get("data") or {}
+    n_runs = max(len(d.get("train_runs") or d.get("runs") or [0]), 1)
+    nu_res = effective_dof(params, n, p)
+    nu_noise = max(MAD_EFFICIENCY * SECOND_DIFFERENCE_EFFICIENCY * (n - 2 * n_runs), 1.0) if auto else math.inf
     return [
-        ("aleatoric (input noise through the model)", u["mean_aleatoric"], "A" if auto else "B",
-         n - 1 if auto else math.inf, "noise sd estimated from the training rows" if auto else "noise sd from the config"),
-        ("residual (scatter the model does not explain)", u.get("residual_term", {a: 0.0 for a in AXES}), "A", n - p,
-         "residual variance of the fit"),
-        ("epistemic (parameter uncertainty)", u["mean_epistemic"], "A", n - p, "parameter covariance of the fit"),
-        ("reference magnetometer (`[uq] reference_sd`)", ref, "B", math.inf,
+        ("aleatoric (input noise through the model)", u.get("rms_aleatoric", u["mean_aleatoric"]), "A" if auto else "B",
+         {a: nu_noise for a in AXES}, "noise sd estimated from the training rows (MAD of second differences)" if auto
+         else "noise sd from the config"),
+        ("residual (scatter the model does not explain)", u.get("residual_term", {a: 0.0 for a in AXES}), "A", nu_res,
+         "residual variance of the fit (dof: the autocorrelated rows' effective number)"),
+        ("epistemic (parameter uncertainty)", u.get("rms_epistemic", u["mean_epistemic"]), "A", nu_res,
+         "parameter covariance of the fit"),
+        ("reference magnetometer (`[uq] reference_sd`)", ref, "B", {a: math.inf for a in AXES},
          "stated by the user (certificate of the reference)" if any(ref.values()) else "not given (0)"),
     ]
 
@@ -210,13 +257,16 @@ def _hybrid_components(m: dict, params: dict, reference_sd, block: dict) -> list
     n = int(params.get("n_rows") or m["split"]["n_train"])
     p = len(params["model"]["param_names"])
     c = block.get("interval_scale") or {a: 1.0 for a in AXES}
-    labels = {"aleatoric_nn": ("hybrid: network aleatoric x c", math.inf),
-              "epistemic_nn": ("hybrid: network epistemic x c", math.inf),
-              "epistemic_physics": ("hybrid: physics epistemic x c", n - p),
-              "aleatoric_physics": ("hybrid: physics aleatoric x c (fusion paper)", n - 1)}
+    nu_res = effective_dof(params, n, p)
+    inf = {a: math.inf for a in AXES}
+    noise = next(c_[3] for c_ in _components(m, params, reference_sd) if c_[0].startswith("aleatoric"))
+    labels = {"aleatoric_nn": ("hybrid: network aleatoric x c", inf),
+              "epistemic_nn": ("hybrid: network epistemic x c", inf),
+              "epistemic_physics": ("hybrid: physics epistemic x c", nu_res),
+              "aleatoric_physics": ("hybrid: physics aleatoric x c (fusion paper)", noise)}
     out = [(labels[k][0], {a: float(c[a]) * float(v[a]) for a in AXES}, labels[k][1])
            for k, v in block["parts"].items() if k in labels]
-    return out + [("reference magnetometer", _per_axis_sd(reference_sd), math.inf)]
+    return out + [("reference magnetometer", _per_axis_sd(reference_sd), inf)]
 
 
 def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0, *, stage: str = "calibration") -> dict:
@@ -244,7 +294,7 @@ def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0, *, stage: st
     out = {"level": level, "transfer_sd": tau, "same_session": {}, "new_session": {},
            "new_session_missing": transfer_missing(m), "source": "physics", "new_session_source": "physics"}
     for a in AXES:
-        us, nus = [c[1][a] for c in comps], [c[3] for c in comps]
+        us, nus = [c[1][a] for c in comps], [c[3][a] for c in comps]
         for key, extra_u in (("same_session", []), ("new_session", [tau[a]])):
             out[key][a] = _combine(us + extra_u, nus + [math.inf] * len(extra_u), level)
     block = hybrid_new_session(m) if stage == "calibration" else None
@@ -252,13 +302,17 @@ def expanded_uncertainties(m: dict, params: dict, reference_sd=0.0, *, stage: st
         out["physics"] = {k: (dict(v) if isinstance(v, dict) else v) for k, v in out.items()}
         hc = _hybrid_components(m, params, reference_sd, block)
         out["source"] = out["new_session_source"] = "hybrid"
+        out["family"] = block.get("family", "gaussian")
+        factor = block.get("interval_factor") or {}          # runs before it: the Gaussian's
+        out["interval_factor"] = {a: factor.get(a) for a in AXES}
         if out["new_session_missing"] is None:
             out["transfer_sd"] = {a: float(block["transfer_sd"][a]) for a in AXES}
         for a in AXES:
-            out["same_session"][a] = _combine([c[1][a] for c in hc], [c[2] for c in hc], level)
+            f = factor.get(a)
+            out["same_session"][a] = _combine([c[1][a] for c in hc], [c[2][a] for c in hc], level, f)
             if out["new_session_missing"] is None:
                 out["new_session"][a] = _combine([c[1][a] for c in hc] + [out["transfer_sd"][a]],
-                                                 [c[2] for c in hc] + [math.inf], level)
+                                                 [c[2][a] for c in hc] + [math.inf], level, f)
             else:
                 out["new_session"][a] = out["same_session"][a]
     return out
@@ -291,12 +345,65 @@ def _hybrid_applies(ex: dict, hybrid: bool) -> str:
             + " (rows `physics model alone`).")
 
 
-def _combine(uu: list, nn: list, level: float) -> dict:
-    """``u_c`` (root sum of squares of ``uu``), ``nu_eff`` (Welch-Satterthwaite over dof ``nn``), ``k`` and ``U = k u_c``."""
+def _combine(uu: list, nn: list, level: float, family_factor: float | None = None) -> dict:
+    """``u_c`` (root sum of squares of ``uu``), ``nu_eff`` (Welch-Satterthwaite over dof ``nn``), ``k`` and ``U = k u_c``.
+
+    ``family_factor``: the predictive family's central-interval half-width in sd (a Laplace's 2.12 at 95 %, a
+    Student-t's, the Gaussian's 1.96): ``k`` is then that factor times the Student t(nu_eff) correction
+    ``t_nu(q) / z(q)``, so ``U`` is the half-width of the interval the predictor itself gives (a Laplace hybrid's
+    U was 8-11 % below its own intervals with k from the normal)."""
+    from scipy import stats
     uc = math.sqrt(sum(x * x for x in uu))
     nu = welch_satterthwaite(uu, nn)
     k = coverage_factor(nu, level)
+    if family_factor is not None:
+        k *= float(family_factor) / float(stats.norm.ppf(0.5 + level / 2))
     return {"u_c": uc, "nu_eff": nu, "k": k, "U": k * uc}
+
+
+def _dof_text(v) -> str:
+    """A dof as the budget prints it: per axis (x / y / z) when they differ, ``inf``, ``> 10^4`` beyond 10 000 (the
+    coverage factor is then the normal's to 4 digits; the exact value is in no file: it is the budget's arithmetic)."""
+    if isinstance(v, dict):
+        vals = [v[a] for a in AXES]
+        texts = [_dof_text(x) for x in vals]
+        return texts[0] if len(set(texts)) == 1 else " / ".join(texts)
+    return "inf" if not math.isfinite(v) else "> 10^4" if v > 1e4 else f"{v:.0f}"
+
+
+def _loro_evaluation(m: dict) -> str:
+    """The budget's evaluation text of a leave-one-run-out transfer sd: the usable runs R, the bound, the conditions."""
+    import scipy.stats
+
+    from bayesmag._src.core.predictor import TRANSFER_CONFIDENCE
+    tr = m.get("transfer") or {}
+    per = tr.get("per_run") or {}
+    usable = [r for r, v in per.items() if v.get("rmse")]
+    r = len(usable)
+    if r < 2:
+        return (f"{str(tr.get('method', '')).replace('_', ' ')} over the training runs; already an upper confidence "
+                "bound, so counted with infinite dof")
+    inflate = (r - 1) / scipy.stats.chi2.ppf(1 - TRANSFER_CONFIDENCE, r - 1)
+    temps = [per[k]["temperature"] for k in usable if per[k].get("temperature")]
+    return (f"leave one run out over R = {r} usable training runs (of {len(per)}; runs {', '.join(usable)}): the "
+            f"one-sided {TRANSFER_CONFIDENCE:.0%} upper confidence bound of the new-session variance (x {inflate:.2f} "
+            f"on it), so counted with infinite dof (the bound carries the uncertainty of {r} runs, not also R - 1 = "
+            f"{r - 1} dof)"
+            + (f"; the left-out rows it was measured on span {min(t[0] for t in temps):.3g}-"
+               f"{max(t[1] for t in temps):.3g} C: how sessions differ outside that is not measured" if temps else ""))
+
+
+def _validated_on(m: dict) -> str:
+    """Which held-out rows validate U same session, and how far that flatters."""
+    sp = m.get("split") or {}
+    cov = ((m.get("hybrid") and next(iter(m["hybrid"].values())).get("coverage"))
+           or (m.get("physics") or {}).get("coverage"))
+    text = (f"validated on this run's test rows, {sp.get('description', 'the test split')}"
+            + (": coverage " + " / ".join(f"{100 * cov[a]:.1f}" for a in AXES) + " %" if cov else ""))
+    if sp.get("kind") == "random":
+        text += ("; a random split interleaves the test rows with training rows, which flatters: held-out time "
+                 "blocks of the same session cover less (docs/physics.md, `honest_*` configs)")
+    return text
 
 
 def _network_combined(m: dict) -> bool:
@@ -312,12 +419,21 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     ex = expanded_uncertainties(m, params, reference_sd)
     tr = m.get("transfer") or {}
     rows = m["uq"].get("budget_rows")
-    lines = ["## Uncertainty budget (standard uncertainties, mean over "
+    average = "root mean square" if "rms_aleatoric" in m["uq"] else "mean"
+    lines = [f"## Uncertainty budget (standard uncertainties, {average} over "
              + (f"{rows}" if rows else "test rows") + ", uT)", "",
              "| component | type | dof | x | y | z | evaluation |", "|---|---|---|---|---|---|---|"]
-    dof = lambda v: "inf" if not math.isfinite(v) else f"{v:.0f}"  # noqa: E731
+    dof = _dof_text
     for label, vals, typ, nu, how in comps:
         lines.append(f"| {label} | {typ} | {dof(nu)} | " + " | ".join(_u2(vals[a]) for a in AXES) + f" | {how} |")
+    if m["uq"].get("budget_rows_in_domain") == 0 or "none in domain" in str(rows or ""):
+        ph = m["physics"]
+        lines += ["", "> **No held-out row lies inside the calibration domain.** The parts above are averaged over "
+                  "rows the calibration extrapolates to, and the U below are the model's stated uncertainty there, "
+                  "not an accuracy it has shown: on these rows the RMSE is " + " / ".join(
+                      f"{ph['rmse'][a]:.3g}" for a in AXES) + " uT and the intervals cover " + " / ".join(
+                      f"{100 * ph['coverage'][a]:.0f}" for a in AXES) + " % (x / y / z). No U is established for "
+                  "rows outside the domain (section Calibration domain).", ""]
 
     def block(key, name):
         c = ex[key]
@@ -326,7 +442,10 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                 f"| effective dof nu_eff, {name} | | | " + " | ".join(dof(c[a]["nu_eff"]) for a in AXES)
                 + " | Welch-Satterthwaite |",
                 f"| coverage factor k ({level:.0%}), {name} | | | " + " | ".join(f"{c[a]['k']:.3f}" for a in AXES)
-                + " | Student t(nu_eff) |",
+                + (" | Student t(nu_eff)" if not ex.get("interval_factor") or ex.get("family", "gaussian") == "gaussian"
+                   else f" | the {ex['family']} family's interval half-width in sd (median over the rows, "
+                        + " / ".join(f"{ex['interval_factor'][a]:.3f}" for a in AXES)
+                        + ") x t(nu_eff) / z: U is the half-width of the predictor's own interval") + " |",
                 f"| **expanded uncertainty U = k u_c, {name}** | | | " + " | ".join(_u2(c[a]["U"]) for a in AXES)
                 + " | |"]
     hybrid = ex.get("source") == "hybrid"
@@ -336,8 +455,9 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
                   + " | ".join(_u2(phys["same_session"][a]["U"]) for a in AXES)
                   + " | what the firmware exports hold (the parts above) |"]
         for label, vals, nu in _hybrid_components(m, params, reference_sd, hybrid_new_session(m))[:-1]:
+            avg = "root mean square" if hybrid_new_session(m).get("average") == "rms" else "mean"
             lines.append(f"| {label} | A | {dof(nu)} | " + " | ".join(_u2(vals[a]) for a in AXES)
-                         + " | the hybrid predictor's within-session part (mean over the test rows the budget uses; "
+                         + f" | the hybrid predictor's within-session part ({avg} over the test rows the budget uses; "
                            "c the interval scale) |")
     lines += block("same_session", "same session")
     tau = ex["transfer_sd"]
@@ -351,8 +471,7 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
         how = ("largest run-to-run change of the mean residual (fewer than 3 usable runs: a rough bound, not a "
                "confidence bound); counted with infinite dof")
     else:
-        how = (f"{tr['method'].replace('_', ' ')} over the training runs; already an upper confidence bound, so "
-               "counted with infinite dof")
+        how = _loro_evaluation(m)
     missing = ex["new_session_missing"]
     dom = {a: max(comps, key=lambda c: c[1][a])[0].split(" (")[0] for a in AXES}
     same, new = ex["same_session"], ex["new_session"]
@@ -360,7 +479,7 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     n_runs = len(d["train_runs"] if "train_runs" in d else d.get("runs") or [])   # runs before this key: all
     same_applies = (f"Which U applies: **U same session** ({' / '.join(_u2(same[a]['U']) for a in AXES)} uT, x / y "
                     "/ z) holds for rows of the recording session this calibration was fitted on (same mounting, same "
-                    "power-up, the conditions of the test rows above)"
+                    "power-up, the conditions of the test rows above; " + _validated_on(m) + ")"
                     + (f"; with {n_runs} training sessions pooled in one fit it holds over their rows together, and "
                        f"the rows of one particular session can be off by part of the between-session spread, for "
                        f"which U new session is the safe statement" if n_runs > 1 else ""))
@@ -676,6 +795,7 @@ def _model_section(c: ReportContext) -> list[str]:
     th = _thermo(c.params)
     if th is None:
         return []
+    note = white_covariance_note(c.params)
     ax = c.params["axes"]
     v = lambda a, n: (ax[a]["values"][n], ax[a]["std"][n])  # noqa: E731
     temp = th.get("temperature", True)
@@ -683,7 +803,9 @@ def _model_section(c: ReportContext) -> list[str]:
              "    B_cal = (S + Ks (T - T0)) B_meas + O + Ko (T - T0)" if temp else "    B_cal = S B_meas + O", "",
              f"with B_meas and B_cal column vectors (x, y, z) in uT, T the sensor temperature in C and "
              f"**T0 = {th['t0']:.6g} C** (the reference temperature of this fit; `params.json` model.terms[0].t0). "
-             "Row i of S is output axis i. Values +- standard uncertainty u (k = 1):", "",
+             "Row i of S is output axis i. Values +- standard uncertainty u (k = 1)"
+             + (" from the white covariance, which understates them here (section Physics parameters):" if note
+                else ":"), "",
              "| S (1) | B_x | B_y | B_z |", "|---|---|---|---|"]
     for a in AXES:
         lines.append(f"| {a} | " + " | ".join(gum_format(*v(a, f"S_{b}")) for b in AXES) + " |")
@@ -738,10 +860,11 @@ def condition_uncertainties(m: dict, params: dict, reference_sd=0.0) -> list[dic
     hb, source = hybrid_new_session(m), "physics"
     if hb is not None and hb.get("conditions"):     # the hybrid's new-session U (expanded_uncertainties)
         conds, comps, source = hb["conditions"], _hybrid_components(m, params, reference_sd, hb), "hybrid"
+    factor = (hb.get("interval_factor") or {}) if source == "hybrid" else {}
     out = []
     for c in conds:
-        U = {a: _combine([x[1][a] for x in comps] + [c["transfer_sd"][a]], [x[2] for x in comps] + [math.inf],
-                         level)["U"] for a in AXES}
+        U = {a: _combine([x[1][a] for x in comps] + [c["transfer_sd"][a]], [x[2][a] for x in comps] + [math.inf],
+                         level, factor.get(a))["U"] for a in AXES}
         out.append({"field": c["field"], "temperature": c["temperature"], "transfer_sd": c["transfer_sd"], "U": U,
                     "source": source})
     return out
@@ -786,6 +909,9 @@ def _hybrid_nuts_section(c: ReportContext) -> list[str]:
 
 def _parameters_section(c: ReportContext) -> list[str]:
     lines = ["## Physics parameters", ""]
+    note = white_covariance_note(c.params)
+    if note:
+        lines += [f"> **Understated parameter uncertainties.** {note}", ""]
     for ax in AXES:
         lines += _param_table(ax, c.params["axes"][ax], c.corr_threshold)
     return lines

@@ -620,6 +620,13 @@ def fit_physics(data, model: PhysicsModel | None = None, *, covariance_method: s
     covs, infos, diags = [], [], []
     for a in range(3):
         c, info = covariance(J[a], resid[:, a], method=covariance_method, run=data.run)
+        if covariance_method == "white" and data.n > 4 * model.n_params:
+            # what the white covariance's independence costs: the autocorrelation-consistent sds against its own
+            # (the certificate states the range when the residuals are correlated)
+            c_nw, nw = covariance(J[a], resid[:, a], method="newey_west", run=data.run)
+            ratio = np.sqrt(np.maximum(np.diag(c_nw), 0.0) / np.maximum(np.diag(c), 1e-300))
+            info["newey_west_sd_ratio"] = [float(ratio.min()), float(ratio.max())]
+            info["newey_west_lags"] = int(nw["lags"])
         covs.append(0.5 * (c + c.T))     # exactly symmetric (what is saved and what the loader checks)
         infos.append(info)
         diags.append(identifiability(c, model.param_names))

@@ -438,6 +438,7 @@ def estimate_transfer(train, fit, fit_fn=None, *, level: float = 0.95, min_runs:
             need.append((e / z) ** 2 - s2)
             weight.append(np.full(rows.n, 1.0 / rows.n))
             per_run[str(r)]["rmse"] = {ax: float(v) for ax, v in zip("xyz", np.sqrt(np.mean(e**2, axis=0)))}
+            per_run[str(r)]["temperature"] = [float(rows.temperature.min()), float(rows.temperature.max())]
     if len(need) >= min_runs:
         # few runs estimate the new-session variance poorly: a one-sided upper confidence bound (chi-square,
         # R - 1 dof) on all of it, s^2 + tau^2, not on the excess tau^2 alone (the pooled s^2 already holds

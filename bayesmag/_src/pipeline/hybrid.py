@@ -458,8 +458,11 @@ def _network_transfer(pr: Predictor, train: CalibrationData, run_fold: np.ndarra
 def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData, series=None,
                         test: CalibrationData | None = None) -> dict:
     """The hybrid's new-session budget for the certificate (``app/report.py``): the within-session parts of
-    ``pred`` (mean sd over its rows, the test rows), the interval scale, the transfer sd the hybrid adds to a new
-    session (root mean square over the training rows) and, with a session model, at the training domain's corners."""
+    ``pred`` (root mean square sd over its rows, the test rows in the calibration domain: the parts' squares add up
+    to the rows' mean variance), the interval scale, the family's interval factor (the median over those rows of
+    the central interval's half-width over the total sd: 1.96 for a Gaussian at 95 %, 2.12 for a Laplace, the
+    certificate's k uses it), the transfer sd the hybrid adds to a new session (root mean square over the training
+    rows) and, with a session model, at the training domain's corners."""
     ax = lambda v: {a: float(x) for a, x in zip(AXES, v)}  # noqa: E731
     names = ["aleatoric_nn", "epistemic_nn", "epistemic_physics"] + (["aleatoric_physics"] if pred.fusion == "paper"
                                                                      else [])
@@ -469,8 +472,12 @@ def _new_session_budget(pr: Predictor, pred: Prediction, train: CalibrationData,
         rows = budget_row_mask(pr.domain.outside(test, pred.mean))
     else:
         rows = slice(None)
-    mean = lambda v: np.mean(np.broadcast_to(np.asarray(v, np.float64), pred.mean.shape)[rows], axis=0)  # noqa: E731
-    out = {"parts": {k: ax(mean(pred.parts[k])) for k in names},
+    rms = lambda v: np.sqrt(np.mean(np.broadcast_to(np.asarray(v, np.float64), pred.mean.shape)[rows] ** 2,  # noqa: E731
+                                    axis=0))
+    lo, hi = pred.interval()
+    factor = np.median(((hi - lo) / 2 / np.maximum(pred.total, 1e-300))[rows], axis=0)
+    out = {"parts": {k: ax(rms(pred.parts[k])) for k in names}, "average": "rms",
+           "interval_factor": ax(factor), "interval_level": float(pred.level),
            "interval_scale": ax(np.ones(3) if pr.scale is None else pr.scale),
            "transfer_sd": ax(np.sqrt(np.mean(new_session_transfer_rows(pr, train, series) ** 2, axis=0))),
            "family": pred.family}
