@@ -16,8 +16,9 @@ from bayesmag._src.core.field import (INVARIANT_NAMES, FieldFit, FieldModel, Fie
                                       heading_with_uncertainty, invariants)
 from bayesmag._src.core.field_calibration import FieldCalibration
 from bayesmag._src.core.measurement import MEASUREMENTS, Constant, MeasurementModel, Scalar, Vector, measurement_from_spec
+from bayesmag._src.pipeline.field_stage import magnitude_transfer, run_field_stage
 
 __all__ = ["MeasurementModel", "Vector", "Scalar", "Constant", "MEASUREMENTS", "measurement_from_spec",
            "FieldModel", "FieldPrior", "FieldFit", "fit_field", "field_target", "invariants", "INVARIANT_NAMES",
            "direction_coverage", "gauge_form", "heading", "heading_with_uncertainty", "gaussian_scores",
-           "FieldCalibration"]
+           "FieldCalibration", "magnitude_transfer", "run_field_stage"]

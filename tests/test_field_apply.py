@@ -151,6 +151,10 @@ def test_rows_with_a_non_finite_reading_are_marked_invalid(field_run):
      r"'predictive.transfer' must be null or .*-0.2"),
     (lambda d: {**d, "predictive": {**d["predictive"], "transfer": {"sd": float("nan"), "method": "x"}}},
      r"'predictive.transfer' must be null"),
+    # edits that pass every range check (an outside tester's: each was applied with exit 0): the content hash
+    (lambda d: {**d, "theta": d["theta"][:12] + [d["theta"][12] + 1.0] + d["theta"][13:]}, r"edited or damaged"),
+    (lambda d: {**d, "s2": d["s2"] / 100}, r"edited or damaged.*content_sha256"),
+    (lambda d: {**d, "predictive": {**d["predictive"], "interval_scale": 0.1}}, r"edited or damaged"),
 ])
 def test_a_damaged_or_old_field_calibration_is_named(field_run, tmp_path, capsys, edit, match):
     import shutil

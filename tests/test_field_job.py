@@ -486,3 +486,37 @@ def test_a_declared_field_in_the_warning_band_is_kept_with_a_note(tmp_path, caps
     warn = json.loads((tmp_path / "o" / "metrics.json").read_text())["warnings"]
     assert any(w.startswith("The declared field F = 38 uT") and "horizontal intensity H" in w for w in warn)
     assert "The declared field F = 38 uT" in (tmp_path / "o" / "report.md").read_text()
+
+
+def test_a_white_field_fit_states_its_residual_autocorrelation_and_what_it_costs(tmp_path):
+    """covariance = "white" wrote rho1 = 0.0 (a placeholder read as a measurement) while the residuals of a
+    multi-session fit are strongly autocorrelated (an outside tester: 0.94, sds about 6x too small, no word). The
+    lag-1 autocorrelation is now measured whatever the covariance, the certificate and the warnings say what the white
+    sds miss, and the certificate carries its identity (ID, date, version, data sha256, the file's content hash)."""
+    import bayesmag
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag.simulate import simulate_field_sessions
+    ss = simulate_field_sessions("dance", sessions=4, n=300, seed=81, sensor_seed=8, hard_iron_sd=0.5,
+                                 temperature=(15.0, 35.0))
+    path = tmp_path / "f.csv"
+    with open(path, "w") as fh:
+        fh.write("time,run,bx_meas,by_meas,bz_meas,temperature\n")
+        for i, c in enumerate(ss):
+            for j in range(c.data.n):
+                fh.write(",".join(repr(float(v)) for v in (c.data.time[j] + 1e5 * i, c.data.run[j], *c.data.b_meas[j],
+                                                           c.data.temperature[j])) + "\n")
+    cfg = config_from_dict({"name": "white", "data": {"path": str(path)},
+                            "measurement": {"kind": "constant", "field": 50.0, "exports": ["json"]},
+                            "split": {"kind": "time_blocks", "test_fraction": 0.2, "n_blocks": 2},
+                            "output": {"figures": False, "progress": False}})
+    res = bayesmag.run_job(cfg, tmp_path / "run")
+    params, m = res["params"], res["metrics"]
+    assert params["rho1"] > 0.5, params["rho1"]
+    assert any("covariance is white, but its residuals' lag-1 autocorrelation" in w for w in m["warnings"])
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "too small** (`[measurement] covariance" in report
+    rec = m["certificate"]
+    assert len(rec["calibration_id"]) == 16 and rec["data_sha256"] in report and params["content_sha256"] in report
+    # the same config and data give the same calibration ID (the date aside)
+    again = bayesmag.run_job(cfg, tmp_path / "run2")["metrics"]["certificate"]
+    assert again["calibration_id"] == rec["calibration_id"]

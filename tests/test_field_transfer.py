@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
+import bayesmag
 from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.core.measurement import Constant, Scalar
 from bayesmag._src.core.predictor import TRANSFER_CONFIDENCE, session_variance_bound
@@ -99,17 +100,66 @@ def test_a_vehicle_that_does_not_change_is_not_widened_by_the_bound_on_its_noise
 
 
 def test_one_session_holds_no_estimate_and_says_so():
-    """One run: the stand-in is the largest change of a run's mean residual, 0 here, and the warning says so."""
+    """One run: no estimate (sd None, no term added), and the warning says why and what to record. (The vector
+    calibration's stand-in, the largest change of a run's mean residual, is about 0 for a dance by construction, and
+    one or two simulated training flights covered 20-89 % of new flights with it.)"""
+    import warnings
+    from bayesmag._src.core.field_calibration import DOMAIN_KEYS, FieldCalibration
     c = simulate_field("dance", n=400, seed=2, temperature=(15.0, 35.0))
     fs = run_field_stage(c.data, c.data.subset(np.arange(50)), Constant(50.0), compare_vector=False)
     tr = fs.transfer
-    assert tr["method"] == "largest_offset_change" and tr["sd"] == 0.0 and tr["n_runs"] == 0
-    assert "1 run(s)" in tr["warning"] and "zero with one run" in tr["warning"]
-    assert "Record at least 3 sessions" in tr["warning"]
+    assert tr["method"] == "not_estimated" and tr["sd"] is None and tr["n_runs"] == 0
+    assert "1 run(s)" in tr["warning"] and "at least 3" in tr["warning"] and "overlap" in tr["warning"]
+    assert np.all(fs.prediction["transfer"] == 0)
     off = run_field_stage(c.data, c.data.subset(np.arange(50)), Constant(50.0), compare_vector=False, transfer="off")
     assert off.transfer is None and np.all(off.prediction["transfer"] == 0)
     with pytest.raises(ValueError, match=r"transfer = 'hierarchical'.*\"loro\" or \"off\""):
         run_field_stage(c.data, c.data, Constant(50.0), compare_vector=False, transfer="hierarchical")
+    # from Python, predict says so too (apply prints it): no between-session term, rows out of the training ranges
+    cal = FieldCalibration(fs.fit, 1.0, 0.95, {k: (-1e3, 1e3) for k in DOMAIN_KEYS[:3]} | {
+        "temperature": (14.0, 36.0), "magnitude": (49.0, 51.0)})
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        cal.predict(c.data.b_meas, c.data.temperature + np.r_[np.zeros(300), np.full(100, 30.0)])
+    texts = [str(x.message) for x in w if issubclass(x.category, bayesmag.CalibrationWarning)]
+    assert any("no between-session (transfer) term" in t for t in texts), texts
+    assert any(t.startswith("100 of 400 rows lie outside") and "temperature 100" in t for t in texts), texts
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cal.predict(c.data.b_meas[:5], c.data.temperature[:5], warn=False)
+
+
+def test_sessions_that_do_not_overlap_are_named_as_such():
+    """Four runs, each at its own temperatures: the coldest and the hottest lie outside the others' ranges, and the
+    warning says so (not only 'record 3 sessions': there are four)."""
+    ss = [simulate_field("dance", n=300, seed=60 + k, sensor_seed=6, temperature=(t, t + 5.0)) for k, t in
+          enumerate((0.0, 12.0, 24.0, 36.0))]
+    import dataclasses
+    ss = [dataclasses.replace(c, data=dataclasses.replace(c.data, run=np.full(300, k))) for k, c in enumerate(ss)]
+    train, _ = _cat(ss)
+    fit = run_field_stage(train, train.subset(np.arange(5)), Constant(50.0), compare_vector=False,
+                          transfer="off").fit
+    from bayesmag.field import field_target
+    tr = magnitude_transfer(train, Constant(50.0), field_target(Constant(50.0), n=train.n), fit)
+    assert tr["method"] == "not_estimated"
+    # the two middle runs lie inside the others' box, the outer two do not: 2 usable of 4
+    assert "of the 4 training runs only 2 have rows inside the other runs' ranges" in tr["warning"], tr["warning"]
+
+
+@pytest.mark.extended
+def test_a_flight_at_another_sites_field_is_named():
+    """Five flights at F = 50 uT and one at 45 uT, all declared 50: the left-out run's mean |B| error stands apart
+    and the warning names the run and the likely causes."""
+    ss = list(simulate_field_sessions("dance", sessions=5, n=300, seed=70, sensor_seed=7, hard_iron_sd=0.1,
+                                      temperature=(15.0, 35.0)))
+    import dataclasses
+    odd = simulate_field("dance", n=300, seed=77, sensor_seed=7, field=45.0, temperature=(15.0, 35.0))
+    ss.append(dataclasses.replace(odd, data=dataclasses.replace(odd.data, run=np.full(300, 5))))
+    train, _ = _cat(ss)
+    fs = run_field_stage(train, train.subset(np.arange(10)), Constant(50.0), compare_vector=False)
+    assert fs.transfer["method"] == "leave_one_run_out"
+    assert "Run 5's |B| is" in fs.transfer["warning"] and "another site's field" in fs.transfer["warning"]
+    assert "Run 0's" not in fs.transfer["warning"]
 
 
 @pytest.mark.extended

@@ -81,25 +81,15 @@ def _domain_warning(pred, ok, n_out: int, n: int, trained) -> str:
         mag = float(np.median(np.asarray(pred["magnitude"])[~np.asarray(pred["in_domain"]) & ok]))
         return (f"{n_out} of {n} rows are flagged magnitude (in_domain=false) only: their calibrated |B| (median "
                 f"{mag:.4g} uT) lies outside the magnitudes training saw ({trained[0]:.4g} to {trained[1]:.4g} uT) "
-                f"while their readings and temperatures lie inside. A whole recording so is usually another site's "
-                f"field (IGRF/WMM differ by site) and the calibration holds; scattered rows are a local disturbance "
-                f"(steel, currents), which the calibration cannot remove.")
-    return (f"{n_out} of {n} rows lie outside the field calibration's training domain (in_domain=false): their "
-            f"values are extrapolation and their intervals may be far too narrow.")
-
-
-def _no_transfer_warning(cal) -> str:
-    """A field calibration whose magnitude intervals hold no estimated between-session term (a new recording is a new
-    session): none at all (``"off"``, or a file from before the term), or the few-runs stand-in."""
-    if cal.transfer_sd is None:
-        return ("this field calibration holds no between-session (transfer) term (its run set [uq] transfer = \"off\", "
-                "or it was written before field calibrations had one): the magnitude intervals cover only the error "
-                "within the session it was fitted in and can be far too narrow for this recording. Re-run the "
-                "calibration on 3 or more recorded sessions (runs) to estimate it.")
-    return (f"this field calibration's between-session term ({cal.transfer_sd:.3g} uT) is not an estimate: its training "
-            f"data held too few sessions (runs) for leave-one-run-out, so it is the largest change of a run's mean "
-            f"magnitude residual (0 for one run), and the magnitude intervals of this new recording can be too narrow. "
-            f"Calibrate on 3 or more recorded sessions to estimate it.")
+                f"while their readings and temperatures lie inside, and beyond their own intervals. A whole recording "
+                f"so is another site's field (IGRF/WMM differ by site: then the calibration holds), or, on a vehicle, "
+                f"a hard-iron change larger than between the training sessions (a payload, a battery, a repair: then "
+                f"recalibrate; the rows' errors are then about the same size in every direction of one turn); "
+                f"scattered rows are a local disturbance (steel, currents), which the calibration cannot remove.")
+    kinds = {k: int(np.sum([k in r.split(";") for r in reasons])) for k in ("field_range", "temperature", "magnitude")}
+    return (f"{n_out} of {n} rows lie outside the field calibration's training domain (in_domain=false; "
+            + ", ".join(f"{k} {v}" for k, v in kinds.items() if v) + "): their values are extrapolation and their "
+            "intervals may be far too narrow.")
 
 
 def apply_field_calibration(model_dir, data_path, out_path, *, level=None, temperature_unit="C", field_unit=None,
@@ -140,8 +130,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
                       require_reference=False, time_unit=time_unit, mapping_hint="--columns (NAME=COL,...)")
     _check_magnitudes(data)
     warnings = check_units_against(data, cal.train_max_ut)
-    pred = cal.predict(data.b_meas, data.temperature, level=level,
-                       field_unit="uT")      # checked above, with the command line's wording (declared: converted)
+    pred = cal.predict(data.b_meas, data.temperature, level=level, field_unit="uT",   # checked above, with the
+                       warn=False)           # command line's wording (declared: converted); warned below, as lines
     level = pred["level"]
     if not pred["valid"].any():
         raise DataError(f"No row of {data_path} could be calibrated ({data.n} rows, every one with a non-finite "
@@ -157,8 +147,8 @@ def apply_field_calibration(model_dir, data_path, out_path, *, level=None, tempe
     n_out = int((~pred["in_domain"] & ok).sum())
     if n_out:
         warnings.append(_domain_warning(pred, ok, n_out, data.n, cal.ranges.get("magnitude") if cal.ranges else None))
-    if cal.transfer_sd is None or cal.transfer_method != "leave_one_run_out":
-        warnings.append(_no_transfer_warning(cal))
+    if cal.transfer_sd is None:
+        warnings.append(cal.no_transfer_warning())
     meas = cal.fit.model.measurement
     relative = bool(getattr(meas, "scale_gauge", False))
     if relative:

@@ -193,11 +193,18 @@ def field_report_lines(m: dict, params: dict) -> list[str]:
          + (f" (field {params['measurement'].get('field')} uT)" if params["measurement"]["name"] == "constant" else ""),
          f"- Gauge: {params['gauge']}.",
          f"- T0 = {params['t0']:.4g} C; temperature terms: {params['temperature_terms']}; covariance: "
-         f"{params['covariance']} (lag-1 autocorrelation {params['rho1']:.3f}, inflation {params['inflation']:.3g}).",
+         f"{params['covariance']} (residual lag-1 autocorrelation {params['rho1']:.3f}, inflation "
+         f"{params['inflation']:.3g})." + (f" **The white covariance takes the residuals as independent: with this "
+                                           f"autocorrelation every parameter's and invariant's sd below is about "
+                                           f"{_ar1_factor(params['rho1']):.2g}x too small** (`[measurement] covariance = "
+                                           f"\"ar1\"` states them)." if _white_understates(params) else ""),
          f"- Rows: {f['n_train']} training, {f['n_test']} held out ({m['split']['description']})"
          + (f"; {f['dropped_low_magnitude']} rows dropped below the minimum magnitude {f['min_magnitude']} uT"
             if f["dropped_low_magnitude"] else "") + ".",
-         f"- Residual sd (reading units): {np.sqrt(params['s2']):.4g} uT.", "",
+         f"- Residual sd (reading units): {np.sqrt(params['s2']):.4g} uT"
+         + (f" (the white reading noise, from row-to-row differences: {f['transfer']['white_noise_sd']:.3g} uT; the "
+            f"rest is slow misfit or the sessions' scatter)" if (f.get("transfer") or {}).get("white_noise_sd")
+            and np.sqrt(params["s2"]) > 2 * f["transfer"]["white_noise_sd"] else "") + ".", "",
          "### Held-out magnitude", "",
          "| RMSE (uT) | coverage | mean width (uT) | NLL | CRPS (uT) |", "|---|---|---|---|---|",
          f"| {_fmt(f['scores']['rmse'])} | {f['scores']['coverage']:.3f} (nominal {f['scores']['level']:g}) | "
@@ -300,7 +307,8 @@ def _transfer_block(tr, pred, test, train, level) -> dict:
     block.update(n_train_runs=int(np.unique(train.run).size),
                  n_test_new_session=int(np.sum(~np.isin(test.run, np.unique(train.run)))), k=k,
                  U_same_session=float(k * np.median(within)),
-                 U_new_session=None if tr is None else float(k * np.median(np.sqrt(within**2 + tr["sd"] ** 2))))
+                 U_new_session=None if tr is None or tr["sd"] is None else
+                 float(k * np.median(np.sqrt(within**2 + tr["sd"] ** 2))))
     return block
 
 
@@ -316,19 +324,35 @@ def _transfer_lines(tr: dict) -> list[str]:
               f"{tr['n_train_runs']} training runs (every run a session; each left-out run's rows inside the other runs' "
               "domain, every run weighted equally, the 95 % quantile bounded at 80 % confidence over the runs; "
               "docs/field.md).", "",
-              "| left-out run | rows | in the others' domain | RMSE of |B| (uT) | mean error (uT) |", "|---|---|---|---|---|"]
+              "| left-out run | rows | in the others' domain | RMSE of the magnitude (uT) | mean error (uT) |",
+              "|---|---|---|---|---|"]
         L += [f"| {r} | {v['n_rows']} | {v['n_in_domain']} | "
               + ("-" if v["rmse"] is None else f"{v['rmse']:.3g}") + " | "
               + ("-" if v["mean_error"] is None else f"{v['mean_error']:+.3g}") + " |" for r, v in tr["per_run"].items()]
         L.append("")
-    else:
-        L += [tr["warning"], ""]
+        if tr.get("warning"):
+            L += [f"> **Warning.** {tr['warning']}", ""]
+    else:                       # not estimated: no U for a new session can be stated
+        return L + [tr["warning"], "", f"U same session {tr['U_same_session']:.2g} uT at the median held-out row (k = "
+                    f"{tr['k']:.3g}; rows of the training sessions). **No U for a new session is stated**: a later "
+                    "flight or campaign can be off by more.", ""]
     L += [f"Expanded uncertainty of |B| at the median held-out row (k = {tr['k']:.3g}): U same session "
           f"{tr['U_same_session']:.2g} uT (rows of the training sessions), U new session {tr['U_new_session']:.2g} uT "
           "(any later flight or campaign: what `bayesmag apply` gives, column magnitude_transfer)."
           + (f" {tr['n_test_new_session']} held-out rows are of runs the fit did not see and carry it." if
              tr["n_test_new_session"] else ""), ""]
     return L
+
+
+def _ar1_factor(rho: float) -> float:
+    """How much an AR(1) residual autocorrelation ``rho`` widens a white covariance's sds: sqrt((1+rho)/(1-rho))."""
+    r = min(max(float(rho), 0.0), 0.99)
+    return float(np.sqrt((1 + r) / (1 - r)))
+
+
+def _white_understates(params: dict) -> bool:
+    """A white covariance whose residuals are autocorrelated enough to understate its sds by 1.5x or more."""
+    return params.get("covariance") == "white" and _ar1_factor(params.get("rho1", 0.0)) >= 1.5
 
 
 def _transfer_warning(tr) -> list[str]:
@@ -435,9 +459,10 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         timings["nuts"] = time.perf_counter() - t
     from bayesmag._src.core.field_calibration import FieldCalibration
     tr = fs.transfer
+    estimated = tr is not None and tr["sd"] is not None
     saved = FieldCalibration(fs.fit, float(fs.prediction.get("scale", 1.0)), cfg.uq.level,
                              {k: tuple(v) for k, v in fs.domain["training_ranges"].items()}, mc.scalar_column or None,
-                             None if tr is None else tr["sd"], None if tr is None else tr["method"])
+                             tr["sd"] if estimated else None, tr["method"] if estimated else None)
     params = saved.to_json()      # what `bayesmag apply` reads back (FieldCalibration.from_json)
     field_m = {"n_train": int(train.n), "n_test": int(test.n), "dropped_low_magnitude": dropped,
                "min_magnitude": mc.min_magnitude, "scores": fs.scores,
@@ -457,9 +482,16 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
                                   "abs_z": {n: float(abs(v)) for n, v in zip(INVARIANT_NAMES, z)}}
     if nuts is not None:
         field_m["nuts"] = {k: v for k, v in nuts.items() if k not in ("samples", "rows")}
+    from bayesmag._src.app.report import certificate_record
+    white = ([f"The field fit's covariance is white, but its residuals' lag-1 autocorrelation is {params['rho1']:.2f}: "
+              f"every parameter's and invariant's sd in the certificate is about {_ar1_factor(params['rho1']):.2g}x too "
+              f"small. Set [measurement] covariance = \"ar1\" to state them (the magnitude intervals are not affected: "
+              f"the conformal scale and the transfer term hold the rest)."] if _white_understates(params) else [])
     metrics = {"field": field_m, "split": split.as_dict(),
-               "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs]},
-               "warnings": [n for n in fs.fit.notes] + ([] if nuts is None else list(nuts["warnings"]))
+               "data": {"source": data.source, "n_rows": int(data.n), "runs": [int(r) for r in data.runs],
+                        "train_runs": [int(r) for r in np.unique(train.run)]},
+               "certificate": certificate_record(cfg, data),
+               "warnings": [n for n in fs.fit.notes] + white + ([] if nuts is None else list(nuts["warnings"]))
                + _domain_warning(fs.domain, test.n) + _transfer_warning(tr)}
     with staging_dir(Path(out), kind="run") as tmp:
         t = time.perf_counter()
@@ -481,8 +513,17 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         timings["total"] = time.perf_counter() - t_all
         metrics["timings"] = {k: round(v, 4) for k, v in timings.items()}
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
-        lines = [f"# Calibration certificate: {cfg.name}", "",
-                 f"Data: {data.source} ({data.n} rows). Gauge: {gauge_text(meas)}.", ""]
+        rec = metrics["certificate"]
+        unset = lambda v, key: v or f"not stated (set `[certificate] {key} = \"...\"`)"  # noqa: E731
+        lines = [f"# Calibration certificate: {cfg.name}", "", "| item | value |", "|---|---|",
+                 f"| calibration ID | {rec['calibration_id']} |", f"| date (UTC) | {rec['date_utc']} |",
+                 f"| bayesmag version | {rec['bayesmag_version']} |", f"| device under test | {unset(rec['dut'], 'dut')} |",
+                 f"| reference | {unset(rec['reference'], 'reference')} |"]
+        lines += [f"| operator | {rec['operator']} |"] if rec.get("operator") else []
+        lines += [f"| data | {rec['data']} |", f"| data sha256 | `{rec['data_sha256']}` |",
+                  f"| calibration file | field_params.json (content sha256 `{params['content_sha256']}`) |", "",
+                  f"Data: {data.source} ({data.n} rows). Gauge: {gauge_text(meas)}.", ""]
+        lines += [f"> **Warning.** {w}" for w in metrics["warnings"]] + ([""] if metrics["warnings"] else [])
         lines += field_report_lines(metrics, params)
         lines += [""] + [f"![{Path(p).stem}]({p})" for p in figures]
         from bayesmag._src.app.report import render_html

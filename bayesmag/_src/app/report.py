@@ -671,7 +671,7 @@ def certificate_record(cfg, data) -> dict:
     if d.path is not None:
         from bayesmag._src.core.datasets import sha256_of
         digest, what = sha256_of(Path(d.path)), f"file {Path(d.path).name}"
-    elif d.source not in (None, "simulated"):
+    elif d.source not in (None, "simulated", "field_simulated"):
         from bayesmag._src.core.datasets import DATASETS
         ds = DATASETS[d.source]
         digest, what = ds.sha256, f"dataset {d.source} (file {ds.filename}, verified at load)"

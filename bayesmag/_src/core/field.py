@@ -871,12 +871,12 @@ def fit_field(u, t, target, measurement: MeasurementModel, *, t0: float | str = 
         theta = np.asarray(sol.theta)
         r, J = (np.asarray(a) for a in _jac_resid(ms, jnp.asarray(theta), uj, tj, yj, kj, kappa2))
         s2 = float(r @ r / max(n_res - model.n_params, 1))
-        rho, infl = 0.0, 1.0
-        if covariance == "ar1":
-            rr = r.reshape(len(u), -1)[kp]
-            rk = None if run is None else np.asarray(run)[kp]
-            rho = float(np.mean([lag1_autocorrelation(rr[:, k], rk) for k in range(rr.shape[1])]))
-            infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99))
+        # the residuals' lag-1 autocorrelation is measured whatever the covariance (the certificate states it; with
+        # "white" it was written as 0.0, a placeholder read as a measurement); only "ar1" inflates by it
+        rr = r.reshape(len(u), -1)[kp]
+        rk = None if run is None else np.asarray(run)[kp]
+        rho = float(np.mean([lag1_autocorrelation(rr[:, k], rk) for k in range(rr.shape[1])]))
+        infl = (1 + max(rho, 0.0)) / (1 - min(max(rho, 0.0), 0.99)) if covariance == "ar1" else 1.0
         return theta, J, s2, rho, infl, int(sol.n_steps), int(sol.result) == 0, r
 
     for k in range(_MAX_PASSES):

@@ -16,12 +16,20 @@ import scipy.stats
 
 from bayesmag._src.core.field import FieldFit
 
-__all__ = ["FieldCalibration", "FIELD_FORMAT", "FIELD_FORMAT_VERSION", "DOMAIN_KEYS", "range_flags"]
+__all__ = ["FieldCalibration", "FIELD_FORMAT", "FIELD_FORMAT_VERSION", "DOMAIN_KEYS", "range_flags", "content_sha256"]
 
 FIELD_FORMAT = "bayesmag-field-calibration"
 FIELD_FORMAT_VERSION = 1
 #: The training ranges a field calibration keeps (already widened by the domain margin), in this order.
 DOMAIN_KEYS = ("bx_meas", "by_meas", "bz_meas", "temperature", "magnitude")
+
+
+def content_sha256(doc: dict) -> str:
+    """sha256 of a JSON document in canonical form (sorted keys, no spaces, floats by ``repr``): the same numbers
+    give the same digest whichever writer indented the file."""
+    import hashlib
+    import json
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def range_flags(u, t, magnitude, ranges: dict, valid=None, half_width=None) -> tuple[np.ndarray, dict]:
@@ -56,8 +64,8 @@ class FieldCalibration:
     ``reference_column`` names the recording's scalar-magnetometer column the fit read (None: a constant field or
     a vector reference), so a new recording holding it can be scored. ``transfer_sd`` is the between-session sd of
     the magnitude (uT; :func:`~bayesmag._src.pipeline.field_stage.magnitude_transfer`) and ``transfer_method`` how
-    it was estimated (``"leave_one_run_out"``, ``"largest_offset_change"``); None: the run estimated none
-    (``[uq] transfer = "off"``, or a file written before field calibrations had one).
+    it was estimated (``"leave_one_run_out"``); None: the run estimated none (too few sessions, or
+    ``[uq] transfer = "off"``, or a file written before field calibrations had one).
 
     Example:
       >>> from bayesmag.simulate import simulate_field
@@ -88,7 +96,7 @@ class FieldCalibration:
                 f"reference_column={self.reference_column!r}, transfer_sd={self.transfer_sd!r})")
 
     def predict(self, u, t, *, level: float | None = None, chunk_size: int = 200_000,
-                field_unit: str | None = None, new_session: bool = True) -> dict:
+                field_unit: str | None = None, new_session: bool = True, warn: bool = True) -> dict:
         """Calibrated field (n, 3) in the gauge frame, its magnitude with sd and interval, and the domain flags.
 
         ``u`` (n, 3) readings in uT, ``t`` (n,) temperatures in C. Rows with a non-finite reading or temperature get
@@ -99,7 +107,9 @@ class FieldCalibration:
         :class:`~bayesmag.DataError`); ``field_unit="uT"`` declares a genuine field far below the training one.
         ``new_session`` (default True: a recording given to a saved calibration is a new session) adds the
         between-session sd :attr:`transfer_sd` to ``magnitude_total`` (``magnitude_transfer``; 0 without one);
-        False predicts rows of the training sessions.
+        False predicts rows of the training sessions. ``warn`` (default True) raises what ``bayesmag apply`` prints as
+        WARNING lines as :class:`~bayesmag.CalibrationWarning`: no between-session term for a new session
+        (:meth:`no_transfer_warning`), rows outside the training domain.
         """
         u, t = np.asarray(u, np.float64), np.asarray(t, np.float64)
         if u.ndim != 2 or u.shape[1] != 3:
@@ -142,10 +152,44 @@ class FieldCalibration:
         reason = (range_flags(u, t, out["magnitude"], self.ranges, valid, z * out["magnitude_total"])[0] if self.ranges
                   else np.full(n, "", dtype=object))
         out.update(valid=valid, in_domain=valid & (reason == ""), in_domain_reason=reason, level=level)
+        if warn:
+            import warnings
+
+            from bayesmag._src.core.data import CalibrationWarning, user_stacklevel
+            texts = [self.no_transfer_warning()] if new_session and self.transfer_sd is None else []
+            n_out = int((valid & (reason != "")).sum())
+            if n_out:
+                kinds = {k: int(np.sum([k in str(r).split(";") for r in reason[valid]]))
+                         for k in ("field_range", "temperature", "magnitude")}
+                texts.append(f"{n_out} of {n} rows lie outside the calibration's training domain (in_domain=false; "
+                             + ", ".join(f"{k} {v}" for k, v in kinds.items() if v)
+                             + "): their values are extrapolation and their intervals may be far too narrow."
+                             + ("" if self.ranges else " (This calibration holds no training ranges: built without "
+                                "them, every row counts as inside.)"))
+            elif not self.ranges:
+                texts.append("this FieldCalibration holds no training ranges (built without them): every row is "
+                             "marked in_domain; load a run's calibration (bayesmag.load_field) to have them checked.")
+            for t_ in texts:
+                warnings.warn(t_, CalibrationWarning, stacklevel=user_stacklevel())
         return out
 
+    def no_transfer_warning(self) -> str:
+        """Why this calibration's magnitude intervals hold no between-session term, as ``apply`` says it."""
+        return ("this field calibration holds no between-session (transfer) term (its run held fewer than 3 sessions "
+                "(runs) whose rows overlap, or set [uq] transfer = \"off\", or it was written before field "
+                "calibrations had one): the magnitude intervals cover only the error within the session it was "
+                "fitted in and can be far too narrow for a new recording (simulated vehicles whose hard iron moves "
+                "0.3 uT between flights: one or two training flights covered 20-89 % of new flights). Calibrate on "
+                "3 or more recorded sessions that overlap in field and temperature to estimate it.")
+
     def to_json(self) -> dict:
-        """``field_params.json``: the fit's :meth:`~bayesmag._src.core.field.FieldFit.to_json` plus ``predictive``."""
+        """``field_params.json``: the fit's :meth:`~bayesmag._src.core.field.FieldFit.to_json` plus ``predictive``,
+        and ``content_sha256``, the sha256 of the rest (:func:`content_sha256`): :meth:`from_json` refuses a file
+        whose numbers were edited (a value that passes every range check would otherwise be applied)."""
+        doc = self._doc()
+        return {**doc, "content_sha256": content_sha256(doc)}
+
+    def _doc(self) -> dict:
         return {"format": FIELD_FORMAT, "format_version": FIELD_FORMAT_VERSION, **self.fit.to_json(),
                 "predictive": {"interval_scale": self.interval_scale, "level": self.level,
                                "domain_ranges": {k: [float(v) for v in self.ranges[k]] for k in self.ranges},
@@ -200,5 +244,11 @@ class FieldCalibration:
                              f"{GAIN_REFUSE[0]:g}-{GAIN_REFUSE[1]:g}, diagonal positive): the run's declared {declared} "
                              f"was probably wrong (H given for the total intensity F, or another unit) or its fit "
                              f"degenerate; re-run `bayesmag run` with the site's total intensity F in uT")
-        return cls(fit, scale, level, ranges, column if isinstance(column, str) and column else None,
-                   *(tr or (None, None)))
+        cal = cls(fit, scale, level, ranges, column if isinstance(column, str) and column else None,
+                  *(tr or (None, None)))
+        stated = doc.get("content_sha256")      # files written before it have none: read as they are
+        if stated is not None and stated != content_sha256({k: v for k, v in doc.items() if k != "content_sha256"}):
+            raise ValueError("field_params.json was edited or damaged after the run wrote it: its content no longer "
+                             f"matches its content_sha256 ({str(stated)[:12]}...); a calibration is never applied "
+                             "from a changed file. Re-run `bayesmag run` on the field config (or restore the file).")
+        return cal
