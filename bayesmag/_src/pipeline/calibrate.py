@@ -76,8 +76,9 @@ def calibrate(data: CalibrationData, settings: CalibrationSettings | None = None
 
     Args:
       data: the training rows (:class:`~bayesmag.CalibrationData` with ``b_ref``).
-      settings: library settings (:class:`~bayesmag.CalibrationSettings`; default: physics only,
-        PS-QMC uncertainty, T0 the training mean).
+      settings: library settings (:class:`~bayesmag.CalibrationSettings`; default: physics only, the physics
+        uncertainty by ``UQSettings.method = "auto"`` (exact moments where the model allows, else PS-QMC), T0 the
+        training mean).
       test: held-out rows to predict (their predictions are in the stages and :attr:`CalibrationRun.prediction`).
       progress: progress bars.
       series: ``(recording, train_index, test_index)`` when ``data`` and ``test`` were cut from one recording (a
