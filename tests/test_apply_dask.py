@@ -452,3 +452,23 @@ def test_the_dataset_carries_its_unit_file(cal_dir, archive, cluster, tmp_path):
     assert doc["rows"] == len(df) == 2400 and len(doc["files"]) == s["n_partitions"]
     assert sum(f["rows"] for f in doc["files"].values()) == 2400 and doc["calibration"]["kind"] == "vector"
     assert "_bayesmag_apply.json" in json.loads((tmp_path / "out" / MARKER).read_text())["files"]
+    # seventh outside pass: the family of the intervals and the declared conversions; a folder has no one sha256
+    assert doc["intervals"]["family"] == "gaussian" and doc["conversions"]["field_unit"] is None
+    assert "data_sha256" not in doc and "not one file" in doc["data_sha256_not_recorded"]
+
+
+def test_a_reference_in_another_unit_and_the_domain_reasons_are_said(cal_dir, archive, cluster, tmp_path):
+    """As the in-process apply (seventh outside pass): with --field-unit nT, nT readings beside a uT reference are
+    calibrated but not scored (the archive's metrics were the uT reference against the nT readings, no word), and the
+    out-of-domain warning counts each reason."""
+    (tmp_path / "mixed").mkdir()
+    df = pd.read_parquet(archive / "pq" / "day0.parquet")
+    df[["bx_meas", "by_meas", "bz_meas"]] *= 1000.0
+    df.loc[:39, "temperature"] = 90.0                            # 40 rows far above the training temperatures
+    df.to_parquet(tmp_path / "mixed" / "a.parquet", index=False)
+    s = apply_dask(cal_dir, str(tmp_path / "mixed"), tmp_path / "out", scheduler=cluster, field_unit="nT")
+    ref = [w for w in s["warnings"] if "reference columns" in w]
+    assert "metrics" not in s and len(ref) == 1 and "calibrated values are unaffected" in ref[0], s["warnings"]
+    dom = [w for w in s["warnings"] if "outside the calibration's training domain" in w]
+    assert len(dom) == 1 and s["outside_domain_by_reason"]["temperature"] >= 40, s
+    assert f"temperature {s['outside_domain_by_reason']['temperature']} (" in dom[0], dom

@@ -73,3 +73,44 @@ def test_predict_warns_of_repeated_stamps_as_apply_does():
         warnings.simplefilter("always", CalibrationWarning)
         cal.predict(whole)
     assert any("share their timestamp" in str(w.message) for w in got)
+
+
+def test_the_out_of_domain_warning_counts_each_reason(tmp_path):
+    """Seventh outside pass: apply's "N rows lie outside the calibration's training domain" named no reason, so the
+    user could not tell what to fix (a wider field range, a temperature span, slower turns). Now it counts the rows
+    of each reason, as the file's in_domain_reason bits do (a row outside for two reasons counts under both); so
+    does Calibration.predict's warning."""
+    import warnings
+
+    import bayesmag
+    from bayesmag import CalibrationWarning, write_csv
+    from bayesmag._src.app.apply import apply_calibration
+    from bayesmag._src.app.artifact import out_of_domain_counts, out_of_domain_note, save_calibration
+    from bayesmag._src.core.fit import fit_physics
+    from bayesmag._src.core.physics import PhysicsModel
+    from bayesmag._src.core.physics_uq import estimate_input_noise
+    from bayesmag._src.core.predictor import Predictor, UQOptions
+
+    assert out_of_domain_counts(["field_range", "temperature;field_rate", "temperature"]) == {
+        "field_range": 1, "temperature": 2, "field_rate": 1}
+    assert "(in_domain=false; temperature 2 (" in out_of_domain_note(2, 9, ["temperature"] * 2)
+    d = bayesmag.simulate.simulate(600, design="campaign", seed=3, noise_sd=0.05)
+    fit = fit_physics(d, PhysicsModel.paper(t0=25.0))
+    pred = Predictor(fit=fit, sigma_in=estimate_input_noise(d), residual_sd=np.full(3, 0.01),
+                     transfer_sd=np.full(3, 0.02), domain=Domain.from_data(d), uq=UQOptions(method="analytic"))
+    (tmp_path / "cal").mkdir()
+    save_calibration(tmp_path / "cal", pred, config={}, level=0.95)
+    new = bayesmag.simulate.simulate(200, design="campaign", seed=4, noise_sd=0.05)
+    hot = np.asarray(new.temperature).copy()
+    hot[:30] = float(np.max(d.temperature)) + 20.0                # 30 rows far above the training temperatures
+    rec = CalibrationData(new.b_meas, hot, None, time=new.time, run=new.run)
+    write_csv(rec, tmp_path / "new.csv")
+    s = apply_calibration(tmp_path / "cal", tmp_path / "new.csv", tmp_path / "o.csv")
+    w = [x for x in s["warnings"] if "outside the calibration's training domain" in x]
+    assert len(w) == 1 and f"{s['n_outside_domain']} of 200 rows" in w[0], s["warnings"]
+    n_temp = sum(v for k, v in s["outside_domain_by_reason"].items() if "temperature" in k.split(";"))
+    assert n_temp >= 30 and f"temperature {n_temp} (the temperature outside the training span)" in w[0], w[0]
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always", CalibrationWarning)
+        bayesmag.load(tmp_path / "cal").predict(rec)
+    assert any(f"temperature {n_temp} (" in str(g.message) for g in got)

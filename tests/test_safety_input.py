@@ -326,10 +326,45 @@ def test_a_reference_in_another_unit_than_the_declared_one_is_not_scored(tmp_pat
     d = _rec(120, seed=4)
     p = _csv(tmp_path / "mixed.csv", d, b_meas=d.b_meas * 1000, b_ref=d.b_ref)
     s = apply_calibration(model, p, tmp_path / "o.csv", field_unit="nT")
-    assert "metrics" not in s and any("look like they are in another unit" in w for w in s["warnings"])
+    # seventh outside pass: two overlapping warnings, the first "the calibrated values are wrong by that factor",
+    # while the calibrated values (from the nT readings) are right: one warning, saying what is affected
+    ref = [w for w in s["warnings"] if "reference" in w]
+    assert "metrics" not in s and len(ref) == 1, s["warnings"]
+    assert "look like another unit than the readings" in ref[0] and "no RMSE or coverage" in ref[0]
+    assert "calibrated values are unaffected" in ref[0] and "are in uT" in ref[0]
+    assert not any("wrong by that factor" in w for w in s["warnings"])
     both = _csv(tmp_path / "both.csv", d, b_meas=d.b_meas * 1000, b_ref=d.b_ref * 1000)
     s = apply_calibration(model, both, tmp_path / "o2.csv", field_unit="nT")
     assert max(s["metrics"]["rmse"].values()) < 1.0                     # the same unit: scored
+
+
+def test_a_recording_without_temperature_is_told_what_applying_needs(tmp_path, capsys, model):
+    """Seventh outside pass: apply on a recording without a temperature column advised
+    `measurement.temperature_terms = false`, a training key that does nothing for a calibration already fitted. Now
+    one line: the calibration needs each row's temperature (a column, or --columns temperature=NAME), or a
+    recalibration without thermal terms; a calibration without thermal terms needs only a constant for its domain
+    check."""
+    import pandas as pd
+    d = pd.read_csv(_csv(tmp_path / "r.csv", _rec(80, seed=3)))
+    d.drop(columns=["temperature"]).to_csv(tmp_path / "no_t.csv", index=False)
+
+    def err(run):
+        assert main(["apply", "--model", str(run), "--data", str(tmp_path / "no_t.csv"), "--out",
+                     str(tmp_path / "o.csv"), "--no-progress"]) == 2
+        return _error(capsys)
+
+    e = err(model)
+    assert "no column 'temperature'" in e and "--columns temperature=NAME" in e and "needs each row's temperature" in e
+    assert "recalibrate without thermal terms ([physics] temperature_terms = false" in e
+    assert "measurement.temperature_terms" not in e and not (tmp_path / "o.csv").exists()
+    folder = tmp_path / "plain"
+    folder.mkdir()
+    cfg = _config(folder, _csv(folder / "rec.csv"))
+    cfg.write_text(cfg.read_text() + "[physics]\ntemperature_terms = false\n")
+    assert main(["run", str(cfg), "--out", str(folder / "run"), "--no-progress"]) == 0
+    capsys.readouterr()
+    e = err(folder / "run")
+    assert "has no thermal terms" in e and "constant temperature column" in e and "recalibrate" not in e
 
 
 # --------------------------------------------------------------------------- item 8, 13: config values

@@ -15,6 +15,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -652,7 +653,9 @@ def test_apply_never_replaces_a_run_file_the_training_recording_or_a_read_only_f
     for force in ([], ["--force"]):
         for target in (other / "calibration.json", other / "metrics.json"):
             assert apply(target, *force) == 2 and "run folder" in _err(capsys)
-        assert apply(training, *force) == 2 and ("trained on" if force else "--force") in _err(capsys)
+        assert apply(training, *force) == 2
+        err = _err(capsys)     # seventh outside pass: "Or add --force to replace it", then --force was refused
+        assert "trained on" in err and "--force" not in err, err
     assert {p: p.read_bytes() for p in before} == before
     mine = tmp_path / "notes.txt"
     mine.write_text("mine\n")
@@ -883,6 +886,98 @@ def test_apply_writes_a_unit_file_beside_its_csv(tmp_path, capsys, model):
     assert json.loads(mine.read_text())["kind"] == "apply-output"
 
 
+def test_the_unit_file_states_the_intervals_family_the_conversions_and_the_recording(tmp_path, capsys, model):
+    """Seventh outside pass, unit file: it named no predictive family (a Laplace hybrid's intervals rebuilt as 1.96 x
+    total are 8 % too narrow), not the declared --field-unit / --temperature-unit / --time-unit / --columns, nor the
+    input recording's sha256. Now it states all three."""
+    import pandas as pd
+
+    from bayesmag._src.core.datasets import sha256_of
+    rec = _recording(tmp_path / "new.csv", n=120, seed=6)
+    df = pd.read_csv(rec).rename(columns={"temperature": "T_K", "time": "t_ms"})
+    df["T_K"] += 273.15
+    df["t_ms"] *= 1000.0
+    df.to_csv(tmp_path / "odd.csv", index=False)
+    out = tmp_path / "o.csv"
+    assert main(["apply", "--model", str(model), "--data", str(tmp_path / "odd.csv"), "--out", str(out),
+                 "--columns", "temperature=T_K,time=t_ms", "--temperature-unit", "K", "--time-unit", "ms",
+                 "--no-progress"]) == 0
+    _err(capsys)
+    doc = json.loads((tmp_path / "o.csv.json").read_text())
+    iv = doc["intervals"]
+    assert iv["family"] == "gaussian" and abs(iv["interval_factor"] - 1.959964) < 1e-5 and iv["level"] == 0.95
+    got = pd.read_csv(out)
+    np.testing.assert_allclose(got["x_upper"] - got["x_calibrated"], iv["interval_factor"] * got["x_total"],
+                               rtol=1e-6)                         # the rule it states is the file's
+    c = doc["conversions"]
+    assert c["field_unit"] is None and c["temperature_unit"] == "K" and c["time_unit"] == "ms"
+    assert c["columns"] == {"temperature": "T_K", "time": "t_ms"}
+    assert doc["data_sha256"] == sha256_of(tmp_path / "odd.csv") and "data_sha256_not_recorded" not in doc
+
+
+def test_the_unit_file_names_a_hybrids_family_and_its_shape():
+    """A hybrid's intervals are its likelihood's: the unit file names the family (``hybrid_family``, as
+    predictions.csv), a fixed shape (Student-t df) and the half-width factor where it is one for every row (Laplace
+    2.118 at 95 %, not 1.96); a learned dof is named as learned per row, with no factor."""
+    from types import SimpleNamespace
+
+    from bayesmag._src.app.apply_io import interval_family
+    from bayesmag._src.core.network import NetworkSpec
+
+    def cal(fusion="moment_match", **spec):
+        return SimpleNamespace(network={"meta": {"spec": NetworkSpec(**spec).to_dict(), "fusion": fusion}})
+
+    assert interval_family(SimpleNamespace(network=None), 0.95)["family"] == "gaussian"
+    lap = interval_family(cal(likelihood="laplace"), 0.95)
+    assert lap["family"] == lap["hybrid_family"] == "laplace" and abs(lap["interval_factor"] - 2.1183) < 1e-3
+    t = interval_family(cal(likelihood="student_t", student_t_df=5.0), 0.9)
+    import scipy.stats
+    unit_sd = scipy.stats.t.ppf(0.95, 5) * np.sqrt(3 / 5)                   # the 90 % quantile of a unit-sd t(5)
+    assert t["family"] == "student_t" and t["shape"] == {"df": 5.0} and abs(t["interval_factor"] - unit_sd) < 1e-9
+    learned = interval_family(cal(likelihood="student_t", student_t_df="learn"), 0.95)
+    assert learned["interval_factor"] is None and learned["shape_learned_per_row"] == ["df"]
+    assert "use lower and upper as written" in learned["rule"]
+    paper = interval_family(cal(fusion="paper", likelihood="laplace"), 0.95)
+    assert paper["family"] == "gaussian" and paper["hybrid_family"] == "laplace"
+
+
+def test_a_field_unit_file_describes_the_field_columns():
+    """A field apply's unit file described the vector columns ("uT columns": aleatoric, residual, ...) and stated uT
+    for a relative calibration (``field = "free"``). Now: each field column's meaning, the bits 1/2/16, and
+    "1 (relative)" for every field value of a relative one."""
+    from bayesmag._src.app.apply_io import RELATIVE_UNIT, field_intervals, sidecar_doc
+    from bayesmag._src.app.field_apply import FIELD_OUTPUT_COLUMNS
+    cols = ["time", "run", *FIELD_OUTPUT_COLUMNS, "in_domain_reason", "in_domain", "valid"]
+    about = {"calibration": {"kind": "field"}, "level": 0.95,
+             "intervals": field_intervals({"level": 0.95, "kind": "field", "measurement": "scalar"})}
+    doc = sidecar_doc(about, cols, rows=3, files={})
+    m = doc["meaning"]
+    assert "uT columns" not in m and set(FIELD_OUTPUT_COLUMNS) <= set(m)
+    assert "clipped at 0" in m["magnitude_lower"] and "transfer" in m["magnitude_total"]
+    assert "1 field_range" in m["in_domain_reason"] and "16 magnitude" in m["in_domain_reason"]
+    assert "4 field_rate" not in m["in_domain_reason"]
+    assert doc["units"]["magnitude_total"] == "uT" and doc["intervals"]["family"] == "gaussian"
+    rel = sidecar_doc({**about, "relative": "fitted with field = free"}, cols, rows=3, files={})
+    assert {rel["units"][c] for c in FIELD_OUTPUT_COLUMNS} == {RELATIVE_UNIT} and rel["units"]["time"] == "s"
+    assert RELATIVE_UNIT in rel["meaning"]["magnitude"]
+
+
+def test_applying_to_the_training_recording_says_its_rows_are_the_training_sessions(tmp_path, capsys, model):
+    """Seventh outside pass: apply on the calibration's own training recording gave no word that its rows got the
+    new-session intervals (transfer added). Its sha256 is the certificate's data_sha256: a note says so and where
+    the same-session intervals are; a new recording gets no such note."""
+    training = model.parent / "rec.csv"
+    assert main(["apply", "--model", str(model), "--data", str(training), "--out", str(tmp_path / "o.csv"),
+                 "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    note = [ln for ln in out.splitlines() if "trained on" in ln]
+    assert len(note) == 1 and "new_session=False" in note[0] and "predictions.csv" in note[0], out
+    rec = _recording(tmp_path / "new.csv", n=100, seed=9)
+    assert main(["apply", "--model", str(model), "--data", str(rec), "--out", str(tmp_path / "n.csv"),
+                 "--no-progress"]) == 0
+    assert "trained on" not in capsys.readouterr().out
+
+
 def test_every_apply_column_has_a_unit():
     """The vector, field and archive outputs' columns all get a unit from one table (a new column must add one)."""
     from bayesmag._src.app.apply import OUTPUT_COLUMNS
@@ -927,7 +1022,48 @@ def test_a_field_apply_writes_its_unit_file_and_a_stale_one_never_stays(tmp_path
     doc = json.loads((tmp_path / "f.csv.json").read_text())
     assert doc["calibration"]["kind"] == "field" and doc["calibration"]["file"] == "field_params.json"
     assert list(doc["units"]) == list(pd.read_csv(out).columns) and doc["units"]["magnitude_upper"] == "uT"
+    from bayesmag._src.core.datasets import sha256_of
+    assert "uT columns" not in doc["meaning"] and "magnitude_transfer" in doc["meaning"]      # the field's columns
+    assert doc["intervals"]["family"] == "gaussian" and doc["intervals"]["measurement"] == "scalar"
+    assert doc["data_sha256"] == sha256_of(tmp_path / "new.csv") and doc["conversions"]["field_unit"] is None
+    for force in ([], ["--force"]):                 # its training recording: refused, never with a --force hint
+        assert main(["apply", "--model", str(tmp_path / "run"), "--data", str(tmp_path / "new.csv"), "--out",
+                     str(tmp_path / "train.csv"), *force]) == 2
+        err = capsys.readouterr().err
+        assert "trained on" in err and "--force" not in err, err
     data = bayesmag.load_csv(tmp_path / "new.csv", require_reference=False)
     pred = {"in_domain_reason": [""] * data.n, "in_domain": np.ones(data.n, bool), "valid": np.ones(data.n, bool)}
     write_apply_csv(out, data, [("x_calibrated", np.zeros(data.n))], pred)
     assert not (tmp_path / "f.csv.json").exists()               # a CSV without its file, never with another's
+
+
+@pytest.mark.extended
+def test_a_relative_field_calibrations_unit_file_says_relative(tmp_path, capsys):
+    """A field calibration fitted with ``field = "free"`` is relative (trace(S) = 3), and apply's summary says so;
+    its unit file stated uT for every field column. Now "1 (relative)" (10-20 s: a field run)."""
+    import warnings
+
+    import pandas as pd
+
+    import bayesmag
+    from bayesmag._src.app.apply_io import RELATIVE_UNIT
+    from bayesmag._src.app.config import config_from_dict
+    from bayesmag.simulate import simulate_field
+    c = simulate_field("dance", n=900, seed=1, temperature=(15.0, 35.0))
+    pd.DataFrame({"time": c.data.time, "run": c.data.run, "bx_meas": c.data.b_meas[:, 0],
+                  "by_meas": c.data.b_meas[:, 1], "bz_meas": c.data.b_meas[:, 2],
+                  "temperature": c.data.temperature}).to_csv(tmp_path / "r.csv", index=False)
+    cfg = config_from_dict({"name": "free", "data": {"path": str(tmp_path / "r.csv")},
+                            "measurement": {"kind": "constant", "field": "free", "exports": []},
+                            "split": {"kind": "time_blocks", "test_fraction": 0.2, "n_blocks": 2},
+                            "physics": {"t0": "mean"}, "output": {"figures": False, "progress": False}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bayesmag.run_job(cfg, tmp_path / "run")
+    assert main(["apply", "--model", str(tmp_path / "run"), "--data", str(tmp_path / "r.csv"), "--out",
+                 str(tmp_path / "o.csv")]) == 0
+    out = capsys.readouterr()
+    assert "relative" in out.err and "trained on" in out.out         # the summary's warning; its training recording
+    doc = json.loads((tmp_path / "o.csv.json").read_text())
+    assert {doc["units"][c] for c in doc["units"] if c.startswith(("x_", "y_", "z_", "magnitude"))} == {RELATIVE_UNIT}
+    assert "relative" in doc and RELATIVE_UNIT in doc["meaning"]["magnitude"]

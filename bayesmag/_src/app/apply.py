@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 
 from bayesmag._src.app.apply_io import (APPLY_HEADER_END, apply_about, check_apply_options,  # noqa: F401
-                                        check_apply_paths, check_units_against, is_apply_output,
-                                        refuse_training_recording, sidecar_path, write_apply_csv,
-                                        write_apply_sidecar, _check_magnitudes)
+                                        check_apply_paths, check_units_against, declared_conversions,
+                                        field_intervals, interval_family, is_apply_output,
+                                        missing_temperature_error, reference_unit_note, refuse_training_recording,
+                                        sidecar_path, training_data_sha256, write_apply_csv, write_apply_sidecar,
+                                        _check_magnitudes)
 from bayesmag._src.app.artifact import load, new_session_notes, out_of_domain_note  # noqa: F401 (re-exported)
 from bayesmag._src.core.data import AXES, DataError
 
@@ -46,28 +49,27 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
     ``<out>.json`` (units per column, the calibration, level and bayesmag version: :mod:`~bayesmag._src.app.apply_io`)
     follows it, written the same way (the summary's ``units_file``).
     """
-    from bayesmag._src.app.inputs import protected_recordings
-
     from bayesmag._src.app.artifact import is_field_run
+    conversions = declared_conversions(field_unit=field_unit, temperature_unit=temperature_unit, time_unit=time_unit,
+                                       columns=columns)
     if is_field_run(model_dir):
-        from bayesmag._src.app.field_apply import apply_field_calibration
-        summary = apply_field_calibration(model_dir, data_path, out_path, level=level,
-                                          temperature_unit=temperature_unit, field_unit=field_unit, columns=columns,
-                                          force=force, method=method, n_params=n_params, n_qmc=n_qmc,
-                                          time_unit=time_unit)
-        side = write_apply_sidecar(out_path, apply_about(model_dir, data_path, summary["level"]))
-        return {**summary, "units_file": str(side)}
+        return _apply_field(model_dir, data_path, out_path, conversions, level=level, method=method,
+                            n_params=n_params, n_qmc=n_qmc, force=force)
     t0 = time.perf_counter()
     check_apply_options(level, n_params, n_qmc)
-    out_path = check_apply_paths(model_dir, data_path, out_path, force=force)      # before loading anything
+    # before loading anything; the training recordings first, so that no refusal offers a --force it would refuse
+    out_path = check_apply_paths(model_dir, data_path, out_path, force=force)
     cal = load(model_dir)
-    protected = protected_recordings((cal.config or {}).get("data") if isinstance(cal.config, dict) else None,
-                                     model_dir)
-    for p in (out_path, sidecar_path(out_path)):
-        refuse_training_recording(p, protected)
     from bayesmag._src.core.frames import load_table      # CSV, or Parquet by suffix
-    data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
-                      require_reference=False, time_unit=time_unit, mapping_hint="--columns (NAME=COL,...)")
+    try:
+        data = load_table(data_path, columns=columns, temperature_unit=temperature_unit, field_unit=field_unit,
+                          require_reference=False, time_unit=time_unit, mapping_hint="--columns (NAME=COL,...)")
+    except DataError as e:
+        better = missing_temperature_error(e, columns, thermal=_uses_temperature(cal),
+                                           trained=(float(cal.domain.low[3]), float(cal.domain.high[3])))
+        if better is None:
+            raise
+        raise better from None
     _check_magnitudes(data)
     warnings = check_units(cal, data) + new_session_notes(cal)
     from bayesmag._src.app.inputs import failed_sensor_warning
@@ -94,21 +96,25 @@ def apply_calibration(model_dir, data_path, out_path, *, level=None, method="aut
         shown = ", ".join(str(int(r) + 1) for r in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
         warnings.append(f"{bad.size} row(s) have non-finite inputs or outputs and were not calibrated "
                         f"(marked valid=false): data row(s) {shown}.")
-    n_out = int((~pred["in_domain"] & pred["valid"]).sum())
+    outside = ~pred["in_domain"] & pred["valid"]
+    n_out = int(outside.sum())
     if n_out:
-        warnings.append(out_of_domain_note(n_out, data.n))
+        warnings.append(out_of_domain_note(n_out, data.n, pred["in_domain_reason"][outside]))
     cols = [c for c in OUTPUT_COLUMNS if c in pred]
     write_apply_csv(out_path, data, [(f"{a}_{c}", pred[c][:, i]) for i, a in enumerate(AXES) for c in cols], pred)
-    side = write_apply_sidecar(out_path, apply_about(model_dir, data_path, level))
+    from bayesmag._src.core.datasets import sha256_of
+    digest = sha256_of(Path(data_path))
+    side = write_apply_sidecar(out_path, apply_about(model_dir, data_path, level, intervals=interval_family(cal, level),
+                                                     conversions=conversions, data_sha256=digest))
     summary = {"n_rows": data.n, "n_valid": int(pred["valid"].sum()), "n_outside_domain": n_out,
                "outside_domain_by_reason": {k: int(np.sum(pred["in_domain_reason"][pred["valid"]] == k))
                                             for k in sorted(set(pred["in_domain_reason"][pred["valid"]])) if k},
                "transfer_sd": (None if cal.transfer_sd is None
                                else dict(zip(AXES, np.asarray(cal.transfer_sd, float).tolist()))),
                "warnings": warnings, "level": level, "units_file": str(side), "seconds": time.perf_counter() - t0}
-    note = method_note(cal, method)
-    if note:
-        summary["notes"] = [note]
+    notes = [n for n in (method_note(cal, method), training_rows_note(model_dir, data_path, digest)) if n]
+    if notes:
+        summary["notes"] = notes
     ref_note = _reference_unit_note(data, cal) if data.b_ref is not None else None
     if ref_note:
         warnings.append(ref_note)
@@ -159,18 +165,84 @@ def method_note(cal, method: str) -> str | None:
 def _reference_unit_note(data, cal) -> str | None:
     """Why the recording's reference columns are not scored, or None: with a declared ``--field-unit`` both the
     readings and the reference are converted, and a reference logged in another unit (uT beside nT readings) would
-    be scored 1000x off (before: RMSE 22 uT, coverage 10 %, no word). Checked against the training field (:func:`train_max_ut`)."""
+    be scored 1000x off (before: RMSE 22 uT, coverage 10 %, no word). Checked against the training field
+    (:func:`train_max_ut`); the wording is :func:`~bayesmag._src.app.apply_io.reference_unit_note`'s."""
     if data.field_unit is None:
         return None                         # undeclared: the unit check refused a reference in another unit
     ok = np.isfinite(data.b_ref).all(axis=1)
     if not ok.any():
         return None
-    p99 = float(np.percentile(np.abs(data.b_ref[ok]), 99))
-    hi = train_max_ut(cal)
-    if hi > 0 and not hi / 50 <= p99 <= 50 * hi:
-        return (f"the reference columns (bx_ref, by_ref, bz_ref) reach {p99:.4g} uT (99th percentile) after the "
-                f"declared --field-unit {data.field_unit} conversion, while the calibration's training field reached "
-                f"{hi:.4g} uT: they look like they are in another unit than the readings, so the calibrated rows were "
-                f"written but not scored against them. Convert the reference columns to {data.field_unit} (or to uT "
-                f"and apply without --field-unit after converting the readings).")
-    return None
+    meas = np.isfinite(data.b_meas).all(axis=1)
+    return reference_unit_note(float(np.percentile(np.abs(data.b_ref[ok]), 99)),
+                               float(np.percentile(np.abs(data.b_meas[meas]), 99)) if meas.any() else float("nan"),
+                               train_max_ut(cal), data.field_unit)
+
+
+def training_rows_note(model_dir, data_path, digest: str, *, field: bool = False) -> str | None:
+    """A note when the recording is the one the calibration was trained on (its sha256 ``digest`` is the run
+    certificate's ``data_sha256``): apply calibrates every recording as a new session, so these rows got the
+    new-session intervals (transfer part added) although they come from the training sessions."""
+    trained = training_data_sha256(model_dir)
+    if trained is None or digest != trained:
+        return None
+    how = ("`FieldCalibration.predict(u, t, new_session=False)` (bayesmag.load_field(RUN)) gives their same-session "
+           "intervals; the run's predictions.csv has them for its held-out rows" if field else
+           "`Calibration.predict(..., new_session=False)` (bayesmag.load(RUN)) gives their same-session intervals; "
+           "the run's predictions.csv has them for its held-out rows")
+    return (f"{data_path} is the recording this calibration was trained on (its sha256 is the certificate's "
+            f"data_sha256): its rows are the training sessions' rows, but apply treats every recording as a new "
+            f"session, so their intervals include the between-session (transfer) part. {how}. The rows the fit used "
+            f"are in-sample: their errors understate a new recording's.")
+
+
+def _uses_temperature(cal) -> bool:
+    """True when the calibration's output depends on each row's temperature (thermal terms, a network, a transform):
+    one row at the middle of the training field predicted at the training temperature range's two ends differs.
+    True when that cannot be told."""
+    if getattr(cal, "network", None) is not None:
+        return True
+    try:
+        from bayesmag._src.core.data import CalibrationData
+        lo, hi = np.asarray(cal.domain.low, float), np.asarray(cal.domain.high, float)
+        u = (lo[:3] + hi[:3]) / 2
+        t_lo, t_hi = lo[3], (hi[3] if hi[3] > lo[3] else lo[3] + 10.0)
+        a, b = (cal.predict(CalibrationData(u[None], np.array([t]), None), check_units=False, check_rates=False,
+                            warn=False, new_session=False)["calibrated"] for t in (t_lo, t_hi))
+        return not np.allclose(a, b, rtol=0, atol=1e-12 * max(1.0, float(np.abs(a).max())))
+    except Exception:  # noqa: BLE001 -- an error message is being built: assume the calibration needs it
+        return True
+
+
+def _apply_field(model_dir, data_path, out_path, conversions: dict, *, level, method, n_params, n_qmc,
+                 force) -> dict:
+    """A field calibration's apply (:func:`~bayesmag._src.app.field_apply.apply_field_calibration`) and its unit
+    file: the field columns' meaning, the magnitude's Gaussian interval, relative units for ``field = "free"``."""
+    from bayesmag._src.app.artifact import load_field
+    from bayesmag._src.app.field_apply import apply_field_calibration
+    from bayesmag._src.core.datasets import sha256_of
+    cu = {k: conversions[k] for k in ("field_unit", "temperature_unit", "time_unit", "columns")}
+    try:
+        summary = apply_field_calibration(model_dir, data_path, out_path, level=level, force=force, method=method,
+                                          n_params=n_params, n_qmc=n_qmc, **cu)
+    except DataError as e:
+        try:
+            fc = load_field(model_dir)
+            trained = (fc.ranges or {}).get("temperature")
+            better = missing_temperature_error(e, cu["columns"], thermal=bool(fc.fit.model.temperature),
+                                               trained=None if trained is None else tuple(map(float, trained)),
+                                               field=True)
+        except Exception:  # noqa: BLE001 -- the calibration's own error is said by the apply itself
+            better = None
+        if better is None:
+            raise
+        raise better from None
+    fc = load_field(model_dir)
+    relative = bool(summary.get("relative", getattr(fc.fit.model.measurement, "scale_gauge", False)))
+    digest = sha256_of(Path(data_path))
+    side = write_apply_sidecar(out_path, apply_about(model_dir, data_path, summary["level"],
+                                                     intervals=field_intervals(summary), conversions=conversions,
+                                                     data_sha256=digest, relative=relative))
+    note = training_rows_note(model_dir, data_path, digest, field=True)
+    if note:
+        summary = {**summary, "notes": [*summary.get("notes", []), note]}
+    return {**summary, "units_file": str(side)}

@@ -388,6 +388,10 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
            "outside": int((~cols["in_domain"] & cols["valid"]).sum()), "warnings": " | ".join(warns),
            "p99_meas": _p99(data.b_meas), "p99_ref": _p99(data.b_ref),
            "invalid": ",".join(str(int(i)) for i in np.flatnonzero(~cols["valid"])[:10])}
+    from bayesmag._src.app.artifact import out_of_domain_counts
+    counts = out_of_domain_counts(np.asarray(pred["in_domain_reason"], dtype=object)[~cols["in_domain"]
+                                                                                    & cols["valid"]])
+    row.update({f"outside_{k}": int(counts.get(k, 0)) for k in OUTSIDE_REASONS})
     if data.b_ref is not None and n:
         ok = cols["valid"] & np.isfinite(data.b_ref).all(axis=1)
         y, mu = data.b_ref[ok], pred["calibrated"][ok]
@@ -397,6 +401,10 @@ def calibrate_piece(piece, index: int, cal, opts: dict, out_dir: str, pieces: li
             row[f"covered_{ax}"] = int(inside[:, a].sum())
         row["n_ref"] = int(ok.sum())
     return pd.DataFrame([row])
+
+
+#: The reasons whose row counts every partition's summary holds (``outside_<reason>``), for the warning.
+OUTSIDE_REASONS = ("field_range", "temperature", "field_rate", "temperature_rate")
 
 
 def _p99(b) -> float:
@@ -441,6 +449,20 @@ def _declared_unit_files(table, pieces, cal, field_unit) -> list[str]:
         if np.isfinite(v):
             by_file.setdefault(str(pieces[int(r["partition"])][1]), []).append(v < top / 50 or v > 50 * top)
     return sorted(f for f, odd in by_file.items() if all(odd))
+
+
+def _reference_note(table, cal, field_unit) -> str | None:
+    """Why the archive's reference columns are not scored (the in-process apply's
+    :func:`~bayesmag._src.app.apply_io.reference_unit_note`, on the partitions' largest 99th percentiles), or None."""
+    from bayesmag._src.app.apply import train_max_ut
+    from bayesmag._src.app.apply_io import reference_unit_note
+    if field_unit is None or "p99_ref" not in table:
+        return None
+    def top(col) -> float:
+        v = np.asarray(table[col], np.float64)
+        v = v[np.isfinite(v)]
+        return float(v.max()) if v.size else float("nan")
+    return reference_unit_note(top("p99_ref"), top("p99_meas"), train_max_ut(cal), field_unit)
 
 
 def _write_sidecar(folder: Path, table, opts: dict, about: dict) -> None:
@@ -510,7 +532,7 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
         raise DataError(f"applying to an archive needs Dask: pip install 'bayesmag[dask]' ({e}).") from None
     import pandas as pd
     from bayesmag._src.app.apply import method_note, run_seed
-    from bayesmag._src.app.apply_io import apply_about
+    from bayesmag._src.app.apply_io import apply_about, declared_conversions, interval_family
     from bayesmag._src.app.artifact import load
     from bayesmag._src.app.outdir import reserve, staging_dir
     from bayesmag._src.app.signals import on_abort, parent_decides
@@ -586,7 +608,11 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
                     raise DataError(f"a Dask worker died (out of memory?) on {e}: give it more memory (--memory-limit), "
                                     f"or smaller partitions (Parquet row groups, --blocksize-mb).") from None
                 _check_small_field(table, cal, opts["field_unit"])     # inside the staging: a refusal writes nothing
-                _write_sidecar(Path(tmp), table, opts, apply_about(model_dir, data, level))   # swapped in with them
+                about = apply_about(model_dir, data, level, intervals=interval_family(cal, level),
+                                    conversions=declared_conversions(field_unit=field_unit,
+                                                                     temperature_unit=temperature_unit,
+                                                                     time_unit=time_unit, columns=columns))
+                _write_sidecar(Path(tmp), table, opts, about)          # swapped in with the parts
         except BaseException as e:
             if not isinstance(e, Exception):          # Ctrl-C: nothing of the workers' is kept; stop them now
                 _kill_children(before)
@@ -619,9 +645,15 @@ def apply_dask(model_dir, data, out, *, scheduler: str | None = None, n_workers:
     if note:
         summary["notes"] = [note]
     if summary["n_outside_domain"]:
-        summary["warnings"].append(f"{summary['n_outside_domain']} of {rows_out} rows lie outside the calibration's "
-                                   f"training domain (in_domain=false): their intervals may be far too narrow.")
-    if "n_ref" in table and table["n_ref"].sum() > 0:
+        from bayesmag._src.app.artifact import out_of_domain_note
+        by = {k: int(table[f"outside_{k}"].sum()) for k in OUTSIDE_REASONS if f"outside_{k}" in table}
+        summary["outside_domain_by_reason"] = {k: v for k, v in by.items() if v}
+        summary["warnings"].append(out_of_domain_note(summary["n_outside_domain"], rows_out,
+                                                      summary["outside_domain_by_reason"]))
+    ref_note = _reference_note(table, cal, opts["field_unit"])
+    if ref_note:
+        summary["warnings"].append(ref_note)
+    elif "n_ref" in table and table["n_ref"].sum() > 0:
         n_ref = float(table["n_ref"].sum())
         summary["metrics"] = {"rmse": {ax: float(np.sqrt(table[f"sse_{ax}"].sum() / n_ref)) for ax in AXES},
                               "coverage": {ax: float(table[f"covered_{ax}"].sum() / n_ref) for ax in AXES}}

@@ -292,7 +292,8 @@ class Calibration:
             from bayesmag._src.core.data import CalibrationWarning, user_stacklevel
             n_out = int((~in_dom & valid).sum())
             step = self.domain.step_note(data) if check_rates and self.domain is not None else None
-            for w in [*(new_session_notes(self) if new_session else []), step, n_out and out_of_domain_note(n_out, n)]:
+            for w in [*(new_session_notes(self) if new_session else []), step,
+                      n_out and out_of_domain_note(n_out, n, reason[~in_dom & valid])]:
                 if w:
                     warnings.warn(w[0].upper() + w[1:], CalibrationWarning, stacklevel=user_stacklevel())
         return out
@@ -321,10 +322,31 @@ def new_session_notes(cal) -> list[str]:
             f"of its own and no step; run ids are not matched), and the spread between runs is in the transfer part."]
 
 
-def out_of_domain_note(n_out: int, n: int) -> str:
-    """The rows of a prediction outside the calibration's training domain, as ``apply`` and ``predict`` say it."""
-    return (f"{n_out} of {n} rows lie outside the calibration's training domain (in_domain=false): their values are "
-            f"extrapolation and their intervals may be far too narrow.")
+#: What each reason of a vector calibration's domain check means, for :func:`out_of_domain_note`.
+_REASON_TEXT = {"field_range": "a reading or the calibrated field beyond the training range",
+                "temperature": "the temperature outside the training span",
+                "field_rate": "the field changing faster than in training",
+                "temperature_rate": "the temperature changing faster than in training"}
+
+
+def out_of_domain_counts(reasons) -> dict[str, int]:
+    """How many rows each reason of :data:`~bayesmag._src.core.domain.REASONS` flags, from the rows' ``;``-joined
+    reason strings (a row outside for two reasons counts under both); reasons no row has are left out."""
+    split = [str(r).split(";") for r in np.asarray(reasons, dtype=object).reshape(-1)]
+    counts = {k: sum(k in r for r in split) for k in _REASON_TEXT}
+    return {k: v for k, v in counts.items() if v}
+
+
+def out_of_domain_note(n_out: int, n: int, reasons=None) -> str:
+    """The rows of a prediction outside the calibration's training domain, as ``apply`` and ``predict`` say it; with
+    ``reasons`` (the rows' ``in_domain_reason`` strings, or :func:`out_of_domain_counts`' dict) the count of each
+    reason, with what it means, so that the user knows what to fix."""
+    counts = reasons if isinstance(reasons, dict) else (None if reasons is None else out_of_domain_counts(reasons))
+    why = ""
+    if counts:
+        why = "; " + ", ".join(f"{k} {v} ({_REASON_TEXT.get(k, k)})" for k, v in counts.items() if v)
+    return (f"{n_out} of {n} rows lie outside the calibration's training domain (in_domain=false{why}): their values "
+            f"are extrapolation and their intervals may be far too narrow.")
 
 
 def save_calibration(path: Path, predictor, *, config: dict, level: float = 0.95) -> None:
