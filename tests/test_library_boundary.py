@@ -335,7 +335,8 @@ def test_a_loaded_calibration_warns_on_predict_as_apply_does(data, tmp_path):
     texts = [str(w.message) for w in rec]
     assert any("no between-session (transfer) term" in t for t in texts), texts
     n_out = int((~out["in_domain"] & out["valid"]).sum())
-    assert n_out > 0 and any(out_of_domain_note(n_out, new.n)[1:] in t for t in texts), texts
+    reasons = np.asarray(out["in_domain_reason"])[~out["in_domain"] & out["valid"]]
+    assert n_out > 0 and any(out_of_domain_note(n_out, new.n, reasons)[1:] in t for t in texts), texts
     assert all(w.filename == __file__ for w in rec)                   # at the caller's line
     with warnings.catch_warnings():
         warnings.simplefilter("error")
