@@ -169,6 +169,7 @@ def _tree(folder):
     return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.extended
 def test_save_never_replaces_a_run_or_a_saved_calibration_unless_overwrite(data, fitted, tmp_path, capsys):
     """Seventh outside pass: ``Calibrator.save(path)`` into a complete ``bayesmag run`` folder replaced it (report,
     predictions, metrics gone) without a word. Now the ``--out`` rules: a complete bayesmag result is replaced only

@@ -488,6 +488,7 @@ def test_a_declared_field_in_the_warning_band_is_kept_with_a_note(tmp_path, caps
     assert "The declared field F = 38 uT" in (tmp_path / "o" / "report.md").read_text()
 
 
+@pytest.mark.extended
 def test_a_white_field_fit_states_its_residual_autocorrelation_and_what_it_costs(tmp_path):
     """covariance = "white" wrote rho1 = 0.0 (a placeholder read as a measurement) while the residuals of a
     multi-session fit are strongly autocorrelated (an outside tester: 0.94, sds about 6x too small, no word). The

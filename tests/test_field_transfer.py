@@ -99,6 +99,7 @@ def test_a_vehicle_that_does_not_change_is_not_widened_by_the_bound_on_its_noise
     assert max(ratio) < 1.2 and np.mean(np.concatenate(cov)) >= 0.93, (ratio, np.mean(np.concatenate(cov)))
 
 
+@pytest.mark.extended
 def test_one_session_holds_no_estimate_and_says_so():
     """One run: no estimate (sd None, no term added), and the warning says why and what to record. (The vector
     calibration's stand-in, the largest change of a run's mean residual, is about 0 for a dance by construction, and
@@ -129,6 +130,7 @@ def test_one_session_holds_no_estimate_and_says_so():
         cal.predict(c.data.b_meas[:5], c.data.temperature[:5], warn=False)
 
 
+@pytest.mark.extended
 def test_sessions_that_do_not_overlap_are_named_as_such():
     """Four runs, each at its own temperatures: the coldest and the hottest lie outside the others' ranges, and the
     warning says so (not only 'record 3 sessions': there are four)."""

@@ -173,6 +173,7 @@ def test_ensemble_predictor_pools_student_t_shape_and_chunks():
     assert p.family == "student_t" and np.all(np.isfinite(p.total))
 
 
+@pytest.mark.extended
 def test_a_prediction_knows_its_calibrations_level(tmp_path):
     """Seventh outside pass (found in the fifth): ``Prediction.interval`` needed its level, so
     ``run.predictor.predict(rows).interval()`` raised TypeError and ``interval(95)`` gave NaN bounds without a word.

@@ -338,6 +338,7 @@ def test_a_reference_in_another_unit_than_the_declared_one_is_not_scored(tmp_pat
     assert max(s["metrics"]["rmse"].values()) < 1.0                     # the same unit: scored
 
 
+@pytest.mark.extended
 def test_a_recording_without_temperature_is_told_what_applying_needs(tmp_path, capsys, model):
     """Seventh outside pass: apply on a recording without a temperature column advised
     `measurement.temperature_terms = false`, a training key that does nothing for a calibration already fitted. Now

@@ -149,8 +149,8 @@ class FieldCalibration:
             out["magnitude_total"][r] = total
             out["magnitude_lower"][r] = np.maximum(pm["mean"] - z * total, 0.0)      # a magnitude is >= 0
             out["magnitude_upper"][r] = pm["mean"] + z * total
-        reason = (range_flags(u, t, out["magnitude"], self.ranges, valid, z * out["magnitude_total"])[0] if self.ranges
-                  else np.full(n, "", dtype=object))
+        reason, hits = (range_flags(u, t, out["magnitude"], self.ranges, valid, z * out["magnitude_total"])
+                        if self.ranges else (np.full(n, "", dtype=object), {}))
         out.update(valid=valid, in_domain=valid & (reason == ""), in_domain_reason=reason, level=level)
         if warn:
             import warnings
@@ -159,8 +159,7 @@ class FieldCalibration:
             texts = [self.no_transfer_warning()] if new_session and self.transfer_sd is None else []
             n_out = int((valid & (reason != "")).sum())
             if n_out:
-                kinds = {k: int(np.sum([k in str(r).split(";") for r in reason[valid]]))
-                         for k in ("field_range", "temperature", "magnitude")}
+                kinds = {k: int(h.sum()) for k, h in hits.items()}
                 texts.append(f"{n_out} of {n} rows lie outside the calibration's training domain (in_domain=false; "
                              + ", ".join(f"{k} {v}" for k, v in kinds.items() if v)
                              + "): their values are extrapolation and their intervals may be far too narrow."
