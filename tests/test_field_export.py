@@ -187,3 +187,44 @@ def test_vector_fit_is_exported_in_its_own_frame():
     fit = _fake_fit(Vector(), S, np.zeros((3, 3)), rng.normal(0, 5, 3), np.zeros(3), t0=20.0)
     cal = FieldCalibration.from_fit(fit, CalibrationData(rng.normal(0, 40, (50, 3)), np.full(50, 20.0), None))
     assert cal.frame is None and np.allclose(cal.theta[:, :3], S)
+
+
+@pytest.mark.extended
+def test_field_exports_carry_the_magnitude_expanded_uncertainty(run20):
+    """The JSON exports' ``expanded_uncertainty`` was null on every field run (a firmware user got coefficients with
+    no U): now U of |B| equals metrics.json's field.transfer figures; one run gives no new-session U and says why."""
+    import math
+    tr = run20["res"]["metrics"]["field"]["transfer"]
+    assert tr["method"] == "not_estimated" and tr["U_new_session"] is None       # one run: no between-session term
+    for s in (".export.json", ".magcal.json"):
+        u = json.loads(run20["files"][s])["expanded_uncertainty"]
+        assert u["unit"] == "uT" and u["level"] == 0.95 and math.isclose(u["k"], 1.959964, rel_tol=1e-6)
+        assert math.isclose(u["same_session"], tr["U_same_session"], rel_tol=1e-12) and u["new_session"] is None
+        assert "not estimated" in u["applies"]
+    h = run20["files"][".h"]
+    assert "BAYESMAG_U_MAGNITUDE_SAME_SESSION" in h and "No BAYESMAG_U_MAGNITUDE_NEW_SESSION" in h
+    assert "not known (the run folder has no metrics.json)" not in h
+    for s in (".parm", ".params"):
+        assert "Expanded uncertainty U of |B| (uT, coverage 95%" in run20["files"][s]
+
+
+def test_field_uncertainty_doc_with_a_between_session_term():
+    from bayesmag._src.app.field_export import field_uncertainty_doc
+    tr = {"method": "leave_one_run_out", "k": 1.96, "U_same_session": 0.1, "U_new_session": 0.3, "warning": None}
+    u = field_uncertainty_doc(tr, 0.95)
+    assert (u["same_session"], u["new_session"], u["unit"]) == (0.1, 0.3, "uT") and "not estimated" not in u["applies"]
+    assert field_uncertainty_doc(tr, 0.95, relative=True)["unit"].startswith("1 (relative")
+    assert field_uncertainty_doc(None, 0.95) is None
+
+
+def test_a_field_run_refused_by_export_lists_only_the_files_it_holds(tmp_path):
+    from bayesmag._src.app.artifact import ArtifactError, field_run_error
+    (tmp_path / "field_params.json").write_text("{}")
+    (tmp_path / "calibration.parm").write_text("")
+    with pytest.raises(ArtifactError) as e:
+        field_run_error(tmp_path, ArtifactError)
+    msg = str(e.value)
+    assert "calibration.parm" in msg and "calibration.h" not in msg and "export.json" not in msg and "report.md" not in msg
+    (tmp_path / "calibration.parm").unlink()
+    with pytest.raises(ArtifactError, match="no exports"):
+        field_run_error(tmp_path, ArtifactError)

@@ -473,10 +473,16 @@ def field_run_error(path, error) -> None:
     """Raise ``error`` for a field-calibration run folder (``field_params.json``, no vector calibration): re-running
     does not give it a ``calibration.json`` (the message said so), so say what it is and what to use instead."""
     if is_field_run(path):
+        from bayesmag._src.app.formats import FORMATS
+        held = [f"calibration{ext}" for ext in FORMATS.values() if (Path(path) / f"calibration{ext}").is_file()]
+        has_report = (Path(path) / "report.md").is_file()
+        what = ((f"its exports ({', '.join(held)}" + (", the first with the full model" if
+                                                     "calibration.export.json" in held else "") + ")")
+                if held else "no exports ([measurement] exports was empty; re-run with the formats wanted)")
+        what += " and its report.md" if has_report else ""
         raise error(f"{path} is a field-calibration run (calibration against |B| or a scalar reference, "
                     f"field_params.json): `bayesmag export`, `bayesmag report` and bayesmag.load take a calibration against a vector "
-                    f"reference. The run folder already holds its exports (calibration.export.json with the full "
-                    f"model, calibration.h, .params, .parm, .magcal.json) and its report.md; `bayesmag apply` "
+                    f"reference. The run folder already holds {what}; `bayesmag apply` "
                     f"calibrates a new recording with it, and from Python bayesmag.load_field(run).predict(b, t) "
                     f"(bayesmag.load reads a vector calibration); docs/field.md.")
 

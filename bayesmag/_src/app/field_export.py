@@ -29,7 +29,7 @@ from bayesmag._src.core.data import CalibrationData
 from bayesmag._src.core.field import FieldFit, gauge_text
 from bayesmag._src.core.physics import PhysicsModel
 
-__all__ = ["FieldCalibration", "field_export_texts", "symmetric_frame"]
+__all__ = ["FieldCalibration", "field_export_texts", "field_uncertainty_doc", "symmetric_frame"]
 
 #: what export.py's generic "cannot hold" line (_CANNOT_HOLD) says of PX4 and ArduPilot; in the symmetric frame S is held
 _ROTATION_PART = "the rotation (antisymmetric) part of S"
@@ -114,11 +114,35 @@ def _note(fit: FieldFit, R: np.ndarray | None) -> str:
             f"component in this frame; the |B| figure is what a magnitude calibration is judged by.{scale}")
 
 
+_C_NO_U = "/* Expanded uncertainty U: not known (the run folder has no metrics.json). */"
+
+
+def field_uncertainty_doc(transfer: dict | None, level: float, relative: bool = False) -> dict | None:
+    """The JSON exports' ``expanded_uncertainty`` of a field calibration: U of |B| at the median held-out row, same
+    session and new session (None with the reason where no between-session term was estimated), from metrics.json's
+    ``field.transfer`` block (``transfer``; None: not known)."""
+    if not transfer or transfer.get("U_same_session") is None:
+        return None
+    new = transfer.get("U_new_session")
+    why = ("[uq] transfer = \"off\"" if transfer.get("method") == "off" else
+           (transfer.get("warning") or "too few usable runs"))
+    return {"quantity": "|B| (field magnitude)", "unit": "1 (relative, trace(S) = 3)" if relative else "uT",
+            "level": level, "k": transfer.get("k"), "at": "the median held-out row",
+            "same_session": transfer["U_same_session"], "new_session": new,
+            "applies": "same_session: rows of the sessions (runs, flights) the calibration was fitted on; new_session: "
+                       "any later flight or campaign (what `bayesmag apply` gives, column magnitude_transfer). Of the "
+                       "magnitude only: a field calibration does not establish the vector's direction. Inside the "
+                       "training domain only." + ("" if new is not None else
+                                                  f" No new_session U: the between-session term was not estimated "
+                                                  f"({why}); a later session can be off by more.")}
+
+
 def field_export_texts(fit: FieldFit, train: CalibrationData, formats=tuple(FORMATS),
-                       held_out: CalibrationData | None = None) -> dict[str, str]:
+                       held_out: CalibrationData | None = None, uncertainty: dict | None = None) -> dict[str, str]:
     """``{format: file text}`` for a field calibration (no vector reference: the accuracy table is against the full
     model, on ``held_out`` (the run's held-out rows) where given, else on the training rows, said so). A magnitude
-    fit is exported in its symmetric frame (:func:`symmetric_frame`, the same R for every format)."""
+    fit is exported in its symmetric frame (:func:`symmetric_frame`, the same R for every format).
+    ``uncertainty``: :func:`field_uncertainty_doc` of the run, the JSON exports' ``expanded_uncertainty``."""
     cal = FieldCalibration.from_fit(fit, train)
     R = cal.frame
     strip = lambda d, what: CalibrationData(d.b_meas, d.temperature, None, d.time, d.run, source=what,
@@ -129,6 +153,12 @@ def field_export_texts(fit: FieldFit, train: CalibrationData, formats=tuple(FORM
     note = _note(fit, R)
     r_line = None if R is None else ("Frame rotation R (rows; B_gauge = R B_export): "
                                      + "; ".join(" ".join(f"{v:.12g}" for v in row) for row in R))
+    u = uncertainty
+    u_line = ("Expanded uncertainty U of |B|: not known (the run's metrics were not given)" if u is None else
+              f"Expanded uncertainty U of |B| ({u['unit']}, coverage {u['level']:.0%}, k = {u['k']:.3g}, at the median "
+              f"held-out row): same session {u['same_session']:.3g}; new session "
+              + ("not stated (no between-session term)" if u["new_session"] is None else f"{u['new_session']:.3g}")
+              + "; of the magnitude only, inside the training domain")
     out = {}
     for fmt in formats:
         text = render(fmt, ex)
@@ -137,14 +167,23 @@ def field_export_texts(fit: FieldFit, train: CalibrationData, formats=tuple(FORM
         if fmt in ("json", "magcal"):
             doc = json.loads(text)
             doc["field_calibration"] = note
+            doc["expanded_uncertainty"] = uncertainty
             if R is not None:
                 doc["field_frame"] = {"name": "symmetric", "R": R.tolist(), "t0": fit.model.t0,
                                       "relation": "B_export = R^T B_gauge; B_gauge = R B_export (B_gauge: the "
                                                   "x/y/z_calibrated of `bayesmag apply`); |B| is the same in both"}
             text = json.dumps(doc, indent=2) + "\n"
         elif fmt == "c-header":
+            c_u = [f"/* {u_line}. */"]
+            if u is not None:
+                c_u += [f"static const double BAYESMAG_LEVEL = {u['level']:.6g};",
+                        f"static const double BAYESMAG_U_MAGNITUDE_SAME_SESSION = {u['same_session']:.6g};"]
+                c_u += ([f"static const double BAYESMAG_U_MAGNITUDE_NEW_SESSION = {u['new_session']:.6g};"]
+                        if u["new_session"] is not None else
+                        ["/* No BAYESMAG_U_MAGNITUDE_NEW_SESSION: the between-session term was not estimated. */"])
+            text = text.replace(_C_NO_U, "\n".join(c_u))
             text = f"/* {note} */\n" + (f"/* {r_line} */\n" if r_line else "") + text
         else:
-            text = f"# {note}\n" + (f"# {r_line}\n" if r_line else "") + text
+            text = f"# {note}\n" + (f"# {r_line}\n" if r_line else "") + f"# {u_line}.\n" + text
         out[fmt] = text
     return out

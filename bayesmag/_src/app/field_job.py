@@ -399,7 +399,7 @@ def _not_converged_message(meas, train, f_ref_train, mc) -> str:
 
 def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> dict:
     """Run the field calibration the config describes and write its outputs into ``out``."""
-    from bayesmag._src.app.field_export import field_export_texts
+    from bayesmag._src.app.field_export import field_export_texts, field_uncertainty_doc
     from bayesmag._src.app.outdir import staging_dir
     from bayesmag._src.pipeline.field_stage import conformal_plan, run_field_stage
 
@@ -499,7 +499,8 @@ def run_field_job(cfg: Config, out: str | Path, *, progress: bool = False) -> di
         (tmp / "config.resolved.toml").write_text(to_toml(cfg.to_dict()))
         _write_predictions(tmp / "predictions.csv", test, split.test, fs.target_test, fs.prediction, cfg.uq.level,
                            fs.domain)
-        for fmt, text in field_export_texts(fs.fit, train, mc.exports, held_out=test).items():
+        u_doc = field_uncertainty_doc(field_m["transfer"], cfg.uq.level, relative=meas.scale_gauge)
+        for fmt, text in field_export_texts(fs.fit, train, mc.exports, held_out=test, uncertainty=u_doc).items():
             from bayesmag._src.app.formats import FORMATS
             (tmp / f"calibration{FORMATS[fmt]}").write_text(text)
         if nuts is not None:
