@@ -100,7 +100,16 @@ def generators(args):
             if post.df_grid:       # learned dof: its posterior per axis on the grid
                 rec["df_grid"] = [g if np.isfinite(g) else None for g in post.df_grid]
                 rec["df_weight"] = np.round(post.df_weight, 6).tolist()
-            for key, p in (("loro", pr), ("hier", ph)):
+            # the job's transfer_check = "loro": an axis whose rms transfer sd over the training rows is > 2x loro's
+            # and the residual sd takes loro's constant sd; scored only where it engages (else the hier figures)
+            rms = np.sqrt(np.mean(post.transfer_sd_for(pr.fit, train) ** 2, axis=0))
+            warned = H.misfit_axes(rms, pr.transfer_sd, pr.fit.s2)
+            rec["checked"] = [bool(v) for v in warned]
+            pairs = [("loro", pr), ("hier", ph)]
+            if warned.any():
+                fb = tuple(float(v) for v in np.where(warned, pr.transfer_sd, np.nan))
+                pairs.append(("chk", dataclasses.replace(ph, sessions=dataclasses.replace(post, fallback_sd=fb))))
+            for key, p in pairs:
                 c, d, w = _scores(p, news)
                 rec[f"ok_{key}"] = (c | ~d[:, None]).mean(0).tolist()
                 rec[f"width_{key}"] = w[d].mean(0).tolist()
@@ -108,8 +117,10 @@ def generators(args):
                     c_loro, w_loro = c, w
                 else:
                     # mean width on the rows loro's intervals cover (in domain or not), hierarchical / loro
-                    rec["ratio"] = [float(np.mean(w[c_loro[:, a], a]) / np.mean(w_loro[c_loro[:, a], a]))
-                                    for a in range(3)]
+                    rec["ratio" if key == "hier" else "ratio_chk"] = [
+                        float(np.mean(w[c_loro[:, a], a]) / np.mean(w_loro[c_loro[:, a], a])) for a in range(3)]
+            if not warned.any():
+                rec.update(ok_chk=rec["ok_hier"], width_chk=rec["width_hier"], ratio_chk=rec["ratio"])
             print("DRAW " + json.dumps(rec), flush=True)
             print(f"{name} draw {draw}: covered or flagged loro {f(rec['ok_loro'])}, hierarchical {f(rec['ok_hier'])}; "
                   f"width ratio {' / '.join(f'{v:.2f}' for v in rec['ratio'])}; fit {secs:.2f} s", flush=True)
@@ -135,9 +146,15 @@ def _table(recs, title):
         by_draw = " / ".join(f"{np.mean(wh[good[:, a], a]) / np.mean(wl[good[:, a], a]):.2f}" if good[:, a].any()
                              else "-" for a in range(3))
         ess = np.array([r["ess"] for r in rs if r["ess"]])
-        for key in ("loro", "hier"):
+        keys = ("loro", "hier") + (("chk",) if all("ok_chk" in r for r in rs) else ())
+        for key in keys:
             o, w = np.array([r[f"ok_{key}"] for r in rs]), np.array([r[f"width_{key}"] for r in rs])
-            hier = key == "hier"
+            hier = key != "loro"
+            if key == "chk":       # hierarchical with the job's check against loro (transfer_check = "loro")
+                ratio = np.array([r["ratio_chk"] for r in rs])
+                by_draw = " / ".join(f"{np.mean(w[good[:, a], a]) / np.mean(wl[good[:, a], a]):.2f}"
+                                     if good[:, a].any() else "-" for a in range(3))
+                key = f"hier, checked ({' / '.join(str(int(v)) for v in np.sum([r['checked'] for r in rs], 0))} draws)"
             print(f"| {name} | {len(rs)} | {key} | {f(o.mean(0))} | {f(o.std(0, ddof=1)) if len(rs) > 1 else '-'} | "
                   f"{f(np.percentile(o, 10, axis=0))} | {' / '.join(map(str, (o < 0.95).sum(0)))} | "
                   f"{' / '.join(f'{v:.3f}' for v in w.mean(0))} | "
@@ -193,6 +210,7 @@ def belsten(args):
     print("|---|---|---|---|---|---|---|---|---|")
     from bayesmag._src.core.catalogue import make_extra
     extra = tuple(make_extra(name, t0=0.0) for name in args.extra)
+    widths = {}
     for r in np.unique(d.run):
         train, test = d.subset(np.flatnonzero(d.run != r)), d.subset(np.flatnonzero(d.run == r))
         model = bayesmag.PhysicsModel.paper(t0=0.0, extra=extra)
@@ -212,19 +230,29 @@ def belsten(args):
         rms = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
         warned = H.misfit_axes(rms, loro_sd, fit.s2)          # the job's rule (hierarchical_transfer)
         said = ", ".join(f"{'xyz'[a]} {rms[a] / loro_sd[a]:.1f}x" for a in np.flatnonzero(warned)) or "none"
+        fb = np.where(warned, loro_sd, np.nan)             # the job's default transfer_check = "loro"
+        checked = dataclasses.replace(post, fallback_sd=tuple(map(float, fb))) if warned.any() else post
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=loro_sd)),
-                        ("hierarchical", dataclasses.replace(base, sessions=post))):
+                        ("hierarchical", dataclasses.replace(base, sessions=post)),
+                        ("hierarchical, checked", dataclasses.replace(base, sessions=checked))):
             p = pr.predict(test)
             lo, hi = p.interval(0.95)
             c = (test.b_ref >= lo) & (test.b_ref <= hi)
             dom = p.in_domain
             w = (hi - lo)[dom].mean(0) if dom.any() else np.full(3, np.nan)
             cin = c[dom].mean(0) if dom.any() else np.full(3, np.nan)
+            widths.setdefault(key, []).append(w)
             print(f"| {r} | {int(dom.sum())} of {test.n} | {key} | {f(c.mean(0))} | {f(cin)} | "
                   f"{f((c | ~dom[:, None]).mean(0))} | "
                   f"{' / '.join(f'{v:.3f}' for v in w)} | {', '.join(post.effects) if key != 'loro' else '-'} | "
                   f"{said if key != 'loro' else '-'} |",
                   flush=True)
+    ref = np.array(widths["loro"])
+    for key in ("hierarchical", "hierarchical, checked"):
+        ratio = np.array(widths[key]) / ref
+        ok = np.isfinite(ratio)
+        print(f"\n{key}: in-domain width / loro's over the {int(ok.sum())} run-axes with rows in domain: "
+              f"median {np.median(ratio[ok]):.2f}, max {ratio[ok].max():.2f}, over 1.5x: {int((ratio[ok] > 1.5).sum())}")
 
 
 def belsten_tau(args):

@@ -111,7 +111,7 @@ print("ok")
 
 
 @pytest.mark.parametrize("key, value", [("transfer_likelihood", "laplace"), ("transfer_df", 6.0),
-                                        ("transfer_uninformed", "fixed")])
+                                        ("transfer_uninformed", "fixed"), ("transfer_check", "warn")])
 def test_session_model_keys_without_the_session_model_are_refused(key, value):
     """Sixth outside pass: `uq.transfer_likelihood = "laplace"` with the default `transfer = "loro"` ran with no
     word, and config.resolved.toml kept the key as if it had been used. It is read by the hierarchical model only."""

@@ -1,5 +1,6 @@
 """The hierarchical session model (pipeline/sessions): closed forms, recovery, Laplace vs NUTS, the job option."""
 
+import dataclasses
 import json
 
 import jax
@@ -370,6 +371,9 @@ def test_belsten_run_3_left_out_is_covered_or_flagged():
     said = [w for w in tr.warning.split(". ") if "leave-one-run-out's" in w]
     assert len(said) == 1 and " on x (" in said[0] and " on z (" in said[0] and " on y (" not in said[0], tr.warning
     assert "the only heated run" in tr.warning
+    # ... and, with the default transfer_check = "loro", those two axes take leave-one-run-out's sd (the model
+    # failed its check there), y keeps the model's row-wise one
+    assert post.checked_axes == ("x", "z") and "failed its check" in tr.warning
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.6])
@@ -608,10 +612,40 @@ def test_the_job_warns_where_the_session_model_is_far_wider_than_leave_one_run_o
     for name, eff in (("clean", ()), ("distorted", [get_effect("axis_quadratic", out="y", inp="x", coeff=0.001)])):
         d = _session(0, 8, rows=100, noise_sd=0.05, effects=eff)
         fit = bayesmag.fit_physics(d, bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature))))
-        tr, _ = H.hierarchical_transfer(d, fit)
+        tr, post = H.hierarchical_transfer(d, fit, check="warn")
         loro = np.array([tr.per_run["model"]["loro_sd"][a] for a in "xyz"])
-        out[name] = (tr.sd / loro, tr.warning)
-    ratio, warning = out["distorted"]
+        out[name] = (tr.sd / loro, tr.warning, post)
+    ratio, warning, post = out["distorted"]
     assert ratio[1] > H.MISFIT_RATIO and warning is not None and "on y (" in warning and "on x" not in warning
-    assert "bayesmag discover" in warning and "transfer = \"loro\"" in warning
+    assert "bayesmag discover" in warning and "transfer = \"loro\"" in warning and post.fallback_sd == ()
     assert out["clean"][1] is None and (out["clean"][0] < H.MISFIT_RATIO).all(), out["clean"]
+
+
+@pytest.mark.parametrize("check", ["loro", "warn"])
+def test_an_axis_that_fails_the_check_against_leave_one_run_out_uses_its_sd(check):
+    """``transfer_check = "loro"`` (the default): on the axis the check names (y: the distortion of the test above)
+    every row's transfer sd is leave-one-run-out's constant, exactly, the other axes keep the model's row-wise sd,
+    and the fallback survives the calibration file's round trip; ``"warn"`` keeps the model's everywhere."""
+    from bayesmag._src.core.simulate import get_effect
+
+    d = _session(0, 8, rows=100, noise_sd=0.05,
+                 effects=[get_effect("axis_quadratic", out="y", inp="x", coeff=0.001)])
+    fit = bayesmag.fit_physics(d, bayesmag.PhysicsModel.paper(t0=float(np.mean(d.temperature))))
+    tr, post = H.hierarchical_transfer(d, fit, check=check)
+    loro = np.array([tr.per_run["model"]["loro_sd"][a] for a in "xyz"])
+    model = np.array([tr.per_run["model"]["check"]["model_rms_sd"][a] for a in "xyz"])
+    assert tr.per_run["model"]["check"]["failed_axes"] == ["y"] and model[1] > H.MISFIT_RATIO * loro[1]
+    sd = post.transfer_sd_for(fit, d)
+    bare = dataclasses.replace(post, fallback_sd=()).transfer_sd_for(fit, d)
+    np.testing.assert_allclose(sd[:, [0, 2]], bare[:, [0, 2]], rtol=0, atol=0)
+    if check == "warn":
+        np.testing.assert_allclose(sd, bare, rtol=0, atol=0)
+        assert post.checked_axes == () and "failed its check" not in tr.warning
+        return
+    assert post.checked_axes == ("y",) and np.all(sd[:, 1] == loro[1]) and np.ptp(bare[:, 1]) > 0
+    assert tr.sd[1] == loro[1] and "failed its check" in tr.warning and "transfer_check" in tr.warning
+    back = H.posterior_from_artifact(json.loads(json.dumps(post.meta())), post.as_arrays(), fit.param_names)
+    np.testing.assert_allclose(back.transfer_sd_for(fit, d), sd, rtol=1e-12)
+    for bad in ([1.0, 2.0], [None, -1.0, None], [None, "x", None], [None, float("nan"), None]):
+        with pytest.raises(ValueError, match="sessions.fallback_sd"):
+            H.posterior_from_artifact({**post.meta(), "fallback_sd": bad}, post.as_arrays(), fit.param_names)

@@ -280,6 +280,7 @@ def test_apply_names_a_folder_that_is_not_a_calibration(tmp_path):
     ("UQSettings", {"level": 95}, r"level = 95 must be in \(0, 1\)"),
     ("UQSettings", {"transfer_likelihood": "cauchy"}, r"transfer_likelihood = 'cauchy'.*'student_t'"),
     ("UQSettings", {"transfer_uninformed": "free"}, r"transfer_uninformed"),
+    ("UQSettings", {"transfer_check": "off"}, r"transfer_check = 'off'.*'loro', 'warn'"),
     ("UQSettings", {"method": "pqsmc"}, r"method = 'pqsmc'.*'psqmc'"),
     ("UQSettings", {"n_params": 1}, r"n_params = 1 must be an integer of at least 2"),
     ("UQSettings", {"sigma_in": [0.05, 0.05, 0.05]}, r"sigma_in"),

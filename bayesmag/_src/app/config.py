@@ -82,6 +82,7 @@ class UQConfig:
     transfer_df: Union[float, str] = 4.0     # its Student-t degrees of freedom (> 2), or "learned" (a posterior over a grid)
     transfer_uninformed: str = "pooled"      # hierarchical: effects < 3 runs inform: "pooled" (as the learned ones) | "prior" | "fixed" (no change)
     transfer_networks: str = "none"          # "by_run_folds": the hybrid transfer part includes the network's own new-session error (docs/sessions.md)
+    transfer_check: str = "loro"             # hierarchical: an axis whose model spread is > 2x leave-one-run-out's uses loro's sd ("loro") or only warns ("warn")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,7 +200,7 @@ class Config:
                           seed=u.seed, chunk_size=u.chunk_size, residual_term=u.residual_term, transfer=u.transfer,
                           reference_sd=u.reference_sd, transfer_likelihood=u.transfer_likelihood,
                           transfer_df=u.transfer_df, transfer_uninformed=u.transfer_uninformed,
-                          transfer_networks=u.transfer_networks)
+                          transfer_networks=u.transfer_networks, transfer_check=u.transfer_check)
         network = conformal = nuts = None
         if self.network.enabled:
             network = self.network.settings()
@@ -231,6 +232,7 @@ _CHOICES = {
     "uq.transfer_likelihood": S.TRANSFER_LIKELIHOODS,
     "uq.transfer_uninformed": S.TRANSFER_UNINFORMED,
     "uq.transfer_networks": S.TRANSFER_NETWORKS,
+    "uq.transfer_check": S.TRANSFER_CHECKS,
     "measurement.kind": ("vector", "scalar", "constant"),
     "measurement.covariance": ("white", "ar1"),
     "measurement.interval_calibration": ("conformal", "none"),
@@ -405,7 +407,7 @@ _FIELD_INSTEAD = {
     "physics.temperature_terms": "measurement.temperature_terms", "physics.covariance": "measurement.covariance",
     "physics.extra_terms": None, "uq.reference_sd": "measurement.reference_sd", "uq.method": None,
     "uq.n_params": None, "uq.n_qmc": None, "uq.sigma_in": None, "uq.residual_term": None, "uq.chunk_size": None,
-    "uq.transfer_df": None, "uq.transfer_uninformed": None, "network.enabled": None,
+    "uq.transfer_df": None, "uq.transfer_uninformed": None, "uq.transfer_check": None, "network.enabled": None,
 }
 
 
@@ -446,7 +448,8 @@ def _check_semantics(cfg: Config) -> None:
         _refuse_vector_keys(cfg)
     elif not str(cfg.uq.transfer).startswith("hierarchical"):    # read by the session model only: never ignored
         unused = [f"uq.{k}" for k, default in (("transfer_likelihood", "gaussian"), ("transfer_df", 4.0),
-                                               ("transfer_uninformed", "pooled")) if getattr(cfg.uq, k) != default]
+                                               ("transfer_uninformed", "pooled"), ("transfer_check", "loro"))
+                  if getattr(cfg.uq, k) != default]
         if unused:
             raise ConfigError(f"Config key(s) {unused} set the hierarchical session model; uq.transfer = "
                               f"{cfg.uq.transfer!r} does not read them (they apply with uq.transfer = \"hierarchical\" "

@@ -47,6 +47,9 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
     "uq.transfer_uninformed": ("", 'hierarchical transfer: parameters fewer than 3 runs sweep change between sessions '
                                    'as much as the learned ones ("pooled"), by their prior ("prior") or not at all '
                                    '("fixed"); docs/sessions.md'),
+    "uq.transfer_check": ("", 'hierarchical transfer: an axis whose session-model spread is more than 2x leave-one-'
+                               'run-out\'s (and the residual sd) failed its check: "loro" uses leave-one-run-out\'s '
+                               'sd there, "warn" keeps the model\'s and warns (docs/sessions.md)'),
     "uq.transfer_df": ("", 'degrees of freedom of the Student-t transfer likelihood (> 2), or "learned": a posterior '
                            'on a grid 2.5-50 and the Gaussian limit (docs/sessions.md)'),
     "uq.transfer_networks": ("", '"none" | "by_run_folds": the hybrid transfer part adds the residual network\'s own '

@@ -236,6 +236,17 @@ def transfer_missing(m: dict) -> str | None:
     return None
 
 
+def _checked_note(tr: dict) -> str:
+    """The sentence naming the axes where the hierarchical model failed its check against leave-one-run-out and
+    its sd was replaced by loro's (``[uq] transfer_check = "loro"``); "" where none."""
+    chk = ((tr.get("per_run") or {}).get("model") or {}).get("check") or {}
+    failed = chk.get("failed_axes") or []
+    if not failed or chk.get("action") != "loro":
+        return ""
+    return (f"; on {', '.join(failed)} the model's spread was more than twice leave-one-run-out's (its check against "
+            f"the held-out runs failed) and leave-one-run-out's constant sd is used instead (`[uq] transfer_check`)")
+
+
 def hybrid_new_session(m: dict) -> dict | None:
     """The hybrid predictor's budget: its within-session parts over the test rows, interval scale and the transfer
     sd it adds to a new session (``metrics["network"]["training"][primary]["budget"]``; runs before that key have it
@@ -466,7 +477,7 @@ def uncertainty_budget(m: dict, params: dict, network_parts: dict | None = None,
     elif str(tr["method"]).startswith("hierarchical"):
         how = ("hierarchical session model (docs/sessions.md): its new-session predictive sd, the uncertainty about "
                "the between-session spread included, root mean square over the training rows (each row's own in "
-               "`bayesmag apply`'s `transfer` column); counted with infinite dof")
+               "`bayesmag apply`'s `transfer` column); counted with infinite dof" + _checked_note(tr))
     elif tr["method"] == "largest_offset_change":
         how = ("largest run-to-run change of the mean residual (fewer than 3 usable runs: a rough bound, not a "
                "confidence bound); counted with infinite dof")
@@ -965,7 +976,8 @@ def transfer_section(m: dict) -> list[str]:
         lines[-1] = lines[-1].replace("the between-session sd", "the root-mean-square between-session sd over "
                                       "the training rows")
         lines.append("The between-session sd depends on the row (hierarchical model of per-run parameter changes, "
-                     "docs/sessions.md): each row of a new recording gets its own (column `transfer`).")
+                     "docs/sessions.md): each row of a new recording gets its own (column `transfer`)."
+                     + (" O" + _checked_note(tr)[3:] + "." if _checked_note(tr) else ""))
         if tr.get("warning"):
             lines.append(f"> **Warning.** {tr['warning']}")
     else:

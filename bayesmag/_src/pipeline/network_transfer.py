@@ -193,7 +193,8 @@ def hybrid_session_model(train, fit, nt: NetworkTransfer, uq, series=None):
         within = (dataclasses.replace(recording, b_ref=b_ref), index)
     tr, post = hierarchical_transfer(rows, fit, method="nuts" if uq.transfer.endswith("nuts") else "laplace",
                                      level=uq.level, seed=uq.seed, likelihood=uq.transfer_likelihood,
-                                     df=uq.transfer_df, uninformed=uq.transfer_uninformed, series=within)
+                                     df=uq.transfer_df, uninformed=uq.transfer_uninformed, series=within,
+                                     check=uq.transfer_check)
     return (tr, post) if post is not None else None
 
 

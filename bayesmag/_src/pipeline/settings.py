@@ -24,7 +24,7 @@ from bayesmag._src.core.physics import T0_DEFAULT, PhysicsModel, resolve_t0
 from bayesmag._src.core.predictor import FUSIONS, UQOptions
 
 __all__ = ["PhysicsSettings", "UQSettings", "sigma_in_matrix", "NetworkSettings", "NutsSettings", "ConformalPlan", "CalibrationSettings",
-           "COVARIANCES", "UQ_METHODS", "TRANSFER_METHODS", "TRANSFER_LIKELIHOODS", "TRANSFER_UNINFORMED",
+           "COVARIANCES", "UQ_METHODS", "TRANSFER_METHODS", "TRANSFER_LIKELIHOODS", "TRANSFER_UNINFORMED", "TRANSFER_CHECKS",
            "TRANSFER_NETWORKS", "INTERVAL_CALIBRATIONS"]
 
 COVARIANCES = ("white", "ar1", "newey_west")
@@ -32,6 +32,7 @@ UQ_METHODS = ("auto", "psqmc", "mc", "analytic")
 TRANSFER_METHODS = ("loro", "hierarchical", "hierarchical_nuts", "off")
 TRANSFER_LIKELIHOODS = ("gaussian", "student_t", "laplace")
 TRANSFER_UNINFORMED = ("pooled", "prior", "fixed")
+TRANSFER_CHECKS = ("loro", "warn")
 TRANSFER_NETWORKS = ("none", "by_run_folds")
 #: Largest plausible input-noise sd (uT or C) and reference-magnetometer sd (uT); larger ones are typos.
 MAX_SD = 1e4
@@ -105,7 +106,9 @@ class UQSettings:
     ``"hierarchical"`` / ``"hierarchical_nuts"`` (per-run random effects, docs/sessions.md) or ``"off"``; ``reference_sd``: the reference's own standard uncertainty (uT, or 3 of them);
     ``transfer_likelihood`` / ``transfer_df``: the hierarchical model's likelihood, ``"gaussian"``,
     ``"student_t"`` with ``transfer_df`` dof (or ``"learned"``: a posterior on a grid) or ``"laplace"``; ``transfer_uninformed``: ``"pooled"``, ``"prior"`` or ``"fixed"``
-    (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`); ``transfer_networks``:
+    (:func:`~bayesmag._src.pipeline.sessions.hierarchical.with_prior_effects`); ``transfer_check``: ``"loro"`` (an axis
+    where the session model's spread is more than twice leave-one-run-out's uses loro's sd) or ``"warn"``
+    (:func:`~bayesmag._src.pipeline.sessions.hierarchical.hierarchical_transfer`); ``transfer_networks``:
     ``"none"`` or ``"by_run_folds"`` (the hybrid transfer part includes the network's own new-session error,
     :mod:`~bayesmag._src.pipeline.network_transfer`).
     """
@@ -124,6 +127,7 @@ class UQSettings:
     transfer_df: Union[float, str] = 4.0
     transfer_uninformed: str = "pooled"
     transfer_networks: str = "none"
+    transfer_check: str = "loro"
 
     def __post_init__(self):
         """The checks of the config's ``[uq]`` keys, so a script's settings are refused as a config's are (a
@@ -132,6 +136,7 @@ class UQSettings:
         _one_of("transfer", self.transfer, TRANSFER_METHODS)
         _one_of("transfer_likelihood", self.transfer_likelihood, TRANSFER_LIKELIHOODS)
         _one_of("transfer_uninformed", self.transfer_uninformed, TRANSFER_UNINFORMED)
+        _one_of("transfer_check", self.transfer_check, TRANSFER_CHECKS)
         _one_of("transfer_networks", self.transfer_networks, TRANSFER_NETWORKS)
         if not _number(self.level) or not 0 < self.level < 1:
             raise ValueError(f"level = {self.level!r} must be in (0, 1), e.g. 0.95.")

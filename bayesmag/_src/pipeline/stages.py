@@ -144,6 +144,7 @@ def run_physics_stage(uq_settings: UQSettings, train: CalibrationData, test: Cal
                                              "laplace", level=uq_settings.level, seed=uq_settings.seed,
                                              likelihood=uq_settings.transfer_likelihood, df=uq_settings.transfer_df,
                                              uninformed=uq_settings.transfer_uninformed,
+                                             check=uq_settings.transfer_check,
                                              series=series[:2] if whole else None)
     else:
         tr = TransferEstimate(np.zeros(3), "off", {}, warning=TRANSFER_OFF_WARNING)

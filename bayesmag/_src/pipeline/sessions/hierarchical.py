@@ -617,6 +617,9 @@ class SessionPosterior:
     mix_w_mean: np.ndarray | None = None
     mix_w_cov: np.ndarray | None = None
     df_log_evidence: np.ndarray | None = None   # (3, K) log marginal likelihood of each dof (diagnostic, not saved)
+    # per axis: the constant transfer sd used instead of the model's where it failed its check against
+    # leave-one-run-out (``transfer_check = "loro"``, :func:`hierarchical_transfer`); nan: the model's own; (): none
+    fallback_sd: tuple = ()
 
     def components(self) -> list["SessionPosterior"]:
         """The fixed-dof posteriors a learned-dof one mixes (``[]`` if the dof is fixed); ``mu`` and its
@@ -677,7 +680,16 @@ class SessionPosterior:
     def transfer_sd(self, J: np.ndarray, level: float | None = None) -> np.ndarray:
         """(n, 3) transfer sd: the equivalent new-session variance less the mean within-session noise."""
         _, _, noise = self.variance_moments(J)
-        return np.sqrt(np.maximum(self.new_session_variance(J, level) - noise, 0.0))
+        sd = np.sqrt(np.maximum(self.new_session_variance(J, level) - noise, 0.0))
+        if self.fallback_sd:
+            fb = np.asarray(self.fallback_sd, np.float64)
+            sd = np.where(np.isnan(fb)[None, :], sd, fb[None, :])
+        return sd
+
+    @property
+    def checked_axes(self) -> tuple:
+        """The axes (names) whose transfer is leave-one-run-out's constant sd, the model having failed its check."""
+        return tuple(ax for ax, v in zip(AXES, self.fallback_sd) if not math.isnan(v)) if self.fallback_sd else ()
 
     def transfer_sd_for(self, fit, data) -> np.ndarray:
         """(n, 3) transfer sd of every row of ``data`` for the physics ``fit`` (its Jacobian at ``fit.theta``)."""
@@ -696,7 +708,9 @@ class SessionPosterior:
                 "level": float(self.level), "n_runs": int(self.n_runs), "method": self.method,
                 "likelihood": self.likelihood, "df": self._df_meta(),
                 "prior_only": list(self.prior_only),
-                **({"df_grid": [float(d) if math.isfinite(d) else None for d in self.df_grid]} if self.df_grid else {})}
+                **({"df_grid": [float(d) if math.isfinite(d) else None for d in self.df_grid]} if self.df_grid else {}),
+                **({"fallback_sd": [None if math.isnan(v) else float(v) for v in self.fallback_sd]}
+                   if self.fallback_sd else {})}
 
     def _df_meta(self):
         return LEARNED if self.df_grid else float(self.df) if math.isfinite(self.df) else None
@@ -715,6 +729,8 @@ class SessionPosterior:
                                           for k, d in enumerate(self.df_grid)} for a, ax in enumerate(AXES)}}
                    if self.df_grid else {}),
                 **({"importance_ess": [round(float(e), 1) for e in self.ess]} if self.ess else {}),
+                **({"fallback_sd": {ax: None if math.isnan(v) else float(v) for ax, v in zip(AXES, self.fallback_sd)}}
+                   if self.fallback_sd else {}),
                 "tau": {ax: dict(zip(self.effects, map(float, self.tau[a]))) for a, ax in enumerate(AXES)},
                 "noise_sd": {ax: float(np.sqrt(self.w_mean[a, -1])) for a, ax in enumerate(AXES)}}
 
@@ -1579,6 +1595,8 @@ FEW_RUNS = 6
 #: 0.70x; clean 8-session campaigns of 100-row runs 8-22x on one axis on 5 of 8 seeds before the runs' weak directions
 #: were set aside (:func:`weak_directions`), 1.1-1.75x after (docs/sessions.md, Limits).
 MISFIT_RATIO = 2.0
+#: ``[uq] transfer_check``: what the job does on an axis :func:`misfit_axes` names (settings.TRANSFER_CHECKS).
+TRANSFER_CHECKS = ("loro", "warn")
 
 
 def misfit_axes(sd, loro_sd, s2) -> np.ndarray:
@@ -1590,7 +1608,7 @@ def misfit_axes(sd, loro_sd, s2) -> np.ndarray:
 
 def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float = 0.95, seed: int = 0,
                           effects: Sequence[str] = DEFAULT_EFFECTS, likelihood: str = "gaussian", df: float | str = 4.0,
-                          uninformed: str | None = None, series=None):
+                          uninformed: str | None = None, series=None, check: str = "loro"):
     """The job's ``[uq] transfer = "hierarchical"``: ``(TransferEstimate, SessionPosterior or None)``.
 
     The estimate's ``sd`` is the root-mean-square row-dependent transfer sd over the training rows (a
@@ -1598,20 +1616,26 @@ def hierarchical_transfer(train, fit, *, method: str = "laplace", level: float =
     :func:`~bayesmag._src.core.predictor.estimate_transfer` (its warning) and no session model. With 3 or more it
     also reports leave-one-run-out's sd (``loro_sd``) and warns on an axis whose sd exceeds :data:`MISFIT_RATIO`
     times that and the axis's residual sd (unmodelled physics read as session change: run ``bayesmag discover``).
+    ``check`` (``[uq] transfer_check``): ``"loro"`` (default) gives such an axis leave-one-run-out's constant sd
+    instead of the model's (the model failed a check against held-out runs: its spread is more than twice what
+    they show; docs/sessions.md, "The check against leave-one-run-out"), ``"warn"`` keeps the model's and only warns.
     ``series``: ``(recording, train_index)``: a model whose rows depend on their neighbours (a thermal lag) is
     linearised on the training rows within the recording, as it was fitted (:data:`_SERIES`).
     """
     token = _SERIES.set(None if series is None else (train, series[0], np.asarray(series[1])))
     try:
         return _hierarchical_transfer(train, fit, method=method, level=level, seed=seed, effects=effects,
-                                      likelihood=likelihood, df=df, uninformed=uninformed, series=series)
+                                      likelihood=likelihood, df=df, uninformed=uninformed, series=series,
+                                      check=check)
     finally:
         _SERIES.reset(token)
 
 
-def _hierarchical_transfer(train, fit, *, method, level, seed, effects, likelihood, df, uninformed, series):
+def _hierarchical_transfer(train, fit, *, method, level, seed, effects, likelihood, df, uninformed, series, check):
     from bayesmag._src.core.predictor import TransferEstimate, estimate_transfer
 
+    if check not in TRANSFER_CHECKS:
+        raise ValueError(f"check = {check!r} must be one of {list(TRANSFER_CHECKS)}.")
     bound = [t.name for t in fit.model.terms if getattr(t, "localised", None) == "run"]     # run_offset
     if bound:
         raise ValueError(f"the hierarchical transfer models every run's offset as a random effect; the model's "
@@ -1641,16 +1665,31 @@ def _hierarchical_transfer(train, fit, *, method, level, seed, effects, likeliho
         loro = estimate_transfer(train, fit, level=level, series=series).sd
         summary["loro_sd"] = {ax: float(v) for ax, v in zip(AXES, loro)}
         big = list(np.flatnonzero(misfit_axes(sd, loro, fit.s2)))
+        summary["check"] = {"rule": f"model rms transfer sd > {MISFIT_RATIO:g}x leave-one-run-out's and > the residual "
+                                    "sd", "action": check, "failed_axes": [AXES[a] for a in big],
+                            "model_rms_sd": {ax: float(v) for ax, v in zip(AXES, sd)}}
         if big:
-            warnings.append(
-                "The hierarchical transfer sd is " + ", ".join(f"{sd[a]:.3g} uT on {AXES[a]} ({sd[a] / max(loro[a], 1e-300):.1f}x "
-                                                              f"leave-one-run-out's {loro[a]:.3g})" for a in big)
-                + ". Three known causes (docs/sessions.md, Limits), each read as session change: physics that every "
-                "session shares but the model lacks (run `bayesmag discover` on the training data and put the terms it "
-                "names in [physics] extra_terms); runs that leave field directions unswept beyond what the model sets "
-                "aside as reading noise (a second posterior mode); and one run whose level the model does not fit "
-                "together with the others' (such as the only heated run, when no other run sweeps that axis). Compare "
-                "with [uq] transfer = \"loro\" before using these intervals.")
+            said = ", ".join(f"{sd[a]:.3g} uT on {AXES[a]} ({sd[a] / max(loro[a], 1e-300):.1f}x "
+                             f"leave-one-run-out's {loro[a]:.3g})" for a in big)
+            causes = ("Three known causes (docs/sessions.md, Limits), each read as session change: physics that every "
+                      "session shares but the model lacks (run `bayesmag discover` on the training data and put the "
+                      "terms it names in [physics] extra_terms); runs that leave field directions unswept beyond what "
+                      "the model sets aside as reading noise (a second posterior mode); and one run whose level the "
+                      "model does not fit together with the others' (such as the only heated run, when no other run "
+                      "sweeps that axis).")
+            if check == "loro":
+                fb = np.full(3, np.nan)
+                fb[big] = loro[big]
+                post = dataclasses.replace(post, fallback_sd=tuple(float(v) for v in fb))
+                sd = np.where(np.isnan(fb), sd, fb)
+                warnings.append(
+                    f"The hierarchical transfer sd is {said}: the session model failed its check against the held-out "
+                    f"runs on {', '.join(AXES[a] for a in big)}, and there the new-session intervals use "
+                    f"leave-one-run-out's constant sd instead (no row dependence on that axis; [uq] transfer_check = "
+                    f"\"warn\" keeps the model's). " + causes)
+            else:
+                warnings.append(f"The hierarchical transfer sd is {said}. " + causes
+                                + " Compare with [uq] transfer = \"loro\" before using these intervals.")
     warning = " ".join(warnings) or None
     return (TransferEstimate(sd, f"hierarchical_{post.method}",
                              {"model": summary, "conditions": condition_table(post, fit, train)}, warning), post)
@@ -1754,6 +1793,14 @@ def posterior_from_artifact(meta, arrays: dict, param_names: Sequence[str]) -> S
             raise ValueError("array 'sessions/mix_w_mean' or 'sessions/mix_w_cov' is not variance moments "
                              "(means >= 0, symmetric positive semi-definite covariances).")
         mix["df_grid"] = tuple(math.inf if g is None else float(g) for g in grid)
+    fb = meta.get("fallback_sd")
+    if fb is not None:
+        if not isinstance(fb, list) or len(fb) != 3 or any(
+                not (v is None or not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v >= 0)
+                for v in fb):
+            raise ValueError(f"field 'sessions.fallback_sd' = {fb!r} must list 3 values, each a transfer sd >= 0 (uT) "
+                             "or null (the model's own).")
+        mix["fallback_sd"] = tuple(math.nan if v is None else float(v) for v in fb)
     idx = tuple(list(param_names).index(e) for e in effects)
     return SessionPosterior(out["w_mean"], out["w_cov"], out["mu_cov"], out["scale"], tuple(effects), float(level),
                             int(n_runs), meta["method"], out["mu"], effect_index=idx,
