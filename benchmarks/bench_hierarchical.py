@@ -206,7 +206,7 @@ def belsten(args):
     f = lambda v: " / ".join(f"{100 * x:.0f}" for x in v)   # noqa: E731
     print("| left-out run | in-domain rows | transfer | covered x / y / z (%) | in-domain rows covered x / y / z (%) | "
           "covered or flagged x / y / z (%) | mean in-domain 95 % width (uT) | effects | "
-          "job's misfit warning (rms transfer sd / loro's) |")
+          "job's check: axes failed (new-session sd with the residual / loro's) |")
     print("|---|---|---|---|---|---|---|---|---|")
     from bayesmag._src.core.catalogue import make_extra
     extra = tuple(make_extra(name, t0=0.0) for name in args.extra)
@@ -229,7 +229,8 @@ def belsten(args):
         loro_sd = estimate_transfer(train, fit).sd
         rms = np.sqrt(np.mean(post.transfer_sd_for(fit, train) ** 2, axis=0))
         warned = H.misfit_axes(rms, loro_sd, fit.s2)          # the job's rule (hierarchical_transfer)
-        said = ", ".join(f"{'xyz'[a]} {rms[a] / loro_sd[a]:.1f}x" for a in np.flatnonzero(warned)) or "none"
+        tot = lambda v: np.sqrt(v**2 + fit.s2)     # noqa: E731  the check's new-session sd (misfit_axes)
+        said = ", ".join(f"{'xyz'[a]} {tot(rms)[a] / tot(loro_sd)[a]:.1f}x" for a in np.flatnonzero(warned)) or "none"
         fb = np.where(warned, loro_sd, np.nan)             # the job's default transfer_check = "loro"
         checked = dataclasses.replace(post, fallback_sd=tuple(map(float, fb))) if warned.any() else post
         for key, pr in (("loro", dataclasses.replace(base, transfer_sd=loro_sd)),
