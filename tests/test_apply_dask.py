@@ -111,7 +111,6 @@ def test_rate_flags_at_partition_boundaries_equal_the_whole_file(cal_dir, cluste
     np.testing.assert_array_equal(out["in_domain"], ref["in_domain"].astype(bool))
 
 
-@pytest.mark.extended
 def test_bad_csv_value_names_partition_file_and_row(cal_dir, archive, cluster, tmp_path):
     src = tmp_path / "in"
     src.mkdir()

@@ -62,7 +62,6 @@ def test_cubic_coefficient_recovered_in_sensor_units():
     assert abs(est["value"] - true) <= N_SE * est["se"] + 0.03 * abs(true), (est, true)
 
 
-@pytest.mark.extended
 def test_periodic_interference_is_unexplained_on_its_channel_with_time_scale():
     d, p, r = _indep("periodic", seed=1)
     assert not r.findings, r.findings

@@ -311,7 +311,6 @@ def test_student_t_transfer_from_the_config(tmp_path):
         config_from_dict({**raw, "uq": {**raw["uq"], "transfer_df": 2.0}})
 
 
-@pytest.mark.extended
 def test_uninformed_effects_keep_their_prior_about_the_training_mean():
     """`with_prior_effects` (issue 24 item 1): a parameter too few runs sweep adds its prior second moment
     s^2 (f - f_bar)^2 to the mean new-session variance of a row (closed form; f the scaled Jacobian column,
@@ -488,7 +487,6 @@ def test_laplace_likelihood_from_the_config():
         config_from_dict({**raw, "uq": {**raw["uq"], "transfer_likelihood": "cauchy"}})
 
 
-@pytest.mark.extended
 def test_bimodal_between_session_sd_matches_grid_integration():
     """Real data, Belsten with run 3 left out, y axis (issue 24): the collapsed posterior of the offset's
     between-session sd is bimodal (a mode near 0.05 uT and one near 1.5 uT, which holds most of the mass), and

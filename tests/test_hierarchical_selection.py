@@ -96,7 +96,6 @@ def test_decoupled_within_run_variation_recovers_the_between_session_sd(seed):
     assert new.mu[1, list(fit.model.param_names).index("S_x")] == pytest.approx(CROSS, abs=0.01)
 
 
-@pytest.mark.extended
 def test_learned_dof_with_decoupled_columns_drops_their_margin():
     """The learned-dof path (``transfer_df = "learned"``) on data with decoupled within-run columns: its posterior
     is over the model's parameters only, as the fixed-dof path's (the decoupled coefficients' margin dropped; before,

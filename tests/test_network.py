@@ -226,7 +226,6 @@ def test_chunked_training_is_the_one_loop_and_reports_progress():
     assert path.stat().st_size > 0
 
 
-@pytest.mark.extended
 def test_axes_trained_on_threads_equal_one_vmapped_call_and_do_not_depend_on_threads():
     """_train_parallel (each axis alone, on threads, as fit_residual_network trains) gives every axis the
     weights, losses and epochs of one vmapped _train_axes call (float32 rounding: 1e-6 on weights of

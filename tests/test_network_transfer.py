@@ -78,7 +78,6 @@ def test_out_of_fold_residuals_come_from_networks_that_did_not_see_the_run(runs)
     assert on.predictor.network_transfer_sd is nt.sd
 
 
-@pytest.mark.extended
 def test_option_off_is_today_and_on_only_adds_the_network_part(runs):
     _, test, on, off = runs
     assert off.predictor.network_transfer_sd is None and not off.hybrid.network_transfer
@@ -168,7 +167,6 @@ def _hybrid_rows(data, nt):
     return rows, dataclasses.replace(sub, b_ref=sub.b_ref - nt.rows["nn_oof"][rows])
 
 
-@pytest.mark.extended
 def test_hybrid_session_model_reads_the_shift_from_networks_that_did_not_see_the_run(hier):
     from bayesmag._src.pipeline.sessions import hierarchical_transfer
 
@@ -219,7 +217,6 @@ def test_hybrid_session_model_reads_the_shift_from_networks_that_did_not_see_the
     np.testing.assert_allclose(got.transfer, want.transfer, rtol=1e-6)
 
 
-@pytest.mark.extended
 def test_hierarchical_with_the_option_off_is_today(hier):
     data, test, on, off = hier
     # off: the physics session model, no network part, no hybrid session model, nothing new in the metrics
@@ -235,7 +232,6 @@ def test_hierarchical_with_the_option_off_is_today(hier):
     np.testing.assert_array_equal(p_back.total, p_off.total)
 
 
-@pytest.mark.extended
 def test_certificate_new_session_U_is_the_hybrids(hier):
     """Item 6: with the network's new-session part, U for a new session combines the hybrid's within-session parts
     and the transfer part it adds (recomputed here: Welch-Satterthwaite by its closed form, scipy's t quantile)."""

@@ -99,7 +99,6 @@ def _run(env_value, tmp_path):
     return r.stdout.strip()
 
 
-@pytest.mark.extended
 def test_compile_cache_off_by_default_and_the_env_switches_it_on(tmp_path):
     assert _run(None, tmp_path) == "None"                         # the library leaves JAX's setting alone
     d = tmp_path / "jaxcache"

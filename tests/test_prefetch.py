@@ -56,7 +56,6 @@ def test_networks_trained_during_the_physics_stage_are_the_ones_trained_after_it
     assert with_prefetch.timings["network_train"] > 0
 
 
-@pytest.mark.extended
 def test_an_error_after_the_fit_stops_the_background_training(split, monkeypatch):
     """The physics stage fails after the training started: calibrate raises that error and no training thread is
     left running (it stops at its next chunk of epochs)."""
@@ -84,7 +83,6 @@ def test_an_error_after_the_fit_stops_the_background_training(split, monkeypatch
     assert not any(t.name == "bayesmag-prefetch" and t.is_alive() for t in threading.enumerate())
 
 
-@pytest.mark.extended
 @pytest.mark.parametrize("net, transfer_networks, asked",
                          [({"interval_calibration": "conformal", "conformal_folds": 2}, "none", True),
                           pytest.param({}, "by_run_folds", False, marks=pytest.mark.slow)])
@@ -104,7 +102,6 @@ def test_fold_networks_are_not_prefetched(split, monkeypatch, net, transfer_netw
     assert got == ([None] if asked else [])
 
 
-@pytest.mark.extended
 def test_on_physics_hears_the_physics_stage_before_the_hybrid_stage_and_changes_nothing(split, monkeypatch):
     """``calibrate(on_physics=)`` (the command line queues the physics figures there, drawn while the networks
     train): called once, with the run's own physics stage, before the hybrid stage starts; a callback that runs

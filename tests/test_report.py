@@ -224,7 +224,6 @@ def _draw_broken(folder):
     raise RuntimeError("bad figure")
 
 
-@pytest.mark.extended
 def test_figure_worker_draws_in_background_and_surfaces_errors(tmp_path):
     """FigureWorker: queued figures land in the output folder at finish(), drawn in one other process;
     a drawing error is raised by finish() (never a silently missing figure); close() removes its folder."""
