@@ -13,6 +13,31 @@ os.environ["BAYESMAG_COMPILE_CACHE"] = "0"
 
 import bayesmag  # noqa: E402,F401  (enables float64)
 
+
+def _test_compile_cache():
+    """JAX's persistent cache in a fresh folder per test process, so a program compiled by one test is read back
+    by the next instead of compiled again (the library's jitted closures are built per call, so JAX's in-memory
+    caches miss where the HLO is the same). One folder per xdist worker: JAX writes entries without a lock, and a
+    reader in another process could see half a file. ``BAYESMAG_TEST_JAX_CACHE=0`` turns it off. The library's
+    own setting (``BAYESMAG_COMPILE_CACHE``) stays off: the tests of it run in subprocesses."""
+    if os.environ.get("BAYESMAG_TEST_JAX_CACHE", "1").strip().lower() in ("0", "off", "false", "no"):
+        return None
+    import atexit
+    import shutil
+    import tempfile
+
+    import jax
+    path = tempfile.mkdtemp(prefix=f"bayesmag-test-jax-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}-")
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    jax.config.update("jax_enable_compilation_cache", True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+TEST_COMPILE_CACHE = _test_compile_cache()
+
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
