@@ -82,7 +82,7 @@ def leave_one_out(path: Path, run: int, out: Path, transfer: str = "loro") -> di
 
 
 def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("loro", "hierarchical"),
-                       transfer_networks: str = "none", save: Path | None = None) -> dict:
+                       transfer_networks: str = "none", save: Path | None = None, transfer_check: str = "loro") -> dict:
     """Both transfers from one calibration: the job's settings, ``calibrate`` in this process (compiled
     programs reused across sessions), the hybrid predictor with each transfer part.
 
@@ -93,7 +93,9 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
     network part (``<transfer>+net``; it does not depend on the transfer), and the hierarchical transfer a third
     time as the calibration predicts it: the session model refitted on the out-of-fold hybrid residuals, no
     network part added (``hierarchical_oof``, :func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`).
-    ``save``: an ``.npz`` of the per-row pieces (test and training rows) for :func:`analyse`.
+    ``save``: an ``.npz`` of the per-row pieces (test and training rows) for :func:`analyse`. ``transfer_check``:
+    ``[uq] transfer_check`` (``"loro"``, the default: an axis of a session model more than 2x leave-one-run-out's
+    takes loro's sd, in the physics and the hybrid session model alike; ``"warn"`` keeps the model's).
     """
     import dataclasses
 
@@ -102,7 +104,8 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
 
     raw = {"name": "hybrid_shift", "data": {"path": "unused.csv"}, "split": {"kind": "by_run", "test_runs": [run]},
            "physics": {"t0": "mean"}, "uq": {"method": "psqmc", "n_params": 100, "n_qmc": 128, "seed": 0,
-                                             "transfer": "hierarchical", "transfer_networks": transfer_networks},
+                                             "transfer": "hierarchical", "transfer_networks": transfer_networks,
+                                             "transfer_check": transfer_check},
            "network": {"enabled": True, "learning_rate": 1e-3, "batch_size": 64, "max_epochs": 200, "patience": 20,
                        "mc_passes": 50, "seed": 0},
            "output": {"figures": False, "progress": False}}
@@ -174,6 +177,8 @@ def main(argv=None) -> int:
     ap.add_argument("--transfer-networks", default="none", choices=("none", "by_run_folds"),
                     help="with --both: [uq] transfer_networks; by_run_folds scores every transfer without and with "
                          "the network part")
+    ap.add_argument("--transfer-check", default="loro", choices=("loro", "warn"),
+                    help="with --both: [uq] transfer_check of the session models (default loro, the library's)")
     ap.add_argument("--save", default=None, help="with --both: a folder for one .npz of per-row pieces per session")
     ap.add_argument("--analyse", default=None, help="a --save folder: score other estimates of the network part "
                                                     "offline (diagnostic; nothing is trained)")
@@ -216,7 +221,8 @@ def main_both(a) -> int:
     f = lambda v: " / ".join("-" if np.isnan(x) else f"{100 * x:.1f}" for x in v)   # noqa: E731
     tn = a.transfer_networks
     print(f"## `python benchmarks/bench_hybrid_shift.py --both --sessions {a.sessions} --rows {a.rows} --seeds "
-          f"{' '.join(map(str, a.seeds))}{'' if tn == 'none' else ' --transfer-networks ' + tn}`\n")
+          f"{' '.join(map(str, a.seeds))}{'' if tn == 'none' else ' --transfer-networks ' + tn}"
+          f"{'' if a.transfer_check == 'loro' else ' --transfer-check ' + a.transfer_check}`\n")
     print("| seed | left-out session | transfer | rows in domain (%) | hybrid in-domain coverage x / y / z (%) | rows "
           "covered or flagged x / y / z (%) | physics in-domain coverage (%) | transfer sd x / y / z (uT) | network "
           "transfer sd (uT) | hybrid in-domain width (uT) |")
@@ -226,7 +232,8 @@ def main_both(a) -> int:
         d = sessions(a.sessions, a.rows, seed)
         for run in range(1, a.sessions + 1):
             save = None if a.save is None else Path(a.save) / f"s{seed}_r{run}.npz"
-            for t, r in leave_one_out_both(d, run, transfer_networks=tn, save=save).items():
+            for t, r in leave_one_out_both(d, run, transfer_networks=tn, save=save,
+                                                    transfer_check=a.transfer_check).items():
                 allr.setdefault(t, []).append((seed, run, r))
                 print(f"| {seed} | {run} | {t} | {100 * r['in_domain']:.1f} | {f(r['hybrid'])} | "
                       f"{f(r['flagged_or_covered'])} | {f(r['physics'])} | {' / '.join(f'{x:.3g}' for x in r['tau'])} | "

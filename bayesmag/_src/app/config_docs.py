@@ -49,7 +49,8 @@ KEY_DOCS: dict[str, tuple[str, str]] = {
                                    '("fixed"); docs/sessions.md'),
     "uq.transfer_check": ("", 'hierarchical transfer: an axis whose session-model spread is more than 2x leave-one-'
                                'run-out\'s (and the residual sd) failed its check: "loro" uses leave-one-run-out\'s '
-                               'sd there, "warn" keeps the model\'s and warns (docs/sessions.md)'),
+                               'sd there, "warn" keeps the model\'s and warns (the hybrid\'s out-of-fold session model, '
+                               'transfer_networks = "by_run_folds", is only warned about; docs/sessions.md)'),
     "uq.transfer_df": ("", 'degrees of freedom of the Student-t transfer likelihood (> 2), or "learned": a posterior '
                            'on a grid 2.5-50 and the Gaussian limit (docs/sessions.md)'),
     "uq.transfer_networks": ("", '"none" | "by_run_folds": the hybrid transfer part adds the residual network\'s own '
