@@ -234,6 +234,11 @@ def test_the_check_only_warns_on_the_hybrids_session_model(hier, monkeypatch):
     assert post.fallback_sd == () and tr.per_run["model"]["check"]["action"] == "warn"
     assert tr.per_run["model"]["check"]["failed_axes"] == ["x", "y", "z"] and "Compare with" in tr.warning
     np.testing.assert_allclose(tr.sd, np.sqrt(np.mean(post.transfer_sd_for(on.fit, data) ** 2, axis=0)), rtol=1e-12)
+    # a calibration whose hybrid model fails the check says so with its other warnings (the fixture's passes it)
+    sm = nt.session_model
+    assert not sm.per_run["model"]["check"]["failed_axes"] and not any("hybrid's session model" in w for w in on.warnings)
+    on_fail = calibrate(data, _settings("by_run_folds", "hierarchical"))
+    assert any("hybrid's session model" in w and "fourth cause" in w for w in on_fail.warnings)
     # the same rows through the physics path's default do fall back
     _, rows = _hybrid_rows(data, nt)
     tr_p, post_p = H.hierarchical_transfer(rows, on.fit, level=0.95, seed=0)

@@ -399,7 +399,8 @@ def run_hybrid_stage(settings: NetworkSettings, physics: Predictor, uq: PhysicsU
                     timings["hybrid_transfer"] = timings.get("hybrid_transfer", 0.0) + time.perf_counter() - t
                 if hsm is not None:     # tau_n is inside the out-of-fold residuals: not added again
                     nt = dataclasses.replace(nt, session_model=hsm[0])
-                    if hsm[0].warning:      # raised with the run's other warnings (it was in metrics.json only)
+                    failed = (hsm[0].per_run or {}).get("model", {}).get("check", {}).get("failed_axes")
+                    if failed and hsm[0].warning:   # raised with the run's others (it was in metrics.json only)
                         nan_messages.append(f"Residual network '{name}', the hybrid's session model (fitted on the "
                                             f"out-of-fold hybrid residuals; [uq] transfer_check only warns on it, and "
                                             f"its sd is kept): " + hsm[0].warning + " For this model a fourth cause "
