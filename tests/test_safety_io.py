@@ -587,19 +587,27 @@ def test_a_script_without_main_guard_fits_once_and_spawns_nothing(tmp_path):
         import os, sys
         import bayesmag
         from bayesmag.simulate import simulate
+        def children():             # this process's children (a process may exit between listdir and open)
+            out = []
+            for p in os.listdir("/proc"):
+                try:
+                    stat = open(f"/proc/{{p}}/stat").read() if p.isdigit() else ""
+                except OSError:
+                    continue
+                if stat and stat.rsplit(")", 1)[1].split()[1] == str(os.getpid()):
+                    out.append(p)
+            return out
         print("script body ran", os.getpid())
         d = simulate(600, design="campaign", seed=0)
         cal = bayesmag.Calibrator("paper_physics", overrides=["uq.n_params=20", "uq.n_qmc=32"],
                                   out={str(tmp_path / 'api')!r}).fit(d)
-        kids = [p for p in os.listdir("/proc") if p.isdigit() and
-                open(f"/proc/{{p}}/stat").read().rsplit(")", 1)[1].split()[1] == str(os.getpid())]
+        kids = children()
         print("children", kids)
         print("multiprocessing", "multiprocessing.resource_tracker" in sys.modules)
         cfg = bayesmag.load_config({str(Path(__file__).resolve().parents[1] / 'configs' / 'paper_physics.toml')!r},
                                    ["uq.n_params=20", "uq.n_qmc=32", "output.progress=false"])
         bayesmag.run_job(cfg, {str(tmp_path / 'job')!r})                  # a job from Python draws its figures here
-        kids = [p for p in os.listdir("/proc") if p.isdigit() and
-                open(f"/proc/{{p}}/stat").read().rsplit(")", 1)[1].split()[1] == str(os.getpid())]
+        kids = children()
         print("children after the job", kids)
         print("figures", sorted(p.name for p in __import__("pathlib").Path({str(tmp_path / 'job')!r}).glob("*.png")))
     """))
