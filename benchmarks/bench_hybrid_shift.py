@@ -94,8 +94,9 @@ def leave_one_out_both(data: bayesmag.CalibrationData, run: int, transfers=("lor
     time as the calibration predicts it: the session model refitted on the out-of-fold hybrid residuals, no
     network part added (``hierarchical_oof``, :func:`~bayesmag._src.pipeline.network_transfer.hybrid_session_model`).
     ``save``: an ``.npz`` of the per-row pieces (test and training rows) for :func:`analyse`. ``transfer_check``:
-    ``[uq] transfer_check`` (``"loro"``, the default: an axis of a session model more than 2x leave-one-run-out's
-    takes loro's sd, in the physics and the hybrid session model alike; ``"warn"`` keeps the model's).
+    ``[uq] transfer_check`` (``"loro"``, the default: an axis of the physics session model more than 2x
+    leave-one-run-out's takes loro's sd; ``"warn"`` keeps the model's; the hybrid's out-of-fold session model only
+    warns either way since 4d79bc2, so ``--transfer-check`` no longer changes its row).
     """
     import dataclasses
 

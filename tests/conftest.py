@@ -20,7 +20,9 @@ def _test_compile_cache():
     caches miss where the HLO is the same). One folder per xdist worker: JAX writes entries without a lock, and a
     reader in another process could see half a file. ``BAYESMAG_TEST_JAX_CACHE=0`` turns it off. The library's
     own setting (``BAYESMAG_COMPILE_CACHE``) stays off: the tests of it run in subprocesses."""
-    if os.environ.get("BAYESMAG_TEST_JAX_CACHE", "1").strip().lower() in ("0", "off", "false", "no"):
+    from bayesmag._src.core.cache import _OFF       # the library's spelling of "off"
+
+    if os.environ.get("BAYESMAG_TEST_JAX_CACHE", "1").strip().lower() in _OFF:
         return None
     import atexit
     import shutil
